@@ -1,0 +1,35 @@
+"""itk-nrreval: which registration of a group of images is best, without ground truth.
+
+Twining et al., "Evaluating Registration Without Ground Truth", IEEE TMI. The registered
+images of a group give a shape-free texture model; its specificity scores the registration
+(lower is better). Where labels exist, the generalized Tanimoto overlap is the reference.
+"""
+
+from ._errors import InputError
+from .model import TextureModel
+from .specificity import (
+    GeneralizationResult,
+    SpecificityComparison,
+    SpecificityResult,
+    compare_specificity,
+    generalization,
+    loo_generalization,
+    specificity,
+    texture_measures,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "InputError",
+    "TextureModel",
+    "SpecificityResult",
+    "GeneralizationResult",
+    "SpecificityComparison",
+    "specificity",
+    "generalization",
+    "texture_measures",
+    "compare_specificity",
+    "loo_generalization",
+    "__version__",
+]

@@ -1,0 +1,16 @@
+"""The one exception type the toolkit raises for bad input.
+
+The CLI turns it into a single line on stderr and exit code 2, so its message must stand
+on its own: name the file (or argument) and say what is wrong with it.
+"""
+
+from __future__ import annotations
+
+__all__ = ["InputError"]
+
+
+class InputError(ValueError):
+    """Bad input: a file that cannot be read, grids that differ, a malformed manifest.
+
+    Subclasses :class:`ValueError` so library callers can catch either.
+    """

@@ -1,0 +1,205 @@
+"""Model samples and their nearest training points, fused, in parallel (numba).
+
+Samples are never stored: sample ``mu`` of a model with mode standard deviations ``sd`` is
+``y[k] = z(seed, mu, k) * sd[k]``, where ``z`` is a counter-based standard normal (the
+splitmix64 stream at a position fixed by ``(mu, k)``, then Box-Muller). Hence
+
+* the same seed gives the same numbers whatever the thread count or chunk size;
+* two models sharing a seed see the same standard normals in their common modes
+  (common random numbers, for paired comparisons);
+* memory is O(chunk x N) per thread, whatever M is.
+
+Distances to the N training points are accumulated mode by mode across all N at once, which
+vectorizes; the per-sample nearest distance (L1 sum, or squared L2) and its index come out.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["standard_normals", "run_single", "run_paired", "combine_moments", "CHUNK"]
+
+CHUNK = 4096
+_GAMMA = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_TWO_PI = 2.0 * np.pi
+_INV_2_53 = 1.0 / 9007199254740992.0
+
+
+@numba.njit(inline="always", cache=True)
+def _mix(x):
+    x = (x ^ (x >> np.uint64(30))) * _M1
+    x = (x ^ (x >> np.uint64(27))) * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+@numba.njit(inline="always", cache=True)
+def _uniform(key, counter):
+    """A uniform in (0, 1] from the splitmix64 stream `key` at position `counter`."""
+    x = _mix(key + (counter + np.uint64(1)) * _GAMMA)
+    return ((x >> np.uint64(11)) + np.uint64(1)) * _INV_2_53
+
+
+@numba.njit(cache=True)
+def _fill_normals(key, mu, out):
+    """Standard normals z(key, mu, k) for k < len(out), two per Box-Muller pair."""
+    k_total = out.shape[0]
+    base = np.uint64(mu) << np.uint64(18)
+    for p in range((k_total + 1) // 2):
+        c = (base + np.uint64(p)) << np.uint64(1)
+        u1 = _uniform(key, c)
+        u2 = _uniform(key, c + np.uint64(1))
+        r = np.sqrt(-2.0 * np.log(u1))
+        t = _TWO_PI * u2
+        out[2 * p] = r * np.cos(t)
+        if 2 * p + 1 < k_total:
+            out[2 * p + 1] = r * np.sin(t)
+
+
+def _key(seed: int) -> np.uint64:
+    """The splitmix64-mixed stream key of a user seed."""
+    if not 0 <= int(seed) < 2**63:
+        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
+    mask = 2**64 - 1
+    x = (int(seed) + int(_GAMMA)) & mask
+    x = ((x ^ (x >> 30)) * int(_M1)) & mask
+    x = ((x ^ (x >> 27)) * int(_M2)) & mask
+    return np.uint64(x ^ (x >> 31))
+
+
+def standard_normals(seed: int, start: int, stop: int, n_modes: int) -> np.ndarray:
+    """The standard normals of samples ``start:stop`` as an array (for tests and references)."""
+    key = _key(seed)
+    out = np.empty((stop - start, n_modes))
+    for row, mu in enumerate(range(start, stop)):
+        _fill_normals(key, mu, out[row])
+    return out
+
+
+@numba.njit(cache=True)
+def _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen_min):
+    """Samples start:stop: nearest distance (L1 sum or squared L2) and index per sample.
+
+    train_t is (n_modes, n_images); gen_min (n_images,) is lowered in place to each training
+    point's nearest sample distance.
+    """
+    n_modes, n_images = train_t.shape
+    for mu in range(start, stop):
+        _fill_normals(key, mu, y)
+        for i in range(n_images):
+            dist[i] = 0.0
+        for k in range(n_modes):
+            yk = y[k] * sd[k]
+            row = train_t[k]
+            if l2:
+                for i in range(n_images):
+                    diff = yk - row[i]
+                    dist[i] += diff * diff
+            else:
+                for i in range(n_images):
+                    dist[i] += abs(yk - row[i])
+        best = dist[0]
+        besti = 0
+        for i in range(n_images):
+            d = dist[i]
+            if d < best:
+                best = d
+                besti = i
+            if d < gen_min[i]:
+                gen_min[i] = d
+        values[mu - start] = best
+        nearest[mu - start] = besti
+
+
+@numba.njit(cache=True)
+def _finish(values, count, l2, exponent):
+    """Turn raw nearest distances into |x - y|^exponent in place."""
+    for j in range(count):
+        v = values[j]
+        if l2:
+            v = np.sqrt(v)
+        if exponent != 1.0:
+            v = v**exponent
+        values[j] = v
+
+
+@numba.njit(cache=True)
+def _moments(values, count):
+    s = 0.0
+    for j in range(count):
+        s += values[j]
+    m = s / count
+    m2 = 0.0
+    for j in range(count):
+        d = values[j] - m
+        m2 += d * d
+    return m, m2
+
+
+@numba.njit(parallel=True, cache=True)
+def run_single(train_t, sd, key, n_samples, l2, exponent, chunk):
+    """Per-chunk (count, mean, M2) of the sample nearest distances, Voronoi counts, gen minima."""
+    n_modes, n_images = train_t.shape
+    n_chunks = (n_samples + chunk - 1) // chunk
+    means = np.empty(n_chunks)
+    m2s = np.empty(n_chunks)
+    counts = np.zeros((n_chunks, n_images), dtype=np.int64)
+    gen = np.full((n_chunks, n_images), np.inf)
+    for c in numba.prange(n_chunks):
+        start = c * chunk
+        stop = min(n_samples, start + chunk)
+        y = np.empty(n_modes)
+        dist = np.empty(n_images)
+        values = np.empty(stop - start)
+        nearest = np.empty(stop - start, dtype=np.int64)
+        _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen[c])
+        _finish(values, stop - start, l2, exponent)
+        means[c], m2s[c] = _moments(values, stop - start)
+        for j in range(stop - start):
+            counts[c, nearest[j]] += 1
+    return means, m2s, counts, gen
+
+
+@numba.njit(parallel=True, cache=True)
+def run_paired(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk):
+    """As run_single for two models on the same standard normals, plus their difference a - b."""
+    n_chunks = (n_samples + chunk - 1) // chunk
+    moments = np.empty((3, n_chunks, 2))
+    counts_a = np.zeros((n_chunks, train_a.shape[1]), dtype=np.int64)
+    counts_b = np.zeros((n_chunks, train_b.shape[1]), dtype=np.int64)
+    gen_a = np.full((n_chunks, train_a.shape[1]), np.inf)
+    gen_b = np.full((n_chunks, train_b.shape[1]), np.inf)
+    for c in numba.prange(n_chunks):
+        start = c * chunk
+        stop = min(n_samples, start + chunk)
+        m = stop - start
+        va = np.empty(m)
+        vb = np.empty(m)
+        na = np.empty(m, dtype=np.int64)
+        nb = np.empty(m, dtype=np.int64)
+        _chunk(train_a, sd_a, key, start, stop, l2, np.empty(train_a.shape[0]),
+               np.empty(train_a.shape[1]), va, na, gen_a[c])
+        _chunk(train_b, sd_b, key, start, stop, l2, np.empty(train_b.shape[0]),
+               np.empty(train_b.shape[1]), vb, nb, gen_b[c])
+        _finish(va, m, l2, exponent)
+        _finish(vb, m, l2, exponent)
+        moments[0, c, 0], moments[0, c, 1] = _moments(va, m)
+        moments[1, c, 0], moments[1, c, 1] = _moments(vb, m)
+        for j in range(m):
+            va[j] -= vb[j]
+            counts_a[c, na[j]] += 1
+            counts_b[c, nb[j]] += 1
+        moments[2, c, 0], moments[2, c, 1] = _moments(va, m)
+    return moments, counts_a, counts_b, gen_a, gen_b
+
+
+def combine_moments(means: np.ndarray, m2s: np.ndarray, n_samples: int, chunk: int):
+    """Combine per-chunk means and M2 (Chan et al.) into the overall mean and M2."""
+    sizes = np.full(means.shape[0], chunk, dtype=np.float64)
+    sizes[-1] = n_samples - chunk * (means.shape[0] - 1)
+    mean = float(np.sum(sizes * means) / n_samples)
+    m2 = float(np.sum(m2s) + np.sum(sizes * (means - mean) ** 2))
+    return mean, m2
+
