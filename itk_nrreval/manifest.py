@@ -1,0 +1,606 @@
+"""The manifest: N images, optional labels, and the registrations of them to evaluate.
+
+A manifest is a YAML (or JSON) file::
+
+    images: [img/s00.nii.gz, img/s01.nii.gz]        # N training images, each in its own space
+    labels: [lab/s00.nii.gz, lab/s01.nii.gz]        # optional integer label maps, same spaces
+    mask: mask.nii.gz                                # optional, on the common frame's grid
+    common_frame: fluid                              # optional; default the first registration
+    registrations:
+      fluid:
+        reference: fluid/template.nii.gz            # grid of this registration's frame
+        transforms: [fluid/s00.h5, fluid/s01.h5]    # one entry per image: a path or a chain
+      pair1:
+        reference: img/s01.nii.gz
+        reference_index: 1                          # the reference is training image 1
+        transforms: [[pair1/s00_1Warp.nii.gz, pair1/s00_0GenericAffine.mat], pair1/s01.tfm]
+      groupwise:
+        reference: group/mean.nii.gz
+        frame_transform: group/common_to_group.h5   # common frame -> this frame (optional)
+        transforms: [...]
+
+Every transform maps reference (fixed) points to image (moving) points. A chain is listed
+in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
+:mod:`itk_nrreval.transforms`. Relative paths are relative to the manifest's folder.
+
+:func:`load_manifest` checks everything that can be checked without heavy work (keys,
+counts, files present, image / transform dimensions, the ``common_frame`` name) and reports
+every problem at once in one :class:`InputError`. :func:`write_manifest` writes paths
+relative to the manifest's folder; :func:`add_registration` adds or replaces one
+registration in a manifest file, creating it when needed.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import SimpleITK as sitk
+import yaml
+
+from ._errors import InputError
+from ._output import write_text
+
+__all__ = [
+    "Registration",
+    "Manifest",
+    "load_manifest",
+    "write_manifest",
+    "add_registration",
+    "TRANSFORM_SUFFIXES",
+    "FIELD_SUFFIXES",
+]
+
+#: File suffixes read as ITK transform files (``sitk.ReadTransform``).
+TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
+#: File suffixes read as displacement-field images (vectors in mm, LPS, ITK (x, y, z) order).
+FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+_TOP_KEYS = ("images", "labels", "mask", "common_frame", "registrations")
+_REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform")
+
+TransformItem = "Path | sitk.Transform"
+
+
+@dataclass(frozen=True)
+class Registration:
+    """One registration of the N images.
+
+    Attributes
+    ----------
+    reference : Path
+        Image whose grid is this registration's reference frame (absolute path).
+    transforms : tuple of tuple of (Path or sitk.Transform), length n_images
+        Per image, its chain in ANTs ``fwdtransforms`` order (a single transform is a chain
+        of one). Each maps reference points (mm, LPS) to image points.
+    reference_index : int or None
+        Index k of the training image that is this registration's reference (pairwise
+        registration to image k), or None.
+    frame_transform : Path or sitk.Transform or None
+        A transform from the common frame into this registration's frame, or None.
+    """
+
+    reference: Path
+    transforms: tuple[tuple[Any, ...], ...]
+    reference_index: int | None = None
+    frame_transform: Any = None
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A parsed, checked manifest (all paths absolute).
+
+    Attributes
+    ----------
+    images : tuple of Path, length n_images
+    labels : tuple of Path or None
+    mask : Path or None
+    common_frame : str
+        Name of the registration whose reference frame is the common frame.
+    registrations : dict of str to Registration
+        In the manifest's order.
+    source : Path or None
+        The manifest file, or None for a manifest built from a dict.
+    """
+
+    images: tuple[Path, ...]
+    labels: tuple[Path, ...] | None
+    mask: Path | None
+    common_frame: str
+    registrations: Mapping[str, Registration] = field(default_factory=dict)
+    source: Path | None = None
+
+    @property
+    def n_images(self) -> int:
+        return len(self.images)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Registration names, in the manifest's order."""
+        return tuple(self.registrations)
+
+    def describe(self) -> dict:
+        """A JSON-ready description of the inputs (paths as given, absolute)."""
+        return {
+            "manifest": None if self.source is None else str(self.source),
+            "n_images": self.n_images,
+            "images": [str(p) for p in self.images],
+            "labels": None if self.labels is None else [str(p) for p in self.labels],
+            "mask": None if self.mask is None else str(self.mask),
+            "common_frame": self.common_frame,
+            "registrations": {
+                name: {
+                    "reference": str(r.reference),
+                    "reference_index": r.reference_index,
+                    "frame_transform": _describe_item(r.frame_transform),
+                    "transforms": [[_describe_item(t) for t in chain] for chain in r.transforms],
+                }
+                for name, r in self.registrations.items()
+            },
+        }
+
+
+def _describe_item(item) -> Any:
+    if item is None:
+        return None
+    if isinstance(item, sitk.Transform):
+        return f"<in-memory {item.GetName()}>"
+    return str(item)
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def load_manifest(
+    source: str | os.PathLike | Mapping,
+    *,
+    base_dir: str | os.PathLike | None = None,
+    check_files: bool = True,
+) -> Manifest:
+    """Read and check a manifest, reporting every problem at once.
+
+    Parameters
+    ----------
+    source : path or mapping
+        A YAML / JSON manifest file, or the same content as a dict (a :class:`Manifest` is
+        returned unchanged). In a dict, transforms may also be in-memory ``sitk.Transform``.
+    base_dir : path, optional
+        Folder that relative paths in a dict are relative to (default: the current
+        directory). Ignored for a file: its paths are relative to its own folder.
+    check_files : bool
+        Also check that every file exists and that image and transform dimensions agree
+        (reads image headers and transform files, never voxel data of images). False checks
+        the structure only (used when editing a manifest).
+
+    Returns
+    -------
+    Manifest
+
+    Raises
+    ------
+    InputError
+        One message, ``"<manifest>: N problems: a; b; c"``, listing every problem found:
+        unreadable YAML, unknown keys, missing files, wrong counts, dimensions that differ,
+        a ``reference_index`` out of range, an unknown ``common_frame``.
+    """
+    if isinstance(source, Manifest):
+        return source
+    if isinstance(source, Mapping):
+        data = dict(source)
+        base = Path(base_dir) if base_dir is not None else Path.cwd()
+        label = "manifest"
+        src_path = None
+    else:
+        src_path = Path(source).absolute()
+        label = str(source)
+        if not src_path.is_file():
+            raise InputError(f"{label}: manifest file not found")
+        try:
+            data = yaml.safe_load(src_path.read_text())
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            msg = " ".join(str(exc).split())
+            raise InputError(f"{label}: not valid YAML/JSON ({msg[:200]})") from None
+        if not isinstance(data, Mapping):
+            raise InputError(f"{label}: expected a mapping with 'images' and 'registrations'")
+        base = src_path.parent
+    problems: list[str] = []
+    manifest = _parse(data, base.absolute(), problems)
+    if manifest is not None:
+        manifest = replace(manifest, source=src_path)
+        if check_files:
+            _check_files(manifest, problems)
+    _raise(label, problems)
+    assert manifest is not None
+    return manifest
+
+
+def _raise(label: str, problems: list[str]) -> None:
+    if not problems:
+        return
+    if len(problems) == 1:
+        raise InputError(f"{label}: {problems[0]}")
+    raise InputError(f"{label}: {len(problems)} problems: " + "; ".join(problems))
+
+
+def _path(value, base: Path, what: str, problems: list[str]) -> Path | None:
+    if isinstance(value, (str, os.PathLike)) and str(value).strip():
+        p = Path(os.path.expanduser(str(value)))
+        return p if p.is_absolute() else base / p
+    problems.append(f"{what}: expected a file path, got {value!r}")
+    return None
+
+
+def _path_list(value, base: Path, what: str, problems: list[str]) -> tuple[Path, ...] | None:
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        problems.append(f"{what}: expected a list of file paths, got {type(value).__name__}")
+        return None
+    if len(value) == 0:
+        problems.append(f"{what}: the list is empty")
+        return None
+    out = [_path(v, base, f"{what}[{i}]", problems) for i, v in enumerate(value)]
+    return None if any(p is None for p in out) else tuple(out)
+
+
+def _transform_item(value, base: Path, what: str, problems: list[str]):
+    if isinstance(value, sitk.Transform):
+        return value
+    return _path(value, base, what, problems)
+
+
+def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
+    for key in data:
+        if key not in _TOP_KEYS:
+            problems.append(f"unknown key {key!r} (expected {', '.join(_TOP_KEYS)})")
+    images = None
+    if "images" not in data:
+        problems.append("missing 'images' (the list of N training images)")
+    else:
+        images = _path_list(data["images"], base, "images", problems)
+    labels = None
+    if data.get("labels") is not None:
+        labels = _path_list(data["labels"], base, "labels", problems)
+        if labels is not None and images is not None and len(labels) != len(images):
+            problems.append(f"labels: {len(labels)} label maps for {len(images)} images")
+    mask = _path(data["mask"], base, "mask", problems) if data.get("mask") is not None else None
+    n = None if images is None else len(images)
+
+    regs: dict[str, Registration] = {}
+    raw = data.get("registrations")
+    if raw is None:
+        problems.append("missing 'registrations' (at least one)")
+    elif not isinstance(raw, Mapping) or len(raw) == 0:
+        problems.append("registrations: expected a non-empty mapping of name -> registration")
+    else:
+        for name, entry in raw.items():
+            reg = _parse_registration(str(name), entry, base, n, problems)
+            if reg is not None:
+                regs[str(name)] = reg
+    common = data.get("common_frame")
+    if common is None:
+        common = next(iter(raw)) if isinstance(raw, Mapping) and raw else ""
+    elif isinstance(raw, Mapping) and str(common) not in {str(k) for k in raw}:
+        problems.append(
+            f"common_frame {common!r} is not a registration (have: {', '.join(map(str, raw))})"
+        )
+    if images is None:
+        return None
+    return Manifest(images, labels, mask, str(common), regs)
+
+
+def _parse_registration(
+    name: str, entry, base: Path, n: int | None, problems: list[str]
+) -> Registration | None:
+    where = f"registrations.{name}"
+    if not isinstance(entry, Mapping):
+        problems.append(f"{where}: expected a mapping with 'reference' and 'transforms'")
+        return None
+    for key in entry:
+        if key not in _REG_KEYS:
+            problems.append(f"{where}: unknown key {key!r} (expected {', '.join(_REG_KEYS)})")
+    ok = True
+    reference = None
+    if "reference" not in entry:
+        problems.append(f"{where}: missing 'reference' (the image whose grid is its frame)")
+        ok = False
+    else:
+        reference = _path(entry["reference"], base, f"{where}.reference", problems)
+        ok &= reference is not None
+    chains: list[tuple] = []
+    raw = entry.get("transforms")
+    if raw is None:
+        problems.append(f"{where}: missing 'transforms' (one per image)")
+        ok = False
+    elif isinstance(raw, (str, bytes)) or not isinstance(raw, Sequence):
+        problems.append(f"{where}.transforms: expected a list, one entry per image")
+        ok = False
+    else:
+        if n is not None and len(raw) != n:
+            problems.append(f"{where}.transforms: {len(raw)} entries for {n} images")
+            ok = False
+        for i, item in enumerate(raw):
+            w = f"{where}.transforms[{i}]"
+            if isinstance(item, (list, tuple)):
+                if len(item) == 0:
+                    problems.append(f"{w}: empty chain")
+                    ok = False
+                    continue
+                chain = tuple(
+                    _transform_item(t, base, f"{w}[{j}]", problems) for j, t in enumerate(item)
+                )
+            else:
+                chain = (_transform_item(item, base, w, problems),)
+            ok &= all(t is not None for t in chain)
+            chains.append(chain)
+    ref_index = entry.get("reference_index")
+    if ref_index is not None:
+        if isinstance(ref_index, bool) or not isinstance(ref_index, int):
+            problems.append(f"{where}.reference_index: expected an integer, got {ref_index!r}")
+            ok = False
+        elif n is not None and not 0 <= ref_index < n:
+            problems.append(f"{where}.reference_index: {ref_index} is not in 0..{n - 1}")
+            ok = False
+    frame = entry.get("frame_transform")
+    if frame is not None:
+        frame = _transform_item(frame, base, f"{where}.frame_transform", problems)
+        ok &= frame is not None
+    if not ok:
+        return None
+    return Registration(reference, tuple(chains), ref_index, frame)
+
+
+# ----------------------------------------------------------------------------- file checks
+
+
+def _image_info(path: Path) -> tuple[int, int]:
+    """(dimension, components) of an image from its header."""
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.ReadImageInformation()
+    return reader.GetDimension(), reader.GetNumberOfComponents()
+
+
+_TEXT_HEADER = re.compile(r"^Transform:\s*\S+?_(\d)_(\d)\s*$")
+
+
+def transform_file_dimension(path: Path) -> int:
+    """Spatial dimension of a transform file or displacement-field image, cheaply.
+
+    Text transform files are scanned for their ``Transform: Name_double_D_D`` line; other
+    transform files are read; displacement-field images give their header's dimension.
+
+    Raises
+    ------
+    RuntimeError, ValueError
+        When the file cannot be read as a transform.
+    """
+    suffix = _suffix(path)
+    if suffix in FIELD_SUFFIXES:
+        dim, comps = _image_info(path)
+        if comps != dim:
+            raise ValueError(
+                f"a displacement field needs {dim} vector components per voxel, has {comps}"
+            )
+        return dim
+    if suffix in (".txt", ".tfm"):
+        with open(path, errors="replace") as fh:
+            for line in fh:
+                m = _TEXT_HEADER.match(line.strip())
+                if m:
+                    return int(m.group(1))
+        raise ValueError("no 'Transform:' line")
+    return sitk.ReadTransform(str(path)).GetDimension()
+
+
+def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
+    if isinstance(item, sitk.Transform):
+        d = item.GetDimension()
+    else:
+        if not item.is_file():
+            problems.append(f"{what}: file not found: {item}")
+            return
+        suffix = _suffix(item)
+        if suffix not in TRANSFORM_SUFFIXES + FIELD_SUFFIXES:
+            problems.append(
+                f"{what}: {item.name}: unknown transform format (expected one of "
+                f"{', '.join(TRANSFORM_SUFFIXES + FIELD_SUFFIXES)})"
+            )
+            return
+        try:
+            d = transform_file_dimension(item)
+        except (RuntimeError, ValueError, OSError) as exc:
+            reason = next((ln for ln in str(exc).splitlines() if ln.strip()), "unreadable")
+            problems.append(f"{what}: cannot read transform {item.name} ({reason.strip()[:120]})")
+            return
+    if dim is not None and d != dim:
+        problems.append(f"{what}: {d}D transform for {dim}D images")
+
+
+def _check_image(path: Path, what: str, dim: int | None, problems: list[str]) -> int | None:
+    if not path.is_file():
+        problems.append(f"{what}: file not found: {path}")
+        return None
+    try:
+        d, comps = _image_info(path)
+    except RuntimeError:
+        problems.append(f"{what}: cannot read image {path}")
+        return None
+    if comps != 1:
+        problems.append(f"{what}: {path.name} has {comps} components, expected a scalar image")
+    if dim is not None and d != dim:
+        problems.append(f"{what}: {path.name} is {d}D, the images are {dim}D")
+    return d
+
+
+def _check_files(m: Manifest, problems: list[str]) -> None:
+    dim = None
+    for i, p in enumerate(m.images):
+        d = _check_image(p, f"images[{i}]", dim, problems)
+        dim = dim if dim is not None else d
+    for i, p in enumerate(m.labels or ()):
+        _check_image(p, f"labels[{i}]", dim, problems)
+    if m.mask is not None:
+        _check_image(m.mask, "mask", dim, problems)
+    for name, r in m.registrations.items():
+        where = f"registrations.{name}"
+        _check_image(r.reference, f"{where}.reference", dim, problems)
+        for i, chain in enumerate(r.transforms):
+            for j, item in enumerate(chain):
+                w = f"{where}.transforms[{i}]" + (f"[{j}]" if len(chain) > 1 else "")
+                _check_item(item, w, dim, problems)
+        if r.frame_transform is not None:
+            _check_item(r.frame_transform, f"{where}.frame_transform", dim, problems)
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def _rel(path, folder: Path | None) -> str:
+    if isinstance(path, sitk.Transform):
+        raise InputError(
+            "manifest: an in-memory transform cannot be written; write it to a file first"
+        )
+    p = Path(path)
+    if folder is None or not p.is_absolute():
+        return p.as_posix()
+    try:
+        return Path(os.path.relpath(p, folder)).as_posix()
+    except ValueError:  # another drive on Windows
+        return p.as_posix()
+
+
+def _to_dict(m: Manifest, folder: Path | None) -> dict:
+    out: dict[str, Any] = {"images": [_rel(p, folder) for p in m.images]}
+    if m.labels is not None:
+        out["labels"] = [_rel(p, folder) for p in m.labels]
+    if m.mask is not None:
+        out["mask"] = _rel(m.mask, folder)
+    out["common_frame"] = m.common_frame
+    regs = {}
+    for name, r in m.registrations.items():
+        e: dict[str, Any] = {"reference": _rel(r.reference, folder)}
+        if r.reference_index is not None:
+            e["reference_index"] = int(r.reference_index)
+        if r.frame_transform is not None:
+            e["frame_transform"] = _rel(r.frame_transform, folder)
+        e["transforms"] = [
+            _rel(c[0], folder) if len(c) == 1 else [_rel(t, folder) for t in c]
+            for c in r.transforms
+        ]
+        regs[name] = e
+    out["registrations"] = regs
+    return out
+
+
+def write_manifest(manifest: Manifest | Mapping, path: str | os.PathLike) -> Path:
+    """Write `manifest` as YAML to `path` atomically, paths relative to its folder.
+
+    Parameters
+    ----------
+    manifest : Manifest or mapping
+        A mapping is parsed (structure only) with relative paths taken from the current
+        directory.
+    path : path
+        The manifest file to write (its folder is created).
+
+    Returns
+    -------
+    Path
+        `path`.
+    """
+    path = Path(path)
+    m = load_manifest(manifest, check_files=False)
+    folder = path.absolute().parent
+    text = yaml.safe_dump(_to_dict(m, folder), sort_keys=False, default_flow_style=None, width=100)
+    write_text(path, text)
+    return path
+
+
+def add_registration(
+    manifest_path: str | os.PathLike,
+    name: str,
+    *,
+    reference: str | os.PathLike,
+    transforms: Sequence,
+    reference_index: int | None = None,
+    frame_transform: str | os.PathLike | None = None,
+    images: Sequence[str | os.PathLike] | None = None,
+    labels: Sequence[str | os.PathLike] | None = None,
+) -> Path:
+    """Add (or replace) registration `name` in a manifest file, creating the file if needed.
+
+    Parameters
+    ----------
+    manifest_path : path
+        The manifest (YAML). Created when missing; then `images` is required.
+    name : str
+        Registration name; an existing registration of that name is replaced in place.
+    reference : path
+        Image whose grid is the registration's frame.
+    transforms : sequence, one entry per image
+        A path, or a chain of paths in ANTs ``fwdtransforms`` order, per image.
+    reference_index, frame_transform : optional
+        See :class:`Registration`.
+    images, labels : sequence of path, optional
+        Set the manifest's images / labels (a new manifest needs `images`; for an existing
+        one, given images must be the same files).
+
+    Paths given here that are relative are relative to the current directory (they are
+    rewritten relative to the manifest's folder).
+
+    Returns
+    -------
+    Path
+        `manifest_path`.
+
+    Raises
+    ------
+    InputError
+        Bad structure (wrong counts ...), or `images` differing from an existing manifest's.
+    """
+    manifest_path = Path(manifest_path)
+    cwd = Path.cwd()
+
+    def absolute(p):
+        return p if isinstance(p, sitk.Transform) else (cwd / Path(p))
+
+    if manifest_path.exists():
+        old = load_manifest(manifest_path, check_files=False)
+        if images is not None:
+            new_images = tuple(absolute(p).resolve() for p in images)
+            if new_images != tuple(p.resolve() for p in old.images):
+                raise InputError(
+                    f"{manifest_path}: the images given differ from the manifest's images"
+                )
+        data = _to_dict(old, None)  # absolute paths
+        if labels is not None:
+            data["labels"] = [str(absolute(p)) for p in labels]
+    else:
+        if images is None:
+            raise InputError(f"{manifest_path}: manifest does not exist; give images= to create it")
+        data = {"images": [str(absolute(p)) for p in images]}
+        if labels is not None:
+            data["labels"] = [str(absolute(p)) for p in labels]
+    entry: dict[str, Any] = {"reference": str(absolute(reference))}
+    if reference_index is not None:
+        entry["reference_index"] = reference_index
+    if frame_transform is not None:
+        entry["frame_transform"] = str(absolute(frame_transform))
+    entry["transforms"] = [
+        [str(absolute(t)) for t in item] if isinstance(item, (list, tuple)) else str(absolute(item))
+        for item in transforms
+    ]
+    regs = dict(data.get("registrations") or {})
+    regs[str(name)] = entry
+    data["registrations"] = regs
+    m = load_manifest(data, base_dir="/", check_files=False)
+    m = replace(m, common_frame=data.get("common_frame") or m.common_frame)
+    return write_manifest(m, manifest_path)
