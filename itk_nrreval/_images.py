@@ -119,13 +119,15 @@ def _as_sitk(item, name: str, what: str) -> sitk.Image:
         return item
     if isinstance(item, (str, os.PathLike)):
         return read_image(item, what=what)
-    raise InputError(f"{name}: expected a SimpleITK image or a file path, got {type(item).__name__}")
+    raise InputError(
+        f"{name}: expected a SimpleITK image or a file path, got {type(item).__name__}"
+    )
 
 
 def image_stack(
     images, *, what: str = "image", dtype=np.float64, allow_vector: bool = False
 ) -> ImageStack:
-    """Turn an array, a list of SimpleITK images or a list of file paths into an :class:`ImageStack`.
+    """Turn an array, a list of SimpleITK images or a list of paths into an :class:`ImageStack`.
 
     Parameters
     ----------
@@ -148,11 +150,15 @@ def image_stack(
         data = images if dtype is None else np.asarray(images, dtype=dtype)
         names = tuple(f"{what}[{i}]" for i in range(data.shape[0])) if data.ndim else ()
         if data.ndim < 2:
-            raise InputError(f"{what}s: expected an array of shape (n_images, *spatial), got {data.shape}")
+            raise InputError(
+                f"{what}s: expected an array of shape (n_images, *spatial), got {data.shape}"
+            )
         _check_finite(data, names)
         return ImageStack(data, None, names)
     if isinstance(images, (str, os.PathLike, sitk.Image)) or not isinstance(images, Sequence):
-        raise InputError(f"{what}s: expected a sequence of images or paths, got {type(images).__name__}")
+        raise InputError(
+            f"{what}s: expected a sequence of images or paths, got {type(images).__name__}"
+        )
     if len(images) == 0:
         raise InputError(f"{what}s: the list is empty")
     names = tuple(

@@ -18,7 +18,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["standard_normals", "run_single", "run_paired", "combine_moments", "CHUNK"]
+__all__ = [
+    "standard_normals",
+    "run_single",
+    "run_paired",
+    "nearest_of_samples",
+    "combine_moments",
+    "CHUNK",
+]
 
 CHUNK = 4096
 _GAMMA = np.uint64(0x9E3779B97F4A7C15)
@@ -79,38 +86,65 @@ def standard_normals(seed: int, start: int, stop: int, n_modes: int) -> np.ndarr
 
 
 @numba.njit(cache=True)
-def _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen_min):
-    """Samples start:stop: nearest distance (L1 sum or squared L2) and index per sample.
+def _nearest_one(train_t, y, l2, dist, gen_min):
+    """Nearest training point to one sample y (raw L1 sum or squared L2) and its index.
 
-    train_t is (n_modes, n_images); gen_min (n_images,) is lowered in place to each training
-    point's nearest sample distance.
+    train_t is (n_modes, n_images): distances to all N points are accumulated mode by mode,
+    which vectorizes over N. gen_min (n_images,) is lowered in place to each training point's
+    nearest sample distance.
     """
     n_modes, n_images = train_t.shape
+    for i in range(n_images):
+        dist[i] = 0.0
+    for k in range(n_modes):
+        yk = y[k]
+        row = train_t[k]
+        if l2:
+            for i in range(n_images):
+                diff = yk - row[i]
+                dist[i] += diff * diff
+        else:
+            for i in range(n_images):
+                dist[i] += abs(yk - row[i])
+    best = dist[0]
+    besti = 0
+    for i in range(n_images):
+        d = dist[i]
+        if d < best:
+            best = d
+            besti = i
+        if d < gen_min[i]:
+            gen_min[i] = d
+    return best, besti
+
+
+@numba.njit(cache=True)
+def _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen_min):
+    """Samples start:stop of the model with mode standard deviations sd: nearest per sample."""
     for mu in range(start, stop):
         _fill_normals(key, mu, y)
-        for i in range(n_images):
-            dist[i] = 0.0
-        for k in range(n_modes):
-            yk = y[k] * sd[k]
-            row = train_t[k]
-            if l2:
-                for i in range(n_images):
-                    diff = yk - row[i]
-                    dist[i] += diff * diff
-            else:
-                for i in range(n_images):
-                    dist[i] += abs(yk - row[i])
-        best = dist[0]
-        besti = 0
-        for i in range(n_images):
-            d = dist[i]
-            if d < best:
-                best = d
-                besti = i
-            if d < gen_min[i]:
-                gen_min[i] = d
-        values[mu - start] = best
-        nearest[mu - start] = besti
+        for k in range(y.shape[0]):
+            y[k] *= sd[k]
+        values[mu - start], nearest[mu - start] = _nearest_one(train_t, y, l2, dist, gen_min)
+
+
+@numba.njit(parallel=True, cache=True)
+def nearest_of_samples(train_t, samples, l2, chunk):
+    """Raw nearest distance and index for explicit samples (n_samples, n_modes).
+
+    The search alone, without the fused sampling; used where the samples come from elsewhere
+    and to benchmark the search against plain references on identical samples.
+    """
+    n = samples.shape[0]
+    values = np.empty(n)
+    nearest = np.empty(n, dtype=np.int64)
+    n_chunks = (n + chunk - 1) // chunk
+    for c in numba.prange(n_chunks):
+        dist = np.empty(train_t.shape[1])
+        gen = np.full(train_t.shape[1], np.inf)
+        for j in range(c * chunk, min(n, (c + 1) * chunk)):
+            values[j], nearest[j] = _nearest_one(train_t, samples[j], l2, dist, gen)
+    return values, nearest
 
 
 @numba.njit(cache=True)
@@ -179,10 +213,32 @@ def run_paired(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk
         vb = np.empty(m)
         na = np.empty(m, dtype=np.int64)
         nb = np.empty(m, dtype=np.int64)
-        _chunk(train_a, sd_a, key, start, stop, l2, np.empty(train_a.shape[0]),
-               np.empty(train_a.shape[1]), va, na, gen_a[c])
-        _chunk(train_b, sd_b, key, start, stop, l2, np.empty(train_b.shape[0]),
-               np.empty(train_b.shape[1]), vb, nb, gen_b[c])
+        _chunk(
+            train_a,
+            sd_a,
+            key,
+            start,
+            stop,
+            l2,
+            np.empty(train_a.shape[0]),
+            np.empty(train_a.shape[1]),
+            va,
+            na,
+            gen_a[c],
+        )
+        _chunk(
+            train_b,
+            sd_b,
+            key,
+            start,
+            stop,
+            l2,
+            np.empty(train_b.shape[0]),
+            np.empty(train_b.shape[1]),
+            vb,
+            nb,
+            gen_b[c],
+        )
         _finish(va, m, l2, exponent)
         _finish(vb, m, l2, exponent)
         moments[0, c, 0], moments[0, c, 1] = _moments(va, m)
@@ -202,4 +258,3 @@ def combine_moments(means: np.ndarray, m2s: np.ndarray, n_samples: int, chunk: i
     mean = float(np.sum(sizes * means) / n_samples)
     m2 = float(np.sum(m2s) + np.sum(sizes * (means - mean) ** 2))
     return mean, m2
-

@@ -104,7 +104,9 @@ class TextureModel:
         eigenvalues, eigenvectors = eigenvalues[keep], eigenvectors[:, keep]
         # Fix each eigenvector's sign (largest |component| positive) so results are reproducible
         # across LAPACK builds.
-        signs = np.sign(eigenvectors[np.argmax(np.abs(eigenvectors), axis=0), np.arange(keep.sum())])
+        signs = np.sign(
+            eigenvectors[np.argmax(np.abs(eigenvectors), axis=0), np.arange(keep.sum())]
+        )
         eigenvectors = eigenvectors * signs
         params = eigenvectors * np.sqrt(eigenvalues)
         return cls(

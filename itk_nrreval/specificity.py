@@ -304,11 +304,25 @@ def compare_specificity(
         for j in range(3)
     ]
     stderr = [math.sqrt(m2 / n_samples) / math.sqrt(n_samples - 1) for _, m2 in stats]
-    common = dict(n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed))
-    ra = SpecificityResult(value=stats[0][0], stderr=stderr[0], n_images=ma.n_images,
-                           n_modes=ma.n_modes, nearest_counts=counts_a.sum(axis=0), **common)
-    rb = SpecificityResult(value=stats[1][0], stderr=stderr[1], n_images=mb.n_images,
-                           n_modes=mb.n_modes, nearest_counts=counts_b.sum(axis=0), **common)
+    common = dict(
+        n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed)
+    )
+    ra = SpecificityResult(
+        value=stats[0][0],
+        stderr=stderr[0],
+        n_images=ma.n_images,
+        n_modes=ma.n_modes,
+        nearest_counts=counts_a.sum(axis=0),
+        **common,
+    )
+    rb = SpecificityResult(
+        value=stats[1][0],
+        stderr=stderr[1],
+        n_images=mb.n_images,
+        n_modes=mb.n_modes,
+        nearest_counts=counts_b.sum(axis=0),
+        **common,
+    )
     return SpecificityComparison(ra, rb, difference=stats[2][0], difference_stderr=stderr[2])
 
 

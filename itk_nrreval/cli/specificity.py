@@ -14,10 +14,16 @@ def add_parser(sub) -> None:
         description="Specificity (and generalization) of the shape-free texture model of "
         "N registered images on one grid. Lower is better.",
     )
-    p.add_argument("images", nargs="+", metavar="IMAGE", help="registered images (NIfTI, MHA, NRRD)")
+    p.add_argument(
+        "images", nargs="+", metavar="IMAGE", help="registered images (NIfTI, MHA, NRRD)"
+    )
     p.add_argument("--mask", help="evaluate only voxels where this image is nonzero")
-    p.add_argument("--samples", type=int, default=100_000, metavar="M", help="model samples (default 100000)")
-    p.add_argument("--distance", choices=("l1", "l2"), default="l1", help="parameter-space distance")
+    p.add_argument(
+        "--samples", type=int, default=100_000, metavar="M", help="model samples (default 100000)"
+    )
+    p.add_argument(
+        "--distance", choices=("l1", "l2"), default="l1", help="parameter-space distance"
+    )
     p.add_argument("--exponent", type=float, default=1.0, metavar="L", help="the paper's lambda")
     p.add_argument("--seed", type=int, default=0, metavar="S")
     p.add_argument("--json", metavar="OUT", help="also write the numbers to this JSON file")
