@@ -44,6 +44,7 @@ import yaml
 
 from ._errors import InputError
 from ._output import write_text
+from .transforms import FIELD_SUFFIXES, TRANSFORM_SUFFIXES, _suffix
 
 __all__ = [
     "Registration",
@@ -55,10 +56,6 @@ __all__ = [
     "FIELD_SUFFIXES",
 ]
 
-#: File suffixes read as ITK transform files (``sitk.ReadTransform``).
-TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
-#: File suffixes read as displacement-field images (vectors in mm, LPS, ITK (x, y, z) order).
-FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 _TOP_KEYS = ("images", "labels", "mask", "common_frame", "registrations")
 _REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform")
@@ -150,11 +147,6 @@ def _describe_item(item) -> Any:
     if isinstance(item, sitk.Transform):
         return f"<in-memory {item.GetName()}>"
     return str(item)
-
-
-def _suffix(path: Path) -> str:
-    name = path.name.lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
 
 # ----------------------------------------------------------------------------- loading

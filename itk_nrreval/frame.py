@@ -1,0 +1,343 @@
+"""The common frame: every registration's results resampled onto one reference grid.
+
+Each registration R of the N images has its own reference frame (its ``reference`` image's
+grid) and per image i a transform ``T_i^R`` from that frame into image i (reference points
+to image points, mm, LPS). One registration, C, is the common frame (paper, Section V-D).
+R is brought into it by a transform F from the common frame into R's frame; image i is then
+resampled onto the common grid with ``T_i^R o F`` -- in SimpleITK list order
+``CompositeTransform([T_i^R, F])`` (F acts first; ANTs order ``[F, T_i^R]``).
+
+F comes from, in order (:func:`frame_mapping`):
+
+1. ``frame_transform``: a file given in the manifest;
+2. ``reference_index: k``: R's reference is training image k, so F = ``T_k^C``;
+3. otherwise the mean over the group of the per-image estimates
+   ``F_i = (T_i^R)^-1 o T_i^C``, realised as a displacement field on the common grid (the
+   per-image point maps ``F_i(p)`` are averaged voxel by voxel).
+
+Whichever way F is obtained, the spread of the per-image estimates about it,
+``|F_i(p) - F(p)|`` in mm, is reported (mean and max over images and voxels of the common
+grid, inside the mask when one is given) as the registration's frame consistency.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+
+from ._errors import InputError
+from ._images import Geometry, read_image
+from ._progress import progress
+from .manifest import Manifest
+from .transforms import chain_transform, displacement_field, field_transform, invert
+
+__all__ = [
+    "FrameMapping",
+    "common_reference",
+    "read_chains",
+    "frame_estimates",
+    "frame_mapping",
+    "resampling_transform",
+    "resample_images",
+    "resample_memberships",
+    "label_values",
+]
+
+_INTERPOLATORS = {"linear": sitk.sitkLinear, "bspline": sitk.sitkBSpline}
+_METHODS = ("common", "frame_transform", "reference_index", "mean")
+
+
+@dataclass(frozen=True)
+class FrameMapping:
+    """How one registration's frame is reached from the common frame.
+
+    Attributes
+    ----------
+    name : str
+        The registration.
+    method : {"common", "frame_transform", "reference_index", "mean"}
+        Where F came from (see the module docstring).
+    transform : sitk.Transform
+        F: common-frame points -> this registration's reference-frame points (mm, LPS).
+    spread_mean_mm, spread_max_mm : float
+        Mean and max of ``|F_i(p) - F(p)|`` (mm) over images i and common-grid voxels p;
+        0 for the common registration itself; NaN when not computed.
+    """
+
+    name: str
+    method: str
+    transform: sitk.Transform
+    spread_mean_mm: float
+    spread_max_mm: float
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "spread_mean_mm": self.spread_mean_mm,
+            "spread_max_mm": self.spread_max_mm,
+        }
+
+
+def common_reference(manifest: Manifest) -> sitk.Image:
+    """The common registration's reference image (its grid is the common grid)."""
+    return read_image(
+        manifest.registrations[manifest.common_frame].reference, what="reference image"
+    )
+
+
+def read_chains(manifest: Manifest, name: str) -> list[sitk.Transform]:
+    """Registration `name`'s per-image transforms ``T_i^R``, one sitk transform per image."""
+    return [chain_transform(c) for c in manifest.registrations[name].transforms]
+
+
+def _identity(dim: int) -> sitk.Transform:
+    return sitk.TranslationTransform(dim)
+
+
+def _points_minus_grid(transform: sitk.Transform, grid: Geometry) -> np.ndarray:
+    """``T(p) - p`` on `grid`: numpy array of shape (*spatial_zyx, dim), mm, (x, y, z) last."""
+    return sitk.GetArrayFromImage(displacement_field(transform, grid))
+
+
+def frame_estimates(
+    common: Sequence[sitk.Transform],
+    other: Sequence[sitk.Transform],
+    grid: sitk.Image | Geometry,
+) -> np.ndarray:
+    """Per-image estimates ``F_i = (T_i^R)^-1 o T_i^C`` sampled on the common grid.
+
+    Parameters
+    ----------
+    common : sequence of sitk.Transform, length n_images
+        ``T_i^C``: common frame -> image i.
+    other : sequence of sitk.Transform, length n_images
+        ``T_i^R``: R's frame -> image i (inverted here; fields on their own grids).
+    grid : sitk.Image or Geometry
+        The common grid.
+
+    Returns
+    -------
+    ndarray of shape (n_images, *spatial_zyx, dim)
+        ``F_i(p) - p`` in mm, vector components in ITK (x, y[, z]) order.
+    """
+    g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
+    if len(common) != len(other):
+        raise InputError(f"frame: {len(other)} transforms for {len(common)} images")
+    out = np.empty((len(common), *g.shape, g.dimension))
+    for i, (tc, tr) in enumerate(zip(common, other, strict=True)):
+        # sitk list order: [R^-1, C] means R^-1(C(p))
+        out[i] = _points_minus_grid(sitk.CompositeTransform([invert(tr), tc]), g)
+    return out
+
+
+def _spread(
+    estimates: np.ndarray, f_disp: np.ndarray, mask: np.ndarray | None
+) -> tuple[float, float]:
+    dist = np.linalg.norm(estimates - f_disp[None], axis=-1)  # (n, *spatial)
+    if mask is not None:
+        dist = dist[:, np.asarray(mask, bool)]
+    return float(dist.mean()), float(dist.max())
+
+
+def frame_mapping(
+    manifest: Manifest,
+    name: str,
+    *,
+    grid: sitk.Image | Geometry | None = None,
+    transforms: Sequence[sitk.Transform] | None = None,
+    common_transforms: Sequence[sitk.Transform] | None = None,
+    mask: np.ndarray | None = None,
+    method: str | None = None,
+    consistency: bool = True,
+) -> FrameMapping:
+    """The transform F from the common frame into registration `name`'s frame.
+
+    Parameters
+    ----------
+    manifest : Manifest
+    name : str
+        A registration of `manifest`.
+    grid : sitk.Image or Geometry, optional
+        The common grid (default: read the common registration's reference).
+    transforms, common_transforms : sequence of sitk.Transform, optional
+        Already-read ``T_i^R`` and ``T_i^C`` (read from the manifest when omitted).
+    mask : ndarray of bool, numpy shape of the grid, optional
+        Voxels over which the spread is measured.
+    method : {"frame_transform", "reference_index", "mean"}, optional
+        Force one way of obtaining F (default: the first available, in that order).
+    consistency : bool
+        Compute the spread of the per-image estimates (N field inversions). False leaves
+        it NaN, except for method "mean", which needs the estimates anyway.
+
+    Returns
+    -------
+    FrameMapping
+
+    Raises
+    ------
+    ValueError
+        `method` is not one of the accepted values or not available for `name`.
+    """
+    reg = manifest.registrations[name]
+    if grid is None:
+        grid = common_reference(manifest)
+    g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
+    if name == manifest.common_frame:
+        return FrameMapping(name, "common", _identity(g.dimension), 0.0, 0.0)
+    if method is None:
+        if reg.frame_transform is not None:
+            method = "frame_transform"
+        elif reg.reference_index is not None:
+            method = "reference_index"
+        else:
+            method = "mean"
+    if method not in _METHODS[1:]:
+        raise ValueError(f"method: {method!r} is not one of {_METHODS[1:]}")
+    if method == "frame_transform" and reg.frame_transform is None:
+        raise ValueError(f"method: registration {name!r} has no frame_transform")
+    if method == "reference_index" and reg.reference_index is None:
+        raise ValueError(f"method: registration {name!r} has no reference_index")
+    if common_transforms is None:
+        common_transforms = read_chains(manifest, manifest.common_frame)
+    estimates = None
+    if consistency or method == "mean":
+        if transforms is None:
+            transforms = read_chains(manifest, name)
+        estimates = frame_estimates(common_transforms, transforms, g)
+    if method == "frame_transform":
+        f = chain_transform(reg.frame_transform)
+    elif method == "reference_index":
+        f = common_transforms[reg.reference_index]
+    else:
+        mean = estimates.mean(axis=0)
+        img = sitk.GetImageFromArray(mean, isVector=True)
+        g.apply_to(img)
+        f = field_transform(img)
+    if estimates is None:
+        return FrameMapping(name, method, f, float("nan"), float("nan"))
+    f_disp = _points_minus_grid(f, g)
+    return FrameMapping(name, method, f, *_spread(estimates, f_disp, mask))
+
+
+def resampling_transform(transform: sitk.Transform, frame: sitk.Transform) -> sitk.Transform:
+    """Image i's transform from the common frame: ``T_i^R o F`` (F acts first).
+
+    Returns ``sitk.CompositeTransform([T_i^R, F])`` (SimpleITK applies its list from the back).
+    """
+    return sitk.CompositeTransform([transform, frame])
+
+
+def _as_image(item, what: str) -> sitk.Image:
+    if isinstance(item, sitk.Image):
+        return item
+    if isinstance(item, (str, os.PathLike)):
+        return read_image(item, what=what)
+    raise InputError(f"{what}: expected a SimpleITK image or a path, got {type(item).__name__}")
+
+
+def resample_images(
+    images: Sequence,
+    transforms: Sequence[sitk.Transform],
+    grid: sitk.Image | Geometry,
+    *,
+    interpolation: str = "linear",
+    show_progress: bool = True,
+    desc: str = "resampling",
+) -> np.ndarray:
+    """Resample each image onto `grid` through its transform (grid points -> image points).
+
+    Parameters
+    ----------
+    images : sequence of sitk.Image or path, length n_images
+    transforms : sequence of sitk.Transform, length n_images
+    grid : sitk.Image or Geometry
+    interpolation : {"linear", "bspline"}
+    show_progress : bool
+        A progress bar on stderr.
+
+    Returns
+    -------
+    ndarray of shape (n_images, *spatial_zyx), float64
+        Zero outside each image's field of view.
+    """
+    if interpolation not in _INTERPOLATORS:
+        raise ValueError(f"interpolation: {interpolation!r} is not one of {tuple(_INTERPOLATORS)}")
+    g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
+    out = np.empty((len(images), *g.shape))
+    pairs = zip(images, transforms, strict=True)
+    for i, (item, t) in enumerate(
+        progress(pairs, desc=desc, total=len(images), enabled=show_progress)
+    ):
+        img = sitk.Cast(_as_image(item, "image"), sitk.sitkFloat64)
+        out[i] = sitk.GetArrayFromImage(_resample(img, t, g, _INTERPOLATORS[interpolation]))
+    return out
+
+
+def _resample(img: sitk.Image, t: sitk.Transform, g: Geometry, interp) -> sitk.Image:
+    return sitk.Resample(
+        img,
+        size=list(g.size),
+        transform=t,
+        interpolator=interp,
+        outputOrigin=list(g.origin),
+        outputSpacing=list(g.spacing),
+        outputDirection=list(g.direction),
+        defaultPixelValue=0.0,
+        outputPixelType=img.GetPixelID(),
+    )
+
+
+def label_values(labels: Sequence) -> np.ndarray:
+    """Sorted union of the values found in the label maps (background 0 included if present)."""
+    values = set()
+    for item in labels:
+        arr = sitk.GetArrayViewFromImage(_as_image(item, "label map"))
+        values.update(np.unique(arr).tolist())
+    return np.array(sorted(values))
+
+
+def resample_memberships(
+    labels: Sequence,
+    transforms: Sequence[sitk.Transform],
+    grid: sitk.Image | Geometry,
+    *,
+    values: Sequence[int],
+    show_progress: bool = True,
+    desc: str = "resampling labels",
+) -> np.ndarray:
+    """Resample label maps as one-hot memberships, linearly, onto `grid`.
+
+    Parameters
+    ----------
+    labels : sequence of sitk.Image or path, length n_images
+        Integer label maps, each in its image's space.
+    transforms : sequence of sitk.Transform, length n_images
+        Grid points -> image points.
+    grid : sitk.Image or Geometry
+    values : sequence of int, length n_labels
+        The label values, one membership channel each, in this order.
+
+    Returns
+    -------
+    ndarray of shape (n_images, n_labels, *spatial_zyx), float32
+        Fuzzy memberships in [0, 1] (they sum to 1 inside the field of view, 0 outside).
+    """
+    g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
+    values = [int(v) for v in values]
+    out = np.empty((len(labels), len(values), *g.shape), dtype=np.float32)
+    pairs = zip(labels, transforms, strict=True)
+    for i, (item, t) in enumerate(
+        progress(pairs, desc=desc, total=len(labels), enabled=show_progress)
+    ):
+        lab = _as_image(item, "label map")
+        arr = sitk.GetArrayViewFromImage(lab)
+        onehot = np.stack([(arr == v) for v in values], axis=-1).astype(np.float32)
+        vec = sitk.GetImageFromArray(onehot, isVector=True)
+        vec.CopyInformation(lab)
+        res = sitk.GetArrayFromImage(_resample(vec, t, g, sitk.sitkLinear))
+        out[i] = np.moveaxis(res.reshape(*g.shape, len(values)), -1, 0)
+    return out

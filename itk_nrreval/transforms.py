@@ -1,0 +1,367 @@
+"""Reading, chaining, inverting and checking registration transforms (SimpleITK at the edge).
+
+Conventions
+-----------
+* Every transform maps **reference (fixed) points to image (moving) points**, in physical
+  coordinates (mm, LPS), as ITK, SimpleITK, ANTs and elastix write them: an image is
+  resampled onto the reference grid by looking up, for each reference voxel centre p, the
+  image value at T(p).
+* A **chain** is listed in the order ANTs reports ``fwdtransforms``: the first listed acts
+  first. ``[s00_1Warp.nii.gz, s00_0GenericAffine.mat]`` maps a reference point p to the
+  image point ``affine(warp(p))``. ``sitk.CompositeTransform`` applies the *last* transform
+  of its list first, so it is given the reversed list (:func:`chain_transform` does this).
+* Displacement fields are vector images whose vectors are physical displacements (mm) with
+  components in ITK (x, y[, z]) order; ``sitk.GetArrayFromImage`` gives them as numpy
+  arrays of shape ``(*spatial_zyx, dim)``. ANTs ``*1Warp.nii.gz`` files are 5D NIfTI
+  ``(X, Y, Z, 1, 3)``; SimpleITK reads them as 3D images of 3-vectors (float32), which are
+  cast to float64 here.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from ._errors import InputError
+from ._images import Geometry
+from ._output import atomic_path
+
+__all__ = [
+    "TRANSFORM_SUFFIXES",
+    "FIELD_SUFFIXES",
+    "read_transform",
+    "chain_transform",
+    "flatten",
+    "write_transform",
+    "field_transform",
+    "displacement_field",
+    "invert",
+    "jacobian_determinant",
+    "folded_fraction",
+]
+
+#: File suffixes read with ``sitk.ReadTransform`` (ITK text / HDF5 / MATLAB, incl. ANTs affines).
+TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
+#: File suffixes read as displacement-field images.
+FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+TransformLike = "sitk.Transform | str | os.PathLike"
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+def _reason(exc: Exception) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    useful = [ln for ln in lines if not ln.startswith("sitk::ERROR") and "ERROR" not in ln[:12]]
+    return ((useful or lines or ["unreadable"])[-1])[:160]
+
+
+def field_transform(field: sitk.Image) -> sitk.DisplacementFieldTransform:
+    """A displacement-field transform from a vector image, without consuming the image.
+
+    Parameters
+    ----------
+    field : sitk.Image
+        Vector image of ``dim`` components per voxel (mm, ITK (x, y[, z]) order): the
+        transform maps p to ``p + field(p)`` (linear interpolation; zero outside the grid).
+
+    Returns
+    -------
+    sitk.DisplacementFieldTransform
+        Owns a float64 copy (``sitk.DisplacementFieldTransform(img)`` empties ``img``).
+    """
+    dim = field.GetDimension()
+    if field.GetNumberOfComponentsPerPixel() != dim:
+        raise InputError(
+            f"displacement field: {field.GetNumberOfComponentsPerPixel()} components per voxel "
+            f"for a {dim}D grid (expected {dim})"
+        )
+    copy = sitk.Cast(field, sitk.sitkVectorFloat64)  # always a new image
+    return sitk.DisplacementFieldTransform(copy)
+
+
+def read_transform(item: sitk.Transform | str | os.PathLike) -> sitk.Transform:
+    """Read one transform: a transform file, a displacement-field image, or pass one through.
+
+    Parameters
+    ----------
+    item : sitk.Transform or path
+        ``.tfm`` / ``.txt`` / ``.h5`` / ``.hdf5`` / ``.mat`` (incl. ANTs
+        ``*0GenericAffine.mat``) are read with ``sitk.ReadTransform``; ``.nii.gz`` / ``.nii``
+        / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
+        fields. An in-memory transform is returned as is.
+
+    Returns
+    -------
+    sitk.Transform
+        Down-cast to its concrete class (``AffineTransform``, ``CompositeTransform``, ...).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, unknown suffix (message names the file).
+    """
+    if isinstance(item, sitk.Transform):
+        return item.Downcast()
+    if not isinstance(item, (str, os.PathLike)):
+        raise InputError(f"transform: expected a path or sitk.Transform, got {type(item).__name__}")
+    path = Path(item)
+    if not path.is_file():
+        raise InputError(f"{path}: transform file not found")
+    suffix = _suffix(path)
+    try:
+        if suffix in FIELD_SUFFIXES:
+            return field_transform(sitk.ReadImage(str(path)))
+        if suffix in TRANSFORM_SUFFIXES:
+            return sitk.ReadTransform(str(path)).Downcast()
+    except RuntimeError as exc:
+        raise InputError(f"{path}: cannot read transform ({_reason(exc)})") from None
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    raise InputError(
+        f"{path}: unknown transform format {suffix!r} (expected one of "
+        f"{', '.join(TRANSFORM_SUFFIXES + FIELD_SUFFIXES)})"
+    )
+
+
+def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sitk.Transform:
+    """One transform from a chain listed in ANTs ``fwdtransforms`` order (first acts first).
+
+    Parameters
+    ----------
+    items : transform, path, or sequence of them
+        ``[t1, t2, ..., tn]`` maps a reference point p to ``tn(...t2(t1(p)))``; e.g.
+        ``[warp, affine]`` gives ``affine(warp(p))``.
+
+    Returns
+    -------
+    sitk.Transform
+        The single transform for a chain of one; otherwise a flat
+        ``sitk.CompositeTransform([tn, ..., t2, t1])`` (SimpleITK applies its list from the
+        back), with nested composites flattened.
+
+    Examples
+    --------
+    >>> import SimpleITK as sitk
+    >>> shift = sitk.TranslationTransform(2, (1.0, 0.0))
+    >>> scale = sitk.ScaleTransform(2, (2.0, 2.0))
+    >>> chain_transform([shift, scale]).TransformPoint((1.0, 1.0))  # scale(shift(p))
+    (4.0, 2.0)
+    """
+    if isinstance(items, (sitk.Transform, str, os.PathLike)):
+        return read_transform(items)
+    transforms = [read_transform(t) for t in items]
+    if not transforms:
+        raise InputError("transform chain: empty")
+    if len(transforms) == 1:
+        return transforms[0]
+    return flatten(sitk.CompositeTransform(list(reversed(transforms))))
+
+
+def _leaves(transform: sitk.Transform) -> list[sitk.Transform]:
+    """Sub-transforms of a (possibly nested) composite, in SimpleITK list order."""
+    t = transform.Downcast()
+    if isinstance(t, sitk.CompositeTransform):
+        out = []
+        for i in range(t.GetNumberOfTransforms()):
+            out.extend(_leaves(t.GetNthTransform(i)))
+        return out
+    return [t]
+
+
+def flatten(transform: sitk.Transform) -> sitk.Transform:
+    """The same mapping without nested composites (writable to one file).
+
+    A composite of one transform becomes that transform.
+    """
+    leaves = _leaves(transform)
+    if len(leaves) == 1:
+        return leaves[0]
+    return sitk.CompositeTransform(leaves)
+
+
+def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> Path:
+    """Write `transform` to `path` atomically (``.h5`` recommended for fields), flattened first.
+
+    ITK cannot write a composite nested in a composite, so nested composites are flattened.
+    """
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        sitk.WriteTransform(flatten(transform), str(tmp))
+    return path
+
+
+def _grid(reference: sitk.Image | Geometry) -> Geometry:
+    return reference if isinstance(reference, Geometry) else Geometry.from_image(reference)
+
+
+def displacement_field(transform: sitk.Transform, reference: sitk.Image | Geometry) -> sitk.Image:
+    """Sample ``T(p) - p`` on the grid of `reference`.
+
+    Parameters
+    ----------
+    transform : sitk.Transform
+        Any transform of the grid's dimension.
+    reference : sitk.Image or Geometry
+        The grid of points p (voxel centres, mm, LPS).
+
+    Returns
+    -------
+    sitk.Image
+        ``sitkVectorFloat64`` image on that grid; vectors in mm, ITK (x, y[, z]) order.
+    """
+    g = _grid(reference)
+    return sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        list(g.size),
+        list(g.origin),
+        list(g.spacing),
+        list(g.direction),
+    )
+
+
+def invert(
+    transform: sitk.Transform | str | os.PathLike | Sequence,
+    *,
+    max_iterations: int = 50,
+    max_error: float = 0.01,
+    mean_error: float = 1e-4,
+) -> sitk.Transform:
+    """The inverse mapping (image points to reference points).
+
+    Linear transforms are inverted exactly. A displacement field is inverted on its own
+    grid with ``sitk.InvertDisplacementField`` (fixed-point iteration; never the slow
+    ``InverseDisplacementField``). A chain is inverted piece by piece in reverse order:
+    ``(t2 o t1)^-1 = t1^-1 o t2^-1``, so each field is inverted where it lives.
+
+    Parameters
+    ----------
+    transform : sitk.Transform, path or chain (ANTs order)
+    max_iterations : int
+        Iterations of the field inversion.
+    max_error, mean_error : float
+        Stopping tolerances of the field inversion (voxels; the filter's units).
+
+    Returns
+    -------
+    sitk.Transform
+        A transform of the same dimension; a composite when the input was one.
+
+    Raises
+    ------
+    InputError
+        A transform type that is neither linear, a composite nor a displacement field
+        (e.g. a B-spline: convert it with :func:`displacement_field` first).
+    """
+    leaves = _leaves(chain_transform(transform))
+    inverted = [_invert_one(t, max_iterations, max_error, mean_error) for t in leaves]
+    # sitk list [a, b] means a(b(p)); its inverse is b^-1(a^-1(q)): list [b^-1, a^-1].
+    inverted = list(reversed(inverted))
+    return inverted[0] if len(inverted) == 1 else sitk.CompositeTransform(inverted)
+
+
+def _invert_one(t: sitk.Transform, iterations: int, max_error: float, mean_error: float):
+    t = t.Downcast()
+    if isinstance(t, sitk.DisplacementFieldTransform):
+        field = t.GetDisplacementField()
+        inverse = sitk.InvertDisplacementField(
+            field,
+            maximumNumberOfIterations=int(iterations),
+            maxErrorToleranceThreshold=float(max_error),
+            meanErrorToleranceThreshold=float(mean_error),
+            enforceBoundaryCondition=True,
+        )
+        return field_transform(inverse)
+    if t.IsLinear():
+        try:
+            return t.GetInverse().Downcast()
+        except RuntimeError as exc:
+            raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
+    raise InputError(
+        f"{t.GetName()}: cannot invert this transform type; convert it to a displacement "
+        "field first (transforms.displacement_field)"
+    )
+
+
+def jacobian_determinant(
+    displacement: np.ndarray, *, spacing: Sequence[float], direction: Sequence[float] | None = None
+) -> np.ndarray:
+    """Jacobian determinant of ``p -> p + u(p)`` from a sampled displacement field.
+
+    Parameters
+    ----------
+    displacement : ndarray of shape (*spatial, dim)
+        Displacements in mm, numpy axis order for ``spatial`` ((z, y, x) in 3D) and ITK
+        (x, y[, z]) order for the last axis -- what ``sitk.GetArrayFromImage`` gives.
+    spacing : sequence of float, length dim
+        Voxel size in mm along ITK (x, y[, z]).
+    direction : sequence of float, length dim * dim, optional
+        Row-major direction cosines (default identity).
+
+    Returns
+    -------
+    ndarray of shape (*spatial,)
+        ``det(I + du/dx)`` with derivatives in physical coordinates (central differences
+        inside, one-sided at the border). Values <= 0 mark folded voxels; 1 is volume
+        preserving.
+    """
+    u = np.asarray(displacement, dtype=np.float64)
+    dim = u.shape[-1]
+    if u.ndim != dim + 1:
+        raise ValueError(
+            f"displacement: expected shape (*spatial, dim) with {dim} spatial axes, got {u.shape}"
+        )
+    spacing = np.asarray(spacing, dtype=np.float64)
+    d = np.eye(dim) if direction is None else np.asarray(direction, np.float64).reshape(dim, dim)
+    # physical x = origin + D @ diag(spacing) @ index  =>  d index / d x = (D diag(s))^-1
+    index_per_mm = np.linalg.inv(d @ np.diag(spacing))
+    # du_c / d index_k; ITK index axis k is numpy axis dim-1-k
+    grads = np.stack(
+        [
+            np.gradient(u, axis=dim - 1 - k) if u.shape[dim - 1 - k] > 1 else np.zeros_like(u)
+            for k in range(dim)
+        ],
+        axis=-1,
+    )  # (*spatial, c, k)
+    jac = np.eye(dim) + grads @ index_per_mm
+    return np.linalg.det(jac)
+
+
+def folded_fraction(
+    transform: sitk.Transform | str | os.PathLike | Sequence,
+    reference: sitk.Image | Geometry,
+    *,
+    mask: np.ndarray | None = None,
+) -> float:
+    """Fraction of the reference grid's voxels where `transform` folds (Jacobian det <= 0).
+
+    Parameters
+    ----------
+    transform : sitk.Transform, path or chain (ANTs order)
+    reference : sitk.Image or Geometry
+        The grid the Jacobian is sampled on.
+    mask : ndarray of bool, numpy shape of the grid, optional
+        Count only these voxels.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 0 for a transform that is invertible everywhere on the grid.
+    """
+    g = _grid(reference)
+    field = displacement_field(chain_transform(transform), g)
+    det = jacobian_determinant(
+        sitk.GetArrayViewFromImage(field), spacing=g.spacing, direction=g.direction
+    )
+    folded = det <= 0
+    if mask is not None:
+        folded = folded[np.asarray(mask, bool)]
+    return float(folded.mean()) if folded.size else 0.0

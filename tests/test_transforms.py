@@ -1,0 +1,235 @@
+"""Transforms: reading (incl. ANTs files), chain order, inversion, Jacobian, writing.
+
+References are computed here independently with numpy from the known matrices and fields.
+"""
+
+from __future__ import annotations
+
+import nibabel as nib
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from itk_nrreval import InputError
+from itk_nrreval.frame import resample_images
+from itk_nrreval.transforms import (
+    chain_transform,
+    field_transform,
+    folded_fraction,
+    invert,
+    jacobian_determinant,
+    read_transform,
+    write_transform,
+)
+
+
+def grid(dim: int, n: int = 20, spacing=None, origin=None) -> sitk.Image:
+    size = [n + 3 * k for k in range(dim)]  # non-cubic, to catch axis-order mistakes
+    img = sitk.Image(size, sitk.sitkFloat32)
+    img.SetSpacing(spacing or [1.0 + 0.25 * k for k in range(dim)])
+    img.SetOrigin(origin or [-5.0 + 3.0 * k for k in range(dim)])
+    return img
+
+
+def physical_points(img: sitk.Image) -> np.ndarray:
+    """Voxel-centre positions, numpy shape (*spatial_zyx, dim), (x, y, z) last (identity dir)."""
+    idx = np.indices(img.GetSize()[::-1])[::-1]  # x index first
+    sp, org = np.array(img.GetSpacing()), np.array(img.GetOrigin())
+    return np.moveaxis(idx, 0, -1) * sp + org
+
+
+def smooth_field(img: sitk.Image, amplitude: float = 1.5) -> np.ndarray:
+    """A smooth displacement (mm), numpy (*spatial_zyx, dim), vanishing at the border."""
+    dim = img.GetDimension()
+    shape = img.GetSize()[::-1]
+    rel = [np.linspace(0, 1, s) for s in shape[::-1]]  # per ITK axis
+    mesh = np.meshgrid(*rel[::-1], indexing="ij")[::-1]  # ITK-ordered list of arrays
+    bump = np.prod([np.sin(np.pi * m) for m in mesh], axis=0)
+    u = np.stack(
+        [amplitude * bump * np.cos(2 * np.pi * (c + 1) * mesh[c] / 3) for c in range(dim)], axis=-1
+    )
+    return u
+
+
+def field_image(u: np.ndarray, like: sitk.Image) -> sitk.Image:
+    f = sitk.GetImageFromArray(u, isVector=True)
+    f.CopyInformation(like)
+    return f
+
+
+def affine(dim: int) -> tuple[sitk.AffineTransform, np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(dim)
+    m = np.eye(dim) + 0.1 * rng.standard_normal((dim, dim))
+    t = rng.standard_normal(dim)
+    c = rng.standard_normal(dim)
+    a = sitk.AffineTransform(dim)
+    a.SetMatrix(m.ravel().tolist())
+    a.SetTranslation(t.tolist())
+    a.SetCenter(c.tolist())
+    return a, m, t, c
+
+
+def apply_affine(p: np.ndarray, m, t, c) -> np.ndarray:
+    """ITK affine: A(p) = M (p - c) + c + t."""
+    return (p - c) @ m.T + c + t
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_ants_chain_is_affine_of_warp(tmp_path, dim):
+    ref = grid(dim, 12)
+    u = smooth_field(ref)
+    a, m, t, c = affine(dim)
+    sitk.WriteTransform(a, str(tmp_path / "x_0GenericAffine.mat"))
+    sitk.WriteImage(
+        sitk.Cast(field_image(u, ref), sitk.sitkVectorFloat32), str(tmp_path / "x_1Warp.nii.gz")
+    )
+    chain = chain_transform([tmp_path / "x_1Warp.nii.gz", tmp_path / "x_0GenericAffine.mat"])
+    p = physical_points(ref)
+    expected = apply_affine(p + u, m, t, c)  # affine(warp(p)) at voxel centres: no interpolation
+    pts = p.reshape(-1, dim)[::7]
+    got = np.array([chain.TransformPoint(q.tolist()) for q in pts])
+    np.testing.assert_allclose(got, expected.reshape(-1, dim)[::7], atol=1e-4)  # float32 file
+    # the other order gives a different map: the test can tell the two apart
+    wrong = apply_affine(p, m, t, c)
+    assert np.abs(got - wrong.reshape(-1, dim)[::7] - u.reshape(-1, dim)[::7]).max() > 0.05
+
+
+def test_ants_5d_warp_nifti(tmp_path):
+    """ANTs writes warps as 5D NIfTI (X, Y, Z, 1, 3), LPS vector components."""
+    ref = grid(3, 8)
+    u = smooth_field(ref)  # (z, y, x, 3), LPS
+    data = np.transpose(u, (2, 1, 0, 3))[:, :, :, None, :].astype(np.float32)  # (X, Y, Z, 1, 3)
+    itk_affine = np.eye(4)
+    itk_affine[:3, :3] = np.diag(ref.GetSpacing())
+    itk_affine[:3, 3] = ref.GetOrigin()
+    nifti = nib.Nifti1Image(data, np.diag([-1.0, -1.0, 1.0, 1.0]) @ itk_affine)
+    nifti.header.set_intent("vector")
+    nib.save(nifti, str(tmp_path / "s00_1Warp.nii.gz"))
+    t = read_transform(tmp_path / "s00_1Warp.nii.gz")
+    assert isinstance(t, sitk.DisplacementFieldTransform)
+    assert t.GetDisplacementField().GetPixelID() == sitk.sitkVectorFloat64
+    p = physical_points(ref)
+    for idx in [(1, 2, 3), (4, 5, 6), (7, 3, 2)]:  # (z, y, x)
+        got = np.array(t.TransformPoint(p[idx].tolist()))
+        np.testing.assert_allclose(got, p[idx] + u[idx], atol=1e-5)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_affine_and_field_chain_recovers_image(dim):
+    """Resampling through [warp, affine] gives g(affine(warp(p))) to interpolation accuracy."""
+    ref = grid(dim, 24 if dim == 2 else 16)
+    u = smooth_field(ref, amplitude=1.0)
+    a, m, t, c = affine(dim)
+    # moving image: an analytic smooth function g sampled on its own, larger grid
+    mov = grid(dim, 60, spacing=[0.8] * dim, origin=[-12.0] * dim)
+    centre = np.array(ref.GetOrigin()) + 0.5 * np.array(ref.GetSize()) * np.array(ref.GetSpacing())
+
+    def g(q):
+        return np.exp(-np.sum((q - centre) ** 2, axis=-1) / (2 * 5.0**2))
+
+    mov_img = sitk.GetImageFromArray(g(physical_points(mov)))
+    mov_img.CopyInformation(mov)
+    chain = chain_transform([field_transform(field_image(u, ref)), a])
+    got = resample_images([mov_img], [chain], ref, show_progress=False)[0]
+    q = apply_affine(physical_points(ref) + u, m, t, c)
+    expected = g(q)
+    vox = (q - np.array(mov.GetOrigin())) / 0.8
+    inside = np.all((vox >= 0) & (vox <= np.array(mov.GetSize()) - 1), axis=-1)
+    assert inside.mean() > 0.95
+    # (multi)linear interpolation error <= sum over axes of h^2/8 max|d2g/dx2| (= 1/sigma^2)
+    bound = dim * 0.8**2 / 8 / 5.0**2
+    np.testing.assert_allclose(got[inside], expected[inside], atol=bound)
+    assert np.all(got[~inside] < expected[~inside] + bound)  # zero outside the moving image
+    assert np.ptp(expected) > 0.3  # the image has content
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_field_inverse_round_trip(dim):
+    ref = grid(dim, 24 if dim == 2 else 14)
+    u = smooth_field(ref, amplitude=1.0)  # up to ~1 voxel, min Jacobian ~0.6
+    t = field_transform(field_image(u, ref))
+    ti = invert(t)
+    assert isinstance(ti, sitk.DisplacementFieldTransform)
+    p = physical_points(ref).reshape(-1, dim)
+    sp = np.array(ref.GetSpacing())
+    for q in p[:: 3 if dim == 2 else 7]:
+        back = np.array(ti.TransformPoint(t.TransformPoint(q.tolist())))
+        assert np.all(np.abs(back - q) / sp < 0.05)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_affine_inverse_exact_and_chain_inverse(dim):
+    ref = grid(dim, 16)
+    a, m, t, c = affine(dim)
+    ai = invert(a)
+    q = np.array([1.5, -2.0, 0.5][:dim])
+    expected = np.linalg.solve(m, q - c - t) + c  # A^-1(q) from A(p) = M (p - c) + c + t
+    np.testing.assert_allclose(ai.TransformPoint(q.tolist()), expected, atol=1e-10)
+    u = smooth_field(ref, amplitude=1.0)
+    chain = [field_transform(field_image(u, ref)), a]
+    inv = invert(chain)
+    fwd = chain_transform(chain)
+    for p in physical_points(ref).reshape(-1, dim)[::17]:
+        back = np.array(inv.TransformPoint(fwd.TransformPoint(p.tolist())))
+        np.testing.assert_allclose(back, p, atol=0.05)
+
+
+def test_jacobian_of_linear_field_with_direction_and_spacing():
+    """u(x) = B x has Jacobian det(I + B) everywhere, whatever the grid's orientation."""
+    rng = np.random.default_rng(1)
+    b = 0.2 * rng.standard_normal((3, 3))
+    theta = 0.4
+    d = np.array([[np.cos(theta), -np.sin(theta), 0], [np.sin(theta), np.cos(theta), 0], [0, 0, 1]])
+    spacing = np.array([0.8, 1.3, 2.0])
+    idx = np.moveaxis(np.indices((5, 6, 7))[::-1], 0, -1)  # (z, y, x, 3) with x index first
+    x = (idx * spacing) @ d.T
+    u = x @ b.T
+    det = jacobian_determinant(u, spacing=spacing, direction=d.ravel())
+    np.testing.assert_allclose(det, np.linalg.det(np.eye(3) + b), rtol=1e-10)
+
+
+def test_folded_fraction():
+    ref = grid(2, 20)
+    # reflection in x inside the grid: u_x = -2 x => det = -1 everywhere
+    p = physical_points(ref)
+    u = np.zeros_like(p)
+    u[..., 0] = -2 * p[..., 0]
+    assert folded_fraction(field_transform(field_image(u, ref)), ref) == 1.0
+    assert folded_fraction(field_transform(field_image(smooth_field(ref), ref)), ref) == 0.0
+    # fold only where x > 0: u_x = -2 x for x > 0 (det -1 there, 1 elsewhere)
+    u[..., 0] = np.where(p[..., 0] > 0, -2 * p[..., 0], 0.0)
+    frac = folded_fraction(field_transform(field_image(u, ref)), ref)
+    inside = np.mean(p[..., 0] > 0)
+    assert abs(frac - inside) <= 2 / ref.GetSize()[0]  # one column of finite-difference blur
+
+
+def test_write_nested_composite_round_trip(tmp_path):
+    ref = grid(3, 8)
+    a, *_ = affine(3)
+    nested = sitk.CompositeTransform(
+        [
+            sitk.CompositeTransform([a, sitk.TranslationTransform(3, (1.0, 2.0, 3.0))]),
+            field_transform(field_image(smooth_field(ref), ref)),
+        ]
+    )
+    path = write_transform(nested, tmp_path / "chain.h5")
+    back = read_transform(path)
+    for p in physical_points(ref).reshape(-1, 3)[::31]:
+        np.testing.assert_allclose(
+            back.TransformPoint(p.tolist()), nested.TransformPoint(p.tolist()), atol=1e-9
+        )
+    assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_read_errors(tmp_path):
+    with pytest.raises(InputError, match=r"missing\.tfm: transform file not found"):
+        read_transform(tmp_path / "missing.tfm")
+    (tmp_path / "t.xyz").write_text("x")
+    with pytest.raises(InputError, match=r"t\.xyz: unknown transform format '\.xyz'"):
+        read_transform(tmp_path / "t.xyz")
+    (tmp_path / "bad.tfm").write_text("not a transform\n")
+    with pytest.raises(InputError, match=r"bad\.tfm: cannot read transform"):
+        read_transform(tmp_path / "bad.tfm")
+    sitk.WriteImage(sitk.Image([4, 4], sitk.sitkFloat32), str(tmp_path / "scalar.nii.gz"))
+    with pytest.raises(InputError, match=r"scalar\.nii\.gz: displacement field: 1 components"):
+        read_transform(tmp_path / "scalar.nii.gz")
