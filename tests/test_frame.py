@@ -1,0 +1,156 @@
+"""The common frame: the three ways of getting F agree; resampling order; memberships."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from itk_nrreval.frame import (
+    frame_mapping,
+    resample_images,
+    resample_memberships,
+    resampling_transform,
+)
+from itk_nrreval.manifest import load_manifest
+from itk_nrreval.transforms import field_transform
+
+
+def grid(dim: int, n: int) -> sitk.Image:
+    img = sitk.Image([n + 2 * k for k in range(dim)], sitk.sitkFloat32)
+    img.SetSpacing([1.0 + 0.2 * k for k in range(dim)])
+    img.SetOrigin([2.0 - k for k in range(dim)])
+    return img
+
+
+def physical_points(img: sitk.Image) -> np.ndarray:
+    """Voxel centres, numpy (*spatial_zyx, dim), (x, y, z) last (identity direction)."""
+    idx = np.moveaxis(np.indices(img.GetSize()[::-1])[::-1], 0, -1)
+    return idx * np.array(img.GetSpacing()) + np.array(img.GetOrigin())
+
+
+def smooth_field(img: sitk.Image, seed: int, amplitude: float = 1.2) -> sitk.Image:
+    dim = img.GetDimension()
+    rel = (physical_points(img) - np.array(img.GetOrigin())) / (
+        (np.array(img.GetSize()) - 1) * np.array(img.GetSpacing())
+    )
+    bump = np.prod(np.sin(np.pi * rel), axis=-1)
+    phase = np.random.default_rng(seed).uniform(0, 2 * np.pi, dim)
+    u = np.stack(
+        [amplitude * bump * np.sin(2 * np.pi * rel[..., c] + phase[c]) for c in range(dim)], -1
+    )
+    f = sitk.GetImageFromArray(u, isVector=True)
+    f.CopyInformation(img)
+    return f
+
+
+def affine(dim: int, seed: int) -> sitk.AffineTransform:
+    rng = np.random.default_rng(seed)
+    a = sitk.AffineTransform(dim)
+    a.SetMatrix((np.eye(dim) + 0.05 * rng.standard_normal((dim, dim))).ravel().tolist())
+    a.SetTranslation((1.5 * rng.standard_normal(dim)).tolist())
+    a.SetCenter((np.array(grid(dim, 10).GetOrigin()) + 8).tolist())
+    return a
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_three_ways_of_getting_the_frame_agree(tmp_path, dim):
+    """R's reference is image 1 (T_1^C = A1), so F = A1 by all three routes."""
+    common = grid(dim, 20 if dim == 2 else 12)
+    a1 = affine(dim, 1)
+    t_common = [
+        field_transform(smooth_field(common, 0)),
+        a1,
+        sitk.CompositeTransform([affine(dim, 2), field_transform(smooth_field(common, 2))]),
+    ]
+    a1_inv = a1.GetInverse()
+    # T_i^R = T_i^C o A1^-1  (ANTs order: A1^-1 acts first)
+    t_r = [[a1_inv, t] for t in t_common]
+    for name in ("img0", "img1", "img2", "ref"):
+        sitk.WriteImage(common, str(tmp_path / f"{name}.nii.gz"))
+    sitk.WriteTransform(a1, str(tmp_path / "common_to_r.tfm"))
+    data = {
+        "images": ["img0.nii.gz", "img1.nii.gz", "img2.nii.gz"],
+        "registrations": {
+            "C": {"reference": "ref.nii.gz", "transforms": t_common},
+            "R": {
+                "reference": "img1.nii.gz",
+                "reference_index": 1,
+                "frame_transform": "common_to_r.tfm",
+                "transforms": t_r,
+            },
+        },
+    }
+    m = load_manifest(data, base_dir=tmp_path)
+    p = physical_points(common)
+    mm = np.array(a1.GetMatrix()).reshape(dim, dim)
+    c, t = np.array(a1.GetCenter()), np.array(a1.GetTranslation())
+    expected = (p - c) @ mm.T + c + t  # A1(p), independently of SimpleITK
+    # the mean route carries the field inversions' residual: < 0.1 voxel (spacing >= 1 mm)
+    by_default = frame_mapping(m, "R", grid=common)
+    assert by_default.method == "frame_transform"
+    for method, tol in [("frame_transform", 1e-9), ("reference_index", 1e-9), ("mean", 0.1)]:
+        f = frame_mapping(m, "R", grid=common, method=method)
+        assert f.method == method
+        got = np.array([f.transform.TransformPoint(q.tolist()) for q in p.reshape(-1, dim)])
+        err = np.abs(got - expected.reshape(-1, dim))
+        inner = err.reshape(*p.shape)[(slice(2, -2),) * dim]  # inversion is loosest at the rim
+        assert inner.max() < tol, (method, inner.max())
+        assert 0 <= f.spread_mean_mm < 0.05
+        assert f.spread_mean_mm <= f.spread_max_mm
+    assert frame_mapping(m, "C", grid=common).method == "common"
+    with pytest.raises(ValueError, match="method: 'best' is not one of"):
+        frame_mapping(m, "R", grid=common, method="best")
+
+
+def test_spread_reports_inconsistent_estimates():
+    """Per-image estimates that disagree by known shifts give that spread."""
+    common = grid(2, 16)
+    t_common = [sitk.TranslationTransform(2, (0.0, 0.0)) for _ in range(3)]
+    shifts = [(1.0, 0.0), (-1.0, 0.0), (0.0, 0.0)]
+    # T_i^R = T_i^C o S_i^-1, so F_i = S_i: translations by the shifts; mean shift 0
+    t_r = [sitk.TranslationTransform(2, (-sx, -sy)) for sx, sy in shifts]
+    m = load_manifest(
+        {
+            "images": ["a.nii", "b.nii", "c.nii"],
+            "registrations": {
+                "C": {"reference": "a.nii", "transforms": t_common},
+                "R": {"reference": "a.nii", "transforms": t_r},
+            },
+        },
+        check_files=False,
+    )
+    f = frame_mapping(m, "R", grid=common)
+    assert f.method == "mean"
+    assert f.spread_mean_mm == pytest.approx(2 / 3, abs=1e-6)  # |1|, |-1|, |0| mm
+    assert f.spread_max_mm == pytest.approx(1.0, abs=1e-6)
+
+
+def test_resampling_transform_applies_frame_first():
+    scale = sitk.ScaleTransform(2, (2.0, 3.0))
+    shift = sitk.TranslationTransform(2, (1.0, -1.0))
+    t = resampling_transform(scale, shift)  # T o F: F = shift acts first
+    assert t.TransformPoint((1.0, 1.0)) == pytest.approx((4.0, 0.0))
+
+
+def test_resample_images_options():
+    img = grid(2, 8)
+    with pytest.raises(ValueError, match="interpolation: 'cubic' is not one of"):
+        resample_images([img], [sitk.Transform(2, sitk.sitkIdentity)], img, interpolation="cubic")
+
+
+def test_memberships_one_hot_and_fuzzy():
+    arr = np.zeros((6, 8), np.int16)
+    arr[:, 4:] = 3
+    arr[2:4, 1:3] = 1
+    lab = sitk.GetImageFromArray(arr)
+    ident = sitk.TranslationTransform(2, (0.0, 0.0))
+    half = sitk.TranslationTransform(2, (0.5, 0.0))
+    m = resample_memberships([lab, lab], [ident, half], lab, values=[0, 1, 3], show_progress=False)
+    assert m.shape == (2, 3, 6, 8)
+    expected = np.stack([(arr == v) for v in (0, 1, 3)]).astype(np.float32)
+    np.testing.assert_array_equal(m[0], expected)
+    # half a voxel to the right: each membership averages two neighbours
+    shifted = 0.5 * (expected[:, :, :-1] + expected[:, :, 1:])
+    np.testing.assert_allclose(m[1][:, :, :-1], shifted, atol=1e-6)
+    np.testing.assert_allclose(m[1][:, :, :-1].sum(axis=0), 1.0, atol=1e-6)
