@@ -6,7 +6,10 @@ images of a group give a shape-free texture model; its specificity scores the re
 """
 
 from ._errors import InputError
+from .evaluate import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
+from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
+from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
 from .specificity import (
     GeneralizationResult,
     SpecificityComparison,
@@ -31,5 +34,19 @@ __all__ = [
     "texture_measures",
     "compare_specificity",
     "loo_generalization",
+    "Manifest",
+    "Registration",
+    "load_manifest",
+    "write_manifest",
+    "add_registration",
+    "EvaluationResult",
+    "RegistrationScores",
+    "evaluate",
+    "ranks",
+    "relative_ranks",
+    "WEIGHTINGS",
+    "OverlapTable",
+    "overlap_table",
+    "generalized_overlap",
     "__version__",
 ]

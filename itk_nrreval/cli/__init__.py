@@ -12,12 +12,12 @@ import argparse
 import sys
 
 from .._errors import InputError
-from . import specificity
+from . import evaluate, overlap, specificity
 
 __all__ = ["main"]
 
 # One entry per sub-command module, in the order `nrreval --help` lists them.
-COMMANDS = [specificity]
+COMMANDS = [specificity, evaluate, overlap]
 
 
 def build_parser() -> argparse.ArgumentParser:
