@@ -2,7 +2,7 @@
 
 Samples are never stored: sample ``mu`` of a model with mode standard deviations ``sd`` is
 ``y[k] = z(seed, mu, k) * sd[k]``, where ``z`` is a counter-based standard normal (the
-splitmix64 stream at a position fixed by ``(mu, k)``, then Box-Muller). Hence
+splitmix64 stream at a position fixed by ``(mu, k)``, turned normal by the ziggurat). Hence
 
 * the same seed gives the same numbers whatever the thread count or chunk size;
 * two models sharing a seed see the same standard normals in their common modes
@@ -31,12 +31,47 @@ CHUNK = 4096
 _GAMMA = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
-_TWO_PI = 2.0 * np.pi
 _INV_2_53 = 1.0 / 9007199254740992.0
+# Counter layout: ((mu << 18 | k) << 10) | (attempt << 2) | draw. Limits: k < 2**18 modes,
+# mu < 2**36 samples, and 256 ziggurat attempts (the chance of needing more is below 1e-300).
+MAX_MODES = 1 << 18
+MAX_SAMPLES = 1 << 36
+_MAX_ATTEMPTS = 256
+
+
+def _ziggurat_tables():
+    """Marsaglia & Tsang's 256-layer ziggurat for the standard normal, 52-bit magnitudes."""
+    r = 3.6541528853610088
+    v = 0.00492867323399
+    m = 2.0**52
+    ki = np.zeros(256, dtype=np.uint64)
+    wi = np.zeros(256)
+    fi = np.zeros(256)
+    dn = tn = r
+    q = v / np.exp(-0.5 * dn * dn)
+    ki[0] = np.uint64((dn / q) * m)
+    ki[1] = 0
+    wi[0] = q / m
+    wi[255] = dn / m
+    fi[0] = 1.0
+    fi[255] = np.exp(-0.5 * dn * dn)
+    for i in range(254, 0, -1):
+        dn = np.sqrt(-2.0 * np.log(v / dn + np.exp(-0.5 * dn * dn)))
+        ki[i + 1] = np.uint64((dn / tn) * m)
+        tn = dn
+        fi[i] = np.exp(-0.5 * dn * dn)
+        wi[i] = dn / m
+    return ki, wi, fi, r
+
+
+_KI, _WI, _FI, _ZIG_R = _ziggurat_tables()
+_ZIG_INV_R = 1.0 / _ZIG_R
 
 
 @numba.njit(inline="always", cache=True)
-def _mix(x):
+def _bits(key, counter):
+    """The splitmix64 stream `key` at position `counter`: 64 random bits."""
+    x = key + (counter + np.uint64(1)) * _GAMMA
     x = (x ^ (x >> np.uint64(30))) * _M1
     x = (x ^ (x >> np.uint64(27))) * _M2
     return x ^ (x >> np.uint64(31))
@@ -44,25 +79,69 @@ def _mix(x):
 
 @numba.njit(inline="always", cache=True)
 def _uniform(key, counter):
-    """A uniform in (0, 1] from the splitmix64 stream `key` at position `counter`."""
-    x = _mix(key + (counter + np.uint64(1)) * _GAMMA)
-    return ((x >> np.uint64(11)) + np.uint64(1)) * _INV_2_53
+    """A uniform in [0, 1) from the stream `key` at position `counter`."""
+    return (_bits(key, counter) >> np.uint64(11)) * _INV_2_53
+
+
+@numba.njit(cache=True)
+def _normal_slow(key, base, attempt, idx, negative, x):
+    """The ziggurat's rare paths (wedge test, tail), then fresh attempts, for one normal."""
+    while True:
+        c = base | (np.uint64(attempt) << np.uint64(2))
+        if idx == 0:  # the tail beyond r
+            for tail in range(_MAX_ATTEMPTS):
+                tail_key = key ^ (_M1 * np.uint64(tail + 1))  # a stream per tail attempt
+                xx = -_ZIG_INV_R * np.log1p(-_uniform(tail_key, c | np.uint64(2)))
+                yy = -np.log1p(-_uniform(tail_key, c | np.uint64(3)))
+                if yy + yy > xx * xx:
+                    return -(_ZIG_R + xx) if negative else _ZIG_R + xx
+        else:
+            u = _uniform(key, c | np.uint64(1))
+            if (_FI[idx - 1] - _FI[idx]) * u + _FI[idx] < np.exp(-0.5 * x * x):
+                return x
+        attempt += 1
+        if attempt == _MAX_ATTEMPTS:
+            return x
+        r = _bits(key, base | (np.uint64(attempt) << np.uint64(2)))
+        idx = np.int64(r & np.uint64(0xFF))
+        r = r >> np.uint64(8)
+        negative = (r & np.uint64(1)) != 0
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = -(rabs * _WI[idx]) if negative else rabs * _WI[idx]
+        if rabs < _KI[idx]:
+            return x
 
 
 @numba.njit(cache=True)
 def _fill_normals(key, mu, out):
-    """Standard normals z(key, mu, k) for k < len(out), two per Box-Muller pair."""
-    k_total = out.shape[0]
-    base = np.uint64(mu) << np.uint64(18)
-    for p in range((k_total + 1) // 2):
-        c = (base + np.uint64(p)) << np.uint64(1)
-        u1 = _uniform(key, c)
-        u2 = _uniform(key, c + np.uint64(1))
-        r = np.sqrt(-2.0 * np.log(u1))
-        t = _TWO_PI * u2
-        out[2 * p] = r * np.cos(t)
-        if 2 * p + 1 < k_total:
-            out[2 * p + 1] = r * np.sin(t)
+    """Standard normals z(key, mu, k) for k < len(out): each fixed by (key, mu, k) alone.
+
+    Ziggurat (Marsaglia & Tsang, 256 layers, as numpy's): normal k of sample mu reads the
+    stream at counters ``((mu << 18 | k) << 10) | (attempt << 2) | draw``; the first attempt's
+    fast path (about 99% of draws) is inlined here.
+    """
+    sample_base = np.uint64(mu) << np.uint64(18)
+    n_slow = 0
+    for k in range(out.shape[0]):
+        r = _bits(key, (sample_base | np.uint64(k)) << np.uint64(10))
+        idx = np.int64(r & np.uint64(0xFF))
+        r = r >> np.uint64(8)
+        rabs = (r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)
+        x = rabs * _WI[idx]
+        out[k] = -x if (r & np.uint64(1)) != 0 else x
+        if rabs >= _KI[idx]:
+            out[k] = np.nan  # finished below: a call in this loop would slow every draw
+            n_slow += 1
+    if n_slow:
+        for k in range(out.shape[0]):
+            if np.isnan(out[k]):
+                base = (sample_base | np.uint64(k)) << np.uint64(10)
+                r = _bits(key, base)
+                idx = np.int64(r & np.uint64(0xFF))
+                r = r >> np.uint64(8)
+                x = ((r >> np.uint64(1)) & np.uint64(0x000FFFFFFFFFFFFF)) * _WI[idx]
+                negative = (r & np.uint64(1)) != 0
+                out[k] = _normal_slow(key, base, 0, idx, negative, -x if negative else x)
 
 
 def _key(seed: int) -> np.uint64:

@@ -117,8 +117,8 @@ class SpecificityComparison:
 def _check_options(n_samples: int, distance: str, exponent: float) -> None:
     if distance not in _DISTANCES:
         raise ValueError(f"distance must be one of {_DISTANCES}, got {distance!r}")
-    if not (isinstance(n_samples, (int, np.integer)) and n_samples >= 2):
-        raise ValueError(f"n_samples must be an integer >= 2, got {n_samples!r}")
+    if not (isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _sampling.MAX_SAMPLES):
+        raise ValueError(f"n_samples must be an integer in [2, 2**36), got {n_samples!r}")
     if not (exponent > 0 and math.isfinite(exponent)):
         raise ValueError(f"exponent must be a positive number, got {exponent!r}")
 
@@ -129,6 +129,11 @@ def _model(images, mask) -> TextureModel:
             raise ValueError("mask applies when fitting; pass it to TextureModel.from_images")
         return images
     return TextureModel.from_images(images, mask=mask)
+
+
+def _check_modes(model: TextureModel) -> None:
+    if model.n_modes >= _sampling.MAX_MODES:
+        raise InputError(f"the model has {model.n_modes} modes; at most 262143 are supported")
 
 
 def _generalization_values(gen_min: np.ndarray, distance: str, exponent: float) -> np.ndarray:
@@ -153,6 +158,7 @@ def texture_measures(
     """
     _check_options(n_samples, distance, exponent)
     model = _model(images, mask)
+    _check_modes(model)
     l2 = distance == "l2"
     chunk = _sampling.CHUNK
     means, m2s, counts, gen = _sampling.run_single(
@@ -281,6 +287,8 @@ def compare_specificity(
     """
     _check_options(n_samples, distance, exponent)
     ma, mb = _model(a_images, mask), _model(b_images, mask)
+    _check_modes(ma)
+    _check_modes(mb)
     if ma.n_images != mb.n_images:
         raise InputError(
             f"compare_specificity needs two registrations of one image set: "

@@ -107,6 +107,16 @@ def test_standard_normals_are_standard_normal_and_independent():
     assert abs(np.corrcoef(z[:-1, 0], z[1:, 0])[0, 1]) < 0.03
 
 
+def test_standard_normal_tails_follow_the_normal_law():
+    # Draws beyond the ziggurat's base strip (|z| > 3.654) take the tail path.
+    z = _sampling.standard_normals(9, 0, 50_000, 20).ravel()
+    for t in (2.0, 3.0, 3.654):
+        expected = 2 * stats.norm.sf(t) * z.size
+        observed = np.count_nonzero(np.abs(z) > t)
+        assert abs(observed - expected) < 5 * np.sqrt(expected), t
+    assert np.abs(z).max() > 3.654
+
+
 def test_common_random_numbers_share_normals_across_models():
     # A sample's first modes do not depend on how many modes the model has.
     a = _sampling.standard_normals(4, 100, 110, 3)
@@ -198,7 +208,7 @@ def test_degenerate_inputs_are_refused(small_images):
         nr.specificity(bad)
     with pytest.raises(ValueError, match="distance must be one of"):
         nr.specificity(small_images, distance="cosine")
-    with pytest.raises(ValueError, match="n_samples must be"):
+    with pytest.raises(ValueError, match=r"n_samples must be an integer in \[2, 2\*\*36\)"):
         nr.specificity(small_images, n_samples=1)
 
 
