@@ -223,7 +223,7 @@ def relative_ranks(
         elif best == worst:
             out[k] = 100.0
         else:
-            out[k] = round(100.0 * (valid[k] - worst) / (best - worst), 10)
+            out[k] = round(100.0 * (valid[k] - worst) / (best - worst), 10) + 0.0  # no -0.0
     return out
 
 

@@ -226,7 +226,7 @@ def _raise(label: str, problems: list[str]) -> None:
 def _path(value, base: Path, what: str, problems: list[str]) -> Path | None:
     if isinstance(value, (str, os.PathLike)) and str(value).strip():
         p = Path(os.path.expanduser(str(value)))
-        return p if p.is_absolute() else base / p
+        return Path(os.path.normpath(p if p.is_absolute() else base / p))
     problems.append(f"{what}: expected a file path, got {value!r}")
     return None
 
