@@ -1,0 +1,607 @@
+"""Populations of brain-like images with known true correspondence.
+
+Each subject is the template moved by a known transform and given its own intensities:
+
+* a random diffeomorphism ``phi = exp(v)``: a smooth stationary velocity field ``v`` (white
+  noise smoothed by a Gaussian of `smoothness_mm`, tapered to zero near the grid border and
+  scaled to an RMS length of `warp_mm`) integrated by scaling and squaring, with
+  ``phi^-1 = exp(-v)`` from the same integration of ``-v`` (then polished by two fixed-point
+  steps, so the round trip is exact to a small fraction of a voxel);
+* a random pose ``A`` (affine: small rotation, per-axis scale and translation about the grid
+  centre);
+* intensity changes: a global scale, a smooth multiplicative bias field and Rician noise.
+
+Transform convention (ITK): a transform maps reference points to image points. The subject's
+``template_to_subject`` transform ``T = A o phi`` maps a template point ``p`` to the
+corresponding subject point, so that ``subject(T(p)) = template(p)``; resampling the subject
+through ``T`` on the template grid is the perfect registration. ``subject_to_template`` is
+``T^-1 = phi^-1 o A^-1``; the subject is made by resampling the template through it on the
+subject grid. As SimpleITK composites: ``CompositeTransform([A, phi])`` (the last acts first).
+
+Arrays follow SimpleITK's numpy order, ``(z, y, x)``; displacement vectors hold (x, y[, z])
+components in mm; physical space is LPS.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numba
+import numpy as np
+import SimpleITK as sitk
+
+from .mni import make_mni
+from .phantom import Phantom, make_phantom
+
+__all__ = [
+    "Subject",
+    "Population",
+    "PerfectRegistration",
+    "make_population",
+    "perfect_registration",
+    "velocity_exponential",
+]
+
+_KINDS = ("phantom", "mni")
+
+
+@dataclass(frozen=True)
+class Subject:
+    """One synthetic subject.
+
+    Attributes
+    ----------
+    image : sitk.Image
+        ``sitkFloat32`` intensities on the subject's grid (same size, spacing and origin as the
+        template grid; the pose moves the anatomy within it).
+    labels : sitk.Image
+        ``sitkUInt8`` label map on the same grid (values of :attr:`Population.label_names`).
+    template_to_subject : sitk.CompositeTransform
+        ``A o phi``: maps template points (mm) to subject points; resample the subject through
+        it onto the template grid to bring it into the template frame.
+    subject_to_template : sitk.CompositeTransform
+        ``phi^-1 o A^-1``: maps subject points to template points.
+    """
+
+    image: sitk.Image
+    labels: sitk.Image
+    template_to_subject: sitk.CompositeTransform
+    subject_to_template: sitk.CompositeTransform
+
+
+@dataclass(frozen=True)
+class Population:
+    """A template and N subjects made from it with known transforms.
+
+    Attributes
+    ----------
+    kind : {"phantom", "mni"}
+    template : sitk.Image
+        ``sitkFloat32`` template image (the common frame of the true correspondence).
+    template_labels : sitk.Image
+        ``sitkUInt8`` template label map.
+    label_names : Mapping[int, str]
+        Label value -> name, for the labels present in the template.
+    subjects : tuple of Subject
+    seed : int
+    parameters : Mapping[str, float]
+        The generation parameters (``warp_mm``, ``smoothness_mm``, ...) for the record.
+    """
+
+    kind: str
+    template: sitk.Image
+    template_labels: sitk.Image
+    label_names: Mapping[int, str]
+    subjects: tuple[Subject, ...]
+    seed: int
+    parameters: Mapping[str, float]
+
+    def __len__(self) -> int:
+        return len(self.subjects)
+
+
+@dataclass(frozen=True)
+class PerfectRegistration:
+    """Every subject resampled into the template frame through its true transform.
+
+    Attributes
+    ----------
+    images : tuple of sitk.Image
+        ``sitkFloat32``, on the template grid.
+    labels : tuple of sitk.Image
+        ``sitkUInt8``, on the template grid (nearest-neighbour resampling).
+    """
+
+    images: tuple[sitk.Image, ...]
+    labels: tuple[sitk.Image, ...]
+
+
+def make_population(
+    kind: str = "phantom",
+    *,
+    dim: int = 2,
+    n: int = 36,
+    seed: int = 0,
+    spacing: float | None = None,
+    size: int | tuple[int, ...] | None = None,
+    warp_mm: float = 4.0,
+    smoothness_mm: float = 20.0,
+    rotation_deg: float = 4.0,
+    scale_sd: float = 0.04,
+    translation_mm: float = 4.0,
+    intensity_sd: float = 0.1,
+    bias_sd: float = 0.1,
+    noise: float = 0.02,
+) -> Population:
+    """Make a template and `n` subjects with known true transforms.
+
+    Parameters
+    ----------
+    kind : {"phantom", "mni"}
+        The analytic phantom (:func:`data_synth.phantom.make_phantom`, 26 structures in 3D,
+        14 in the 2D slice) or the MNI152 2009a template with grey matter / white matter /
+        CSF-other labels (:func:`data_synth.mni.make_mni`).
+    dim : {2, 3}
+        2D axial slice (141 x 141 by default) or 3D volume (2 mm voxels by default).
+    n : int
+        Number of subjects, >= 1.
+    seed : int
+        Seed of the whole population; subject ``i`` draws from its own stream
+        (``SeedSequence(seed).spawn(n)[i]``), so subject ``i`` does not depend on `n`.
+    spacing, size
+        The template grid (isotropic voxel size in mm; voxels in (x, y[, z]) order); defaults
+        depend on `kind` and `dim`.
+    warp_mm : float
+        RMS length (mm) of the velocity field over the untapered interior of the grid; the
+        displacements of ``exp(v)`` are about this size. 0 gives no non-rigid warp.
+    smoothness_mm : float
+        Standard deviation (mm) of the Gaussian smoothing the velocity noise.
+    rotation_deg, scale_sd, translation_mm : float
+        Standard deviations of the pose: rotation angles (degrees, one in 2D, three in 3D),
+        log per-axis scale factors, and translations (mm per axis).
+    intensity_sd, bias_sd : float
+        Standard deviations of the log global intensity scale and of the log bias field.
+    noise : float
+        Rician noise level as a fraction of the template's 99th-percentile intensity.
+
+    Returns
+    -------
+    Population
+
+    Raises
+    ------
+    ValueError
+        An unknown `kind`, a `dim` other than 2 or 3, ``n < 1``, or a negative / non-finite
+        amplitude; the message names the argument and the accepted values.
+    FileNotFoundError
+        ``kind="mni"`` without nilearn's data files.
+    """
+    if kind not in _KINDS:
+        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    if dim not in (2, 3) or isinstance(dim, bool):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive number of subjects, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    params = {
+        "warp_mm": warp_mm,
+        "smoothness_mm": smoothness_mm,
+        "rotation_deg": rotation_deg,
+        "scale_sd": scale_sd,
+        "translation_mm": translation_mm,
+        "intensity_sd": intensity_sd,
+        "bias_sd": bias_sd,
+        "noise": noise,
+    }
+    for name, value in params.items():
+        if not (
+            isinstance(value, (int, float, np.floating)) and math.isfinite(value) and value >= 0
+        ):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if smoothness_mm <= 0:
+        raise ValueError(f"smoothness_mm must be > 0, got {smoothness_mm!r}")
+
+    maker = make_phantom if kind == "phantom" else make_mni
+    tmpl: Phantom = maker(dim=dim, spacing=spacing, size=size)
+    template = tmpl.image
+    ref_value = float(np.percentile(sitk.GetArrayViewFromImage(template), 99))
+    streams = np.random.SeedSequence(int(seed)).spawn(int(n))
+    subjects = tuple(
+        _make_subject(tmpl, np.random.default_rng(s), ref_value=ref_value, **params)
+        for s in streams
+    )
+    return Population(
+        kind=kind,
+        template=template,
+        template_labels=tmpl.labels,
+        label_names=tmpl.label_names,
+        subjects=subjects,
+        seed=int(seed),
+        parameters=MappingProxyType({k: float(v) for k, v in params.items()}),
+    )
+
+
+def perfect_registration(population: Population) -> PerfectRegistration:
+    """Resample every subject into the template frame through its true transform.
+
+    Images are resampled linearly, labels by nearest neighbour, both onto the template grid
+    with ``subject.template_to_subject`` (the paper's starting point for Section IV).
+    """
+    ref = population.template
+    images, labels = [], []
+    for s in population.subjects:
+        images.append(sitk.Resample(s.image, ref, s.template_to_subject, sitk.sitkLinear, 0.0))
+        labels.append(
+            sitk.Resample(
+                s.labels, ref, s.template_to_subject, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8
+            )
+        )
+    return PerfectRegistration(tuple(images), tuple(labels))
+
+
+# --------------------------------------------------------------------------------------------
+# Random fields and the velocity exponential
+
+
+def _smooth_noise(
+    rng: np.random.Generator, grid: sitk.Image, *, n_components: int, sigma_mm: float
+) -> np.ndarray:
+    """Gaussian-smoothed white noise on `grid`, unit RMS per component.
+
+    Noise is drawn on a coarse grid (spacing ``sigma_mm / 2``, at least the grid's, with a
+    margin of ``3 sigma``), smoothed there, and interpolated onto `grid` with a separable cubic
+    (Keys) kernel, so the cost does not grow with the smoothness. Assumes an identity direction.
+
+    Returns
+    -------
+    ndarray of shape (*numpy_shape, n_components)
+    """
+    from scipy.ndimage import gaussian_filter
+
+    spacing = np.asarray(grid.GetSpacing())
+    size = np.asarray(grid.GetSize())
+    coarse_h = max(sigma_mm / 2.0, float(spacing.min()))
+    margin = 3.0 * sigma_mm
+    csize = np.ceil(((size - 1) * spacing + 2 * margin) / coarse_h).astype(int) + 1
+    # One interpolation matrix per axis, numpy order: fine positions in coarse index units.
+    mats = [
+        _cubic_matrix((margin + spacing[ax] * np.arange(size[ax])) / coarse_h, int(csize[ax]))
+        for ax in reversed(range(len(size)))
+    ]
+    out = np.empty((*reversed(size.tolist()), n_components))
+    for c in range(n_components):
+        field = gaussian_filter(
+            rng.standard_normal(tuple(reversed(csize.tolist()))), sigma_mm / coarse_h
+        )
+        for ax, m in enumerate(mats):
+            field = np.moveaxis(np.tensordot(m, field, axes=([1], [ax])), 0, ax)
+        out[..., c] = field / max(float(np.sqrt(np.mean(field**2))), 1e-12)
+    return out
+
+
+def _cubic_matrix(positions: np.ndarray, n: int) -> np.ndarray:
+    """Keys cubic interpolation weights (a = -0.5), shape ``(len(positions), n)``."""
+    base = np.floor(positions).astype(int)
+    m = np.zeros((len(positions), n))
+    rows = np.arange(len(positions))
+    for offset in (-1, 0, 1, 2):
+        t = np.abs(positions - (base + offset))
+        w = np.where(
+            t <= 1,
+            1.5 * t**3 - 2.5 * t**2 + 1,
+            np.where(t < 2, -0.5 * t**3 + 2.5 * t**2 - 4 * t + 2, 0),
+        )
+        np.add.at(m, (rows, np.clip(base + offset, 0, n - 1)), w)
+    return m
+
+
+def _taper(grid: sitk.Image, *, fraction: float = 0.2) -> np.ndarray:
+    """A window, numpy shape, equal to 1 inside and falling smoothly to 0 at the grid border.
+
+    Each axis contributes ``sin^2`` ramps over the outer `fraction` of its length.
+    """
+    w = np.ones(tuple(reversed(grid.GetSize())))
+    for axis_np, n in enumerate(reversed(grid.GetSize())):
+        t = np.arange(n) / max(n - 1, 1)
+        edge = np.minimum(t, 1.0 - t) / fraction
+        ramp = np.sin(0.5 * np.pi * np.clip(edge, 0.0, 1.0)) ** 2
+        shape = [1] * w.ndim
+        shape[axis_np] = n
+        w = w * ramp.reshape(shape)
+    return w
+
+
+def _field_image(u: np.ndarray, grid: sitk.Image) -> sitk.Image:
+    img = sitk.GetImageFromArray(u, isVector=True)
+    img.CopyInformation(grid)
+    return img
+
+
+def _compose(a: np.ndarray, b: np.ndarray, grid: sitk.Image) -> np.ndarray:
+    """``a`` sampled at ``x + b(x)`` for every node ``x`` of `grid` (linear; zero outside).
+
+    This is what ITK's ``DisplacementFieldTransform`` does with a linear interpolator, so the
+    fields built from it are exactly the ones the written transforms apply. Assumes an
+    identity direction (the grids of this module).
+    """
+    spacing = np.asarray(grid.GetSpacing()[::-1], dtype=np.float64)  # numpy order
+    # Displacements in continuous-index units, numpy axis order.
+    shift = np.ascontiguousarray(b[..., ::-1] / spacing)
+    if a.ndim == 3:
+        return _compose2(np.ascontiguousarray(a), shift)
+    return _compose3(np.ascontiguousarray(a), shift)
+
+
+@numba.njit(cache=True)
+def _compose2(a, shift):  # pragma: no cover - compiled
+    ny, nx, nc = a.shape
+    out = np.zeros_like(a)
+    for i in range(ny):
+        for j in range(nx):
+            y = i + shift[i, j, 0]
+            x = j + shift[i, j, 1]
+            if y < 0 or x < 0 or y > ny - 1 or x > nx - 1:
+                continue
+            i0 = min(int(y), ny - 2)
+            j0 = min(int(x), nx - 2)
+            fy = y - i0
+            fx = x - j0
+            for c in range(nc):
+                out[i, j, c] = (1 - fy) * ((1 - fx) * a[i0, j0, c] + fx * a[i0, j0 + 1, c]) + fy * (
+                    (1 - fx) * a[i0 + 1, j0, c] + fx * a[i0 + 1, j0 + 1, c]
+                )
+    return out
+
+
+@numba.njit(cache=True)
+def _compose3(a, shift):  # pragma: no cover - compiled
+    nz, ny, nx, nc = a.shape
+    out = np.zeros_like(a)
+    for k in range(nz):
+        for i in range(ny):
+            for j in range(nx):
+                z = k + shift[k, i, j, 0]
+                y = i + shift[k, i, j, 1]
+                x = j + shift[k, i, j, 2]
+                if z < 0 or y < 0 or x < 0 or z > nz - 1 or y > ny - 1 or x > nx - 1:
+                    continue
+                k0 = min(int(z), nz - 2)
+                i0 = min(int(y), ny - 2)
+                j0 = min(int(x), nx - 2)
+                fz = z - k0
+                fy = y - i0
+                fx = x - j0
+                for c in range(nc):
+                    v0 = (1 - fy) * (
+                        (1 - fx) * a[k0, i0, j0, c] + fx * a[k0, i0, j0 + 1, c]
+                    ) + fy * ((1 - fx) * a[k0, i0 + 1, j0, c] + fx * a[k0, i0 + 1, j0 + 1, c])
+                    v1 = (1 - fy) * (
+                        (1 - fx) * a[k0 + 1, i0, j0, c] + fx * a[k0 + 1, i0, j0 + 1, c]
+                    ) + fy * (
+                        (1 - fx) * a[k0 + 1, i0 + 1, j0, c] + fx * a[k0 + 1, i0 + 1, j0 + 1, c]
+                    )
+                    out[k, i, j, c] = (1 - fz) * v0 + fz * v1
+    return out
+
+
+def velocity_exponential(
+    velocity: np.ndarray, grid: sitk.Image, *, polish: int = 2
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate a stationary velocity field by scaling and squaring, both ways.
+
+    Parameters
+    ----------
+    velocity : ndarray of shape (*numpy_shape, dim)
+        Velocity in mm, components in ITK order (x, y[, z]), on `grid` (numpy order).
+    grid : sitk.Image
+        The grid (size, spacing, origin, direction) of the field.
+    polish : int
+        Fixed-point steps ``w <- -u(x + w(x))`` refining the inverse after integration.
+
+    Returns
+    -------
+    forward, inverse : ndarray of shape (*numpy_shape, dim)
+        Displacements (mm) of ``exp(v)`` and ``exp(-v)``: ``exp(v)(x) = x + forward(x)``.
+
+    Notes
+    -----
+    ``exp(v) = (id + v / 2^K)^(2^K)``, with ``K`` chosen so that ``max |v| / 2^K`` is below a
+    quarter voxel; each squaring is ``u <- u + u(x + u(x))`` with linear interpolation.
+    Points mapped outside the grid see zero displacement, so `velocity` should vanish near
+    the border.
+    """
+    h = float(min(grid.GetSpacing()))
+    vmax = float(np.sqrt((velocity**2).sum(axis=-1)).max()) if velocity.size else 0.0
+    steps = int(math.ceil(math.log2(max(vmax / (0.25 * h), 1.0)))) + 1
+    results = []
+    for sign in (1.0, -1.0):
+        u = sign * velocity / 2.0**steps
+        for _ in range(steps):
+            u = u + _compose(u, u, grid)
+        results.append(u)
+    forward, inverse = results
+    for _ in range(polish):
+        inverse = -_compose(forward, inverse, grid)
+    return forward, inverse
+
+
+# --------------------------------------------------------------------------------------------
+# One subject
+
+
+def _random_pose(
+    rng: np.random.Generator, grid: sitk.Image, *, rotation_deg, scale_sd, translation_mm
+) -> sitk.AffineTransform:
+    dim = grid.GetDimension()
+    if dim == 2:
+        (a,) = np.deg2rad(rng.normal(0.0, rotation_deg, 1))
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    else:
+        angles = np.deg2rad(rng.normal(0.0, rotation_deg, 3))
+        rot = np.eye(3)
+        for axis, a in enumerate(angles):
+            i, j = [k for k in range(3) if k != axis]
+            r = np.eye(3)
+            r[i, i] = r[j, j] = np.cos(a)
+            r[i, j], r[j, i] = -np.sin(a), np.sin(a)
+            rot = r @ rot
+    scales = np.exp(rng.normal(0.0, scale_sd, dim))
+    shift = rng.normal(0.0, translation_mm, dim)
+    pose = sitk.AffineTransform(dim)
+    size = np.asarray(grid.GetSize())
+    center = grid.TransformContinuousIndexToPhysicalPoint(((size - 1) / 2.0).tolist())
+    pose.SetCenter(center)
+    pose.SetMatrix((rot @ np.diag(scales)).ravel().tolist())
+    pose.SetTranslation(shift.tolist())
+    return pose
+
+
+def _field_grid(grid: sitk.Image, *, smoothness_mm: float) -> sitk.Image:
+    """The grid of the displacement fields: the image grid's box, spacing ``min(voxel, sigma / 8)``.
+
+    The fields are smooth on the scale of `smoothness_mm` (sigma), so nodes ``sigma / 8`` apart
+    carry them to well within the round-trip tolerance while linear interpolation between
+    nodes (as ITK applies them) stays accurate; for fine images the field shares the image
+    grid. The box starts at the image origin and covers the whole image grid.
+    """
+    spacing = np.asarray(grid.GetSpacing())
+    size = np.asarray(grid.GetSize())
+    h = np.minimum(spacing, smoothness_mm / 8.0)
+    n = np.ceil((size - 1) * spacing / h - 1e-9).astype(int) + 1
+    out = sitk.Image(n.tolist(), sitk.sitkFloat32)
+    out.SetSpacing(h.tolist())
+    out.SetOrigin(grid.GetOrigin())
+    out.SetDirection(grid.GetDirection())
+    return out
+
+
+def _displacement_transform(u: np.ndarray, grid: sitk.Image) -> sitk.DisplacementFieldTransform:
+    # The transform takes its image over: hand it a fresh float64 copy.
+    return sitk.DisplacementFieldTransform(sitk.Cast(_field_image(u, grid), sitk.sitkVectorFloat64))
+
+
+def _make_subject(
+    tmpl: Phantom,
+    rng: np.random.Generator,
+    *,
+    ref_value: float,
+    warp_mm: float,
+    smoothness_mm: float,
+    rotation_deg: float,
+    scale_sd: float,
+    translation_mm: float,
+    intensity_sd: float,
+    bias_sd: float,
+    noise: float,
+) -> Subject:
+    grid = tmpl.image
+    dim = grid.GetDimension()
+    field_grid = _field_grid(grid, smoothness_mm=smoothness_mm)
+    # Draw everything first, in a fixed order, so the stream does not depend on the options.
+    vel_noise = _smooth_noise(rng, field_grid, n_components=dim, sigma_mm=smoothness_mm)
+    pose = _random_pose(
+        rng, grid, rotation_deg=rotation_deg, scale_sd=scale_sd, translation_mm=translation_mm
+    )
+    gain = float(np.exp(rng.normal(0.0, intensity_sd)))
+    bias = _smooth_noise(rng, grid, n_components=1, sigma_mm=60.0)[..., 0]
+    noise_seed = rng.integers(2**32)
+
+    window = _taper(field_grid)
+    velocity = vel_noise * window[..., None]
+    interior = window >= 1.0 - 1e-12
+    rms = float(np.sqrt(np.mean(np.sum(velocity[interior] ** 2, axis=-1))))
+    velocity *= warp_mm / max(rms, 1e-12)
+    forward, inverse = velocity_exponential(velocity, field_grid)
+
+    t_to_s = sitk.CompositeTransform([pose, _displacement_transform(forward, field_grid)])
+    s_to_t = sitk.CompositeTransform(
+        [_displacement_transform(inverse, field_grid), pose.GetInverse()]
+    )
+
+    moved = sitk.Resample(tmpl.image, grid, s_to_t, sitk.sitkLinear, 0.0, sitk.sitkFloat32)
+    arr = np.clip(sitk.GetArrayFromImage(moved).astype(np.float64), 0.0, None)
+    arr *= gain * np.exp(bias_sd * bias)
+    nrng = np.random.default_rng(noise_seed)
+    sd = noise * ref_value
+    arr = np.sqrt(
+        (arr + sd * nrng.standard_normal(arr.shape)) ** 2
+        + (sd * nrng.standard_normal(arr.shape)) ** 2
+    )
+    image = sitk.GetImageFromArray(arr.astype(np.float32))
+    image.CopyInformation(grid)
+    labels = _warp_labels(tmpl.labels, s_to_t)
+    return Subject(image, labels, t_to_s, s_to_t)
+
+
+def _warp_labels(labels: sitk.Image, transform: sitk.Transform) -> sitk.Image:
+    """Resample a label map through `transform` onto its own grid, without blocky aliasing.
+
+    Equivalent to resampling the one-hot membership of every label linearly and taking the
+    argmax per voxel (the label with the largest total interpolation weight among the
+    surrounding template voxels; outside the template grid counts as background), computed
+    from the corner labels only so the cost does not grow with the number of labels.
+    """
+    dim = labels.GetDimension()
+    disp = sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        labels.GetSize(),
+        labels.GetOrigin(),
+        labels.GetSpacing(),
+        labels.GetDirection(),
+    )
+    shape_np = tuple(reversed(labels.GetSize()))
+    # Mapped points as continuous indices, numpy axis order (identity direction assumed).
+    spacing = np.asarray(labels.GetSpacing()[::-1])
+    offset = np.moveaxis(np.indices(shape_np, dtype=np.float64), 0, -1)
+    cidx = offset + sitk.GetArrayViewFromImage(disp)[..., ::-1] / spacing
+    arr = np.ascontiguousarray(sitk.GetArrayViewFromImage(labels))
+    flat = np.ascontiguousarray(cidx.reshape(-1, dim))
+    best = _vote(arr.reshape(-1), np.asarray(shape_np, dtype=np.int64), flat)
+    out = sitk.GetImageFromArray(best.reshape(shape_np).astype(np.uint8))
+    out.CopyInformation(labels)
+    return out
+
+
+@numba.njit(cache=True)
+def _vote(labels, shape, cidx):  # pragma: no cover - compiled
+    """Per point, the label with the largest total linear-interpolation weight (0 outside)."""
+    n, dim = cidx.shape
+    ncorner = 1 << dim
+    out = np.zeros(n, dtype=labels.dtype)
+    labs = np.zeros(ncorner, dtype=labels.dtype)
+    ws = np.zeros(ncorner)
+    strides = np.ones(dim, dtype=np.int64)
+    for d in range(dim - 2, -1, -1):
+        strides[d] = strides[d + 1] * shape[d + 1]
+    for p in range(n):
+        for c in range(ncorner):
+            w = 1.0
+            flat = 0
+            inside = True
+            for d in range(dim):
+                x = cidx[p, d]
+                i0 = int(np.floor(x))
+                f = x - i0
+                i = i0 + ((c >> d) & 1)
+                w *= f if (c >> d) & 1 else 1.0 - f
+                if i < 0 or i >= shape[d]:
+                    inside = False
+                else:
+                    flat += i * strides[d]
+            ws[c] = w
+            labs[c] = labels[flat] if inside else 0
+        best_score = -1.0
+        for c in range(ncorner):
+            score = 0.0
+            for c2 in range(ncorner):
+                if labs[c2] == labs[c]:
+                    score += ws[c2]
+            if score > best_score:
+                best_score = score
+                out[p] = labs[c]
+    return out

@@ -1,0 +1,225 @@
+"""Tests of data_synth: synthetic populations with known true correspondence.
+
+Every check is independent of the generator's internals: overlaps are counted here from the
+label arrays, Jacobians come from numpy gradients of dense fields that ITK computes from the
+transforms, and round trips go through ITK's own composition.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from data_synth import make_phantom, make_population, perfect_registration
+from data_synth.phantom import PHANTOM_LABELS
+
+# Small grids keep the whole file fast: 2D at the default 141 x 141, 3D at coarse voxels.
+CASES = [("phantom", 2, None), ("mni", 2, None), ("phantom", 3, 6.0), ("mni", 3, 6.0)]
+IDS = [f"{k}-{d}d" for k, d, _ in CASES]
+
+
+@cache
+def population(kind: str, dim: int, spacing: float | None, seed: int = 3, n: int = 3):
+    return make_population(kind, dim=dim, n=n, seed=seed, spacing=spacing)
+
+
+def arr(image: sitk.Image) -> np.ndarray:
+    return sitk.GetArrayFromImage(image)
+
+
+def dice_per_label(a: np.ndarray, b: np.ndarray, values) -> dict[int, float]:
+    return {
+        int(v): 2.0 * np.sum((a == v) & (b == v)) / (np.sum(a == v) + np.sum(b == v))
+        for v in values
+    }
+
+
+def dense_displacement(transform: sitk.Transform, grid: sitk.Image) -> np.ndarray:
+    """ITK's displacement field of `transform` on `grid`, numpy order, components (x, y[, z])."""
+    field = sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        grid.GetSize(),
+        grid.GetOrigin(),
+        grid.GetSpacing(),
+        grid.GetDirection(),
+    )
+    return arr(field)
+
+
+def jacobian_determinant(disp: np.ndarray, spacing_xyz) -> np.ndarray:
+    """det(I + grad u) by central differences; `disp` numpy order with (x, y[, z]) components."""
+    dim = disp.shape[-1]
+    spacing_np = tuple(reversed(spacing_xyz))
+    jac = np.empty(disp.shape[:-1] + (dim, dim))
+    for comp in range(dim):  # component along ITK axis `comp`
+        grads = np.gradient(disp[..., comp], *spacing_np)  # derivatives along numpy axes
+        for ax_np, g in enumerate(grads):
+            ax_itk = dim - 1 - ax_np
+            jac[..., comp, ax_itk] = g + (1.0 if comp == ax_itk else 0.0)
+    return np.linalg.det(jac)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind,dim,spacing", CASES, ids=IDS)
+def test_true_transforms_map_subject_labels_back_onto_template(kind, dim, spacing):
+    pop = population(kind, dim, spacing)
+    template_labels = arr(pop.template_labels)
+    values = sorted(pop.label_names)
+    assert set(np.unique(template_labels)) - {0} == set(values)
+    volumes = np.array([np.sum(template_labels == v) for v in values], dtype=float)
+    for i, subject in enumerate(pop.subjects):
+        assert subject.labels.GetPixelID() == sitk.sitkUInt8
+        back = arr(
+            sitk.Resample(
+                subject.labels,
+                pop.template,
+                subject.template_to_subject,
+                sitk.sitkNearestNeighbor,
+                0,
+                sitk.sitkUInt8,
+            )
+        )
+        dice = dice_per_label(back, template_labels, values)
+        weighted = float(np.average([dice[v] for v in values], weights=volumes))
+        # Two nearest-neighbour-like resamplings (there and back) only touch label borders.
+        assert weighted > (0.93 if dim == 2 else 0.85), (i, dice)
+        big = [v for v, vol in zip(values, volumes, strict=True) if vol >= 200]
+        assert min(dice[v] for v in big) > (0.85 if dim == 2 else 0.75), (i, dice)
+        # Control: another subject's transform must do clearly worse.
+        other = pop.subjects[(i + 1) % len(pop.subjects)]
+        wrong = arr(
+            sitk.Resample(
+                subject.labels, pop.template, other.template_to_subject, sitk.sitkNearestNeighbor
+            )
+        )
+        dice_wrong = dice_per_label(wrong, template_labels, values)
+        weighted_wrong = float(np.average([dice_wrong[v] for v in values], weights=volumes))
+        assert weighted_wrong < weighted - 0.05
+
+
+@pytest.mark.parametrize("kind,dim,spacing", CASES, ids=IDS)
+def test_inverse_round_trips_to_a_twentieth_of_a_voxel(kind, dim, spacing):
+    pop = population(kind, dim, spacing)
+    voxel = min(pop.template.GetSpacing())
+    for subject in pop.subjects:
+        # p -> subject -> template: the composite applies its last transform first.
+        there_and_back = sitk.CompositeTransform(
+            [subject.subject_to_template, subject.template_to_subject]
+        )
+        err = np.linalg.norm(dense_displacement(there_and_back, pop.template), axis=-1)
+        assert err.max() < 0.05 * voxel
+        back_and_there = sitk.CompositeTransform(
+            [subject.template_to_subject, subject.subject_to_template]
+        )
+        err = np.linalg.norm(dense_displacement(back_and_there, pop.template), axis=-1)
+        assert err.max() < 0.05 * voxel
+        # ... and the transform is not the identity: the subjects really move.
+        moved = np.linalg.norm(
+            dense_displacement(subject.template_to_subject, pop.template), axis=-1
+        )
+        assert moved.mean() > voxel
+
+
+@pytest.mark.parametrize("kind,dim,spacing", CASES, ids=IDS)
+def test_warps_never_fold(kind, dim, spacing):
+    pop = population(kind, dim, spacing)
+    for subject in pop.subjects:
+        for transform in (subject.template_to_subject, subject.subject_to_template):
+            det = jacobian_determinant(
+                dense_displacement(transform, pop.template), pop.template.GetSpacing()
+            )
+            assert det.min() > 0.0
+            assert det.max() > 1.02 or det.min() < 0.98  # a real deformation, not a rigid move
+
+
+def test_warp_is_folding_free_even_for_a_large_amplitude():
+    pop = make_population("phantom", dim=2, n=2, seed=11, warp_mm=10.0, smoothness_mm=15.0)
+    for subject in pop.subjects:
+        det = jacobian_determinant(
+            dense_displacement(subject.template_to_subject, pop.template),
+            pop.template.GetSpacing(),
+        )
+        assert det.min() > 0.0
+        assert det.min() < 0.8  # large enough to matter
+
+
+@pytest.mark.parametrize("kind,dim,spacing", CASES[:2] + CASES[2:3], ids=IDS[:3])
+def test_same_seed_gives_identical_data_and_another_seed_differs(kind, dim, spacing):
+    a = make_population(kind, dim=dim, n=2, seed=5, spacing=spacing)
+    b = make_population(kind, dim=dim, n=2, seed=5, spacing=spacing)
+    c = make_population(kind, dim=dim, n=2, seed=6, spacing=spacing)
+    for sa, sb, sc in zip(a.subjects, b.subjects, c.subjects, strict=True):
+        np.testing.assert_array_equal(arr(sa.image), arr(sb.image))
+        np.testing.assert_array_equal(arr(sa.labels), arr(sb.labels))
+        pa = np.asarray(sa.template_to_subject.TransformPoint([3.0] * dim))
+        pb = np.asarray(sb.template_to_subject.TransformPoint([3.0] * dim))
+        np.testing.assert_array_equal(pa, pb)
+        assert not np.array_equal(arr(sa.image), arr(sc.image))
+        assert not np.array_equal(arr(sa.labels), arr(sc.labels))
+    assert not np.array_equal(arr(a.subjects[0].image), arr(a.subjects[1].image))
+
+
+def test_subject_does_not_depend_on_population_size():
+    small = make_population("phantom", dim=2, n=1, seed=9)
+    large = make_population("phantom", dim=2, n=3, seed=9)
+    np.testing.assert_array_equal(arr(small.subjects[0].image), arr(large.subjects[0].image))
+
+
+def test_perfect_registration_aligns_subjects_with_the_template():
+    pop = population("phantom", 2, None)
+    reg = perfect_registration(pop)
+    template = arr(pop.template)
+    assert len(reg.images) == len(reg.labels) == len(pop)
+    for subject, image, labels in zip(pop.subjects, reg.images, reg.labels, strict=True):
+        assert image.GetSize() == pop.template.GetSize()
+        assert labels.GetPixelID() == sitk.sitkUInt8
+        aligned = np.corrcoef(arr(image).ravel(), template.ravel())[0, 1]
+        unaligned = np.corrcoef(arr(subject.image).ravel(), template.ravel())[0, 1]
+        assert aligned > 0.9
+        assert aligned > unaligned + 0.05
+
+
+def test_phantom_labels_span_two_orders_of_magnitude():
+    for dim, spacing in ((2, None), (3, 3.0)):
+        ph = make_phantom(dim=dim, spacing=spacing)
+        labels = arr(ph.labels)
+        assert labels.dtype == np.uint8
+        assert len(ph.label_names) >= 8
+        assert set(ph.label_names.items()) <= set(PHANTOM_LABELS.items())
+        volumes = np.array([np.sum(labels == v) for v in ph.label_names])
+        assert volumes.min() > 0
+        assert volumes.max() / volumes.min() >= 100
+        # Left and right structures sit on their own side: +x is the patient's left (LPS).
+        x = np.asarray(
+            [
+                ph.labels.TransformIndexToPhysicalPoint([int(i) for i in idx[::-1]])[0]
+                for idx in np.argwhere(labels == 7)
+            ]
+        )
+        assert (x > 0).all()
+        # Partial-volume edges: intensities between the tissue levels occur.
+        image = arr(ph.image)
+        assert 0.0 <= image.min() and image.max() <= 1.0
+        assert np.sum((image > 0.52) & (image < 0.78)) > 0.01 * image.size
+
+
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        ({"kind": "ct"}, r"kind must be one of \('phantom', 'mni'\), got 'ct'"),
+        ({"dim": 4}, r"dim must be 2 or 3, got 4"),
+        ({"n": 0}, r"n must be a positive number of subjects, got 0"),
+        ({"warp_mm": -1.0}, r"warp_mm must be a finite number >= 0, got -1.0"),
+        ({"seed": -3}, r"seed must be a non-negative integer, got -3"),
+    ],
+)
+def test_bad_arguments_name_the_argument(kwargs, message):
+    kind = kwargs.pop("kind", "phantom")
+    with pytest.raises(ValueError, match=message):
+        make_population(kind, n=kwargs.pop("n", 1), **kwargs)
