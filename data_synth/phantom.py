@@ -307,7 +307,7 @@ def render_phantom(points: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarr
         paint(member(f()), value, label)
 
     paired = [
-        # centre (right side, x < 0; mirrored for the left), semi-axes, bend, intensity, (left, right) labels
+        # right-side centre (x < 0; mirrored for the left), semi-axes, bend, intensity, labels
         ((-27, 14, -17), (5, 17, 5), 0.0, 0.50, (17, 18)),  # hippocampus
         ((-23, -6, -21), (6, 6, 6), 0.0, 0.52, (19, 20)),  # amygdala
         ((-25, -2, 3), (5, 16, 11), 0.0, 0.58, (11, 12)),  # putamen

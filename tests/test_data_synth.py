@@ -7,14 +7,16 @@ transforms, and round trips go through ITK's own composition.
 
 from __future__ import annotations
 
+import re
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from data_synth import make_phantom, make_population, perfect_registration
-from data_synth.phantom import PHANTOM_LABELS
+from data_synth.phantom import PHANTOM_LABELS, make_phantom
+from data_synth.population import make_population, perfect_registration
 
 # Small grids keep the whole file fast: 2D at the default 141 x 141, 3D at coarse voxels.
 CASES = [("phantom", 2, None), ("mni", 2, None), ("phantom", 3, 6.0), ("mni", 3, 6.0)]
@@ -223,3 +225,67 @@ def test_bad_arguments_name_the_argument(kwargs, message):
     kind = kwargs.pop("kind", "phantom")
     with pytest.raises(ValueError, match=message):
         make_population(kind, n=kwargs.pop("n", 1), **kwargs)
+
+
+# --------------------------------------------------------------------------------------------- CLI
+
+
+def test_synth_command_writes_files_and_a_manifest_that_resolves(tmp_path, capsys):
+    import yaml
+
+    from itk_nrreval.cli import main
+
+    out = tmp_path / "pop"
+    assert main(["synth", "--kind", "phantom", "--dim", "2", "--n", "3", "--out", str(out)]) == 0
+    manifest = yaml.safe_load((out / "manifest.yaml").read_text())
+    assert manifest["images"] == [f"img/s{i:02d}.nii.gz" for i in range(3)]
+    assert manifest["labels"] == [f"lab/s{i:02d}.nii.gz" for i in range(3)]
+    truth = manifest["registrations"]["truth"]
+    assert truth["reference"] == "truth/template.nii.gz"
+    assert truth["transforms"] == [f"truth/s{i:02d}.h5" for i in range(3)]
+    for rel in [*manifest["images"], *manifest["labels"], *truth["transforms"], truth["reference"]]:
+        assert not Path(rel).is_absolute()
+        assert (out / rel).is_file()
+    assert (out / "montage.png").stat().st_size > 1000
+    assert not list(out.rglob(".*tmp-*"))  # no temporary files left behind
+    # The written transform is the true one: it maps the written labels onto the template's.
+    template_labels = sitk.ReadImage(str(out / "truth/template_labels.nii.gz"))
+    for lab, tx in zip(manifest["labels"], truth["transforms"], strict=True):
+        back = sitk.Resample(
+            sitk.ReadImage(str(out / lab)),
+            template_labels,
+            sitk.ReadTransform(str(out / tx)),
+            sitk.sitkNearestNeighbor,
+        )
+        a, b = arr(back), arr(template_labels)
+        assert np.mean(a[b > 0] == b[b > 0]) > 0.93
+    assert "3 subjects" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["--kind", "ct"], r"--kind must be 'phantom' or 'mni', got 'ct'"),
+        (["--dim", "4"], r"--dim must be 2 or 3, got 4"),
+        (["--n", "0"], r"--n must be at least 1, got 0"),
+        (["--warp", "-2"], r"warp_mm must be a finite number >= 0, got -2.0"),
+    ],
+)
+def test_synth_command_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
+    from itk_nrreval.cli import main
+
+    out = tmp_path / "pop"
+    assert main(["synth", "--out", str(out), "--n", "2", *argv]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert re.search(message, err)
+    assert not out.exists()
+
+
+def test_synth_command_refuses_a_file_as_output(tmp_path, capsys):
+    from itk_nrreval.cli import main
+
+    target = tmp_path / "file.txt"
+    target.write_text("x")
+    assert main(["synth", "--out", str(target), "--n", "1"]) == 2
+    assert re.search(r"exists and is not a directory", capsys.readouterr().err)

@@ -12,12 +12,12 @@ import argparse
 import sys
 
 from .._errors import InputError
-from . import evaluate, overlap, specificity
+from . import evaluate, overlap, specificity, synth
 
 __all__ = ["main"]
 
 # One entry per sub-command module, in the order `nrreval --help` lists them.
-COMMANDS = [specificity, evaluate, overlap]
+COMMANDS = [specificity, evaluate, overlap, synth]
 
 
 def build_parser() -> argparse.ArgumentParser:
