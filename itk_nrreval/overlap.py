@@ -41,7 +41,6 @@ WEIGHTINGS = (
     "inverse_volume_complexity",
 )
 
-_CHUNK = 65536  # voxels per streamed block of fuzzy memberships
 _MAX_LUT = 1 << 22  # largest label-value range mapped through a lookup table
 _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input shows progress
 
@@ -512,7 +511,10 @@ def _crisp_kernel(idx, n_labels, mask, shape, inv_h):  # pragma: no cover - comp
 
     ``idx`` is (n_voxels, N) of dense label indices (-1: not evaluated), voxels in C order of
     `shape`; ``c`` is the number of images carrying the label at the voxel. ``mask`` is a
-    flat boolean array, or empty for no mask. Gradient as numpy.gradient, edge_order=1.
+    flat boolean array, or empty for no mask. Gradients as numpy.gradient, edge_order=1:
+    along an axis with neighbours p and m (the voxel itself at a face), the indicator of
+    label l changes by ``[p == l] - [m == l]``, so only labels p and m get a component, of
+    squared size ``f^2`` (f = 1 / (2 h) inside, 1 / h at a face).
     """
     n_vox, n_img = idx.shape
     ndim = shape.size
@@ -525,11 +527,12 @@ def _crisp_kernel(idx, n_labels, mask, shape, inv_h):  # pragma: no cover - comp
     gsum = np.zeros((n_img, n_labels), np.float64)
     gpart = np.zeros((n_img, n_labels), np.float64)
     cnt = np.zeros(n_labels, np.int64)
+    gsq = np.zeros(n_labels, np.float64)
+    touched = np.empty(2 * ndim, np.int64)
     coords = np.zeros(ndim, np.int64)
     plus = np.empty(ndim, np.int64)
     minus = np.empty(ndim, np.int64)
-    fac = np.empty(ndim, np.float64)
-    cand = np.empty(2 * ndim + 1, np.int64)
+    fac2 = np.empty(ndim, np.float64)
     for v in range(n_vox):
         if v > 0:  # advance the C-order coordinates of v
             d = ndim - 1
@@ -560,49 +563,43 @@ def _crisp_kernel(idx, n_labels, mask, shape, inv_h):  # pragma: no cover - comp
             if k >= 0:
                 cnt[k] = 0
         # neighbours along each axis, with numpy.gradient's edge rule
+        n_ax = 0
         for d in range(ndim):
             if shape[d] == 1:
-                plus[d] = v
-                minus[d] = v
-                fac[d] = 0.0
-            elif coords[d] == 0:
-                plus[d] = v + strides[d]
-                minus[d] = v
-                fac[d] = inv_h[d]
+                continue
+            if coords[d] == 0:
+                plus[n_ax] = v + strides[d]
+                minus[n_ax] = v
+                fac2[n_ax] = inv_h[d] * inv_h[d]
             elif coords[d] == shape[d] - 1:
-                plus[d] = v
-                minus[d] = v - strides[d]
-                fac[d] = inv_h[d]
+                plus[n_ax] = v
+                minus[n_ax] = v - strides[d]
+                fac2[n_ax] = inv_h[d] * inv_h[d]
             else:
-                plus[d] = v + strides[d]
-                minus[d] = v - strides[d]
-                fac[d] = 0.5 * inv_h[d]
+                plus[n_ax] = v + strides[d]
+                minus[n_ax] = v - strides[d]
+                fac2[n_ax] = 0.25 * inv_h[d] * inv_h[d]
+            n_ax += 1
         for i in range(n_img):
-            n_cand = 0
-            for d in range(ndim):
+            n_t = 0
+            for d in range(n_ax):
                 a = idx[plus[d], i]
                 b = idx[minus[d], i]
                 if a != b:
-                    for c in (a, b):
-                        if c >= 0:
-                            dup = False
-                            for m in range(n_cand):
-                                if cand[m] == c:
-                                    dup = True
-                                    break
-                            if not dup:
-                                cand[n_cand] = c
-                                n_cand += 1
-            for m in range(n_cand):
-                c = cand[m]
-                gsq = 0.0
-                for d in range(ndim):
-                    g = (
-                        (1.0 if idx[plus[d], i] == c else 0.0)
-                        - (1.0 if idx[minus[d], i] == c else 0.0)
-                    ) * fac[d]
-                    gsq += g * g
-                gpart[i, c] += math.sqrt(gsq)
+                    if a >= 0:
+                        if gsq[a] == 0.0:
+                            touched[n_t] = a
+                            n_t += 1
+                        gsq[a] += fac2[d]
+                    if b >= 0:
+                        if gsq[b] == 0.0:
+                            touched[n_t] = b
+                            n_t += 1
+                        gsq[b] += fac2[d]
+            for t in range(n_t):
+                c = touched[t]
+                gpart[i, c] += math.sqrt(gsq[c])
+                gsq[c] = 0.0
     gsum += gpart
     return vol, spair, gsum
 
@@ -651,105 +648,202 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     gsum = np.zeros((n_images, n_labels))
     p = np.zeros(n_labels)
     q = np.zeros(n_labels)
+    spatial = tuple(int(s) for s in shape)
+    mask_nd = mask_flat.reshape(spatial) if has_mask else None
+    active = np.empty(n_vox, dtype=bool)
+    nonzero = np.empty(n_vox, dtype=bool)
     work = n_images * n_labels * n_vox
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
     ):
         comp = int(values[k])
+        active[:] = False
         for i in range(n_images):
-            gsum[i, k] = _grad_sum_kernel(flat[i, comp], mask_flat, shape, inv_h)
-        for start in range(0, n_vox, _CHUNK):
-            stop = min(start + _CHUNK, n_vox)
-            block = np.ascontiguousarray(flat[:, comp, start:stop].T)  # (chunk, N)
-            mblock = mask_flat[start:stop] if has_mask else mask_flat
-            pk, qk = _fuzzy_pair_kernel(block, mblock, vol[:, k], s_pairs[:, k])
-            p[k] += pk
-            q[k] += qk
+            row = flat[i, comp]
+            np.not_equal(row, 0, out=nonzero)
+            active |= nonzero
+            gsum[i, k] = _gradient_sum(row.reshape(spatial), nonzero, mask_nd, inv_h)
+        if has_mask:
+            active &= mask_flat
+        voxels = np.flatnonzero(active)  # where some image has a nonzero membership
+        p[k], q[k] = _fuzzy_pair_kernel(flat, comp, voxels, vol[:, k], s_pairs[:, k])
     return values, skipped, vol, s_pairs, gsum, p, q
 
 
-@numba.njit(cache=True, nogil=True)
-def _fuzzy_pair_kernel(block, mask, vol, spair):  # pragma: no cover - compiled
-    """Sort the N memberships at each voxel of `block` (n_voxels, N); add the pair sums.
+def _gradient_sum(image: np.ndarray, nonzero: np.ndarray, mask, inv_h: np.ndarray) -> float:
+    """``sum_v |grad image|`` (inside `mask`), computed on the bounding box of the nonzero
+    voxels grown by one voxel (the gradient is zero farther out), zero-padded by one voxel
+    where the box does not reach the grid's face so that face rules apply only at faces."""
+    lo_hi = _bounding_box(nonzero, np.asarray(image.shape, dtype=np.int64))
+    if lo_hi[0, 0] < 0:
+        return 0.0
+    box, pad = [], []
+    for d in range(image.ndim):
+        lo, hi = max(int(lo_hi[d, 0]) - 1, 0), min(int(lo_hi[d, 1]) + 2, image.shape[d])
+        box.append(slice(lo, hi))
+        pad.append((int(lo > 0), int(hi < image.shape[d])))
+    inside = tuple(slice(a, a + (b.stop - b.start)) for (a, _), b in zip(pad, box, strict=True))
+    block_shape = tuple(b.stop - b.start + a + c for (a, c), b in zip(pad, box, strict=True))
+    block = np.zeros(block_shape, dtype=image.dtype)
+    block[inside] = image[tuple(box)]
+    if mask is None:
+        mblock = np.zeros(0, np.bool_)
+    else:
+        mblock = np.zeros(block_shape, np.bool_)
+        mblock[inside] = mask[tuple(box)]
+        mblock = mblock.reshape(-1)
+    gsq = np.empty(block.size)
+    shape = np.asarray(block.shape, dtype=np.int64)
+    return _grad_sum_kernel(block.reshape(-1), mblock, shape, inv_h, gsq)
 
-    Returns the block's sums of pairwise minima and maxima; adds to ``vol[i]`` the
-    memberships of image i and to ``spair[i]`` ``sum_{j != i} min(a_i, a_j)``.
+
+@numba.njit(cache=True, nogil=True)
+def _bounding_box(nonzero, shape):  # pragma: no cover - compiled
+    """(ndim, 2) first and last index of the True voxels of flat `nonzero` along each axis,
+    or -1 everywhere when there is none. Scans lines along the last axis from both ends."""
+    ndim = shape.size
+    box = np.full((ndim, 2), -1, np.int64)
+    for d in range(ndim):
+        box[d, 0] = shape[d]
+    length = shape[ndim - 1]
+    coords = np.zeros(ndim, np.int64)
+    found = False
+    for base in range(0, nonzero.size, length):
+        line = nonzero[base : base + length]
+        first = -1
+        for t in range(length):
+            if line[t]:
+                first = t
+                break
+        if first >= 0:
+            found = True
+            last = first
+            for t in range(length - 1, first, -1):
+                if line[t]:
+                    last = t
+                    break
+            box[ndim - 1, 0] = min(box[ndim - 1, 0], first)
+            box[ndim - 1, 1] = max(box[ndim - 1, 1], last)
+            for d in range(ndim - 1):
+                box[d, 0] = min(box[d, 0], coords[d])
+                box[d, 1] = max(box[d, 1], coords[d])
+        d = ndim - 2  # advance the coordinates of the next line
+        while d >= 0:
+            coords[d] += 1
+            if coords[d] < shape[d]:
+                break
+            coords[d] = 0
+            d -= 1
+    if not found:
+        box[:, :] = -1
+    return box
+
+
+@numba.njit(cache=True, nogil=True)
+def _fuzzy_pair_kernel(flat, comp, voxels, vol, spair):  # pragma: no cover - compiled
+    """Pair sums of component `comp` of `flat` (N, n_components, n_voxels) over `voxels`.
+
+    At each voxel the nonzero memberships are sorted ascending (insertion sort, carrying the
+    image index); the z zeros take the lowest ranks and add nothing. Returns the sums of
+    pairwise minima and maxima; adds to ``vol[i]`` the memberships of image i and to
+    ``spair[i]`` ``sum_{j != i} min(a_i, a_j)``.
     """
-    n_vox, n_img = block.shape
-    has_mask = mask.size > 0
+    n_img = flat.shape[0]
     vals = np.empty(n_img, np.float64)
     ids = np.empty(n_img, np.int64)
     vpart = np.zeros(n_img, np.float64)
     spart = np.zeros(n_img, np.float64)
     pmin = 0.0
     pmax = 0.0
-    for v in range(n_vox):
-        if has_mask and not mask[v]:
+    bmin = 0.0
+    bmax = 0.0
+    for m in range(voxels.size):
+        v = voxels[m]
+        if m % 4096 == 0:  # blocked summation keeps float rounding small
+            pmin += bmin
+            pmax += bmax
+            bmin = 0.0
+            bmax = 0.0
+            for i in range(n_img):
+                vol[i] += vpart[i]
+                spair[i] += spart[i]
+                vpart[i] = 0.0
+                spart[i] = 0.0
+        k = 0
+        for i in range(n_img):
+            a = np.float64(flat[i, comp, v])
+            if a != 0.0:
+                j = k
+                while j > 0 and vals[j - 1] > a:
+                    vals[j] = vals[j - 1]
+                    ids[j] = ids[j - 1]
+                    j -= 1
+                vals[j] = a
+                ids[j] = i
+                k += 1
+        if k == 0:
             continue
-        for i in range(n_img):  # insertion sort, carrying the image index
-            a = np.float64(block[v, i])
-            j = i
-            while j > 0 and vals[j - 1] > a:
-                vals[j] = vals[j - 1]
-                ids[j] = ids[j - 1]
-                j -= 1
-            vals[j] = a
-            ids[j] = i
         below = 0.0
-        for r in range(n_img):
+        for r in range(k):
+            rank = n_img - k + r  # 0-based rank among all N values
             a = vals[r]
-            up = a * (n_img - 1 - r)
-            pmin += up
-            pmax += a * r
+            up = a * (n_img - 1 - rank)
+            bmin += up
+            bmax += a * rank
             spart[ids[r]] += up + below
             vpart[ids[r]] += a
             below += a
     for i in range(n_img):
         vol[i] += vpart[i]
         spair[i] += spart[i]
-    return pmin, pmax
+    return pmin + bmin, pmax + bmax
 
 
-@numba.njit(cache=True, nogil=True)
-def _grad_sum_kernel(row, mask, shape, inv_h):  # pragma: no cover - compiled
-    """``sum_v |grad row|`` over the masked voxels; `row` flat in C order of `shape`."""
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
+def _grad_sum_kernel(row, mask, shape, inv_h, gsq):  # pragma: no cover - compiled
+    """``sum_v |grad row|`` over the masked voxels; `row` flat in C order of `shape`.
+
+    One pass per axis over a (outer, size, inner) view, accumulating squared differences
+    in `gsq` (scratch of ``row.size``), then one pass of square roots. ``mask`` is flat
+    boolean or empty (no mask).
+    """
+    n = row.size
     ndim = shape.size
-    strides = np.ones(ndim, np.int64)
-    for d in range(ndim - 2, -1, -1):
-        strides[d] = strides[d + 1] * shape[d + 1]
-    has_mask = mask.size > 0
-    coords = np.zeros(ndim, np.int64)
+    gsq[:n] = 0.0
+    inner = 1
+    for d in range(ndim - 1, -1, -1):
+        size = shape[d]
+        if size > 1:
+            f1 = inv_h[d]
+            f2 = 0.5 * inv_h[d]
+            span = size * inner
+            for base in range(0, n, span):
+                # views indexed from 0 let the loops vectorize (no negative-index checks)
+                blk = row[base : base + span]
+                out = gsq[base : base + span]
+                for t in range(inner):  # first face: forward difference
+                    g = (np.float64(blk[t + inner]) - np.float64(blk[t])) * f1
+                    out[t] += g * g
+                hi = blk[2 * inner :]
+                lo = blk[: span - 2 * inner]
+                mid = out[inner : span - inner]
+                for t in range(span - 2 * inner):  # inside: central difference
+                    g = (np.float64(hi[t]) - np.float64(lo[t])) * f2
+                    mid[t] += g * g
+                last = blk[span - 2 * inner :]
+                lout = out[span - inner :]
+                for t in range(inner):  # last face: backward difference
+                    g = (np.float64(last[t + inner]) - np.float64(last[t])) * f1
+                    lout[t] += g * g
+        inner *= size
+    if mask.size > 0:
+        for v in range(n):
+            if not mask[v]:
+                gsq[v] = 0.0
     total = 0.0
-    part = 0.0
-    for v in range(row.size):
-        if v > 0:
-            d = ndim - 1
-            coords[d] += 1
-            while coords[d] == shape[d] and d > 0:
-                coords[d] = 0
-                d -= 1
-                coords[d] += 1
-        if has_mask and not mask[v]:
-            continue
-        gsq = 0.0
-        for d in range(ndim):
-            n = shape[d]
-            if n == 1:
-                continue
-            c = coords[d]
-            if c == 0:
-                g = (np.float64(row[v + strides[d]]) - np.float64(row[v])) * inv_h[d]
-            elif c == n - 1:
-                g = (np.float64(row[v]) - np.float64(row[v - strides[d]])) * inv_h[d]
-            else:
-                g = (
-                    (np.float64(row[v + strides[d]]) - np.float64(row[v - strides[d]]))
-                    * 0.5
-                    * inv_h[d]
-                )
-            gsq += g * g
-        part += math.sqrt(gsq)
-        if v % 4096 == 4095:
-            total += part
-            part = 0.0
-    return total + part
+    for start in range(0, n, 4096):  # blocked summation keeps float rounding small
+        part = 0.0
+        for v in range(start, min(start + 4096, n)):
+            part += math.sqrt(gsq[v])
+        total += part
+    return total
