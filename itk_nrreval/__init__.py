@@ -10,6 +10,7 @@ from .evaluate import EvaluationResult, RegistrationScores, evaluate, ranks, rel
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
+from .registration import RegistrationResult, register
 from .specificity import (
     GeneralizationResult,
     SpecificityComparison,
@@ -26,6 +27,8 @@ __version__ = "0.1.0"
 __all__ = [
     "InputError",
     "TextureModel",
+    "register",
+    "RegistrationResult",
     "SpecificityResult",
     "GeneralizationResult",
     "SpecificityComparison",

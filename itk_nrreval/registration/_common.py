@@ -1,0 +1,120 @@
+"""Helpers shared by the registration methods: options, image loading, resampling, means."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import SimpleITK as sitk
+
+from .._errors import InputError
+from .._images import read_image
+
+__all__ = [
+    "EngineError",
+    "with_options",
+    "load_images",
+    "resample",
+    "group_mean",
+    "mesh_size",
+]
+
+S = TypeVar("S")
+
+
+class EngineError(RuntimeError):
+    """A registration engine failed (crashed, or refused its parameters).
+
+    Not bad input in itself: the message says which engine, which image and why.
+    """
+
+
+def with_options(defaults: S, options: Mapping[str, Any] | None, *, what: str) -> S:
+    """`defaults` (a frozen dataclass) with the fields named in `options` replaced.
+
+    Sequences are turned into tuples so the settings stay hashable and JSON-friendly.
+
+    Raises
+    ------
+    InputError
+        An option name that the method does not have (the message lists the accepted ones).
+    """
+    if not options:
+        return defaults
+    names = [f.name for f in dataclasses.fields(defaults)]
+    unknown = [k for k in options if k not in names]
+    if unknown:
+        raise InputError(
+            f"{what} options: unknown {', '.join(map(repr, unknown))} "
+            f"(accepted: {', '.join(names)})"
+        )
+    clean = {k: tuple(v) if isinstance(v, (list, tuple)) else v for k, v in options.items()}
+    return dataclasses.replace(defaults, **clean)
+
+
+def load_images(images: Sequence) -> tuple[list[sitk.Image], list[str | None]]:
+    """Float32 SimpleITK images from images or paths; also each one's path (or None).
+
+    Images may lie on different grids (each is registered in physical space).
+    """
+    if isinstance(images, (str, os.PathLike, sitk.Image)) or not isinstance(images, Sequence):
+        raise InputError(
+            f"images: expected a sequence of images or paths, got {type(images).__name__}"
+        )
+    if len(images) < 2:
+        raise InputError(f"images: a group needs at least 2 images, got {len(images)}")
+    out, paths = [], []
+    for i, item in enumerate(images):
+        if isinstance(item, sitk.Image):
+            img, path = item, None
+        elif isinstance(item, (str, os.PathLike)):
+            img, path = read_image(item), str(Path(item))
+        else:
+            raise InputError(
+                f"images[{i}]: expected a SimpleITK image or a path, got {type(item).__name__}"
+            )
+        if img.GetNumberOfComponentsPerPixel() != 1:
+            raise InputError(f"{path or f'images[{i}]'}: expected a scalar image")
+        if img.GetDimension() not in (2, 3):
+            raise InputError(f"{path or f'images[{i}]'}: expected a 2D or 3D image")
+        out.append(sitk.Cast(img, sitk.sitkFloat32))
+        paths.append(path)
+    dims = {im.GetDimension() for im in out}
+    if len(dims) > 1:
+        raise InputError("images: mixed 2D and 3D images")
+    return out, paths
+
+
+def resample(image: sitk.Image, reference: sitk.Image, transform: sitk.Transform) -> sitk.Image:
+    """`image` on `reference`'s grid through `transform` (reference -> image), linear, 0 outside."""
+    return sitk.Resample(
+        image,
+        reference,
+        transform,
+        sitk.sitkLinear,
+        0.0,
+        sitk.sitkFloat32,
+    )
+
+
+def group_mean(
+    images: Sequence[sitk.Image], reference: sitk.Image, transforms: Sequence
+) -> sitk.Image:
+    """Voxel-wise mean of the images resampled onto `reference`'s grid (float32)."""
+    acc = None
+    for img, t in zip(images, transforms, strict=True):
+        arr = sitk.GetArrayViewFromImage(resample(img, reference, t)).astype(np.float64)
+        acc = arr if acc is None else acc + arr
+    mean = sitk.GetImageFromArray((acc / len(images)).astype(np.float32))
+    mean.CopyInformation(reference)
+    return mean
+
+
+def mesh_size(reference: sitk.Image, grid_spacing: float) -> list[int]:
+    """B-spline mesh cells per axis giving control points about `grid_spacing` mm apart."""
+    extent = [n * s for n, s in zip(reference.GetSize(), reference.GetSpacing(), strict=True)]
+    return [max(1, int(round(e / grid_spacing))) for e in extent]

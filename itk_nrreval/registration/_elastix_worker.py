@@ -1,0 +1,274 @@
+"""itk-elastix in a worker process: the parent side (:class:`ElastixWorker`) and the loop.
+
+itk-elastix costs about 10 s and 1 GB to load and can take its process down (segfaults with
+some thread settings), so it never runs in the caller's process. The worker reads one JSON
+request per line on stdin and answers one JSON line on a private copy of stdout (its real
+stdout and stderr go to a log file, so elastix chatter cannot corrupt the protocol). It runs
+in a temporary working directory, where transformix leaves its files. A worker that dies is
+reported as :class:`EngineError` with its exit status and the end of its log.
+
+Requests
+--------
+``{"op": "bspline", "fixed": path, "moving": path, "initial": path or null, "levels": int,
+"grid_spacing": float, "parameters": {key: [str, ...]}, "field": path, "result": path}``
+registers `moving` to `fixed` with elastix's default B-spline map for `levels` and
+`grid_spacing` (mm), updated with `parameters`, starting from the ITK transform file
+`initial`; writes the transformix deformation field (fixed -> moving, the initial transform
+included) and elastix's result image. Answer ``{"ok": true}`` or ``{"ok": false, "error": str}``.
+``{"op": "abort"}`` makes the worker abort (SIGABRT), to test how a crash is reported.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import SimpleITK as sitk
+
+from .._errors import InputError
+from ._common import EngineError
+
+__all__ = ["ElastixWorker"]
+
+
+class ElastixWorker:
+    """A running itk-elastix worker process; use as a context manager, or :meth:`close` it.
+
+    Requests are served one at a time (elastix multithreads each registration itself).
+
+    Raises
+    ------
+    InputError
+        itk-elastix is not installed.
+    """
+
+    def __init__(self) -> None:
+        if not _elastix_available():
+            raise InputError(
+                "itk-elastix is not installed: pip install itk-elastix (or use --engine simpleitk)"
+            )
+        self.directory = Path(tempfile.mkdtemp(prefix="nrreval-elastix-"))
+        self._log_path = self.directory / "worker.log"
+        self._log = open(self._log_path, "wb")  # noqa: SIM115 - kept for the worker's lifetime
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "itk_nrreval.registration._elastix_worker"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._log,
+            cwd=self.directory,
+            env={
+                **os.environ,
+                "PYTHONPATH": _package_root() + os.pathsep + os.environ.get("PYTHONPATH", ""),
+            },
+            text=True,
+        )
+        self._count = 0
+
+    def __enter__(self) -> ElastixWorker:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def request(self, message: dict, *, what: str) -> dict:
+        """Send one request and wait for its answer; `what` names the job in error messages."""
+        if not self.alive:
+            raise EngineError(self._death(what))
+        try:
+            self.process.stdin.write(json.dumps(message) + "\n")
+            self.process.stdin.flush()
+            line = self.process.stdout.readline()
+        except (BrokenPipeError, OSError):
+            line = ""
+        if not line:
+            try:
+                self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                pass
+            raise EngineError(self._death(what))
+        answer = json.loads(line)
+        if not answer.get("ok"):
+            raise EngineError(f"elastix failed on {what}: {answer.get('error', 'unknown error')}")
+        return answer
+
+    def bspline(
+        self,
+        fixed: sitk.Image,
+        moving: sitk.Image,
+        *,
+        initial: sitk.Transform | None,
+        levels: int,
+        grid_spacing: float,
+        parameters: dict[str, list[str]],
+        what: str = "an image",
+    ) -> tuple[sitk.Image, sitk.Image]:
+        """B-spline registration of `moving` to `fixed` after `initial` (fixed -> moving).
+
+        Returns
+        -------
+        field : sitk.Image
+            Displacement field on `fixed`'s grid (float64 vectors, mm): the whole transform,
+            `initial` included.
+        result : sitk.Image
+            elastix's own resampling of `moving` on `fixed`'s grid.
+        """
+        self._count += 1
+        job = self.directory / f"job{self._count:04d}"
+        job.mkdir()
+        try:
+            sitk.WriteImage(fixed, str(job / "fixed.mha"))
+            sitk.WriteImage(moving, str(job / "moving.mha"))
+            init = None
+            if initial is not None:
+                init = str(job / "initial.tfm")
+                sitk.WriteTransform(initial, init)
+            self.request(
+                {
+                    "op": "bspline",
+                    "fixed": str(job / "fixed.mha"),
+                    "moving": str(job / "moving.mha"),
+                    "initial": init,
+                    "levels": int(levels),
+                    "grid_spacing": float(grid_spacing),
+                    "parameters": parameters,
+                    "field": str(job / "field.mha"),
+                    "result": str(job / "result.mha"),
+                },
+                what=what,
+            )
+            field = sitk.Cast(sitk.ReadImage(str(job / "field.mha")), sitk.sitkVectorFloat64)
+            field.CopyInformation(fixed)
+            result = sitk.Cast(sitk.ReadImage(str(job / "result.mha")), sitk.sitkFloat32)
+            result.CopyInformation(fixed)
+            return field, result
+        finally:
+            shutil.rmtree(job, ignore_errors=True)
+
+    def _death(self, what: str) -> str:
+        code = self.process.returncode
+        how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        self._log.flush()
+        tail = ""
+        try:
+            lines = [
+                ln for ln in self._log_path.read_text(errors="replace").splitlines() if ln.strip()
+            ]
+            tail = " | ".join(lines[-3:])[-300:]
+        except OSError:
+            pass
+        return f"the elastix worker process died ({how}) while registering {what}" + (
+            f"; its last output: {tail}" if tail else ""
+        )
+
+    def close(self) -> None:
+        """Stop the worker and remove its working directory."""
+        if self.alive:
+            try:
+                self.process.stdin.close()
+                self.process.wait(timeout=10)
+            except (OSError, subprocess.TimeoutExpired):
+                self.process.kill()
+                self.process.wait()
+        for stream in (self.process.stdout, self.process.stdin):
+            if stream is not None and not stream.closed:
+                try:
+                    stream.close()
+                except OSError:
+                    pass
+        self._log.close()
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+
+def _elastix_available() -> bool:
+    from importlib import metadata  # noqa: PLC0415
+
+    try:
+        metadata.version("itk-elastix")
+    except metadata.PackageNotFoundError:
+        return False
+    return True
+
+
+def _package_root() -> str:
+    return str(Path(__file__).resolve().parents[2])
+
+
+# ---------------------------------------------------------------- worker side
+
+
+def _bspline_job(itk, req: dict) -> None:
+    fixed = itk.imread(req["fixed"], itk.F)
+    moving = itk.imread(req["moving"], itk.F)
+    po = itk.ParameterObject.New()
+    pm = po.GetDefaultParameterMap("bspline", int(req["levels"]), float(req["grid_spacing"]))
+    for key, value in req["parameters"].items():
+        pm[key] = [str(v) for v in (value if isinstance(value, list) else [value])]
+    po.AddParameterMap(pm)
+    method = itk.ElastixRegistrationMethod.New(
+        fixed, moving, parameter_object=po, log_to_console=False
+    )
+    folder = Path(req["field"]).parent
+    method.SetOutputDirectory(str(folder))
+    method.SetLogToFile(True)
+    method.SetLogFileName("elastix.log")
+    if req["initial"]:
+        initial = itk.transformread(req["initial"])[0]
+        method.SetInitialTransform(initial)
+    try:
+        method.UpdateLargestPossibleRegion()
+    except RuntimeError as exc:
+        raise RuntimeError(_log_errors(folder / "elastix.log") or str(exc)) from None
+    itk.imwrite(method.GetOutput(), req["result"])
+    field = itk.transformix_deformation_field(moving, method.GetTransformParameterObject())
+    itk.imwrite(field, req["field"])
+
+
+def _log_errors(log: Path) -> str:
+    """The error lines of an elastix log (elastix explains failures there, not in the exception)."""
+    try:
+        lines = log.read_text(errors="replace").splitlines()
+    except OSError:
+        return ""
+    start = next((k for k, ln in enumerate(lines) if "ERROR" in ln or "Error" in ln), None)
+    if start is None:
+        return ""
+    return " ".join(ln.strip() for ln in lines[start : start + 4] if ln.strip())
+
+
+def _main() -> None:
+    proto = os.fdopen(os.dup(1), "w")
+    os.dup2(2, 1)  # elastix / ITK output goes to the log, never into the protocol
+    import itk  # noqa: PLC0415
+
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        req = json.loads(line)
+        t0 = time.perf_counter()
+        try:
+            if req.get("op") == "bspline":
+                _bspline_job(itk, req)
+            elif req.get("op") == "abort":  # lets the tests check how a crash is reported
+                os.abort()
+            else:
+                raise ValueError(f"unknown request {req.get('op')!r}")
+            answer = {"ok": True, "seconds": time.perf_counter() - t0}
+        except Exception as exc:  # noqa: BLE001 - every failure is reported to the parent
+            msg = " ".join(str(exc).split())
+            answer = {"ok": False, "error": f"{type(exc).__name__}: {msg[-400:]}"}
+        proto.write(json.dumps(answer) + "\n")
+        proto.flush()
+
+
+if __name__ == "__main__":
+    _main()
