@@ -97,8 +97,8 @@ def _kernel(x: np.ndarray, y: np.ndarray, *, gradient: bool):
         if small[0].size:
             zs = z[small]
             g[small] = r2[small] * _series(zs, lambda k: 1.0 / k)
-        coincident = np.nonzero(r2 == 0.0)  # exact limit (1 - |x|^2)^2 = q
-        if coincident[0].size:
+        coincident = np.nonzero(r2 == 0.0) if r2.min() == 0.0 else (np.array([], int),)
+        if coincident[0].size:  # exact limit (1 - |x|^2)^2 = q
             g[coincident] = q[coincident]
         if not gradient:
             return g, None, None
@@ -540,6 +540,13 @@ class CPSWarp:
         return out.reshape(*self.shape, dim)
 
 
+def _det(a: np.ndarray) -> np.ndarray:
+    """Determinants of a stack of 2x2 or 3x3 matrices (n, dim, dim)."""
+    if a.shape[-1] == 2:
+        return a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
+    return np.einsum("nj,nj->n", a[:, 0, :], np.cross(a[:, 1, :], a[:, 2, :]))
+
+
 def _solve_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Solve ``a[n] x[n] = b[n]`` for 2x2 or 3x3 matrices by Cramer's rule (n, dim)."""
     if a.shape[-1] == 2:
@@ -620,7 +627,7 @@ def random_cps(
     points = _grid_points(shape)
     unit = (points - c) / r
     inside = np.einsum("nd,nd->n", unit, unit) < 1.0
-    best = 0.0
+    last = (0.0, np.zeros((1, dim, dim)))
     for _ in range(max_tries):
         spline = ClampedPlateSpline.from_knots(knots, rng.normal(size=knots.shape))
         u, jac = spline.value_and_jacobian(unit[inside])
@@ -629,13 +636,15 @@ def random_cps(
         if d_hat == 0.0:
             continue
         scale = d / d_hat  # pixel displacement = scale * r * spline(unit)
-        min_det = float(np.linalg.det(np.eye(dim) + scale * jac).min())
+        min_det = float(_det(np.eye(dim) + scale * jac).min())
         if min_det >= min_jacobian:
             return CPSWarp(spline, shape, scale, d, min(min_det, 1.0), _u=u, _jac=jac)
-        best = max(best, d_hat * _safe_scale(jac))
+        last = (d_hat, jac)
+    best = last[0] * _safe_scale(last[1])
     raise FoldingError(
         f"all {max_tries} random CPS warps of mean displacement {d:g} px fold "
-        f"(largest safe d seen: {best:.3g} px); lower mean_displacement, add knots, "
+        f"(the last would be safe up to d = {best:.3g} px); lower mean_displacement, "
+        "use fewer knots, "
         f"or raise max_tries"
     )
 
@@ -798,10 +807,11 @@ def warp_stack(images, warps, *, labels=None, n_labels: int | None = None):
         One per image. Arrays are *resampling* fields ``v`` (ITK convention: the output at
         ``p`` is read at ``p + v(p)``; pixels, ITK component order), e.g. the
         ``inverse_field()`` of a warp.
-    labels : ndarray of int of shape (n_images, *spatial), optional
-        Label maps with values ``0 .. n_labels - 1``.
+    labels : ndarray, optional
+        Integer label maps of shape (n_images, *spatial) with values ``0 .. n_labels - 1``
+        (made one-hot), or floating memberships of shape (n_images, n_labels, *spatial).
     n_labels : int, optional
-        Number of label values (default ``labels.max() + 1``).
+        Number of label values for integer maps (default ``labels.max() + 1``).
 
     Returns
     -------
@@ -817,7 +827,16 @@ def warp_stack(images, warps, *, labels=None, n_labels: int | None = None):
         )
     if len(warps) != n:
         raise ValueError(f"need one warp per image: {n} images, {len(warps)} warps")
-    if labels is not None:
+    fuzzy = labels is not None and np.issubdtype(np.asarray(labels).dtype, np.floating)
+    if fuzzy:
+        labels = np.asarray(labels, dtype=np.float64)
+        if labels.ndim != images.ndim + 1 or labels.shape[2:] != spatial or len(labels) != n:
+            raise ValueError(
+                f"memberships must have shape (n_images, n_labels, *spatial) = "
+                f"({n}, L, {', '.join(map(str, spatial))}), got {labels.shape}"
+            )
+        n_labels = labels.shape[1]
+    elif labels is not None:
         labels = np.asarray(labels)
         if labels.shape != images.shape:
             raise ValueError(
@@ -836,9 +855,45 @@ def warp_stack(images, warps, *, labels=None, n_labels: int | None = None):
         if v.shape != (*spatial, dim):
             raise ValueError(f"warp {i}: field shape {v.shape} differs from {(*spatial, dim)}")
         coords = index + np.moveaxis(v[..., ::-1], -1, 0)  # ITK (x, y, z) -> numpy axes
-        out[i] = ndimage.map_coordinates(images[i], coords, order=1, mode="nearest")
+        if labels is None:
+            channels = images[i][None]
+        elif fuzzy:
+            channels = np.concatenate([images[i][None], labels[i]])
+        else:
+            onehot = labels[i][None] == np.arange(n_labels).reshape(-1, *([1] * dim))
+            channels = np.concatenate([images[i][None], onehot.astype(np.float64)])
+        sampled = _linear_sample(channels, coords.reshape(dim, -1)).reshape(-1, *spatial)
+        out[i] = sampled[0]
         if labels is not None:
-            for lab in range(n_labels):
-                onehot = (labels[i] == lab).astype(np.float64)
-                members[i, lab] = ndimage.map_coordinates(onehot, coords, order=1, mode="nearest")
+            members[i] = sampled[1:]
     return out, members
+
+
+def _linear_sample(channels: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    """Bilinear / trilinear interpolation of every channel at the same points.
+
+    Equivalent to ``ndimage.map_coordinates(c, coords, order=1, mode="nearest")`` per
+    channel, with the weights computed once. `channels` (C, *spatial); `coords` (dim, n) in
+    numpy axis order; returns (C, n).
+    """
+    spatial = channels.shape[1:]
+    flat = channels.reshape(len(channels), -1)
+    base, frac, strides = [], [], []
+    stride = 1
+    for a in reversed(range(len(spatial))):
+        strides.insert(0, stride)
+        stride *= spatial[a]
+    for a, size in enumerate(spatial):
+        c = np.clip(coords[a], 0.0, size - 1.0)
+        i0 = np.minimum(np.floor(c).astype(np.intp), max(size - 2, 0))
+        base.append(i0)
+        frac.append(c - i0)
+    out = np.zeros((len(channels), coords.shape[1]))
+    for corner in np.ndindex(*([2] * len(spatial))):
+        w = np.ones(coords.shape[1])
+        idx = np.zeros(coords.shape[1], dtype=np.intp)
+        for a, bit in enumerate(corner):
+            w *= frac[a] if bit else 1.0 - frac[a]
+            idx += (base[a] + bit) * strides[a]
+        out += flat[:, idx] * w
+    return out
