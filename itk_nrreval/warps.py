@@ -97,7 +97,7 @@ def _kernel(x: np.ndarray, y: np.ndarray, *, gradient: bool):
         if small[0].size:
             zs = z[small]
             g[small] = r2[small] * _series(zs, lambda k: 1.0 / k)
-        coincident = np.nonzero(r2 == 0.0) if r2.min() == 0.0 else (np.array([], int),)
+        coincident = np.nonzero(r2 == 0.0) if r2.size and r2.min() == 0.0 else (np.array([], int),)
         if coincident[0].size:  # exact limit (1 - |x|^2)^2 = q
             g[coincident] = q[coincident]
         if not gradient:
