@@ -21,10 +21,19 @@ from .specificity import (
     specificity,
     texture_measures,
 )
+from .validation import ValidationResult, validate
+from .warps import ClampedPlateSpline, cps_warp, max_safe_displacement, random_cps, warp_stack
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "cps_warp",
+    "max_safe_displacement",
+    "random_cps",
+    "warp_stack",
+    "ClampedPlateSpline",
+    "validate",
+    "ValidationResult",
     "InputError",
     "TextureModel",
     "register",

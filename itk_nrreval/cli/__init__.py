@@ -12,12 +12,12 @@ import argparse
 import sys
 
 from .._errors import InputError
-from . import evaluate, overlap, register, specificity, synth
+from . import evaluate, overlap, register, specificity, synth, validate
 
 __all__ = ["main"]
 
 # One entry per sub-command module, in the order `nrreval --help` lists them.
-COMMANDS = [specificity, evaluate, overlap, register, synth]
+COMMANDS = [specificity, evaluate, overlap, register, synth, validate]
 
 
 def build_parser() -> argparse.ArgumentParser:
