@@ -19,6 +19,7 @@ weighting, and the per-label Jaccard, Dice and target overlap, come from that ta
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ WEIGHTINGS = (
     "inverse_volume_complexity",
 )
 
+_CHUNK = 2048  # voxels per block of fuzzy memberships (the sort's scratch stays in cache)
 _MAX_LUT = 1 << 22  # largest label-value range mapped through a lookup table
 _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input shows progress
 
@@ -284,10 +286,14 @@ def overlap_table(
     Jaccard ``p_l / q_l`` and Dice ``2 p_l / (p_l + q_l)``. Limit cases: two images and one
     label give the plain Jaccard index; identical images give 1; disjoint labels give 0.
 
-    The pair sums cost O(N n), not O(N^2 n): for crisp maps, if c of the N images carry label
-    l at a voxel, the voxel adds C(c, 2) to p_l and C(N, 2) - C(N - c, 2) to q_l. For fuzzy
-    memberships sorted ascending at a voxel, a_(1) <= ... <= a_(N), it adds
-    ``sum_k a_(k) (N - k)`` to p_l and ``sum_k a_(k) (k - 1)`` to q_l (O(N log N) per voxel).
+    The pair sums avoid the O(N^2 n) loop over pairs. For crisp maps, if c of the N images
+    carry label l at a voxel, the voxel adds C(c, 2) to p_l and C(N, 2) - C(N - c, 2) to q_l:
+    O(N n) in all, in exact integer arithmetic. For fuzzy memberships sorted ascending at a
+    voxel, a_(1) <= ... <= a_(N), it adds ``sum_k a_(k) (N - k)`` to p_l and
+    ``sum_k a_(k) (k - 1)`` to q_l. The sort is Batcher's odd-even merge network,
+    O(N log^2 N) branch-free comparators run across blocks of voxels at once (268 for
+    N = 36, against 630 pairs); voxels where every membership of a label is zero are skipped.
+    Everything streams over the voxels, one label at a time for fuzzy input.
 
     Complexity: ``|grad A_il|`` by central differences (one-sided at the grid's faces, as
     :func:`numpy.gradient` with ``edge_order=1``; axes of length 1 contribute nothing), in
@@ -620,7 +626,7 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
                 "crisp label maps must have an integer type"
             )
     has_mask = mask_flat.size > 0
-    nonzero = np.array(
+    comp_present = np.array(
         [
             any(np.any(flat[i, k][mask_flat] if has_mask else flat[i, k]) for i in range(n_images))
             for k in range(n_comp)
@@ -635,7 +641,7 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
                 f"label_values of fuzzy input must be component indices 0..{n_comp - 1}, "
                 f"got {label_values!r}"
             )
-    keep = nonzero[candidates]
+    keep = comp_present[candidates]
     values = candidates[keep]
     skipped = tuple(int(v) for v in candidates[~keep])
     if values.size == 0:
@@ -648,10 +654,10 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     gsum = np.zeros((n_images, n_labels))
     p = np.zeros(n_labels)
     q = np.zeros(n_labels)
-    spatial = tuple(int(s) for s in shape)
-    mask_nd = mask_flat.reshape(spatial) if has_mask else None
+    gsq = np.empty(n_vox)
     active = np.empty(n_vox, dtype=bool)
     nonzero = np.empty(n_vox, dtype=bool)
+    net_lo, net_hi = _sorting_network(n_images)
     work = n_images * n_labels * n_vox
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
@@ -662,141 +668,103 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
             row = flat[i, comp]
             np.not_equal(row, 0, out=nonzero)
             active |= nonzero
-            gsum[i, k] = _gradient_sum(row.reshape(spatial), nonzero, mask_nd, inv_h)
+            if nonzero.any():  # the gradient of an all-zero membership is zero
+                gsum[i, k] = _grad_sum_kernel(row, mask_flat, shape, inv_h, gsq)
         if has_mask:
             active &= mask_flat
-        voxels = np.flatnonzero(active)  # where some image has a nonzero membership
-        p[k], q[k] = _fuzzy_pair_kernel(flat, comp, voxels, vol[:, k], s_pairs[:, k])
+        rows = flat[:, comp]  # (N, n_voxels) view
+        if has_mask or active.mean() < 0.5:  # visit only where some membership is nonzero
+            voxels = np.flatnonzero(active)
+            blocks = (rows[:, voxels[a : a + _CHUNK]] for a in range(0, voxels.size, _CHUNK))
+        else:  # zeros add nothing, so dense data is read in plain slices
+            blocks = (
+                np.ascontiguousarray(rows[:, a : a + _CHUNK]) for a in range(0, n_vox, _CHUNK)
+            )
+        for block in blocks:
+            pk, qk = _network_pair_kernel(block, net_lo, net_hi, vol[:, k], s_pairs[:, k])
+            p[k] += pk
+            q[k] += qk
     return values, skipped, vol, s_pairs, gsum, p, q
 
 
-def _gradient_sum(image: np.ndarray, nonzero: np.ndarray, mask, inv_h: np.ndarray) -> float:
-    """``sum_v |grad image|`` (inside `mask`), computed on the bounding box of the nonzero
-    voxels grown by one voxel (the gradient is zero farther out), zero-padded by one voxel
-    where the box does not reach the grid's face so that face rules apply only at faces."""
-    lo_hi = _bounding_box(nonzero, np.asarray(image.shape, dtype=np.int64))
-    if lo_hi[0, 0] < 0:
-        return 0.0
-    box, pad = [], []
-    for d in range(image.ndim):
-        lo, hi = max(int(lo_hi[d, 0]) - 1, 0), min(int(lo_hi[d, 1]) + 2, image.shape[d])
-        box.append(slice(lo, hi))
-        pad.append((int(lo > 0), int(hi < image.shape[d])))
-    inside = tuple(slice(a, a + (b.stop - b.start)) for (a, _), b in zip(pad, box, strict=True))
-    block_shape = tuple(b.stop - b.start + a + c for (a, c), b in zip(pad, box, strict=True))
-    block = np.zeros(block_shape, dtype=image.dtype)
-    block[inside] = image[tuple(box)]
-    if mask is None:
-        mblock = np.zeros(0, np.bool_)
-    else:
-        mblock = np.zeros(block_shape, np.bool_)
-        mblock[inside] = mask[tuple(box)]
-        mblock = mblock.reshape(-1)
-    gsq = np.empty(block.size)
-    shape = np.asarray(block.shape, dtype=np.int64)
-    return _grad_sum_kernel(block.reshape(-1), mblock, shape, inv_h, gsq)
+@functools.lru_cache(maxsize=16)
+def _sorting_network(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Batcher's odd-even merge sort for `n` keys as comparator pairs (lo, hi), lo < hi.
 
-
-@numba.njit(cache=True, nogil=True)
-def _bounding_box(nonzero, shape):  # pragma: no cover - compiled
-    """(ndim, 2) first and last index of the True voxels of flat `nonzero` along each axis,
-    or -1 everywhere when there is none. Scans lines along the last axis from both ends."""
-    ndim = shape.size
-    box = np.full((ndim, 2), -1, np.int64)
-    for d in range(ndim):
-        box[d, 0] = shape[d]
-    length = shape[ndim - 1]
-    coords = np.zeros(ndim, np.int64)
-    found = False
-    for base in range(0, nonzero.size, length):
-        line = nonzero[base : base + length]
-        first = -1
-        for t in range(length):
-            if line[t]:
-                first = t
-                break
-        if first >= 0:
-            found = True
-            last = first
-            for t in range(length - 1, first, -1):
-                if line[t]:
-                    last = t
-                    break
-            box[ndim - 1, 0] = min(box[ndim - 1, 0], first)
-            box[ndim - 1, 1] = max(box[ndim - 1, 1], last)
-            for d in range(ndim - 1):
-                box[d, 0] = min(box[d, 0], coords[d])
-                box[d, 1] = max(box[d, 1], coords[d])
-        d = ndim - 2  # advance the coordinates of the next line
-        while d >= 0:
-            coords[d] += 1
-            if coords[d] < shape[d]:
-                break
-            coords[d] = 0
-            d -= 1
-    if not found:
-        box[:, :] = -1
-    return box
-
-
-@numba.njit(cache=True, nogil=True)
-def _fuzzy_pair_kernel(flat, comp, voxels, vol, spair):  # pragma: no cover - compiled
-    """Pair sums of component `comp` of `flat` (N, n_components, n_voxels) over `voxels`.
-
-    At each voxel the nonzero memberships are sorted ascending (insertion sort, carrying the
-    image index); the z zeros take the lowest ranks and add nothing. Returns the sums of
-    pairwise minima and maxima; adds to ``vol[i]`` the memberships of image i and to
-    ``spair[i]`` ``sum_{j != i} min(a_i, a_j)``.
+    Built for the next power of two and pruned of comparators that reach past `n` (those
+    keys would be +inf, so the pruned comparators never swap). 268 comparators for n = 36.
     """
-    n_img = flat.shape[0]
-    vals = np.empty(n_img, np.float64)
-    ids = np.empty(n_img, np.int64)
-    vpart = np.zeros(n_img, np.float64)
-    spart = np.zeros(n_img, np.float64)
+    pairs = []
+    p = 1
+    while p < n:
+        k = p
+        while k >= 1:
+            for j in range(k % p, n - k, 2 * k):
+                for i in range(min(k, n - j - k)):
+                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
+                        pairs.append((i + j, i + j + k))
+            k //= 2
+        p *= 2
+    lo = np.array([a for a, _ in pairs], dtype=np.int64)
+    hi = np.array([b for _, b in pairs], dtype=np.int64)
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _network_pair_kernel(block, net_lo, net_hi, vol, spair):  # pragma: no cover - compiled
+    """Pair sums of the memberships `block` (N, n_voxels) by sorting every voxel's column.
+
+    The columns are sorted ascending with the comparator network (net_lo, net_hi), run on
+    whole rows at once (branch-free, vectorized across voxels), carrying each value's image
+    index. With a_(k) the k-th smallest (k = 0..N-1), a voxel adds ``a_(k) (N - 1 - k)`` to
+    the sum of pairwise minima, ``a_(k) k`` to the maxima, and ``sum_{m<k} a_(m) +
+    a_(k) (N - 1 - k)`` (= ``sum_{j != i} min(a_i, a_j)``) to ``spair`` of its image i; ties
+    do not matter. Adds memberships to ``vol``; returns (sum of minima, sum of maxima).
+    """
+    n_img, m = block.shape
+    val = np.empty((n_img, m), np.float64)
+    img = np.empty((n_img, m), np.int64)
+    for i in range(n_img):
+        for t in range(m):
+            val[i, t] = block[i, t]
+            img[i, t] = i
+    for c in range(net_lo.size):
+        va = val[net_lo[c]]
+        vb = val[net_hi[c]]
+        ia = img[net_lo[c]]
+        ib = img[net_hi[c]]
+        for t in range(m):
+            x = va[t]
+            y = vb[t]
+            i1 = ia[t]
+            i2 = ib[t]
+            swap = y < x
+            va[t] = y if swap else x
+            vb[t] = x if swap else y
+            ia[t] = i2 if swap else i1
+            ib[t] = i1 if swap else i2
+    below = np.zeros(m)
+    vpart = np.zeros(n_img)
+    spart = np.zeros(n_img)
     pmin = 0.0
     pmax = 0.0
-    bmin = 0.0
-    bmax = 0.0
-    for m in range(voxels.size):
-        v = voxels[m]
-        if m % 4096 == 0:  # blocked summation keeps float rounding small
-            pmin += bmin
-            pmax += bmax
-            bmin = 0.0
-            bmax = 0.0
-            for i in range(n_img):
-                vol[i] += vpart[i]
-                spair[i] += spart[i]
-                vpart[i] = 0.0
-                spart[i] = 0.0
-        k = 0
-        for i in range(n_img):
-            a = np.float64(flat[i, comp, v])
-            if a != 0.0:
-                j = k
-                while j > 0 and vals[j - 1] > a:
-                    vals[j] = vals[j - 1]
-                    ids[j] = ids[j - 1]
-                    j -= 1
-                vals[j] = a
-                ids[j] = i
-                k += 1
-        if k == 0:
-            continue
-        below = 0.0
-        for r in range(k):
-            rank = n_img - k + r  # 0-based rank among all N values
-            a = vals[r]
-            up = a * (n_img - 1 - rank)
-            bmin += up
-            bmax += a * rank
-            spart[ids[r]] += up + below
-            vpart[ids[r]] += a
-            below += a
+    for k in range(n_img):
+        vk = val[k]
+        ik = img[k]
+        up = n_img - 1 - k
+        total = 0.0
+        for t in range(m):
+            a = vk[t]
+            total += a
+            spart[ik[t]] += a * up + below[t]
+            vpart[ik[t]] += a
+            below[t] += a
+        pmin += total * up
+        pmax += total * k
     for i in range(n_img):
         vol[i] += vpart[i]
         spair[i] += spart[i]
-    return pmin + bmin, pmax + bmax
+    return pmin, pmax
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})

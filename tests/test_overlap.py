@@ -168,6 +168,27 @@ def test_fuzzy_matches_all_pairs(seed, n, shape, n_comp, dtype, ties):
     _assert_matches(table, _brute(a[:, keep], spacing_np=spacing_itk[::-1]))
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 13, 36, 37, 64])
+def test_sorting_network_sorts(rng, n):
+    from itk_nrreval.overlap import _sorting_network
+
+    lo, hi = _sorting_network(n)
+    assert np.all(lo < hi) and (hi.max(initial=0) < n)
+    columns = np.concatenate([rng.random((200, n)), rng.integers(0, 3, (200, n))]).T
+    for a, b in zip(lo, hi, strict=True):
+        columns[[a, b]] = np.sort(columns[[a, b]], axis=0)
+    np.testing.assert_array_equal(columns, np.sort(columns, axis=0))
+
+
+def test_many_images_and_long_runs_of_voxels(rng):
+    # more images than a small network covers and more voxels than one block
+    dense = np.clip(rng.random((40, 2, 5000)) * 1.4 - 0.2, 0, 1)  # read in plain slices
+    sparse = np.where(rng.random((40, 2, 5000)) < 0.02, dense, 0.0)  # read where nonzero
+    assert (sparse[:, 1] != 0).any(axis=0).mean() < 0.5
+    for a in (dense, sparse):
+        _assert_matches(nr.overlap_table(a), _brute(a[:, 1:]))
+
+
 def test_fuzzy_default_drops_component_zero(rng):
     a = rng.random((4, 3, 5, 6))
     table = nr.overlap_table(a)
