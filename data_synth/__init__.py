@@ -16,6 +16,7 @@ from .population import (
     perfect_registration,
     velocity_exponential,
 )
+from .writing import write_population
 
 __all__ = [
     "MNI_LABELS",
@@ -29,4 +30,5 @@ __all__ = [
     "make_mni",
     "perfect_registration",
     "velocity_exponential",
+    "write_population",
 ]

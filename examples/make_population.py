@@ -59,7 +59,7 @@ def main(out_dir: str | None = None) -> None:
             dpi=90,
         )
         if out_dir is not None and kind == "phantom":
-            from itk_nrreval.cli.synth import write_population
+            from data_synth import write_population
 
             print("manifest:", write_population(pop, out_dir))
 

@@ -1,6 +1,6 @@
 """``nrreval synth``: write a synthetic population with its true correspondence and a manifest.
 
-Layout of ``--out DIR``::
+Layout of ``--out DIR`` (see :mod:`data_synth.writing`)::
 
     img/s00.nii.gz ...            subject images (float32)
     lab/s00.nii.gz ...            subject label maps (uint8)
@@ -18,7 +18,6 @@ Every file is written under a temporary name and renamed when complete.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 from .._errors import InputError
@@ -57,6 +56,7 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from data_synth.population import make_population
+    from data_synth.writing import write_population
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -84,72 +84,3 @@ def run(args: argparse.Namespace) -> int:
     manifest = write_population(pop, out)
     print(f"wrote {len(pop)} subjects ({args.kind}, {args.dim}D) and {manifest}")
     return 0
-
-
-def write_population(pop, out: str | os.PathLike, *, montage: bool = True) -> Path:
-    """Write a :class:`data_synth.Population` into `out` (layout in the module docstring).
-
-    Returns the path of the manifest.
-    """
-    import SimpleITK as sitk
-
-    from .._output import atomic_path, write_json
-    from .._progress import progress
-
-    out = Path(out)
-    names = [f"s{i:02d}" if len(pop) <= 100 else f"s{i:03d}" for i in range(len(pop))]
-
-    def write_image(image, rel: str) -> str:
-        with atomic_path(out / rel) as tmp:
-            sitk.WriteImage(image, str(tmp), useCompression=True)
-        return rel
-
-    def write_transform(transform, rel: str) -> str:
-        flat = sitk.CompositeTransform(transform)
-        flat.FlattenTransform()
-        with atomic_path(out / rel) as tmp:
-            sitk.WriteTransform(flat, str(tmp))
-        return rel
-
-    images, labels, transforms = [], [], []
-    for name, s in progress(zip(names, pop.subjects, strict=True), desc="writing", total=len(pop)):
-        images.append(write_image(s.image, f"img/{name}.nii.gz"))
-        labels.append(write_image(s.labels, f"lab/{name}.nii.gz"))
-        transforms.append(write_transform(s.template_to_subject, f"truth/{name}.h5"))
-    reference = write_image(pop.template, "truth/template.nii.gz")
-    write_image(pop.template_labels, "truth/template_labels.nii.gz")
-    write_json(out / "truth/label_names.json", {str(k): v for k, v in pop.label_names.items()})
-    if montage:
-        from data_synth.montage import save_montage
-
-        save_montage(
-            [s.image for s in pop.subjects],
-            [s.labels for s in pop.subjects],
-            path=out / "montage.png",
-            titles=names,
-        )
-    return _write_manifest(
-        out / "manifest.yaml",
-        images=images,
-        labels=labels,
-        registrations={"truth": {"reference": reference, "transforms": transforms}},
-    )
-
-
-def _write_manifest(path: Path, *, images, labels, registrations) -> Path:
-    """Write the `nrreval evaluate` manifest (paths given relative to its folder)."""
-    from ..manifest import write_manifest
-
-    base = path.absolute().parent
-
-    def absolute(rel):
-        return str(base / rel) if isinstance(rel, str) else [absolute(r) for r in rel]
-
-    data = {
-        "images": absolute(images),
-        "labels": absolute(labels),
-        "registrations": {
-            name: {k: absolute(v) for k, v in reg.items()} for name, reg in registrations.items()
-        },
-    }
-    return write_manifest(data, path)
