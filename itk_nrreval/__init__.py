@@ -6,6 +6,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 """
 
 from ._errors import InputError
+from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
 from .evaluate import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
@@ -27,6 +28,9 @@ from .warps import ClampedPlateSpline, cps_warp, max_safe_displacement, random_c
 __version__ = "0.1.0"
 
 __all__ = [
+    "appearance_diagnostics",
+    "AppearanceDiagnostics",
+    "CellPopulations",
     "cps_warp",
     "max_safe_displacement",
     "random_cps",
