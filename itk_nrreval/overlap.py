@@ -43,6 +43,7 @@ WEIGHTINGS = (
 )
 
 _CHUNK = 2048  # voxels per block of fuzzy memberships (the sort's scratch stays in cache)
+_NETWORK_FRACTION = 0.5  # above this share of values strictly in (0, 1), sort by network
 _MAX_LUT = 1 << 22  # largest label-value range mapped through a lookup table
 _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input shows progress
 
@@ -658,6 +659,7 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     active = np.empty(n_vox, dtype=bool)
     nonzero = np.empty(n_vox, dtype=bool)
     net_lo, net_hi = _sorting_network(n_images)
+    block = np.empty((n_images, _CHUNK))
     work = n_images * n_labels * n_vox
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
@@ -672,19 +674,33 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
                 gsum[i, k] = _grad_sum_kernel(row, mask_flat, shape, inv_h, gsq)
         if has_mask:
             active &= mask_flat
-        rows = flat[:, comp]  # (N, n_voxels) view
-        if has_mask or active.mean() < 0.5:  # visit only where some membership is nonzero
-            voxels = np.flatnonzero(active)
-            blocks = (rows[:, voxels[a : a + _CHUNK]] for a in range(0, voxels.size, _CHUNK))
-        else:  # zeros add nothing, so dense data is read in plain slices
-            blocks = (
-                np.ascontiguousarray(rows[:, a : a + _CHUNK]) for a in range(0, n_vox, _CHUNK)
-            )
-        for block in blocks:
-            pk, qk = _network_pair_kernel(block, net_lo, net_hi, vol[:, k], s_pairs[:, k])
+        voxels = np.flatnonzero(active)  # where some image has a nonzero membership
+        for a in range(0, voxels.size, _CHUNK):
+            m = min(_CHUNK, voxels.size - a)
+            fractional = _gather(flat, comp, voxels[a : a + m], block)
+            if fractional > _NETWORK_FRACTION * block.shape[0] * m:
+                pk, qk = _network_pair_kernel(
+                    block[:, :m], net_lo, net_hi, vol[:, k], s_pairs[:, k]
+                )
+            else:
+                pk, qk = _sparse_pair_kernel(block[:, :m], vol[:, k], s_pairs[:, k])
             p[k] += pk
             q[k] += qk
     return values, skipped, vol, s_pairs, gsum, p, q
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(flat, comp, voxels, out):  # pragma: no cover - compiled
+    """Copy ``flat[:, comp, voxels]`` into ``out[:, :len(voxels)]`` (as float64); return how
+    many of the values lie strictly between 0 and 1."""
+    fractional = 0
+    for i in range(flat.shape[0]):
+        for t in range(voxels.size):
+            a = np.float64(flat[i, comp, voxels[t]])
+            out[i, t] = a
+            if 0.0 < a < 1.0:
+                fractional += 1
+    return fractional
 
 
 @functools.lru_cache(maxsize=16)
@@ -761,6 +777,67 @@ def _network_pair_kernel(block, net_lo, net_hi, vol, spair):  # pragma: no cover
             below[t] += a
         pmin += total * up
         pmax += total * k
+    for i in range(n_img):
+        vol[i] += vpart[i]
+        spair[i] += spart[i]
+    return pmin, pmax
+
+
+@numba.njit(cache=True, nogil=True)
+def _sparse_pair_kernel(block, vol, spair):  # pragma: no cover - compiled
+    """As :func:`_network_pair_kernel`, for memberships that are mostly exactly 0 or 1.
+
+    Per voxel, zeros take the lowest ranks and add nothing, the o ones take the top ranks,
+    and only the fractional values in between are sorted (insertion sort, carrying the
+    image index): O(N) for a voxel without fractional values.
+    """
+    n_img, m = block.shape
+    vals = np.empty(n_img, np.float64)
+    ids = np.empty(n_img, np.int64)
+    ones = np.empty(n_img, np.int64)
+    vpart = np.zeros(n_img, np.float64)
+    spart = np.zeros(n_img, np.float64)
+    pmin = 0.0
+    pmax = 0.0
+    for t in range(m):
+        n_frac = 0
+        n_one = 0
+        for i in range(n_img):
+            a = np.float64(block[i, t])
+            if a == 0.0:
+                continue
+            if a == 1.0:
+                ones[n_one] = i
+                n_one += 1
+                continue
+            j = n_frac
+            while j > 0 and vals[j - 1] > a:
+                vals[j] = vals[j - 1]
+                ids[j] = ids[j - 1]
+                j -= 1
+            vals[j] = a
+            ids[j] = i
+            n_frac += 1
+        if n_frac + n_one == 0:
+            continue
+        first = n_img - n_one - n_frac  # 0-based rank of the smallest nonzero value
+        below = 0.0
+        for r in range(n_frac):
+            rank = first + r
+            a = vals[r]
+            up = a * (n_img - 1 - rank)
+            pmin += up
+            pmax += a * rank
+            spart[ids[r]] += up + below
+            vpart[ids[r]] += a
+            below += a
+        if n_one > 0:
+            top = n_img - n_one  # ones hold ranks top .. N - 1
+            pmin += n_one * (n_one - 1) / 2.0
+            pmax += (top + n_img - 1) * n_one / 2.0
+            for r in range(n_one):  # min with the other ones (1 each) and every smaller value
+                spart[ones[r]] += (n_one - 1) + below
+                vpart[ones[r]] += 1.0
     for i in range(n_img):
         vol[i] += vpart[i]
         spair[i] += spart[i]

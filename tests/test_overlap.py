@@ -182,11 +182,21 @@ def test_sorting_network_sorts(rng, n):
 
 def test_many_images_and_long_runs_of_voxels(rng):
     # more images than a small network covers and more voxels than one block
-    dense = np.clip(rng.random((40, 2, 5000)) * 1.4 - 0.2, 0, 1)  # read in plain slices
-    sparse = np.where(rng.random((40, 2, 5000)) < 0.02, dense, 0.0)  # read where nonzero
+    dense = np.clip(rng.random((40, 2, 5000)) * 1.4 - 0.2, 0, 1)  # sorted by the network
+    sparse = np.where(rng.random((40, 2, 5000)) < 0.02, dense, 0.0)  # few values to sort
     assert (sparse[:, 1] != 0).any(axis=0).mean() < 0.5
     for a in (dense, sparse):
         _assert_matches(nr.overlap_table(a), _brute(a[:, 1:]))
+
+
+@pytest.mark.parametrize("share", [0.0, 1.0])  # force the sorting network / the sparse sort
+def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
+    from itk_nrreval import overlap
+
+    monkeypatch.setattr(overlap, "_NETWORK_FRACTION", share)
+    a = rng.choice([0.0, 0.0, 0.0, 1.0, 1.0, 0.3, 0.7], size=(9, 3, 6, 7))
+    a[:, :, :2] = rng.random((9, 3, 2, 7))
+    _assert_matches(nr.overlap_table(a, include_background=True), _brute(a))
 
 
 def test_fuzzy_default_drops_component_zero(rng):
