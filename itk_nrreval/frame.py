@@ -33,7 +33,7 @@ from ._errors import InputError
 from ._images import Geometry, read_image
 from ._progress import progress
 from .manifest import Manifest
-from .transforms import chain_transform, displacement_field, field_transform, invert
+from .transforms import _leaves, chain_transform, displacement_field, field_transform, invert
 
 __all__ = [
     "FrameMapping",
@@ -107,6 +107,8 @@ def frame_estimates(
     common: Sequence[sitk.Transform],
     other: Sequence[sitk.Transform],
     grid: sitk.Image | Geometry,
+    *,
+    other_grid: sitk.Image | Geometry | None = None,
 ) -> np.ndarray:
     """Per-image estimates ``F_i = (T_i^R)^-1 o T_i^C`` sampled on the common grid.
 
@@ -118,6 +120,9 @@ def frame_estimates(
         ``T_i^R``: R's frame -> image i (inverted here; fields on their own grids).
     grid : sitk.Image or Geometry
         The common grid.
+    other_grid : sitk.Image or Geometry, optional
+        R's reference grid, where pieces of ``T_i^R`` that are neither linear nor fields
+        (B-splines) are sampled before inversion.
 
     Returns
     -------
@@ -130,8 +135,16 @@ def frame_estimates(
     out = np.empty((len(common), *g.shape, g.dimension))
     for i, (tc, tr) in enumerate(zip(common, other, strict=True)):
         # sitk list order: [R^-1, C] means R^-1(C(p))
-        out[i] = _points_minus_grid(sitk.CompositeTransform([invert(tr), tc]), g)
+        out[i] = _points_minus_grid(sitk.CompositeTransform([invert(tr, grid=other_grid), tc]), g)
     return out
+
+
+def _sampled_before_inversion(transform: sitk.Transform) -> bool:
+    """Whether inverting `transform` needs a grid (it has a B-spline or similar piece)."""
+    return any(
+        not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform)
+        for t in _leaves(transform)
+    )
 
 
 def _spread(
@@ -207,7 +220,10 @@ def frame_mapping(
     if consistency or method == "mean":
         if transforms is None:
             transforms = read_chains(manifest, name)
-        estimates = frame_estimates(common_transforms, transforms, g)
+        reg_grid = None
+        if any(_sampled_before_inversion(t) for t in transforms):
+            reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
+        estimates = frame_estimates(common_transforms, transforms, g, other_grid=reg_grid)
     if method == "frame_transform":
         f = chain_transform(reg.frame_transform)
     elif method == "reference_index":

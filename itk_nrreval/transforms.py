@@ -231,6 +231,7 @@ def displacement_field(transform: sitk.Transform, reference: sitk.Image | Geomet
 def invert(
     transform: sitk.Transform | str | os.PathLike | Sequence,
     *,
+    grid: sitk.Image | Geometry | None = None,
     max_iterations: int = 50,
     max_error: float = 0.01,
     mean_error: float = 1e-4,
@@ -240,11 +241,15 @@ def invert(
     Linear transforms are inverted exactly. A displacement field is inverted on its own
     grid with ``sitk.InvertDisplacementField`` (fixed-point iteration; never the slow
     ``InverseDisplacementField``). A chain is inverted piece by piece in reverse order:
-    ``(t2 o t1)^-1 = t1^-1 o t2^-1``, so each field is inverted where it lives.
+    ``(t2 o t1)^-1 = t1^-1 o t2^-1``, so each field is inverted where it lives. Other
+    smooth pieces (B-splines) are first sampled as a displacement field on `grid`.
 
     Parameters
     ----------
     transform : sitk.Transform, path or chain (ANTs order)
+    grid : sitk.Image or Geometry, optional
+        Where to sample pieces that are neither linear nor displacement fields (e.g.
+        B-splines): the registration's reference grid, on which those pieces act.
     max_iterations : int
         Iterations of the field inversion.
     max_error, mean_error : float
@@ -258,18 +263,24 @@ def invert(
     Raises
     ------
     InputError
-        A transform type that is neither linear, a composite nor a displacement field
-        (e.g. a B-spline: convert it with :func:`displacement_field` first).
+        A piece that is neither linear nor a displacement field, and no `grid`.
     """
     leaves = _leaves(chain_transform(transform))
-    inverted = [_invert_one(t, max_iterations, max_error, mean_error) for t in leaves]
+    inverted = [_invert_one(t, grid, max_iterations, max_error, mean_error) for t in leaves]
     # sitk list [a, b] means a(b(p)); its inverse is b^-1(a^-1(q)): list [b^-1, a^-1].
     inverted = list(reversed(inverted))
     return inverted[0] if len(inverted) == 1 else sitk.CompositeTransform(inverted)
 
 
-def _invert_one(t: sitk.Transform, iterations: int, max_error: float, mean_error: float):
+def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean_error: float):
     t = t.Downcast()
+    if not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform):
+        if grid is None:
+            raise InputError(
+                f"{t.GetName()}: cannot invert this transform type without a grid to sample "
+                "it on (pass grid=, e.g. the registration's reference)"
+            )
+        t = field_transform(displacement_field(t, grid))
     if isinstance(t, sitk.DisplacementFieldTransform):
         field = t.GetDisplacementField()
         inverse = sitk.InvertDisplacementField(
@@ -285,10 +296,7 @@ def _invert_one(t: sitk.Transform, iterations: int, max_error: float, mean_error
             return t.GetInverse().Downcast()
         except RuntimeError as exc:
             raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
-    raise InputError(
-        f"{t.GetName()}: cannot invert this transform type; convert it to a displacement "
-        "field first (transforms.displacement_field)"
-    )
+    raise AssertionError("unreachable: every piece is linear or a field here")
 
 
 def jacobian_determinant(
