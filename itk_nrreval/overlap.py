@@ -670,8 +670,7 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
             row = flat[i, comp]
             np.not_equal(row, 0, out=nonzero)
             active |= nonzero
-            if nonzero.any():  # the gradient of an all-zero membership is zero
-                gsum[i, k] = _grad_sum_kernel(row, mask_flat, shape, inv_h, gsq)
+            gsum[i, k] = _gradient_sum(row, nonzero, mask_flat, shape, inv_h, gsq)
         if has_mask:
             active &= mask_flat
         voxels = np.flatnonzero(active)  # where some image has a nonzero membership
@@ -687,6 +686,21 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
             p[k] += pk
             q[k] += qk
     return values, skipped, vol, s_pairs, gsum, p, q
+
+
+def _gradient_sum(row, nonzero, mask_flat, shape, inv_h, gsq) -> float:
+    """``sum_v |grad row|`` over the mask, computed only on the slabs (along the first axis)
+    within two of a nonzero one: farther out the gradient is zero, and two zero slabs on
+    each side make the cut-out's face rule give the full grid's values."""
+    planes = np.flatnonzero(nonzero.reshape(int(shape[0]), -1).any(axis=1))
+    if planes.size == 0:
+        return 0.0
+    lo, hi = max(int(planes[0]) - 2, 0), min(int(planes[-1]) + 3, int(shape[0]))
+    plane = row.size // int(shape[0])
+    sub_shape = shape.copy()
+    sub_shape[0] = hi - lo
+    sub_mask = mask_flat[lo * plane : hi * plane] if mask_flat.size else mask_flat
+    return _grad_sum_kernel(row[lo * plane : hi * plane], sub_mask, sub_shape, inv_h, gsq)
 
 
 @numba.njit(cache=True, nogil=True)

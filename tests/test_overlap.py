@@ -311,6 +311,16 @@ def test_complexity_with_anisotropic_spacing_against_slicing_gradient(rng):
         np.testing.assert_allclose(table.complexity, expected, rtol=1e-12)
 
 
+@pytest.mark.parametrize("slabs", [(3, 6), (0, 2), (8, 10), (1, 9)])
+def test_complexity_of_memberships_confined_to_a_few_slabs(rng, slabs):
+    a = np.zeros((5, 2, 10, 6, 7))
+    a[:, 1, slabs[0] : slabs[1]] = rng.random((5, slabs[1] - slabs[0], 6, 7))
+    mask = rng.random((10, 6, 7)) < 0.8
+    for m in (None, mask):
+        table = nr.overlap_table(a, spacing=(0.6, 1.7, 2.2), mask=m)
+        _assert_matches(table, _brute(a[:, 1:], spacing_np=(2.2, 1.7, 0.6), mask=m))
+
+
 def test_images_bring_their_spacing(rng, tmp_path):
     crisp = _smooth_crisp(rng, 3, (4, 5, 6), 3).astype(np.uint8)
     images = []
