@@ -12,8 +12,8 @@ average of per-pair ratios). Crum, Camara & Hill, "Generalized overlap measures 
 and validation in medical image analysis", IEEE TMI 25(11), 2006, eq. (4) without pair weights;
 doi:10.1109/TMI.2006.880587.
 
-Everything is read from one per-label table (:class:`OverlapTable`) built in a single pass over
-the voxels: the pair sums of minima and maxima, the volumes and the boundary complexity. Every
+Everything is read from one per-label table (:class:`OverlapTable`) built in one sweep over the
+voxels: the pair sums of minima and maxima, the volumes and the boundary complexity. Every
 weighting, and the per-label Jaccard, Dice and target overlap, come from that table.
 """
 
@@ -21,11 +21,13 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import warnings
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
+import SimpleITK as sitk
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
@@ -371,11 +373,7 @@ def _is_fuzzy(stack) -> bool:
 
 def _check_components(labels) -> None:
     """Refuse a mixture of scalar and multi-component images (naming the first odd one)."""
-    import os
-
-    import SimpleITK as sitk
-
-    if isinstance(labels, np.ndarray) or isinstance(labels, (str, os.PathLike, sitk.Image)):
+    if isinstance(labels, (np.ndarray, str, os.PathLike, sitk.Image)):
         return
     first = None
     for i, item in enumerate(labels):
@@ -387,7 +385,7 @@ def _check_components(labels) -> None:
                 reader.SetFileName(str(item))
                 reader.ReadImageInformation()
                 n = reader.GetNumberOfComponents()
-        except Exception:  # unreadable: image_stack reports it properly
+        except (RuntimeError, TypeError):  # unreadable: image_stack reports it properly
             return
         if first is None:
             first = (n, str(item) if not isinstance(item, sitk.Image) else f"label map[{i}]")
