@@ -167,6 +167,24 @@ def test_fluid_improves_over_affine_and_order_is_affine_after_field(
     _check_written(fluid, tmp_path, images)
 
 
+def test_an_earlier_affine_stage_is_reused(population, affine_result):
+    images, truths = population
+    fluid = register(images, method="fluid", affine=affine_result, progress=False)
+    assert fluid.reference_index == affine_result.reference_index
+    assert fluid.settings["affine_stage"] == "reused"
+    for t, a in zip(fluid.transforms, affine_result.transforms, strict=True):
+        first = t.GetNthTransform(0) if t.GetName() == "CompositeTransform" else t
+        np.testing.assert_array_equal(first.GetParameters(), a.GetParameters())
+    ref = fluid.reference
+    assert correspondence_error(fluid.transforms, ref, truths) < 0.8 * correspondence_error(
+        affine_result.transforms, ref, truths
+    )
+    with pytest.raises(InputError, match="affine: its reference is used"):
+        register(images, method="fluid", affine=affine_result, reference=0, progress=False)
+    with pytest.raises(InputError, match="affine: expected an affine registration"):
+        register(images, method="pairwise", affine=fluid, progress=False)
+
+
 def test_pairwise_simpleitk_improves_over_affine(population, affine_result, tmp_path):
     images, truths = population
     result = register(

@@ -189,6 +189,7 @@ def register(
     seed: int = 0,
     progress: bool = True,
     elastix_worker=None,
+    affine: RegistrationResult | None = None,
 ) -> RegistrationResult:
     """Register a group of images with one of the paper's methods.
 
@@ -222,6 +223,11 @@ def register(
     elastix_worker : ElastixWorker, optional
         A running worker to reuse (saves elastix's ~10 s start-up across calls); by
         default one is started and stopped for this call.
+    affine : RegistrationResult, optional
+        An earlier ``method="affine"`` result for the same images: its reference and
+        transforms are this method's affine stage, which is then skipped (then give neither
+        `reference` nor `reference_choice`). Saves the affine work when several methods
+        share a reference, as in the paper's comparison.
 
     Returns
     -------
@@ -248,6 +254,14 @@ def register(
         _import_ants()  # fail before any work when antspyx is missing
     imgs, paths = load_images(images)
     n = len(imgs)
+    if affine is not None:
+        if affine.method != "affine" or affine.n_images != n:
+            raise InputError(
+                f"affine: expected an affine registration of these {n} images, got a "
+                f"{affine.method} registration of {affine.n_images}"
+            )
+        if reference is not None or reference_choice is not None:
+            raise InputError("affine: its reference is used; do not give reference or choice")
     aff_opts = with_options(
         AffineOptions(), options if method == "affine" else affine_options, what="affine"
     )
@@ -260,7 +274,11 @@ def register(
     # The reference, and the affines to it.
     ref_index: int | None = None
     initial = None
-    if reference is None:
+    if affine is not None:
+        choice = affine.settings.get("reference_choice")
+        ref_index, ref_image = affine.reference_index, affine.reference
+        affines = [sitk.AffineTransform(t) for t in affine.transforms]
+    elif reference is None:
         choice = reference_choice or "near-mean"
         ref_index, initial, _ = choose_reference(
             imgs, choice, options=aff_opts, seed=seed, show_progress=progress
@@ -269,15 +287,16 @@ def register(
     else:
         choice = None
         ref_index, ref_image = _resolve_reference(reference, imgs, paths)
-    affines = affine_to_reference(
-        imgs,
-        ref_image,
-        options=aff_opts,
-        seed=seed,
-        reference_index=ref_index,
-        initial=initial,
-        show_progress=progress,
-    )
+    if affine is None:
+        affines = affine_to_reference(
+            imgs,
+            ref_image,
+            options=aff_opts,
+            seed=seed,
+            reference_index=ref_index,
+            initial=initial,
+            show_progress=progress,
+        )
 
     engine_resampled = None
     if method == "affine":
@@ -324,6 +343,7 @@ def register(
         "images": paths if all(p is not None for p in paths) else None,
         "reference_choice": choice if method != "groupwise" else "group mean (near-mean frame)",
         "affine_options": dataclasses.asdict(aff_opts),
+        "affine_stage": "reused" if affine is not None else "computed",
         "options": dataclasses.asdict(opts),
     }
     json.dumps(settings)  # settings must stay JSON-ready
