@@ -12,12 +12,12 @@ import argparse
 import sys
 
 from .._errors import InputError
-from . import diagnose, evaluate, overlap, register, specificity, synth, validate
+from . import demo, diagnose, evaluate, overlap, register, specificity, synth, validate
 
 __all__ = ["main"]
 
 # One entry per sub-command module, in the order `nrreval --help` lists them.
-COMMANDS = [specificity, evaluate, overlap, register, synth, validate, diagnose]
+COMMANDS = [demo, evaluate, specificity, overlap, synth, register, validate, diagnose]
 
 
 def build_parser() -> argparse.ArgumentParser:
