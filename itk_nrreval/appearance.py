@@ -545,6 +545,9 @@ class AppearanceDiagnostics:
         ``|R_i - synthesise(c_i)|_2`` (intensity units, over the reference grid).
     training_spacing : ndarray of shape (n_images,)
         ``min_{j != i} |R_i - R_j|_2``: scale against which to judge the representation error.
+    reassigned_fraction : float
+        Fraction of the samples whose nearest raw image is not the raw version of their
+        nearest projected image (0 when projection changes nothing).
     """
 
     registration: str
@@ -559,6 +562,7 @@ class AppearanceDiagnostics:
     projected: CellPopulations
     representation_error: np.ndarray = field(repr=False)
     training_spacing: np.ndarray = field(repr=False)
+    reassigned_fraction: float = 0.0
 
     def to_dict(self) -> dict:
         d = {
@@ -572,6 +576,7 @@ class AppearanceDiagnostics:
                 "n_texture_modes",
                 "n_modes",
                 "shape_weight",
+                "reassigned_fraction",
             )
         }
         d["near_empty_fraction_of_uniform"] = NEAR_EMPTY_FRACTION
@@ -658,6 +663,8 @@ def appearance_diagnostics(
     chunk = int(max(1, min(_MAX_CHUNK, _CHUNK_VALUES // raw_flat.shape[1])))
     values = {"raw": np.empty(n_samples), "projected": np.empty(n_samples)}
     counts = {"raw": np.zeros(n, np.int64), "projected": np.zeros(n, np.int64)}
+    nearest = {}
+    reassigned = 0
     starts = range(0, int(n_samples), chunk)
     for start in _progress_bar(
         starts, desc=f"{registration}: samples", total=len(starts), enabled=progress
@@ -669,6 +676,8 @@ def appearance_diagnostics(
             dist, index = nearest_images(images, train, training_sq=sq)
             values[key][start:stop] = dist
             counts[key] += np.bincount(index, minlength=n)
+            nearest[key] = index
+        reassigned += int(np.count_nonzero(nearest["raw"] != nearest["projected"]))
 
     gram = raw_flat @ raw_flat.T
     d2 = np.maximum(raw_sq[:, None] - 2.0 * gram + raw_sq[None, :], 0.0)
@@ -686,4 +695,5 @@ def appearance_diagnostics(
         projected=_populations(counts["projected"], values["projected"]),
         representation_error=np.linalg.norm(raw_flat - projected, axis=1),
         training_spacing=np.sqrt(d2.min(axis=1)),
+        reassigned_fraction=reassigned / n_samples,
     )

@@ -115,6 +115,7 @@ def test_identity_shape_projection_equals_raw(identity_case):
     np.testing.assert_array_equal(r.raw.counts, r.projected.counts)
     assert r.raw.counts.sum() == r.projected.counts.sum() == 150
     assert r.raw.specificity == pytest.approx(r.projected.specificity, rel=1e-12)
+    assert r.reassigned_fraction == 0.0
     assert r.raw.stderr == pytest.approx(r.projected.stderr, rel=1e-9)
 
 
@@ -195,14 +196,19 @@ def test_cells_match_brute_force(warped_case, warped_result):
         r.representation_error, np.linalg.norm(raw - projected, axis=1), rtol=1e-9
     )
     assert r.representation_error.max() > 0  # warping loses something
-    for cells, train in ((r.raw, raw), (r.projected, projected)):
+    nearest_index = {}
+    for variant, train in (("raw", raw), ("projected", projected)):
+        cells = getattr(r, variant)
         d = cdist(samples, train)
+        nearest_index[variant] = d.argmin(axis=1)
         nearest = d.min(axis=1)
         np.testing.assert_array_equal(
             cells.counts, np.bincount(d.argmin(axis=1), minlength=N_IMAGES)
         )
         assert cells.specificity == pytest.approx(nearest.mean(), rel=1e-10)
         assert cells.stderr == pytest.approx(nearest.std() / np.sqrt(59), rel=1e-8)
+    changed = nearest_index["raw"] != nearest_index["projected"]
+    assert r.reassigned_fraction == pytest.approx(changed.mean())
     d_train = cdist(raw, raw) + np.diag(np.full(N_IMAGES, np.inf))
     np.testing.assert_allclose(r.training_spacing, d_train.min(axis=1), rtol=1e-8)
 
