@@ -230,14 +230,15 @@ def run_demo(
                 continue
             say(f"[demo] registering: {name}")
             t = time.perf_counter()
-            engine = None if method != "pairwise" or use_elastix else "simpleitk"
+            uses_elastix = method in ("pairwise", "groupwise")
+            engine = None if not uses_elastix or use_elastix else "simpleitk"
             results[name] = register(
                 images,
                 method=method,
                 engine=engine,
                 seed=seed,
                 progress=progress,
-                elastix_worker=worker if method == "pairwise" else None,
+                elastix_worker=worker if uses_elastix else None,
                 affine=affine_stage[choice or "near-mean"],
             )
             seconds[f"register_{name}"] = time.perf_counter() - t

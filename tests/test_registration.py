@@ -197,9 +197,13 @@ def test_pairwise_simpleitk_improves_over_affine(population, affine_result, tmp_
     _check_written(result, tmp_path, images)
 
 
-def test_groupwise_improves_over_affine(population, affine_result, tmp_path):
+@pytest.mark.parametrize("engine", ["elastix", "simpleitk"])
+def test_groupwise_improves_over_affine(population, affine_result, worker, tmp_path, engine):
     images, truths = population
-    result = register(images, method="groupwise", progress=False)
+    result = register(
+        images, method="groupwise", engine=engine, elastix_worker=worker, progress=False
+    )
+    assert result.engine == engine
     assert result.reference_index is None
     ref = result.reference
     assert correspondence_error(result.transforms, ref, truths) < 0.85 * correspondence_error(

@@ -31,7 +31,7 @@ def add_parser(sub) -> None:
         "--engine",
         choices=engines,
         help="affine: simpleitk; fluid: simpleitk (default) or ants; pairwise: elastix "
-        "(default) or simpleitk; groupwise: simpleitk",
+        "(default) or simpleitk; groupwise: elastix (default) or simpleitk",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(

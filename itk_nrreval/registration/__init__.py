@@ -20,9 +20,10 @@ Methods
     (engine ``"simpleitk"``).
 ``"groupwise"``
     Registration to an evolving mean: every image is registered to the mean of the current
-    registered set, the mean is updated, and the B-spline mesh is refined (engine
-    ``"simpleitk"``); the mean deformation of each refinement is removed so the frame does
-    not drift.
+    registered set and the mean is updated, with the B-spline representation of
+    ``"pairwise"`` (engine ``"elastix"``, or ``"simpleitk"`` with a mesh refined coarse to
+    fine); the group's mean deformation is removed after each sweep so the frame does not
+    drift.
 
 The reference of ``affine``, ``fluid`` and ``pairwise`` is a training image (or an image
 given by the caller); ``reference_choice="near-mean"`` / ``"far-from-mean"`` picks the
@@ -33,6 +34,7 @@ reference, on the grid of the near-mean training image.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -51,7 +53,7 @@ from ._common import EngineError, load_images, resample, with_options
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
 from .fluid import FluidOptions, _import_ants, fluid_to_reference
-from .groupwise import GroupwiseOptions, groupwise_register
+from .groupwise import GroupwiseOptions, groupwise_register, groupwise_register_elastix
 
 __all__ = [
     "METHODS",
@@ -72,7 +74,7 @@ ENGINES = {
     "affine": ("simpleitk",),
     "fluid": ("simpleitk", "ants"),
     "pairwise": ("elastix", "simpleitk"),
-    "groupwise": ("simpleitk",),
+    "groupwise": ("elastix", "simpleitk"),
 }
 _OPTIONS = {
     "affine": AffineOptions(),
@@ -207,7 +209,8 @@ def register(
         frame).
     engine : str, optional
         affine: ``{"simpleitk"}``; fluid: ``{"simpleitk", "ants"}``; pairwise:
-        ``{"elastix", "simpleitk"}``; groupwise: ``{"simpleitk"}``. Default the first.
+        ``{"elastix", "simpleitk"}``; groupwise: ``{"elastix", "simpleitk"}``. Default the
+        first.
     options : mapping, optional
         Fields of the method's options dataclass to override (:class:`FluidOptions`,
         :class:`BSplineOptions`, :class:`GroupwiseOptions`, or :class:`AffineOptions` for
@@ -324,6 +327,14 @@ def register(
             show_progress=progress,
             worker=elastix_worker,
         )
+    elif engine == "elastix":
+        from ._elastix_worker import ElastixWorker  # noqa: PLC0415
+
+        with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
+            transforms, ref_image = groupwise_register_elastix(
+                imgs, ref_image, affines, options=opts, seed=seed, worker=w, show_progress=progress
+            )
+        ref_index = None
     else:
         transforms, ref_image = groupwise_register(
             imgs, ref_image, affines, options=opts, seed=seed, show_progress=progress

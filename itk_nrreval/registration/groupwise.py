@@ -1,11 +1,18 @@
 """Groupwise registration to an evolving mean (the paper's fourth method, after Cootes et al.).
 
 Start: every image affinely aligned to the near-mean training image, whose grid is the
-frame. Then, for each mesh level (coarse to fine) and each of ``sweeps`` sweeps: form the
-mean of the currently registered set, register every image to it with a new cubic B-spline
-layer composed after its current transform (``T_i <- T_i o B_i``, SimpleITK), and subtract
-the mean of the new layers' coefficients from each, so the group's mean deformation stays
-zero and the frame does not drift. The reference returned is the final mean image.
+frame. Two engines share the B-spline representation of the pairwise method:
+
+* ``"elastix"`` (default): for each of ``sweeps`` sweeps, form the mean of the currently
+  registered set and register every image to it afresh from its affine with elastix's
+  multi-resolution B-spline (as :func:`bspline_to_reference`, coarse to fine); then remove
+  the group's mean non-affine displacement ``u = mean_i (A_i^-1 o T_i - id)`` by composing
+  every transform with ``(id + u)^-1``, so the frame does not drift.
+* ``"simpleitk"``: for each mesh level (coarse to fine) and sweep, register every image to
+  the mean with a new cubic B-spline layer composed after its current transform
+  (``T_i <- T_i o B_i``), and subtract the mean of the new layers' coefficients.
+
+The reference returned is the final mean image.
 """
 
 from __future__ import annotations
@@ -18,10 +25,11 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
+from ..transforms import displacement_field, field_transform, invert
 from ._common import group_mean, resample
-from .bspline import sitk_bspline
+from .bspline import BSplineOptions, elastix_parameters, sitk_bspline
 
-__all__ = ["GroupwiseOptions", "groupwise_register"]
+__all__ = ["GroupwiseOptions", "groupwise_register", "groupwise_register_elastix"]
 
 
 @dataclass(frozen=True)
@@ -38,9 +46,15 @@ class GroupwiseOptions:
     sweeps : int
         Mean updates per level.
     iterations : int
-        L-BFGS-B iterations per image per sweep.
+        SimpleITK: L-BFGS-B iterations per image per sweep.
     sampling : float
-        Fraction of voxels sampled by the metric, in (0, 1].
+        SimpleITK: fraction of voxels sampled by the metric, in (0, 1].
+    elastix_levels : int
+        elastix: resolutions of each registration to the mean.
+    elastix_iterations : int
+        elastix: iterations per resolution.
+    samples : int
+        elastix: random spatial samples per iteration.
     """
 
     grid_spacing: float = 16.0
@@ -48,6 +62,9 @@ class GroupwiseOptions:
     sweeps: int = 2
     iterations: int = 40
     sampling: float = 0.25
+    elastix_levels: int = 3
+    elastix_iterations: int = 200
+    samples: int = 2048
 
     def check(self) -> None:
         if min(self.levels, self.sweeps, self.iterations) < 1 or self.grid_spacing <= 0:
@@ -109,4 +126,70 @@ def groupwise_register(
             b.SetParameters(tuple(centred[i]))
             layers[i].append(b)
     transforms = [sitk.CompositeTransform(t) for t in layers]
+    return transforms, group_mean(images, frame, transforms)
+
+
+def groupwise_register_elastix(
+    images: Sequence[sitk.Image],
+    frame: sitk.Image,
+    affines: Sequence[sitk.Transform],
+    *,
+    options: GroupwiseOptions,
+    seed: int,
+    worker,
+    show_progress: bool = True,
+) -> tuple[list[sitk.Transform], sitk.Image]:
+    """Register `images` to their evolving mean on the grid of `frame` with elastix.
+
+    Returns
+    -------
+    transforms : list of sitk.DisplacementFieldTransform
+        Reference point p maps to image point ``p + field_i(p)`` (affine included), on
+        `frame`'s grid.
+    mean : sitk.Image
+        The final group mean on `frame`'s grid.
+    """
+    bspline = BSplineOptions(
+        grid_spacing=options.grid_spacing,
+        levels=options.elastix_levels,
+        iterations=options.elastix_iterations,
+        samples=options.samples,
+    )
+    transforms: list[sitk.Transform] = list(affines)
+    steps = [(s, i) for s in range(options.sweeps) for i in range(len(images))]
+    bar = iter(progress(steps, desc="groupwise (elastix)", total=len(steps), enabled=show_progress))
+    for sweep in range(options.sweeps):
+        mean = group_mean(images, frame, transforms)
+        fields = []
+        for i, (img, aff) in enumerate(zip(images, affines, strict=True)):
+            next(bar)
+            field, _ = worker.bspline(
+                mean,
+                img,
+                initial=aff,
+                levels=bspline.levels,
+                grid_spacing=bspline.grid_spacing,
+                parameters=elastix_parameters(bspline, seed=seed + 1000 * (sweep + 1) + i),
+                what=f"image {i} (sweep {sweep + 1})",
+            )
+            fields.append(field_transform(field))
+        # The group's mean non-affine displacement, in the frame: remove it.
+        drift = np.mean(
+            [
+                sitk.GetArrayFromImage(
+                    displacement_field(sitk.CompositeTransform([invert(a), f]), frame)
+                )
+                for a, f in zip(affines, fields, strict=True)
+            ],
+            axis=0,
+        )
+        drift_img = sitk.GetImageFromArray(drift, isVector=True)
+        drift_img.CopyInformation(frame)
+        undo = invert(field_transform(drift_img))
+        transforms = [
+            field_transform(displacement_field(sitk.CompositeTransform([f, undo]), frame))
+            for f in fields
+        ]
+    for _ in bar:  # close the bar
+        pass
     return transforms, group_mean(images, frame, transforms)
