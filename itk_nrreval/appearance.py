@@ -94,7 +94,8 @@ def _fit_affine(points: np.ndarray, mapped: np.ndarray) -> sitk.AffineTransform:
     coef, _, rank, _ = np.linalg.lstsq(design, mapped, rcond=None)
     if rank < dim + 1:
         raise InputError(
-            "affine part: the grid is degenerate (fewer than dim + 1 independent points)"
+            "affine part: cannot fit an affine to a dense field on a grid with a single voxel "
+            "along some axis; put an affine transform in the registration's chain"
         )
     affine = sitk.AffineTransform(dim)
     affine.SetCenter(tuple(float(v) for v in centre))
@@ -104,10 +105,10 @@ def _fit_affine(points: np.ndarray, mapped: np.ndarray) -> sitk.AffineTransform:
 
 
 def _corners(g: Geometry) -> Geometry:
-    """The 2^dim corner voxels of `g` as a tiny grid of the same extent (for exact fits)."""
-    size = tuple(2 if s > 1 else 1 for s in g.size)
-    spacing = tuple(sp * (s - 1) if s > 1 else sp for sp, s in zip(g.spacing, g.size, strict=True))
-    return Geometry(size, spacing, g.origin, g.direction)
+    """The 2^dim corners of `g`'s extent (at least one voxel along each axis) as a tiny grid:
+    affinely independent points on which a linear transform is fitted exactly."""
+    spacing = tuple(sp * max(s - 1, 1) for sp, s in zip(g.spacing, g.size, strict=True))
+    return Geometry((2,) * g.dimension, spacing, g.origin, g.direction)
 
 
 def affine_part(

@@ -289,3 +289,20 @@ def test_cli_bad_manifest_and_out(identity_case, tmp_path, capsys):
     code = main(["diagnose", str(identity_case), "--registration", "reg", "--out", str(blocker)])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "exists and is not a directory" in err
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_synthesise_warps_texture_by_the_shape(rng, dim):
+    shape = (10, 12, 14)[-dim:]  # numpy order
+    g = Geometry(shape[::-1], (2.0,) * dim, (0.0,) * dim, tuple(np.eye(dim).ravel()))
+    along_x, along_y = np.eye(dim)[0] * 2.0, np.eye(dim)[1]  # mm, ITK (x, y[, z]) components
+    u = np.stack(
+        [np.zeros((*shape, dim)), *(np.broadcast_to(v, (*shape, dim)) for v in (along_x, along_y))]
+    )
+    tex = rng.normal(size=(3, *shape))
+    model = AppearanceModel.from_fields(u, tex, geometry=g)
+    img = model.synthesise(model.training_params[1])
+    # image(q) = texture(phi^-1(q)) = texture(q - 2 mm x): one voxel back along x (last axis)
+    inner = (slice(3, -3),) * dim
+    np.testing.assert_allclose(img[inner], np.roll(tex[1], 1, axis=-1)[inner], atol=1e-3)
+    np.testing.assert_allclose(model.synthesise(model.training_params[0]), tex[0], atol=1e-9)
