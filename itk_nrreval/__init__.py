@@ -7,7 +7,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 
 from ._errors import InputError
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
-from .evaluate import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
+from .evaluation import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table

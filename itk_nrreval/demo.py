@@ -11,6 +11,7 @@ correspondence error of each registration is known too, and is reported beside t
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import sys
 import time
@@ -23,10 +24,10 @@ import SimpleITK as sitk
 from scipy import stats
 
 from ._images import Geometry, read_image
-from ._output import write_json, write_text
-from .evaluate import EvaluationResult, evaluate, ranks, relative_ranks
+from ._output import atomic_path, write_json, write_text
+from .evaluation import EvaluationResult, evaluate, ranks, relative_ranks
 from .frame import read_chains, resampling_transform
-from .manifest import add_registration, load_manifest
+from .manifest import add_registration, load_manifest, write_manifest
 from .reports import write_reports
 from .transforms import displacement_field
 
@@ -254,6 +255,18 @@ def run_demo(
             labels=list(truth.labels),
         )
 
+    # Like the paper's cropped brain slices, evaluate inside the brain (with a margin) of the
+    # common frame: the fluid reference is a training image, whose labels say where that is.
+    m = load_manifest(manifest)
+    k = m.registrations[m.common_frame].reference_index
+    brain = sitk.BinaryDilate(
+        sitk.Cast(read_image(m.labels[k], what="label map") > 0, sitk.sitkUInt8), [3] * dim
+    )
+    with atomic_path(out / "brain_mask.nii.gz") as tmp:
+        sitk.WriteImage(brain, str(tmp))
+    write_manifest(dataclasses.replace(m, mask=(out / "brain_mask.nii.gz").absolute()), manifest)
+    mask = sitk.GetArrayFromImage(brain) > 0
+
     say(f"[demo] evaluating in the fluid frame (M = {n_samples:,} samples, L1)")
     t = time.perf_counter()
     evaluation = evaluate(manifest, n_samples=n_samples, seed=seed, progress=progress)
@@ -261,11 +274,6 @@ def run_demo(
     seconds["evaluate"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    m = load_manifest(manifest)
-    k = m.registrations[m.common_frame].reference_index
-    mask = None
-    if k is not None:  # the fluid reference is a training image: average over its brain
-        mask = sitk.GetArrayFromImage(read_image(m.labels[k], what="label map")) > 0
     error = correspondence_error(
         evaluation, m, [s.subject_to_template for s in pop.subjects], mask=mask
     )

@@ -1,4 +1,4 @@
-"""Writing an :class:`~itk_nrreval.evaluate.EvaluationResult`: JSON, CSV, Markdown, figures.
+"""Writing an :class:`~itk_nrreval.evaluation.EvaluationResult`: JSON, CSV, Markdown, figures.
 
 ``summary.md`` is laid out like the paper's Table 3: per registration, the generalized
 overlap (inverse-volume, and inverse-volume & complexity weighting) and the specificity with
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ._output import atomic_path, write_text
-from .evaluate import EvaluationResult
+from .evaluation import EvaluationResult
 
 __all__ = ["summary_table", "results_csv", "write_reports"]
 

@@ -45,7 +45,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..evaluate import evaluate
+    from ..evaluation import evaluate
     from ..manifest import load_manifest
     from ..reports import summary_table, write_reports
 

@@ -4,17 +4,20 @@ itk-elastix costs about 10 s and 1 GB to load and can take its process down (seg
 some thread settings), so it never runs in the caller's process. The worker reads one JSON
 request per line on stdin and answers one JSON line on a private copy of stdout (its real
 stdout and stderr go to a log file, so elastix chatter cannot corrupt the protocol). It runs
-in a temporary working directory, where transformix leaves its files. A worker that dies is
+in a temporary working directory, where elastix leaves its files. A worker that dies is
 reported as :class:`EngineError` with its exit status and the end of its log.
 
 Requests
 --------
 ``{"op": "bspline", "fixed": path, "moving": path, "initial": path or null, "levels": int,
-"grid_spacing": float, "parameters": {key: [str, ...]}, "field": path, "result": path}``
+"grid_spacing": float, "parameters": {key: [str, ...]}, "bspline": path, "result": path}``
 registers `moving` to `fixed` with elastix's default B-spline map for `levels` and
 `grid_spacing` (mm), updated with `parameters`, starting from the ITK transform file
-`initial`; writes the transformix deformation field (fixed -> moving, the initial transform
-included) and elastix's result image. Answer ``{"ok": true}`` or ``{"ok": false, "error": str}``.
+`initial`; writes the final B-spline's parameter map entries (JSON; the parent rebuilds it
+as a SimpleITK ``BSplineTransform``) and elastix's result image. Transformix deformation
+fields are not used: in one long-lived process they came back with garbage values after a
+few dozen jobs (seen with itk-elastix 0.25.4).
+Answer ``{"ok": true}`` or ``{"ok": false, "error": str}``.
 ``{"op": "abort"}`` makes the worker abort (SIGABRT), to test how a crash is reported.
 """
 
@@ -111,14 +114,14 @@ class ElastixWorker:
         grid_spacing: float,
         parameters: dict[str, list[str]],
         what: str = "an image",
-    ) -> tuple[sitk.Image, sitk.Image]:
+    ) -> tuple[sitk.Transform, sitk.Image]:
         """B-spline registration of `moving` to `fixed` after `initial` (fixed -> moving).
 
         Returns
         -------
-        field : sitk.Image
-            Displacement field on `fixed`'s grid (float64 vectors, mm): the whole transform,
-            `initial` included.
+        transform : sitk.Transform
+            The whole transform fixed -> moving: ``CompositeTransform([B, initial])``, i.e.
+            ``B(initial(p))`` as elastix composes an initial transform, or ``B`` alone.
         result : sitk.Image
             elastix's own resampling of `moving` on `fixed`'s grid.
         """
@@ -141,16 +144,16 @@ class ElastixWorker:
                     "levels": int(levels),
                     "grid_spacing": float(grid_spacing),
                     "parameters": parameters,
-                    "field": str(job / "field.mha"),
+                    "bspline": str(job / "bspline.json"),
                     "result": str(job / "result.mha"),
                 },
                 what=what,
             )
-            field = sitk.Cast(sitk.ReadImage(str(job / "field.mha")), sitk.sitkVectorFloat64)
-            field.CopyInformation(fixed)
+            bspline = _bspline_transform(json.loads((job / "bspline.json").read_text()))
+            transform = bspline if initial is None else sitk.CompositeTransform([bspline, initial])
             result = sitk.Cast(sitk.ReadImage(str(job / "result.mha")), sitk.sitkFloat32)
             result.CopyInformation(fixed)
-            return field, result
+            return transform, result
         finally:
             shutil.rmtree(job, ignore_errors=True)
 
@@ -189,6 +192,28 @@ class ElastixWorker:
         shutil.rmtree(self.directory, ignore_errors=True)
 
 
+def _bspline_transform(pm: dict[str, list[str]]) -> sitk.BSplineTransform:
+    """elastix's B-spline parameter map as a SimpleITK transform (same coefficient layout).
+
+    ITK's BSplineTransform fixed parameters are the coefficient grid's size, origin, spacing
+    and direction, which elastix writes as GridSize, GridOrigin, GridSpacing, GridDirection;
+    the parameters are the coefficients, all x then all y (then z), in both.
+    """
+    if pm.get("Transform", [""])[0] not in ("BSplineTransform", "RecursiveBSplineTransform"):
+        raise EngineError(f"elastix returned a {pm.get('Transform')} transform, not a B-spline")
+    if any(int(v) != 0 for v in pm.get("GridIndex", [])):
+        raise EngineError("elastix returned a B-spline grid with a nonzero start index")
+    dim = len(pm["GridSize"])
+    order = int(pm.get("BSplineTransformSplineOrder", ["3"])[0])
+    t = sitk.BSplineTransform(dim, order)
+    fixed = [
+        float(v) for k in ("GridSize", "GridOrigin", "GridSpacing", "GridDirection") for v in pm[k]
+    ]
+    t.SetFixedParameters(fixed)
+    t.SetParameters([float(v) for v in pm["TransformParameters"]])
+    return t
+
+
 def _elastix_available() -> bool:
     from importlib import metadata  # noqa: PLC0415
 
@@ -217,7 +242,7 @@ def _bspline_job(itk, req: dict) -> None:
     method = itk.ElastixRegistrationMethod.New(
         fixed, moving, parameter_object=po, log_to_console=False
     )
-    folder = Path(req["field"]).parent
+    folder = Path(req["result"]).parent
     method.SetOutputDirectory(str(folder))
     method.SetLogToFile(True)
     method.SetLogFileName("elastix.log")
@@ -229,8 +254,14 @@ def _bspline_job(itk, req: dict) -> None:
     except RuntimeError as exc:
         raise RuntimeError(_log_errors(folder / "elastix.log") or str(exc)) from None
     itk.imwrite(method.GetOutput(), req["result"])
-    field = itk.transformix_deformation_field(moving, method.GetTransformParameterObject())
-    itk.imwrite(field, req["field"])
+    # The B-spline itself, not a transformix deformation field: transformix fields came back
+    # with garbage values (up to 1e12 mm) after a few dozen jobs in one process.
+    tpo = method.GetTransformParameterObject()
+    pm = tpo.GetParameterMap(tpo.GetNumberOfParameterMaps() - 1)
+    keys = ("Transform", "TransformParameters", "GridSize", "GridIndex", "GridSpacing")
+    keys += ("GridOrigin", "GridDirection", "BSplineTransformSplineOrder")
+    with open(req["bspline"], "w") as fh:
+        json.dump({k: list(pm[k]) for k in keys if k in pm}, fh)
 
 
 def _log_errors(log: Path) -> str:

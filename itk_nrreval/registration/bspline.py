@@ -3,8 +3,8 @@
 Engine ``"elastix"`` (itk-elastix, in a worker process): elastix's default B-spline map for
 ``levels`` resolutions and the final control-point spacing ``grid_spacing`` (mm), mean
 squares metric, started from the SimpleITK affine (given to elastix as its initial
-transform). The whole transform reference -> image (affine included) is exported through
-transformix as a displacement field on the reference grid.
+transform). elastix composes that as ``B(A(p))``: the result is ``CompositeTransform([B, A])``
+with elastix's B-spline rebuilt as a SimpleITK ``BSplineTransform``.
 
 Engine ``"simpleitk"``: SimpleITK's B-spline with the affine as moving initial transform
 (result ``[A, B]``: ``A(B(p))``), the mesh refined by 2 per level; optimised by gradient
@@ -20,7 +20,6 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
-from ..transforms import field_transform
 from ._common import EngineError, mesh_size, resample
 
 __all__ = ["BSplineOptions", "sitk_bspline", "bspline_to_reference"]
@@ -202,7 +201,7 @@ def bspline_to_reference(
                 transforms.append(aff)
                 resampled.append(resample(img, reference, aff))
                 continue
-            field_img, result = worker.bspline(
+            transform, result = worker.bspline(
                 reference,
                 img,
                 initial=aff,
@@ -211,7 +210,7 @@ def bspline_to_reference(
                 parameters=elastix_parameters(options, seed=seed + i),
                 what=f"image {i}",
             )
-            transforms.append(field_transform(field_img))
+            transforms.append(transform)
             resampled.append(result)
         return transforms, resampled
     finally:

@@ -163,7 +163,7 @@ def groupwise_register_elastix(
         fields = []
         for i, (img, aff) in enumerate(zip(images, affines, strict=True)):
             next(bar)
-            field, _ = worker.bspline(
+            transform, _ = worker.bspline(
                 mean,
                 img,
                 initial=aff,
@@ -172,7 +172,7 @@ def groupwise_register_elastix(
                 parameters=elastix_parameters(bspline, seed=seed + 1000 * (sweep + 1) + i),
                 what=f"image {i} (sweep {sweep + 1})",
             )
-            fields.append(field_transform(field))
+            fields.append(transform)
         # The group's mean non-affine displacement, in the frame: remove it.
         drift = np.mean(
             [
