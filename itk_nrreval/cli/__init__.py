@@ -3,7 +3,8 @@
 Each sub-command lives in its own module of this package and provides
 ``add_parser(subparsers)``, which registers its arguments and sets ``func`` to a function
 taking the parsed arguments and returning an exit code. Bad input (:class:`InputError`)
-becomes one line on stderr and exit code 2, never a traceback.
+becomes one line on stderr and exit code 2, a failed registration engine
+(:class:`EngineError`) one line and exit code 1: never a traceback.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .._errors import InputError
+from .._errors import EngineError, InputError
 from . import demo, diagnose, evaluate, overlap, register, specificity, synth, validate
 
 __all__ = ["main"]
@@ -43,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"nrreval {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except EngineError as exc:
+        print(f"nrreval {args.command}: engine error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print(f"nrreval {args.command}: interrupted", file=sys.stderr)
         return 130

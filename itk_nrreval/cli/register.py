@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 
@@ -48,23 +47,19 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..manifest import add_registration
-    from ..registration import EngineError, register
+    from ..registration import register
 
     out = Path(args.out)
     reference = args.reference
-    try:
-        result = register(
-            args.images,
-            method=args.method,
-            reference=reference,
-            reference_choice=args.reference_choice,
-            engine=args.engine,
-            seed=args.seed,
-            progress=not args.no_progress,
-        )
-    except EngineError as exc:
-        print(f"nrreval register: engine failure: {exc}", file=sys.stderr)
-        return 1
+    result = register(  # an EngineError becomes one line and exit code 1 (cli.main)
+        args.images,
+        method=args.method,
+        reference=reference,
+        reference_choice=args.reference_choice,
+        engine=args.engine,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
     names = [_stem(p) for p in args.images]
     paths = result.write(out, names=names)
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"

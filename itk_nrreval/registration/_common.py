@@ -11,7 +11,7 @@ from typing import Any, TypeVar
 import numpy as np
 import SimpleITK as sitk
 
-from .._errors import InputError
+from .._errors import EngineError, InputError
 from .._images import read_image
 
 __all__ = [
@@ -24,13 +24,6 @@ __all__ = [
 ]
 
 S = TypeVar("S")
-
-
-class EngineError(RuntimeError):
-    """A registration engine failed (crashed, or refused its parameters).
-
-    Not bad input in itself: the message says which engine, which image and why.
-    """
 
 
 def with_options(defaults: S, options: Mapping[str, Any] | None, *, what: str) -> S:

@@ -135,20 +135,28 @@ class ElastixWorker:
             if initial is not None:
                 init = str(job / "initial.tfm")
                 sitk.WriteTransform(initial, init)
-            self.request(
-                {
-                    "op": "bspline",
-                    "fixed": str(job / "fixed.mha"),
-                    "moving": str(job / "moving.mha"),
-                    "initial": init,
-                    "levels": int(levels),
-                    "grid_spacing": float(grid_spacing),
-                    "parameters": parameters,
-                    "bspline": str(job / "bspline.json"),
-                    "result": str(job / "result.mha"),
-                },
-                what=what,
-            )
+            request = {
+                "op": "bspline",
+                "fixed": str(job / "fixed.mha"),
+                "moving": str(job / "moving.mha"),
+                "initial": init,
+                "levels": int(levels),
+                "grid_spacing": float(grid_spacing),
+                "parameters": parameters,
+                "bspline": str(job / "bspline.json"),
+                "result": str(job / "result.mha"),
+            }
+            try:
+                self.request(request, what=what)
+            except EngineError:
+                # elastix's stochastic optimiser occasionally stops with "Error in metric"
+                # (too many samples outside the moving image); a fresh sample set usually
+                # succeeds. A dead worker, or a second failure, is reported.
+                if not self.alive:
+                    raise
+                seed = int(parameters.get("RandomSeed", ["0"])[0]) + 7919
+                request["parameters"] = {**parameters, "RandomSeed": [str(seed)]}
+                self.request(request, what=what)
             bspline = _bspline_transform(json.loads((job / "bspline.json").read_text()))
             transform = bspline if initial is None else sitk.CompositeTransform([bspline, initial])
             result = sitk.Cast(sitk.ReadImage(str(job / "result.mha")), sitk.sitkFloat32)
