@@ -1,18 +1,8 @@
 """``nrreval synth``: write a synthetic population with its true correspondence and a manifest.
 
-Layout of ``--out DIR`` (see :mod:`data_synth.writing`)::
-
-    img/s00.nii.gz ...            subject images (float32)
-    lab/s00.nii.gz ...            subject label maps (uint8)
-    truth/s00.h5 ...              true transform template -> subject (ITK: maps template
-                                  points to subject points; affine o displacement field)
-    truth/template.nii.gz         the template (the frame of the `truth` registration)
-    truth/template_labels.nii.gz  its labels
-    truth/label_names.json        label value -> name
-    montage.png                   the subjects with their label contours
-    manifest.yaml                 images, labels and the registration `truth`
-
-Every file is written under a temporary name and renamed when complete.
+The folder layout (images, labels, true transforms, template, montage, manifest) is
+described in :mod:`data_synth.writing`; every file is written under a temporary name and
+renamed when complete.
 """
 
 from __future__ import annotations

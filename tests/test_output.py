@@ -1,0 +1,34 @@
+"""Outputs appear whole, with ordinary permissions, or not at all."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from itk_nrreval._output import atomic_path, write_json
+
+
+def test_written_file_has_the_permissions_of_an_ordinary_file(tmp_path):
+    (tmp_path / "plain.txt").write_text("x")
+    write_json(tmp_path / "out.json", {"a": 1})
+    mode = os.stat(tmp_path / "out.json").st_mode & 0o777
+    assert mode == os.stat(tmp_path / "plain.txt").st_mode & 0o777
+    assert (tmp_path / "out.json").read_text() == '{\n  "a": 1\n}\n'
+
+
+def test_failure_leaves_neither_the_file_nor_a_temporary(tmp_path):
+    (tmp_path / "keep.json").write_text("old")
+    with pytest.raises(RuntimeError, match="interrupted"):
+        with atomic_path(tmp_path / "keep.json") as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("interrupted")
+    assert (tmp_path / "keep.json").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.json"]
+
+
+def test_temporary_keeps_the_suffix(tmp_path):
+    with atomic_path(tmp_path / "image.nii.gz") as tmp:
+        assert tmp.name.endswith(".nii.gz") and tmp.parent == tmp_path
+        tmp.write_bytes(b"x")
+    assert (tmp_path / "image.nii.gz").exists()
