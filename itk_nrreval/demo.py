@@ -109,7 +109,7 @@ def correspondence_error(
         points = []
         for t, s in zip(read_chains(m, name), subject_to_template, strict=True):
             full = sitk.CompositeTransform([s, resampling_transform(t, scores.frame.transform)])
-            d = sitk.GetArrayViewFromImage(displacement_field(full, grid))
+            d = sitk.GetArrayFromImage(displacement_field(full, grid))
             points.append(d[mask] if mask is not None else d.reshape(-1, d.shape[-1]))
         # The grid points themselves cancel in y_i - mean_j y_j.
         y = np.stack(points)

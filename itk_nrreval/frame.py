@@ -311,7 +311,7 @@ def label_values(labels: Sequence) -> np.ndarray:
     """Sorted union of the values found in the label maps (background 0 included if present)."""
     values = set()
     for item in labels:
-        arr = sitk.GetArrayViewFromImage(_as_image(item, "label map"))
+        arr = sitk.GetArrayFromImage(_as_image(item, "label map"))
         values.update(np.unique(arr).tolist())
     return np.array(sorted(values))
 

@@ -100,7 +100,7 @@ def group_mean(
     """Voxel-wise mean of the images resampled onto `reference`'s grid (float32)."""
     acc = None
     for img, t in zip(images, transforms, strict=True):
-        arr = sitk.GetArrayViewFromImage(resample(img, reference, t)).astype(np.float64)
+        arr = sitk.GetArrayFromImage(resample(img, reference, t)).astype(np.float64)
         acc = arr if acc is None else acc + arr
     mean = sitk.GetImageFromArray((acc / len(images)).astype(np.float32))
     mean.CopyInformation(reference)
