@@ -5,7 +5,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 (lower is better). Where labels exist, the generalized Tanimoto overlap is the reference.
 """
 
-from ._errors import InputError
+from ._errors import EngineError, InputError
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
 from .evaluation import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
@@ -39,6 +39,7 @@ __all__ = [
     "validate",
     "ValidationResult",
     "InputError",
+    "EngineError",
     "TextureModel",
     "register",
     "RegistrationResult",
