@@ -177,8 +177,10 @@ def run_demo(
         Output folder: ``data/`` (the population, its true transforms and ``manifest.yaml``
         with the registration ``truth``), ``registrations/<name>/`` (transforms ``.h5``,
         reference, settings log), ``manifest.yaml`` (the five registrations, fluid first, so
-        the fluid frame is common), ``evaluation/`` (``results.json``, ``results.csv``,
-        ``summary.md``, figures), ``demo_table.md`` and ``demo.json``.
+        the fluid frame is common), ``brain_mask.nii.gz`` (the fluid reference's brain,
+        dilated by 3 voxels: specificity and the correspondence error are measured inside
+        it), ``evaluation/`` (``results.json``, ``results.csv``, ``summary.md``, figures),
+        ``demo_table.md`` and ``demo.json``.
     kind : {"phantom", "mni"}
         The population's source (:func:`data_synth.make_population`).
     dim : {2, 3}
@@ -290,7 +292,7 @@ def run_demo(
             "n_samples": n_samples,
             "true_correspondence_error_mm": error,
             "spearman_vs_specificity_ranks": agreement,
-            "seconds": {k: round(v, 2) for k, v in seconds.items()},
+            "seconds": {stage: round(v, 2) for stage, v in seconds.items()},
             "evaluation": evaluation.to_dict(),
         },
     )
