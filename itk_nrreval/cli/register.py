@@ -30,7 +30,8 @@ def add_parser(sub) -> None:
         "--engine",
         choices=engines,
         help="affine: simpleitk; fluid: simpleitk (default) or ants; pairwise: elastix "
-        "(default) or simpleitk; groupwise: elastix (default) or simpleitk",
+        "(default) or simpleitk; groupwise: elastix (default), simpleitk or elastix-stack "
+        "(elastix's own groupwise metric on a stack of 2D images; 2D only)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(

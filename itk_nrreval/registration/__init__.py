@@ -23,7 +23,9 @@ Methods
     registered set and the mean is updated, with the B-spline representation of
     ``"pairwise"`` (engine ``"elastix"``, or ``"simpleitk"`` with a mesh refined coarse to
     fine); the group's mean deformation is removed after each sweep so the frame does not
-    drift.
+    drift. Engine ``"elastix-stack"`` (2D only) instead runs elastix's own groupwise
+    registration once: the affinely aligned images stacked along a third axis, the
+    variance over the images as metric, one B-spline per image.
 
 The reference of ``affine``, ``fluid`` and ``pairwise`` is a training image (or an image
 given by the caller); ``reference_choice="near-mean"`` / ``"far-from-mean"`` picks the
@@ -53,7 +55,12 @@ from ._common import EngineError, load_images, resample, with_options
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
 from .fluid import FluidOptions, _import_ants, fluid_to_reference
-from .groupwise import GroupwiseOptions, groupwise_register, groupwise_register_elastix
+from .groupwise import (
+    GroupwiseOptions,
+    groupwise_register,
+    groupwise_register_elastix,
+    groupwise_register_elastix_stack,
+)
 
 __all__ = [
     "METHODS",
@@ -74,7 +81,7 @@ ENGINES = {
     "affine": ("simpleitk",),
     "fluid": ("simpleitk", "ants"),
     "pairwise": ("elastix", "simpleitk"),
-    "groupwise": ("elastix", "simpleitk"),
+    "groupwise": ("elastix", "simpleitk", "elastix-stack"),
 }
 _OPTIONS = {
     "affine": AffineOptions(),
@@ -100,7 +107,7 @@ class RegistrationResult:
         ``AffineTransform``; fluid: ``CompositeTransform([A_i, field_i])``; pairwise
         (elastix): one ``DisplacementFieldTransform`` on the reference grid (affine
         included); pairwise (SimpleITK) and groupwise: ``CompositeTransform`` of the affine
-        and the B-spline(s).
+        and the B-spline(s) (elastix-stack: ``[A_i, B_i]``).
     reference : sitk.Image
         The reference image; its grid is the registration's frame.
     reference_index : int or None
@@ -109,7 +116,8 @@ class RegistrationResult:
     resampled : tuple of sitk.Image, length n_images
         Each image on the reference grid as the engine itself resampled it (elastix: its
         own result image; SimpleITK: ``sitk.Resample`` through ``transforms[i]``), linear
-        interpolation, 0 outside.
+        interpolation, 0 outside. elastix-stack: elastix's registered slice ``i``, i.e. the
+        image resampled through ``A_i`` and then through ``B_i`` (two interpolations).
     settings : dict
         Method, engine, seed, reference choice, affine and method options (JSON-ready).
     seconds : float
@@ -209,8 +217,8 @@ def register(
         frame).
     engine : str, optional
         affine: ``{"simpleitk"}``; fluid: ``{"simpleitk", "ants"}``; pairwise:
-        ``{"elastix", "simpleitk"}``; groupwise: ``{"elastix", "simpleitk"}``. Default the
-        first.
+        ``{"elastix", "simpleitk"}``; groupwise: ``{"elastix", "simpleitk",
+        "elastix-stack"}`` (elastix-stack: 2D images only). Default the first.
     options : mapping, optional
         Fields of the method's options dataclass to override (:class:`FluidOptions`,
         :class:`BSplineOptions`, :class:`GroupwiseOptions`, or :class:`AffineOptions` for
@@ -240,7 +248,7 @@ def register(
     ------
     InputError
         Unknown method / engine / option, unreadable images, a missing optional engine
-        (antspyx, itk-elastix).
+        (antspyx, itk-elastix), 3D images with engine ``"elastix-stack"``.
     EngineError
         The engine failed or its worker process crashed (the message says which image).
     """
@@ -257,6 +265,10 @@ def register(
         _import_ants()  # fail before any work when antspyx is missing
     imgs, paths = load_images(images)
     n = len(imgs)
+    if engine == "elastix-stack" and imgs[0].GetDimension() != 2:
+        raise InputError(
+            f"elastix-stack supports 2D images only, got {imgs[0].GetDimension()}D images"
+        )
     if affine is not None:
         if affine.method != "affine" or affine.n_images != n:
             raise InputError(
@@ -327,6 +339,14 @@ def register(
             show_progress=progress,
             worker=elastix_worker,
         )
+    elif engine == "elastix-stack":
+        from ._elastix_worker import ElastixWorker  # noqa: PLC0415
+
+        with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
+            transforms, ref_image, engine_resampled = groupwise_register_elastix_stack(
+                imgs, ref_image, affines, options=opts, seed=seed, worker=w
+            )
+        ref_index = None
     elif engine == "elastix":
         from ._elastix_worker import ElastixWorker  # noqa: PLC0415
 

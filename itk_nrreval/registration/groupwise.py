@@ -12,6 +12,15 @@ frame. Two engines share the B-spline representation of the pairwise method:
   the mean with a new cubic B-spline layer composed after its current transform
   (``T_i <- T_i o B_i``), and subtract the mean of the new layers' coefficients.
 
+* ``"elastix-stack"`` (2D only): elastix's own groupwise registration. The images,
+  resampled onto the frame through their affines, are stacked along a third axis and
+  registered in one run with ``VarianceOverLastDimensionMetric`` (the variance across the
+  images at every frame point) and a ``BSplineStackTransform`` (one 2D B-spline per image,
+  coarse to fine, no smoothing or motion along the stack axis). Each image's B-spline
+  ``B_i`` is rebuilt from elastix's parameter map (not from transformix fields) and its
+  transform is ``A_i(B_i(p))``. The metric subtracts the mean gradient over the images, so
+  the group's mean deformation stays near zero: the frame is the group's mean frame.
+
 The reference returned is the final mean image.
 """
 
@@ -29,7 +38,12 @@ from ..transforms import displacement_field, field_transform, invert
 from ._common import group_mean, resample
 from .bspline import BSplineOptions, elastix_parameters, sitk_bspline
 
-__all__ = ["GroupwiseOptions", "groupwise_register", "groupwise_register_elastix"]
+__all__ = [
+    "GroupwiseOptions",
+    "groupwise_register",
+    "groupwise_register_elastix",
+    "groupwise_register_elastix_stack",
+]
 
 
 @dataclass(frozen=True)
@@ -44,15 +58,16 @@ class GroupwiseOptions:
         Mesh levels; level ``k`` has spacing ``grid_spacing * 2 ** (levels - 1 - k)`` and
         works on images shrunk by ``2 ** (levels - 1 - k)``.
     sweeps : int
-        Mean updates per level.
+        Mean updates per level (not used by elastix-stack, which has no explicit mean).
     iterations : int
         SimpleITK: L-BFGS-B iterations per image per sweep.
     sampling : float
         SimpleITK: fraction of voxels sampled by the metric, in (0, 1].
     elastix_levels : int
-        elastix: resolutions of each registration to the mean.
+        elastix: resolutions of each registration to the mean (elastix-stack: of the one
+        groupwise registration).
     elastix_iterations : int
-        elastix: iterations per resolution.
+        elastix, elastix-stack: iterations per resolution.
     samples : int
         elastix: random spatial samples per iteration.
     """
@@ -193,3 +208,89 @@ def groupwise_register_elastix(
     for _ in bar:  # close the bar
         pass
     return transforms, group_mean(images, frame, transforms)
+
+
+def stack_parameters(options: GroupwiseOptions, *, seed: int) -> dict[str, list[str]]:
+    """elastix's groupwise map for a 2D + image-index stack (overrides of its defaults)."""
+    levels = options.elastix_levels
+    schedule = []
+    for k in range(levels):  # smoothing in the image plane only, none across images
+        f = 2 ** (levels - 1 - k)
+        schedule += [str(f), str(f), "0"]
+    return {
+        "Registration": ["MultiResolutionRegistration"],
+        "Metric": ["VarianceOverLastDimensionMetric"],
+        "SubtractMean": ["true"],
+        "Transform": ["BSplineStackTransform"],
+        "HowToCombineTransforms": ["Compose"],
+        "FinalGridSpacingInPhysicalUnits": [str(options.grid_spacing)] * 2,
+        "Optimizer": ["AdaptiveStochasticGradientDescent"],
+        "MaximumNumberOfIterations": [str(options.elastix_iterations)],
+        "ImageSampler": ["RandomCoordinate"],
+        "NumberOfSpatialSamples": [str(options.samples)],
+        "NewSamplesEveryIteration": ["true"],
+        "MaximumNumberOfSamplingAttempts": ["8"],
+        "CheckNumberOfSamples": ["true"],
+        "Interpolator": ["ReducedDimensionBSplineInterpolator"],
+        "BSplineInterpolationOrder": ["1"],
+        "ResampleInterpolator": ["FinalReducedDimensionBSplineInterpolator"],
+        "FinalBSplineInterpolationOrder": ["1"],
+        "Resampler": ["DefaultResampler"],
+        "FixedImagePyramid": ["FixedSmoothingImagePyramid"],
+        "MovingImagePyramid": ["MovingSmoothingImagePyramid"],
+        "FixedImagePyramidSchedule": schedule,
+        "MovingImagePyramidSchedule": schedule,
+        "MovingImageDerivativeScales": ["1", "1", "0"],
+        "FixedInternalImagePixelType": ["float"],
+        "MovingInternalImagePixelType": ["float"],
+        "DefaultPixelValue": ["0"],
+        "WriteResultImage": ["true"],
+        "ResultImagePixelType": ["float"],
+        "RandomSeed": [str(seed)],
+    }
+
+
+def groupwise_register_elastix_stack(
+    images: Sequence[sitk.Image],
+    frame: sitk.Image,
+    affines: Sequence[sitk.Transform],
+    *,
+    options: GroupwiseOptions,
+    seed: int,
+    worker,
+) -> tuple[list[sitk.Transform], sitk.Image, list[sitk.Image]]:
+    """Register 2D `images` groupwise with elastix's stack metric on the grid of `frame`.
+
+    Returns
+    -------
+    transforms : list of sitk.CompositeTransform
+        ``[A_i, B_i]``: reference point p maps to ``A_i(B_i(p))``.
+    mean : sitk.Image
+        The group mean on `frame`'s grid.
+    resampled : list of sitk.Image
+        elastix's own registered slices (each affinely resampled image through ``B_i``).
+
+    Raises
+    ------
+    InputError
+        The images are not 2D.
+    """
+    if frame.GetDimension() != 2:
+        raise InputError("elastix-stack supports 2D images only")
+    pre = [resample(img, frame, a) for img, a in zip(images, affines, strict=True)]
+    stack = sitk.JoinSeries(pre)  # last axis: image index, spacing 1
+    bsplines, result = worker.stack(
+        stack,
+        levels=options.elastix_levels,
+        grid_spacing=options.grid_spacing,
+        parameters=stack_parameters(options, seed=seed),
+        what=f"the stack of {len(images)} images",
+    )
+    size = list(result.GetSize())
+    resampled = []
+    for i in range(len(images)):
+        piece = sitk.Extract(result, [size[0], size[1], 0], [0, 0, i])
+        piece.CopyInformation(frame)
+        resampled.append(piece)
+    transforms = [sitk.CompositeTransform([a, b]) for a, b in zip(affines, bsplines, strict=True)]
+    return transforms, group_mean(images, frame, transforms), resampled
