@@ -26,8 +26,10 @@ import warnings
 from dataclasses import dataclass, field
 
 import numba
+import numba.extending
 import numpy as np
 import SimpleITK as sitk
+from llvmlite import ir as llvm_ir
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
@@ -44,7 +46,8 @@ WEIGHTINGS = (
     "inverse_volume_complexity",
 )
 
-_CHUNK = 2048  # voxels per block of fuzzy memberships (the sort's scratch stays in cache)
+_BLOCK = 256  # voxels per block of fuzzy memberships: (N, _BLOCK) float64 scratch fits L2
+_INDEX_BITS = 29  # float32 -> float64 leaves 29 zero mantissa bits to carry an image index
 _NETWORK_FRACTION = 0.5  # above this share of values strictly in (0, 1), sort by network
 _MAX_LUT = 1 << 22  # largest label-value range mapped through a lookup table
 _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input shows progress
@@ -617,20 +620,15 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     flat = data.reshape(n_images, n_comp, -1)
     if flat.dtype not in (np.float32, np.float64):
         flat = flat.astype(np.float64)
+    lows, highs, present = _membership_stats(flat, mask_flat)
     for i in range(n_images):
-        lo, hi = float(flat[i].min()), float(flat[i].max())
+        lo, hi = float(lows[i]), float(highs[i])
         if lo < 0.0 or hi > 1.0:
             raise InputError(
                 f"{names[i]}: membership values outside [0, 1] (min {lo:.6g}, max {hi:.6g}); "
                 "crisp label maps must have an integer type"
             )
-    has_mask = mask_flat.size > 0
-    comp_present = np.array(
-        [
-            any(np.any(flat[i, k][mask_flat] if has_mask else flat[i, k]) for i in range(n_images))
-            for k in range(n_comp)
-        ]
-    )
+    comp_present = present.any(axis=0)
     if label_values is None:
         candidates = np.arange(0 if include_background else 1, n_comp, dtype=np.int64)
     else:
@@ -646,59 +644,150 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     if values.size == 0:
         raise _no_labels(names, include_background or label_values is not None)
 
-    n_vox = flat.shape[2]
     n_labels = values.size
     vol = np.zeros((n_images, n_labels))
     s_pairs = np.zeros((n_images, n_labels))
     gsum = np.zeros((n_images, n_labels))
     p = np.zeros(n_labels)
     q = np.zeros(n_labels)
-    gsq = np.empty(n_vox)
-    active = np.empty(n_vox, dtype=bool)
-    nonzero = np.empty(n_vox, dtype=bool)
+    active = np.empty(flat.shape[2], dtype=bool)
     net_lo, net_hi = _sorting_network(n_images)
-    block = np.empty((n_images, _CHUNK))
-    work = n_images * n_labels * n_vox
+    # float32 memberships carry the image index in the low bits of their float64 sort key
+    packed = flat.dtype == np.float32 and n_images <= 1 << _INDEX_BITS
+    work = n_images * n_labels * flat.shape[2]
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
     ):
         comp = int(values[k])
-        active[:] = False
-        for i in range(n_images):
-            row = flat[i, comp]
-            np.not_equal(row, 0, out=nonzero)
-            active |= nonzero
-            gsum[i, k] = _gradient_sum(row, nonzero, mask_flat, shape, inv_h, gsq)
-        if has_mask:
-            active &= mask_flat
+        _active_voxels(flat, comp, mask_flat, active)
         voxels = np.flatnonzero(active)  # where some image has a nonzero membership
-        for a in range(0, voxels.size, _CHUNK):
-            m = min(_CHUNK, voxels.size - a)
-            fractional = _gather(flat, comp, voxels[a : a + m], block)
-            if fractional > _NETWORK_FRACTION * block.shape[0] * m:
-                pk, qk = _network_pair_kernel(
-                    block[:, :m], net_lo, net_hi, vol[:, k], s_pairs[:, k]
-                )
-            else:
-                pk, qk = _sparse_pair_kernel(block[:, :m], vol[:, k], s_pairs[:, k])
-            p[k] += pk
-            q[k] += qk
+        _gradient_sums(flat, comp, mask_flat, shape, inv_h, gsum[:, k])
+        p[k], q[k] = _pair_sums(
+            flat, comp, voxels, net_lo, net_hi, _NETWORK_FRACTION, packed, vol[:, k], s_pairs[:, k]
+        )
     return values, skipped, vol, s_pairs, gsum, p, q
 
 
-def _gradient_sum(row, nonzero, mask_flat, shape, inv_h, gsq) -> float:
-    """``sum_v |grad row|`` over the mask, computed only on the slabs (along the first axis)
-    within two of a nonzero one: farther out the gradient is zero, and two zero slabs on
-    each side make the cut-out's face rule give the full grid's values."""
-    planes = np.flatnonzero(nonzero.reshape(int(shape[0]), -1).any(axis=1))
-    if planes.size == 0:
-        return 0.0
-    lo, hi = max(int(planes[0]) - 2, 0), min(int(planes[-1]) + 3, int(shape[0]))
-    plane = row.size // int(shape[0])
-    sub_shape = shape.copy()
-    sub_shape[0] = hi - lo
-    sub_mask = mask_flat[lo * plane : hi * plane] if mask_flat.size else mask_flat
-    return _grad_sum_kernel(row[lo * plane : hi * plane], sub_mask, sub_shape, inv_h, gsq)
+@numba.njit(cache=True, parallel=True)
+def _membership_stats(flat, mask):  # pragma: no cover - compiled
+    """Per image the smallest and largest membership (whole grid), and per image and
+    component whether a membership is nonzero inside the mask: one pass, one image per
+    thread."""
+    n_img, n_comp, n = flat.shape
+    lows = np.empty(n_img)
+    highs = np.empty(n_img)
+    present = np.zeros((n_img, n_comp), np.bool_)
+    has_mask = mask.size > 0
+    for i in numba.prange(n_img):
+        lo = np.inf
+        hi = -np.inf
+        for k in range(n_comp):
+            row = flat[i, k]
+            nonzero = False
+            for v in range(n):
+                a = row[v]
+                lo = min(lo, a)
+                hi = max(hi, a)
+                nonzero |= a != 0 and (not has_mask or mask[v])
+            present[i, k] = nonzero
+        lows[i] = lo
+        highs[i] = hi
+    return lows, highs, present
+
+
+@numba.njit(cache=True, parallel=True)
+def _active_voxels(flat, comp, mask, active):  # pragma: no cover - compiled
+    """``active[v]``: some image has a nonzero membership of `comp` at v inside the mask."""
+    n_img, _, n = flat.shape
+    n_chunks = (n + 4095) // 4096
+    for c in numba.prange(n_chunks):
+        start = c * 4096
+        stop = min(start + 4096, n)
+        act = active[start:stop]
+        act[:] = False
+        for i in range(n_img):
+            row = flat[i, comp, start:stop]
+            for t in range(stop - start):
+                act[t] |= row[t] != 0
+        if mask.size > 0:
+            mk = mask[start:stop]
+            for t in range(stop - start):
+                act[t] &= mk[t]
+
+
+@numba.njit(cache=True, parallel=True)
+def _pair_sums(
+    flat, comp, voxels, net_lo, net_hi, dense_share, packed, vol, spair
+):  # pragma: no cover - compiled
+    """Pair sums of component `comp` of the memberships `flat` (N, n_comp, n_vox) over
+    `voxels`, in blocks of ``_BLOCK`` voxels shared among the threads.
+
+    A block where more than `dense_share` of the values lie strictly in (0, 1) is sorted by
+    the network (:func:`_packed_network_kernel` for float32 input when `packed`, else
+    :func:`_network_pair_kernel`), any other by :func:`_sparse_pair_kernel`. Each block
+    writes its own partial sums, added up in block order afterwards: the result does not
+    depend on the number of threads. Adds to ``vol`` and ``spair`` (N,); returns (sum of
+    pairwise minima, sum of maxima).
+    """
+    n_img = flat.shape[0]
+    n_blocks = (voxels.size + _BLOCK - 1) // _BLOCK
+    pmin = np.zeros(n_blocks)
+    pmax = np.zeros(n_blocks)
+    vparts = np.zeros((n_blocks, n_img))
+    sparts = np.zeros((n_blocks, n_img))
+    for b in numba.prange(n_blocks):
+        start = b * _BLOCK
+        stop = min(start + _BLOCK, voxels.size)
+        block = np.empty((n_img, stop - start))
+        fractional = _gather(flat, comp, voxels[start:stop], block)
+        if fractional > dense_share * block.size:
+            if packed:
+                pk, qk = _packed_network_kernel(block, net_lo, net_hi, vparts[b], sparts[b])
+            else:
+                pk, qk = _network_pair_kernel(block, net_lo, net_hi, vparts[b], sparts[b])
+        else:
+            pk, qk = _sparse_pair_kernel(block, vparts[b], sparts[b])
+        pmin[b] = pk
+        pmax[b] = qk
+    for b in range(n_blocks):
+        for i in range(n_img):
+            vol[i] += vparts[b, i]
+            spair[i] += sparts[b, i]
+    return pmin.sum(), pmax.sum()
+
+
+@numba.njit(cache=True, parallel=True)
+def _gradient_sums(flat, comp, mask, shape, inv_h, out):  # pragma: no cover - compiled
+    """``out[i] = sum_v |grad flat[i, comp]|`` over the mask, one image per thread.
+
+    Computed only on the slabs (along the first axis) within two of a nonzero one: farther
+    out the gradient is zero, and two zero slabs on each side make the cut-out's face rule
+    give the full grid's values.
+    """
+    n_img = flat.shape[0]
+    n = flat.shape[2]
+    plane = n // shape[0]
+    for i in numba.prange(n_img):
+        row = flat[i, comp]
+        first = -1
+        for v in range(n):
+            if row[v] != 0:
+                first = v
+                break
+        if first < 0:
+            out[i] = 0.0
+            continue
+        last = first
+        for v in range(n - 1, first, -1):
+            if row[v] != 0:
+                last = v
+                break
+        lo = max(first // plane - 2, 0)
+        hi = min(last // plane + 3, shape[0])
+        sub_shape = shape.copy()
+        sub_shape[0] = hi - lo
+        sub_mask = mask[lo * plane : hi * plane] if mask.size > 0 else mask
+        out[i] = _grad_sum_kernel(row[lo * plane : hi * plane], sub_mask, sub_shape, inv_h)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -736,6 +825,83 @@ def _sorting_network(n: int) -> tuple[np.ndarray, np.ndarray]:
     lo = np.array([a for a, _ in pairs], dtype=np.int64)
     hi = np.array([b for _, b in pairs], dtype=np.int64)
     return lo, hi
+
+
+def _float_minmax(name: str):
+    """A numba intrinsic for ``llvm.minnum`` / ``llvm.maxnum`` on float64 (inputs not NaN).
+
+    Unlike ``min(x, y)`` (compare and select, which LLVM turns into masked stores when the
+    result goes back where x came from) these vectorize to plain ``vminpd`` / ``vmaxpd``.
+    """
+
+    @numba.extending.intrinsic
+    def fn(typingctx, x, y):
+        def codegen(context, builder, signature, args):
+            dbl = llvm_ir.DoubleType()
+            f = builder.module.declare_intrinsic(name, [dbl], llvm_ir.FunctionType(dbl, [dbl, dbl]))
+            return builder.call(f, args, fastmath=("nnan",))
+
+        return numba.types.float64(numba.types.float64, numba.types.float64), codegen
+
+    return fn
+
+
+_fmin = _float_minmax("llvm.minnum")
+_fmax = _float_minmax("llvm.maxnum")
+
+
+@numba.njit(cache=True, nogil=True)
+def _packed_network_kernel(block, net_lo, net_hi, vol, spair):  # pragma: no cover - compiled
+    """As :func:`_network_pair_kernel`, for float32 memberships (held in `block` as float64,
+    which it overwrites).
+
+    Layout: the sort keys are an (N, m) float64 array, row i holding image i's memberships
+    of the m voxels of the block, so every comparator (lo, hi) of the network is one
+    branch-free pass ``x = min(row lo, row hi), row hi = max(...)`` over m contiguous values
+    (SIMD across voxels). The image index rides along inside the key: a float32 value as
+    float64 has its low 29 mantissa bits zero, and writing i there keeps the order of the
+    values (nonnegative floats order like their bit patterns; ties break by image), so the
+    sort moves keys only, instead of keys and a separate index array. After the sort, rank
+    row k is split back into the exact value and the image index.
+    """
+    n_img, m = block.shape
+    keys = block  # sorted in place
+    bits = keys.view(np.int64)
+    for i in range(n_img):
+        bi = bits[i]
+        for t in range(m):
+            bi[t] |= i
+    for c in range(net_lo.size):
+        va = keys[net_lo[c]]
+        vb = keys[net_hi[c]]
+        for t in range(m):
+            x = va[t]
+            y = vb[t]
+            va[t] = _fmin(x, y)
+            vb[t] = _fmax(x, y)
+    low = np.int64((1 << _INDEX_BITS) - 1)
+    img = np.empty(m, np.int64)
+    below = np.zeros(m)
+    pmin = 0.0
+    pmax = 0.0
+    for k in range(n_img):
+        bk = bits[k]
+        for t in range(m):
+            i = bk[t] & low
+            img[t] = i
+            bk[t] -= i  # keys[k, t] is now the membership itself
+        vk = keys[k]
+        up = n_img - 1 - k
+        total = 0.0
+        for t in range(m):
+            a = vk[t]
+            total += a
+            spair[img[t]] += a * up + below[t]
+            vol[img[t]] += a
+            below[t] += a
+        pmin += total * up
+        pmax += total * k
+    return pmin, pmax
 
 
 @numba.njit(cache=True, nogil=True)
@@ -857,50 +1023,67 @@ def _sparse_pair_kernel(block, vol, spair):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
-def _grad_sum_kernel(row, mask, shape, inv_h, gsq):  # pragma: no cover - compiled
+def _grad_sum_kernel(row, mask, shape, inv_h):  # pragma: no cover - compiled
     """``sum_v |grad row|`` over the masked voxels; `row` flat in C order of `shape`.
 
-    One pass per axis over a (outer, size, inner) view, accumulating squared differences
-    in `gsq` (scratch of ``row.size``), then one pass of square roots. ``mask`` is flat
-    boolean or empty (no mask).
+    One pass, line by line along the last (contiguous) axis: the squared differences of
+    every axis go into a line of scratch (the neighbouring lines along the other axes are
+    whole lines too, so every inner loop is contiguous and vectorizes), then the line's
+    square roots are summed. ``mask`` is flat boolean or empty (no mask).
     """
     n = row.size
     ndim = shape.size
-    gsq[:n] = 0.0
-    inner = 1
-    for d in range(ndim - 1, -1, -1):
-        size = shape[d]
-        if size > 1:
-            f1 = inv_h[d]
-            f2 = 0.5 * inv_h[d]
-            span = size * inner
-            for base in range(0, n, span):
-                # views indexed from 0 let the loops vectorize (no negative-index checks)
-                blk = row[base : base + span]
-                out = gsq[base : base + span]
-                for t in range(inner):  # first face: forward difference
-                    g = (np.float64(blk[t + inner]) - np.float64(blk[t])) * f1
-                    out[t] += g * g
-                hi = blk[2 * inner :]
-                lo = blk[: span - 2 * inner]
-                mid = out[inner : span - inner]
-                for t in range(span - 2 * inner):  # inside: central difference
-                    g = (np.float64(hi[t]) - np.float64(lo[t])) * f2
-                    mid[t] += g * g
-                last = blk[span - 2 * inner :]
-                lout = out[span - inner :]
-                for t in range(inner):  # last face: backward difference
-                    g = (np.float64(last[t + inner]) - np.float64(last[t])) * f1
-                    lout[t] += g * g
-        inner *= size
-    if mask.size > 0:
-        for v in range(n):
-            if not mask[v]:
-                gsq[v] = 0.0
+    nx = shape[ndim - 1]
+    strides = np.ones(ndim, np.int64)
+    for d in range(ndim - 2, -1, -1):
+        strides[d] = strides[d + 1] * shape[d + 1]
+    coords = np.zeros(ndim, np.int64)
+    g = np.zeros(nx)
+    fx1 = inv_h[ndim - 1]
+    fx2 = 0.5 * fx1
     total = 0.0
-    for start in range(0, n, 4096):  # blocked summation keeps float rounding small
-        part = 0.0
-        for v in range(start, min(start + 4096, n)):
-            part += math.sqrt(gsq[v])
-        total += part
+    for base in range(0, n, nx):
+        r = row[base : base + nx]
+        if nx > 1:  # last axis: one-sided at the ends, central inside
+            e = (np.float64(r[1]) - np.float64(r[0])) * fx1
+            g[0] = e * e
+            e = (np.float64(r[nx - 1]) - np.float64(r[nx - 2])) * fx1
+            g[nx - 1] = e * e
+            hi = r[2:]
+            lo = r[: nx - 2]
+            mid = g[1 : nx - 1]
+            for t in range(nx - 2):
+                e = (np.float64(hi[t]) - np.float64(lo[t])) * fx2
+                mid[t] = e * e
+        else:
+            g[0] = 0.0
+        for d in range(ndim - 1):  # the other axes: whole neighbouring lines
+            size = shape[d]
+            if size == 1:
+                continue
+            c = coords[d]
+            f = inv_h[d] if c == 0 or c == size - 1 else 0.5 * inv_h[d]
+            up = base + strides[d] if c < size - 1 else base
+            down = base - strides[d] if c > 0 else base
+            rp = row[up : up + nx]
+            rm = row[down : down + nx]
+            for t in range(nx):
+                e = (np.float64(rp[t]) - np.float64(rm[t])) * f
+                g[t] += e * e
+        for start in range(0, nx, 4096):  # blocked summation keeps float rounding small
+            part = 0.0
+            stop = min(start + 4096, nx)
+            if mask.size > 0:
+                mk = mask[base : base + nx]
+                for t in range(start, stop):
+                    part += math.sqrt(g[t]) if mk[t] else 0.0
+            else:
+                for t in range(start, stop):
+                    part += math.sqrt(g[t])
+            total += part
+        for d in range(ndim - 2, -1, -1):  # advance the coordinates of the line
+            coords[d] += 1
+            if coords[d] < shape[d]:
+                break
+            coords[d] = 0
     return total

@@ -199,6 +199,20 @@ def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
     _assert_matches(nr.overlap_table(a, include_background=True), _brute(a))
 
 
+@pytest.mark.parametrize("n", [2, 5, 36, 37])
+def test_packed_float32_network_on_ties_and_many_blocks(rng, monkeypatch, n):
+    # float32 input sorts keys carrying the image index in their low bits; force that kernel
+    # on every block, with exact zeros and ones, ties, tiny values and a partial last block
+    from itk_nrreval import overlap
+
+    monkeypatch.setattr(overlap, "_NETWORK_FRACTION", 0.0)
+    a = rng.choice([0.0, 1.0, 0.25, 0.5, 1e-30, 0.7], size=(n, 2, 3, 7, 31)).astype(np.float32)
+    a[:, :, 0] = rng.random((n, 2, 7, 31))
+    a[0, 1, 1] = 0.0  # one image missing from a slab of voxels
+    table = nr.overlap_table(a, include_background=True)
+    _assert_matches(table, _brute(a))
+
+
 def test_fuzzy_default_drops_component_zero(rng):
     a = rng.random((4, 3, 5, 6))
     table = nr.overlap_table(a)
