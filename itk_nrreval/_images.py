@@ -189,10 +189,16 @@ def image_stack(
 
 
 def _check_finite(data: np.ndarray, names: Sequence[str]) -> None:
-    if np.issubdtype(data.dtype, np.floating):
-        bad = ~np.isfinite(data.reshape(data.shape[0], -1)).all(axis=1)
-        if bad.any():
-            raise InputError(f"{names[int(np.argmax(bad))]}: contains NaN or infinite voxel values")
+    if not np.issubdtype(data.dtype, np.floating):
+        return
+    flat = data.reshape(data.shape[0], -1)
+    # A NaN or infinity makes an image's sum non-finite, so one cheap reduction clears the
+    # usual case; only images whose sum is not finite (or overflowed) are checked voxel-wise.
+    with np.errstate(over="ignore", invalid="ignore"):
+        sums = np.add.reduce(flat, axis=1)
+    for i in np.flatnonzero(~np.isfinite(sums)):
+        if not np.isfinite(flat[i]).all():
+            raise InputError(f"{names[i]}: contains NaN or infinite voxel values")
 
 
 def mask_array(mask, *, shape: tuple[int, ...], geometry: Geometry | None) -> np.ndarray | None:

@@ -261,3 +261,16 @@ def test_cli_unreadable_file(tmp_path, small_images, capsys):
     assert main(["specificity", *paths, str(tmp_path / "junk.nii.gz")]) == 2
     err = capsys.readouterr().err
     assert "junk.nii.gz: cannot read image" in err and len(err.strip().splitlines()) == 1
+
+
+def test_non_finite_check_is_not_fooled_by_overflowing_sums():
+    from itk_nrreval._images import image_stack
+
+    big = np.full((4, 8, 8), 1e307)  # finite, but each image's sum overflows to inf
+    big[1:] *= np.linspace(0.1, 0.9, 64).reshape(8, 8)
+    with np.errstate(over="ignore"):
+        assert np.isinf(big.reshape(4, -1).sum(axis=1)).all()
+    assert image_stack(big).data.shape == (4, 8, 8)
+    big[2, 3, 3] = -np.inf
+    with pytest.raises(nr.InputError, match=r"image\[2\]: contains NaN or infinite"):
+        image_stack(big)
