@@ -349,26 +349,36 @@ def _bspline_job(itk, req: dict) -> None:
     method = itk.ElastixRegistrationMethod.New(
         fixed, moving, parameter_object=po, log_to_console=False
     )
+    if req["initial"]:
+        initial = itk.transformread(req["initial"])[0]
+        method.SetInitialTransform(initial)
+    _run_and_save(itk, method, req)
+
+
+_BSPLINE_KEYS = ("Transform", "TransformParameters", "GridSize", "GridIndex", "GridSpacing")
+_BSPLINE_KEYS += ("GridOrigin", "GridDirection", "BSplineTransformSplineOrder")
+
+
+def _run_and_save(itk, method, req: dict, *, extra_keys: tuple[str, ...] = ()) -> None:
+    """Run `method`, write its result image and its final B-spline's parameter map (JSON).
+
+    The B-spline itself, not a transformix deformation field: transformix fields came back
+    with garbage values (up to 1e12 mm) on some jobs. elastix explains failures in its log,
+    not in the exception, so the log's error lines become the message.
+    """
     folder = Path(req["result"]).parent
     method.SetOutputDirectory(str(folder))
     method.SetLogToFile(True)
     method.SetLogFileName("elastix.log")
-    if req["initial"]:
-        initial = itk.transformread(req["initial"])[0]
-        method.SetInitialTransform(initial)
     try:
         method.UpdateLargestPossibleRegion()
     except RuntimeError as exc:
         raise RuntimeError(_log_errors(folder / "elastix.log") or str(exc)) from None
     itk.imwrite(method.GetOutput(), req["result"])
-    # The B-spline itself, not a transformix deformation field: transformix fields came back
-    # with garbage values (up to 1e12 mm) after a few dozen jobs in one process.
     tpo = method.GetTransformParameterObject()
     pm = tpo.GetParameterMap(tpo.GetNumberOfParameterMaps() - 1)
-    keys = ("Transform", "TransformParameters", "GridSize", "GridIndex", "GridSpacing")
-    keys += ("GridOrigin", "GridDirection", "BSplineTransformSplineOrder")
     with open(req["bspline"], "w") as fh:
-        json.dump({k: list(pm[k]) for k in keys if k in pm}, fh)
+        json.dump({k: list(pm[k]) for k in _BSPLINE_KEYS + extra_keys if k in pm}, fh)
 
 
 def _stack_job(itk, req: dict) -> None:
@@ -386,22 +396,9 @@ def _stack_job(itk, req: dict) -> None:
     method = itk.ElastixRegistrationMethod.New(
         stack, stack, parameter_object=po, log_to_console=False
     )
-    folder = Path(req["result"]).parent
-    method.SetOutputDirectory(str(folder))
-    method.SetLogToFile(True)
-    method.SetLogFileName("elastix.log")
-    try:
-        method.UpdateLargestPossibleRegion()
-    except RuntimeError as exc:
-        raise RuntimeError(_log_errors(folder / "elastix.log") or str(exc)) from None
-    itk.imwrite(method.GetOutput(), req["result"])
-    tpo = method.GetTransformParameterObject()
-    pm = tpo.GetParameterMap(tpo.GetNumberOfParameterMaps() - 1)
-    keys = ("Transform", "TransformParameters", "GridSize", "GridIndex", "GridSpacing")
-    keys += ("GridOrigin", "GridDirection", "BSplineTransformSplineOrder")
-    keys += ("NumberOfSubTransforms", "StackOrigin", "StackSpacing")
-    with open(req["bspline"], "w") as fh:
-        json.dump({k: list(pm[k]) for k in keys if k in pm}, fh)
+    _run_and_save(
+        itk, method, req, extra_keys=("NumberOfSubTransforms", "StackOrigin", "StackSpacing")
+    )
 
 
 def _log_errors(log: Path) -> str:
