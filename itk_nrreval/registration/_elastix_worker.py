@@ -30,6 +30,7 @@ Answer ``{"ok": true}`` or ``{"ok": false, "error": str}``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -37,6 +38,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import SimpleITK as sitk
@@ -132,10 +134,7 @@ class ElastixWorker:
         result : sitk.Image
             elastix's own resampling of `moving` on `fixed`'s grid.
         """
-        self._count += 1
-        job = self.directory / f"job{self._count:04d}"
-        job.mkdir()
-        try:
+        with self._job() as job:
             sitk.WriteImage(fixed, str(job / "fixed.mha"))
             sitk.WriteImage(moving, str(job / "moving.mha"))
             init = None
@@ -153,24 +152,12 @@ class ElastixWorker:
                 "bspline": str(job / "bspline.json"),
                 "result": str(job / "result.mha"),
             }
-            try:
-                self.request(request, what=what)
-            except EngineError:
-                # elastix's stochastic optimiser occasionally stops with "Error in metric"
-                # (too many samples outside the moving image); a fresh sample set usually
-                # succeeds. A dead worker, or a second failure, is reported.
-                if not self.alive:
-                    raise
-                seed = int(parameters.get("RandomSeed", ["0"])[0]) + 7919
-                request["parameters"] = {**parameters, "RandomSeed": [str(seed)]}
-                self.request(request, what=what)
+            self._request_retrying(request, what=what)
             bspline = _bspline_transform(json.loads((job / "bspline.json").read_text()))
             transform = bspline if initial is None else sitk.CompositeTransform([bspline, initial])
             result = sitk.Cast(sitk.ReadImage(str(job / "result.mha")), sitk.sitkFloat32)
             result.CopyInformation(fixed)
             return transform, result
-        finally:
-            shutil.rmtree(job, ignore_errors=True)
 
     def stack(
         self,
@@ -193,10 +180,7 @@ class ElastixWorker:
         """
         if stack.GetDimension() != 3:
             raise InputError("the elastix stack registration needs a 3D stack of 2D images")
-        self._count += 1
-        job = self.directory / f"job{self._count:04d}"
-        job.mkdir()
-        try:
+        with self._job() as job:
             sitk.WriteImage(stack, str(job / "stack.mha"))
             request = {
                 "op": "stack",
@@ -207,14 +191,7 @@ class ElastixWorker:
                 "bspline": str(job / "bspline.json"),
                 "result": str(job / "result.mha"),
             }
-            try:
-                self.request(request, what=what)
-            except EngineError:  # a fresh sample set usually succeeds (see bspline)
-                if not self.alive:
-                    raise
-                seed = int(parameters.get("RandomSeed", ["0"])[0]) + 7919
-                request["parameters"] = {**parameters, "RandomSeed": [str(seed)]}
-                self.request(request, what=what)
+            self._request_retrying(request, what=what)
             bsplines = _stack_bsplines(json.loads((job / "bspline.json").read_text()))
             if len(bsplines) != stack.GetSize()[2]:
                 raise EngineError(
@@ -224,8 +201,35 @@ class ElastixWorker:
             result = sitk.Cast(sitk.ReadImage(str(job / "result.mha")), sitk.sitkFloat32)
             result.CopyInformation(stack)
             return bsplines, result
+
+    @contextlib.contextmanager
+    def _job(self) -> Iterator[Path]:
+        """A fresh folder for one request's files, removed afterwards."""
+        self._count += 1
+        job = self.directory / f"job{self._count:04d}"
+        job.mkdir()
+        try:
+            yield job
         finally:
             shutil.rmtree(job, ignore_errors=True)
+
+    def _request_retrying(self, request: dict, *, what: str) -> dict:
+        """:meth:`request`, once more with a new RandomSeed if elastix itself failed.
+
+        elastix's stochastic optimiser occasionally stops with "Error in metric" (too many
+        samples outside the moving image); a fresh sample set usually succeeds. A dead
+        worker, or a second failure, is reported.
+        """
+        try:
+            return self.request(request, what=what)
+        except EngineError:
+            if not self.alive:
+                raise
+            parameters = request["parameters"]
+            seed = int(parameters.get("RandomSeed", ["0"])[0]) + 7919
+            return self.request(
+                {**request, "parameters": {**parameters, "RandomSeed": [str(seed)]}}, what=what
+            )
 
     def _death(self, what: str) -> str:
         code = self.process.returncode
