@@ -119,6 +119,10 @@ class EvaluationResult:
         n_samples, seed, distance, interpolation, weightings.
     version : str
         The toolkit version.
+    run : dict
+        How the run was executed: empty for the single-process path; with a scheduler, the
+        scheduler, the number of workers, and how many per-image results were reused from the
+        cache (``cache_reused``) or computed (``cache_computed``).
     """
 
     scores: Mapping[str, RegistrationScores]
@@ -129,6 +133,7 @@ class EvaluationResult:
     inputs: Mapping[str, Any] = field(repr=False)
     options: Mapping[str, Any]
     version: str
+    run: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -147,13 +152,16 @@ class EvaluationResult:
             d["rank"] = {m: self.ranks[m][name] for m in self.ranks}
             d["relative_rank"] = {m: self.relative_ranks[m][name] for m in self.ranks}
             regs[name] = d
-        return {
+        out = {
             "version": self.version,
             "common_frame": self.common_frame,
             "options": dict(self.options),
             "inputs": dict(self.inputs),
             "registrations": regs,
         }
+        if self.run:
+            out["run"] = dict(self.run)
+        return out
 
 
 def higher_is_better(measure: str) -> bool:
@@ -266,6 +274,9 @@ def evaluate(
     interpolation: str = "linear",
     progress: bool = True,
     save_resampled: str | os.PathLike | None = None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    cache: str | os.PathLike | None = None,
 ) -> EvaluationResult:
     """Resample every registration into the common frame and score it.
 
@@ -289,6 +300,19 @@ def evaluate(
         Progress bars on stderr during resampling.
     save_resampled : path, optional
         Folder to write each registration's resampled images and membership maps (NIfTI).
+        Single-process path only.
+    scheduler : str, optional
+        Run on a Dask cluster (:mod:`itk_nrreval.scaleout`): ``"local"`` starts a local
+        cluster of `workers` single-threaded processes; otherwise the address of a running
+        scheduler. Per-image work and voxel-block sums run as tasks, and no process holds
+        all the images. Default: the single-process path (the numbers agree to round-off).
+    workers : int, optional
+        With ``scheduler="local"``, the number of worker processes (default: CPU count);
+        with an address, wait until that many workers have joined.
+    cache : path, optional
+        With a scheduler, the folder of the per-image result cache (shared by driver and
+        workers): a rerun -- after an interruption, or with more images or registrations --
+        recomputes only what changed. Default: a temporary folder, removed afterwards.
 
     Returns
     -------
@@ -306,11 +330,24 @@ def evaluate(
     RuntimeWarning
         When a registration's transforms fold (Jacobian determinant <= 0 somewhere).
     """
-    from . import __version__
     from .overlap import overlap_table
 
     weightings = _check_options(n_samples, distance, interpolation, weightings)
     m = load_manifest(manifest)
+    if scheduler is not None:
+        return _evaluate_scaled(
+            m,
+            scheduler=scheduler,
+            workers=workers,
+            cache=cache,
+            n_samples=int(n_samples),
+            seed=seed,
+            distance=distance,
+            weightings=weightings,
+            interpolation=interpolation,
+            progress=progress,
+            save_resampled=save_resampled,
+        )
     ref_img = common_reference(m)
     grid = Geometry.from_image(ref_img)
     mask = mask_array(m.mask, shape=grid.shape, geometry=grid) if m.mask is not None else None
@@ -373,8 +410,49 @@ def evaluate(
             name, spec, gen, overlap, frame, float(np.mean(folds)), float(max(folds))
         )
         del stack, memberships
+    return _result(m, scores, means, values, weightings, n_samples, seed, distance, interpolation)
+
+
+def _evaluate_scaled(m: Manifest, *, save_resampled, weightings, **kwargs) -> EvaluationResult:
+    from .scaleout import evaluate_scaled
+
+    if save_resampled is not None:
+        raise ValueError("save_resampled: only the single-process path writes resampled images")
+    per_reg, means, values, run = evaluate_scaled(m, weightings=weightings, **kwargs)
+    for name, r in per_reg.items():
+        folds = r["folds"]
+        if max(folds) > 0:
+            warnings.warn(
+                f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
+                f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
+                "worst: they are not invertible there",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+    scores = {
+        name: RegistrationScores(
+            name,
+            r["specificity"],
+            r["generalization"],
+            r["overlap"],
+            r["frame"],
+            float(np.mean(r["folds"])),
+            float(max(r["folds"])),
+        )
+        for name, r in per_reg.items()
+    }
+    keys = ("n_samples", "seed", "distance", "interpolation")
+    return _result(m, scores, means, values, weightings, *(kwargs[k] for k in keys), run=run)
+
+
+def _result(
+    m, scores, means, values, weightings, n_samples, seed, distance, interpolation, run=None
+) -> EvaluationResult:
+    """Ranks and relative ranks of every measure, and the result object."""
+    from . import __version__
+
     measures = ["specificity", "generalization"]
-    if labels is not None:
+    if m.labels is not None:
         measures += [f"overlap.{w}" for w in weightings]
     rank_table, rel_table = {}, {}
     for measure in measures:
@@ -393,5 +471,13 @@ def evaluate(
     if not scores:  # pragma: no cover - the manifest has at least one registration
         raise InputError("manifest: no registrations")
     return EvaluationResult(
-        scores, rank_table, rel_table, m.common_frame, means, m.describe(), options, __version__
+        scores,
+        rank_table,
+        rel_table,
+        m.common_frame,
+        means,
+        m.describe(),
+        options,
+        __version__,
+        run=dict(run or {}),
     )

@@ -93,6 +93,42 @@ class TextureModel:
             centred = chunk - chunk_mean
             mean[start:stop] = chunk_mean
             gram += centred @ centred.T
+        return cls.from_gram(gram, mean=mean, mask=mask_arr, geometry=stack.geometry)
+
+    @classmethod
+    def from_gram(
+        cls,
+        gram: np.ndarray,
+        *,
+        mean: np.ndarray,
+        mask: np.ndarray | None = None,
+        geometry: Geometry | None = None,
+    ) -> TextureModel:
+        """The model from the Gram matrix of the centred images, computed elsewhere.
+
+        This is how a model is built when the images never sit in one process
+        (:mod:`itk_nrreval.scaleout` sums the Gram matrix over voxel blocks).
+
+        Parameters
+        ----------
+        gram : ndarray of shape (n_images, n_images)
+            ``G_ij = sum_v (I_i(v) - mean(v)) (I_j(v) - mean(v))`` over the evaluated voxels.
+        mean : ndarray of shape (n_voxels,)
+            The mean image over the evaluated voxels.
+        mask : ndarray of bool of shape (*spatial), optional
+        geometry : Geometry, optional
+
+        Raises
+        ------
+        InputError
+            Fewer than 3 images, or no mode of variation (all images identical).
+        """
+        gram = np.asarray(gram, dtype=np.float64)
+        n = gram.shape[0]
+        if gram.shape != (n, n):
+            raise ValueError(f"gram: expected a square matrix, got shape {gram.shape}")
+        if n < 3:
+            raise InputError(f"need at least 3 images to build a texture model, got {n}")
         eigenvalues, eigenvectors = np.linalg.eigh(gram)
         order = np.argsort(eigenvalues)[::-1]
         eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
@@ -112,7 +148,7 @@ class TextureModel:
         return cls(
             training_params=params,
             mode_variances=eigenvalues / (n - 1),
-            mean=mean,
-            mask=mask_arr,
-            geometry=stack.geometry,
+            mean=np.asarray(mean),
+            mask=mask,
+            geometry=geometry,
         )

@@ -323,7 +323,6 @@ def overlap_table(
     mask_flat = np.zeros(0, np.bool_) if mask_flat is None else mask_flat.reshape(-1)
     shape = np.asarray(spatial, dtype=np.int64)
     inv_h = 1.0 / np.asarray(spacing_itk[::-1], dtype=np.float64)
-    voxel_volume = float(np.prod(spacing_itk))
 
     if fuzzy:
         values, skipped, vol, s_pairs, gsum, p, q = _fuzzy_sums(
@@ -339,6 +338,17 @@ def overlap_table(
             UserWarning,
             stacklevel=2,
         )
+    return _table(
+        values, vol, s_pairs, gsum, p, q, spacing=spacing_itk, fuzzy=fuzzy, skipped=skipped
+    )
+
+
+def _table(values, vol, s_pairs, gsum, p, q, *, spacing, fuzzy, skipped) -> OverlapTable:
+    """The table from its sums: vol, s_pairs, gsum of shape (N, L) in voxel units, p, q (L,).
+
+    Shared with :mod:`itk_nrreval.scaleout`, which adds the sums up over voxel blocks.
+    """
+    n_images = vol.shape[0]
     present = vol > 0  # (N, L)
     with np.errstate(divide="ignore", invalid="ignore"):
         complexity = np.where(present, gsum / np.where(present, vol, 1.0), 0.0).sum(0)
@@ -350,10 +360,10 @@ def overlap_table(
         n_images=n_images,
         pair_min=p,
         pair_max=q,
-        volume=vol.mean(axis=0) * voxel_volume,
+        volume=vol.mean(axis=0) * float(np.prod(spacing)),
         complexity=complexity,
         target_overlap=target,
-        spacing=spacing_itk,
+        spacing=tuple(spacing),
         fuzzy=fuzzy,
         skipped_labels=skipped,
     )

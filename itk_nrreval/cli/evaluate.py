@@ -16,6 +16,16 @@ def _samples(text: str) -> int:
     return value
 
 
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "evaluate",
@@ -41,16 +51,41 @@ def add_parser(sub) -> None:
         help="also write the resampled images and membership maps (NIfTI) under DIR/resampled",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument(
+        "--scheduler",
+        metavar="local|ADDRESS",
+        help="run on Dask: 'local' starts a local cluster, an address (tcp://host:8786) joins "
+        "a running one; the cache folder must be visible to every worker",
+    )
+    p.add_argument(
+        "--workers",
+        type=_positive,
+        metavar="K",
+        help="local cluster: K worker processes (default: CPU count); address: wait for K workers",
+    )
+    p.add_argument(
+        "--cache",
+        metavar="CACHE",
+        help="per-image result cache for --scheduler (default DIR/cache); a rerun reuses it",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._errors import InputError
     from ..evaluation import evaluate
     from ..manifest import load_manifest
     from ..reports import summary_table, write_reports
 
+    if args.scheduler is None and (args.workers is not None or args.cache is not None):
+        raise InputError("--workers and --cache need --scheduler (local or an address)")
+    if args.scheduler is not None and args.save_resampled:
+        raise InputError("--save-resampled works without --scheduler only")
     manifest = load_manifest(args.manifest)  # every problem, before DIR is created
     out = Path(args.out)
+    cache = None
+    if args.scheduler is not None:
+        cache = Path(args.cache) if args.cache is not None else out / "cache"
     result = evaluate(
         manifest,
         n_samples=args.samples,
@@ -58,8 +93,17 @@ def run(args: argparse.Namespace) -> int:
         distance=args.distance,
         interpolation=args.interpolation,
         save_resampled=out / "resampled" if args.save_resampled else None,
+        scheduler=args.scheduler,
+        workers=args.workers,
+        cache=cache,
     )
     write_reports(result, out, figures=not args.no_figures)
     print(summary_table(result), end="")
+    if result.run:
+        r = result.run
+        print(
+            f"{r['workers']} Dask workers; per-image results: {r['cache_reused']} reused from "
+            f"{cache}/, {r['cache_computed']} computed"
+        )
     print(f"results written to {out}/")
     return 0

@@ -1,0 +1,178 @@
+"""A content-addressed disk cache for per-image results, safe to share between processes.
+
+An entry is a folder ``<root>/<kind>/<key>/`` holding numpy arrays (``.npy``) and a
+``entry.json`` that lists every array's BLAKE2b digest and byte size, plus small JSON
+metadata. The key is a digest of everything the result depends on (input file contents,
+transforms, settings; :func:`digest_of`), so a changed input gives a new key and an
+unchanged one finds its entry again, on any machine that sees the folder.
+
+Writes go to a private temporary folder that is renamed into place only when complete,
+so a process killed mid-write leaves no entry (only a ``*.tmp-*`` folder, ignored). Reads
+check every digest: an entry that fails (truncated, bit-flipped, missing file, unreadable
+JSON) is reported as absent and removed, so the caller recomputes it -- a corrupt entry is
+never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import shutil
+import socket
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["DiskCache", "CacheEntry", "digest_of", "file_digest"]
+
+_FORMAT = 1
+_BLOCK = 1 << 20
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """BLAKE2b (128-bit) hex digest of a file's bytes."""
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        while chunk := f.read(_BLOCK):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def digest_of(value: Any) -> str:
+    """A stable digest of a JSON-like description of a computation.
+
+    Paths (``pathlib.Path``) stand for their file's *content*; SimpleITK transforms for
+    their type and parameters; numpy arrays for their dtype, shape and bytes; lists, tuples
+    and dicts recursively; other values by ``repr``.
+    """
+    h = hashlib.blake2b(digest_size=16)
+    _feed(h, value)
+    return h.hexdigest()
+
+
+def _feed(h, value) -> None:
+    import SimpleITK as sitk
+
+    if isinstance(value, Path):
+        h.update(b"file:" + file_digest(value).encode())
+    elif isinstance(value, sitk.Transform):
+        h.update(b"transform:" + hashlib.blake2b(pickle.dumps(value), digest_size=16).digest())
+    elif isinstance(value, np.ndarray):
+        h.update(f"array:{value.dtype.str}:{value.shape}:".encode())
+        h.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, Mapping):
+        h.update(b"{")
+        for k in sorted(value):
+            h.update(repr(k).encode() + b":")
+            _feed(h, value[k])
+            h.update(b",")
+        h.update(b"}")
+    elif isinstance(value, (list, tuple)):
+        h.update(b"[")
+        for v in value:
+            _feed(h, v)
+            h.update(b",")
+        h.update(b"]")
+    else:
+        h.update(repr(value).encode())
+
+
+@dataclass(frozen=True)
+class CacheEntry:
+    """A verified entry: its folder, the names of its arrays, and its metadata."""
+
+    folder: Path
+    arrays: tuple[str, ...]
+    meta: Mapping[str, Any]
+
+    def array(self, name: str, *, mmap: bool = False) -> np.ndarray:
+        """Load array `name` (memory-mapped read-only when `mmap`)."""
+        return np.load(self.folder / f"{name}.npy", mmap_mode="r" if mmap else None)
+
+
+class DiskCache:
+    """Entries by kind and key under `root` (created when missing).
+
+    Parameters
+    ----------
+    root : path
+        The cache folder. Several processes (and machines sharing the folder) may use it at
+        once: each writes into its own temporary folder and renames it into place.
+    """
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    def _folder(self, kind: str, key: str) -> Path:
+        return self.root / kind / key[:2] / key
+
+    def open(self, kind: str, key: str) -> CacheEntry:
+        """An entry already verified by :meth:`get` in this run, opened without re-reading it."""
+        folder = self._folder(kind, key)
+        info = json.loads((folder / "entry.json").read_text())
+        return CacheEntry(folder, tuple(info["arrays"]), info.get("meta", {}))
+
+    def get(self, kind: str, key: str) -> CacheEntry | None:
+        """The verified entry, or None when absent or corrupt (a corrupt one is removed)."""
+        folder = self._folder(kind, key)
+        if not folder.is_dir():
+            return None
+        try:
+            info = json.loads((folder / "entry.json").read_text())
+            if info.get("format") != _FORMAT or info.get("key") != key:
+                raise ValueError("wrong format or key")
+            for name, (digest, size) in info["arrays"].items():
+                path = folder / f"{name}.npy"
+                if path.stat().st_size != size or file_digest(path) != digest:
+                    raise ValueError(f"{name}.npy does not match its digest")
+        except (OSError, ValueError, KeyError, TypeError):
+            self._discard(folder)
+            return None
+        return CacheEntry(folder, tuple(info["arrays"]), info.get("meta", {}))
+
+    def put(
+        self,
+        kind: str,
+        key: str,
+        arrays: Mapping[str, np.ndarray],
+        meta: Mapping[str, Any] | None = None,
+    ) -> CacheEntry:
+        """Write an entry atomically (if another process wrote the same key first, keep it)."""
+        folder = self._folder(kind, key)
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        tmp = folder.parent / f"{key}.tmp-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}"
+        tmp.mkdir()
+        try:
+            digests = {}
+            for name, arr in arrays.items():
+                path = tmp / f"{name}.npy"
+                np.save(path, np.asarray(arr), allow_pickle=False)
+                digests[name] = [file_digest(path), path.stat().st_size]
+            info = {"format": _FORMAT, "key": key, "arrays": digests, "meta": dict(meta or {})}
+            (tmp / "entry.json").write_text(json.dumps(info))
+            try:
+                os.rename(tmp, folder)
+            except OSError:  # another process won the race, or a corrupt entry is in the way
+                if self.get(kind, key) is None:
+                    self._discard(folder)
+                    os.rename(tmp, folder)
+        finally:
+            if tmp.exists():
+                shutil.rmtree(tmp, ignore_errors=True)
+        return CacheEntry(folder, tuple(arrays), dict(meta or {}))
+
+    @staticmethod
+    def _discard(folder: Path) -> None:
+        # Rename first so a reader never sees a half-deleted entry under the real name.
+        trash = folder.with_name(f"{folder.name}.tmp-discard-{uuid.uuid4().hex}")
+        try:
+            os.rename(folder, trash)
+        except OSError:
+            return
+        shutil.rmtree(trash, ignore_errors=True)

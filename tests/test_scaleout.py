@@ -1,0 +1,237 @@
+"""Scale-out: Dask evaluation equals the single-process path; the per-image disk cache."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import yaml
+from test_evaluate import image, make_case
+
+import itk_nrreval as nr
+from itk_nrreval.cache import DiskCache, digest_of
+from itk_nrreval.cli import main
+
+pytest.importorskip("dask.distributed")
+
+KW = dict(n_samples=2000, seed=5, progress=False)
+
+
+def with_mask(tmp_path) -> Path:
+    """make_case plus a mask on the common grid (part of the template)."""
+    data = make_case(tmp_path)
+    mask = np.zeros((40, 40), np.uint8)
+    mask[4:36, 6:34] = 1
+    sitk.WriteImage(image(mask), str(tmp_path / "mask.nii.gz"))
+    data["mask"] = "mask.nii.gz"
+    path = tmp_path / "manifest.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def assert_same_scores(a, b, *, rel: float = 1e-10) -> None:
+    assert list(a.scores) == list(b.scores)
+    for name in a.scores:
+        sa, sb = a.scores[name], b.scores[name]
+        for key, va in sa.measures().items():
+            assert sb.measures()[key] == pytest.approx(va, rel=rel, abs=1e-12), (name, key)
+        assert sb.specificity.stderr == pytest.approx(sa.specificity.stderr, rel=rel)
+        np.testing.assert_array_equal(sb.specificity.nearest_counts, sa.specificity.nearest_counts)
+        np.testing.assert_allclose(
+            sb.generalization.nearest_distances, sa.generalization.nearest_distances, rtol=rel
+        )
+        assert sb.frame.method == sa.frame.method
+        assert sb.frame.spread_mean_mm == pytest.approx(sa.frame.spread_mean_mm, rel=rel)
+        assert sb.frame.spread_max_mm == pytest.approx(sa.frame.spread_max_mm, rel=rel)
+        assert sb.folded_fraction == sa.folded_fraction
+        np.testing.assert_allclose(b.mean_images[name], a.mean_images[name], rtol=rel, atol=1e-10)
+    assert a.ranks == b.ranks
+
+
+@pytest.mark.parametrize("distance", ["l1", "l2"])
+def test_distributed_equals_single_process(tmp_path, distance):
+    manifest = with_mask(tmp_path)
+    single = nr.evaluate(manifest, distance=distance, **KW)
+    scaled = nr.evaluate(
+        manifest, distance=distance, scheduler="local", workers=2, cache=tmp_path / "c", **KW
+    )
+    assert_same_scores(single, scaled)
+    assert scaled.run["workers"] == 2
+    assert scaled.run["cache_reused"] == 0
+    # the frame estimates of the two non-common registrations, then every resampled image
+    assert scaled.run["cache_computed"] == 2 * 6 + 3 * 6
+    assert scaled.options == single.options and single.run == {}
+
+
+def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path):
+    manifest = with_mask(tmp_path)
+    cache = tmp_path / "c"
+    kw = dict(scheduler="local", workers=1, cache=cache, **KW)
+    first = nr.evaluate(manifest, **kw)
+    again = nr.evaluate(manifest, **kw)
+    assert again.run["cache_reused"] == first.run["cache_computed"] == 30
+    assert again.run["cache_computed"] == 0
+    assert_same_scores(first, again, rel=0)
+    # one more registration: only its own per-image results are new
+    data = yaml.safe_load(manifest.read_text())
+    data["registrations"]["truth_again"] = {
+        "reference": "template.nii.gz",
+        "frame_transform": "id0_0GenericAffine.mat",  # an identity affine
+        "transforms": data["registrations"]["truth"]["transforms"],
+    }
+    manifest.write_text(yaml.safe_dump(data, sort_keys=False))
+    extended = nr.evaluate(manifest, **kw)
+    assert extended.run["cache_computed"] == 6 + 6  # its frame estimates and resampled images
+    assert extended.run["cache_reused"] == 30
+    # same images, same transforms, identity frame: the same scores as "truth"
+    t, t2 = extended.scores["truth"], extended.scores["truth_again"]
+    assert t2.specificity.value == pytest.approx(t.specificity.value, rel=1e-12)
+    assert t2.overlap == pytest.approx(t.overlap, rel=1e-12)
+
+
+def test_corrupt_cache_entries_are_recomputed(tmp_path):
+    manifest = with_mask(tmp_path)
+    cache = tmp_path / "c"
+    kw = dict(scheduler="local", workers=1, cache=cache, **KW)
+    first = nr.evaluate(manifest, **kw)
+    entries = sorted((cache / "resampled").glob("*/*/entry.json"))
+    assert len(entries) == 18
+    # a flipped byte in one array, a truncated index in another, a deleted array in a third
+    arr = entries[0].parent / "image.npy"
+    raw = bytearray(arr.read_bytes())
+    raw[-5] ^= 0xFF
+    arr.write_bytes(bytes(raw))
+    entries[1].write_text(entries[1].read_text()[:20])
+    (entries[2].parent / "lab_val.npy").unlink()
+    again = nr.evaluate(manifest, **kw)
+    assert again.run["cache_computed"] == 3
+    assert again.run["cache_reused"] == 27
+    assert_same_scores(first, again, rel=0)
+
+
+def slow_case(tmp_path) -> Path:
+    """Bigger images (256^2, N = 12), so that a run takes a few seconds on one worker."""
+    size, n = 256, 12
+    y, x = np.mgrid[0:size, 0:size] / size
+    lab = (1 + (x > 0.5) + 2 * (y > 0.4) + ((x - 0.5) ** 2 + (y - 0.5) ** 2 < 0.05)).astype(
+        np.int16
+    )
+    rng = np.random.default_rng(1)
+    items = []
+    for i in range(n):
+        img = image(lab * 50.0 + rng.normal(size=lab.shape))
+        sitk.WriteImage(img, str(tmp_path / f"i{i}.nii.gz"))
+        sitk.WriteImage(image(lab), str(tmp_path / f"l{i}.nii.gz"))
+        disp = np.zeros((size, size, 2))
+        disp[..., 0] = 3 * np.sin(np.pi * x) * np.sin(np.pi * y) * rng.uniform(-1, 1)
+        sitk.WriteImage(image(disp), str(tmp_path / f"w{i}.nii.gz"))
+        items.append(f"w{i}.nii.gz")
+    data = {
+        "images": [f"i{i}.nii.gz" for i in range(n)],
+        "labels": [f"l{i}.nii.gz" for i in range(n)],
+        "registrations": {
+            "warped": {"reference": "i0.nii.gz", "transforms": items},
+            "none": {"reference": "i0.nii.gz", "reference_index": 0, "transforms": items[:1] * n},
+        },
+    }
+    path = tmp_path / "manifest.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_killed_run_restarts_from_cache(tmp_path):
+    manifest = slow_case(tmp_path)
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    cmd = [sys.executable, "-m", "itk_nrreval", "evaluate", str(manifest), "--out", str(out)]
+    cmd += ["--samples", "2000", "--seed", "5", "--scheduler", "local", "--workers", "1"]
+    cmd += ["--cache", str(cache), "--no-figures"]
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while len(list(cache.glob("*/*/*/entry.json"))) < 4:
+            assert proc.poll() is None, "the run ended before it could be killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and its worker processes
+        proc.wait()
+    done = len(list(cache.glob("*/*/*/entry.json")))
+    total = 2 * 12 + 12  # resampled images of both registrations + frame estimates
+    assert 4 <= done < total
+    assert not (out / "results.json").exists()
+    assert main(cmd[3:]) == 0  # the same command again, in this process
+    res = json.loads((out / "results.json").read_text())
+    assert res["run"]["cache_reused"] >= done
+    assert res["run"]["cache_reused"] + res["run"]["cache_computed"] == total
+    single = nr.evaluate(manifest, **KW).to_dict()
+    for name, reg in single["registrations"].items():
+        got = res["registrations"][name]
+        assert got["specificity"]["value"] == pytest.approx(reg["specificity"]["value"], rel=1e-10)
+        for w, v in reg["overlap"].items():
+            assert got["overlap"][w] == pytest.approx(v, rel=1e-10)
+    assert not list(cache.rglob("*.tmp-*"))  # no half-written entry under a real name
+
+
+def test_cli_scheduler_errors(tmp_path, capsys):
+    manifest = with_mask(tmp_path)
+    out = tmp_path / "out"
+    assert main(["evaluate", str(manifest), "--out", str(out), "--workers", "2"]) == 2
+    assert "--workers and --cache need --scheduler" in capsys.readouterr().err
+    assert main(["evaluate", str(manifest), "--out", str(out), "--scheduler", "nowhere"]) == 2
+    err = capsys.readouterr().err
+    assert "scheduler: 'nowhere' is neither 'local' nor an address" in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_cli_local_scheduler_reports_cache(tmp_path, capsys):
+    manifest = with_mask(tmp_path)
+    out = tmp_path / "out"
+    args = ["evaluate", str(manifest), "--out", str(out), "--samples", "500", "--no-figures"]
+    assert main(args + ["--scheduler", "local", "--workers", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "2 Dask workers; per-image results: 0 reused" in printed
+    assert (out / "cache" / "resampled").is_dir()
+    assert json.loads((out / "results.json").read_text())["run"]["cache_computed"] == 30
+
+
+# ----------------------------------------------------------------------------- the cache
+
+
+def test_disk_cache_round_trip_and_corruption(tmp_path):
+    cache = DiskCache(tmp_path)
+    a = np.arange(10.0)
+    entry = cache.put("k", "ab12", {"a": a}, {"x": 1})
+    got = cache.get("k", "ab12")
+    np.testing.assert_array_equal(got.array("a"), a)
+    assert got.meta == {"x": 1} and entry.folder == got.folder
+    assert cache.get("k", "other") is None
+    cache.put("k", "ab12", {"a": a + 1})  # the same key again: the first entry stays
+    np.testing.assert_array_equal(cache.get("k", "ab12").array("a"), a)
+    path = got.folder / "a.npy"
+    path.write_bytes(path.read_bytes()[:-8])  # truncated
+    assert cache.get("k", "ab12") is None
+    assert not got.folder.exists()  # removed, so it will be recomputed
+
+
+def test_digest_follows_file_content_not_name(tmp_path):
+    p, q = tmp_path / "p.txt", tmp_path / "q.txt"
+    p.write_text("one")
+    q.write_text("one")
+    assert digest_of([p, 1]) == digest_of([q, 1]) != digest_of([p, 2])
+    before = digest_of({"file": p, "grid": (1.0, 2.0)})
+    p.write_text("two")
+    assert digest_of({"file": p, "grid": (1.0, 2.0)}) != before
+    t = sitk.TranslationTransform(2, (1.0, 0.0))
+    assert digest_of(t) == digest_of(sitk.TranslationTransform(2, (1.0, 0.0)))
+    assert digest_of(t) != digest_of(sitk.TranslationTransform(2, (1.0, 1e-9)))
