@@ -7,7 +7,8 @@ transforms, settings; :func:`digest_of`), so a changed input gives a new key and
 unchanged one finds its entry again, on any machine that sees the folder.
 
 Writes go to a private temporary folder that is renamed into place only when complete,
-so a process killed mid-write leaves no entry (only a ``*.tmp-*`` folder, ignored). Reads
+so a process killed mid-write leaves no entry, only a ``*.tmp-<host>-<pid>-*`` folder that
+is ignored and removed by the next run on that host (:meth:`DiskCache.remove_stale`). Reads
 check every digest: an entry that fails (truncated, bit-flipped, missing file, unreadable
 JSON) is reported as absent and removed, so the caller recomputes it -- a corrupt entry is
 never trusted.
@@ -83,6 +84,20 @@ def _feed(h, value) -> None:
         h.update(repr(value).encode())
 
 
+def _tmp_suffix() -> str:
+    return f".tmp-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 @dataclass(frozen=True)
 class CacheEntry:
     """A verified entry: its folder, the names of its arrays, and its metadata."""
@@ -146,7 +161,7 @@ class DiskCache:
         """Write an entry atomically (if another process wrote the same key first, keep it)."""
         folder = self._folder(kind, key)
         folder.parent.mkdir(parents=True, exist_ok=True)
-        tmp = folder.parent / f"{key}.tmp-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}"
+        tmp = folder.parent / f"{key}{_tmp_suffix()}"
         tmp.mkdir()
         try:
             digests = {}
@@ -167,10 +182,28 @@ class DiskCache:
                 shutil.rmtree(tmp, ignore_errors=True)
         return CacheEntry(folder, tuple(arrays), dict(meta or {}))
 
+    def remove_stale(self) -> int:
+        """Remove temporary folders left by killed processes of this host; return how many.
+
+        A temporary folder names its host and process id; folders of processes still alive,
+        or of other hosts, are left alone.
+        """
+        host = socket.gethostname()
+        removed = 0
+        for tmp in self.root.glob("*/*/*.tmp-*"):
+            parts = tmp.name.split(".tmp-", 1)[1].rsplit("-", 2)  # host, pid, random
+            if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
+                continue
+            if _alive(int(parts[1])):
+                continue
+            shutil.rmtree(tmp, ignore_errors=True)
+            removed += 1
+        return removed
+
     @staticmethod
     def _discard(folder: Path) -> None:
         # Rename first so a reader never sees a half-deleted entry under the real name.
-        trash = folder.with_name(f"{folder.name}.tmp-discard-{uuid.uuid4().hex}")
+        trash = folder.with_name(f"{folder.name}{_tmp_suffix()}")
         try:
             os.rename(folder, trash)
         except OSError:

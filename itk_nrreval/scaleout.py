@@ -398,6 +398,7 @@ def evaluate_scaled(
         if cache is None:
             cache = stack.enter_context(tempfile.TemporaryDirectory(prefix="nrreval-cache-"))
         disk = DiskCache(cache)
+        disk.remove_stale()
         mask_key = None
         if mask is not None:
             flat_mask = mask.reshape(-1).astype(np.bool_)

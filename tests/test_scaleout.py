@@ -218,6 +218,16 @@ def test_disk_cache_round_trip_and_corruption(tmp_path):
     assert cache.get("k", "other") is None
     cache.put("k", "ab12", {"a": a + 1})  # the same key again: the first entry stays
     np.testing.assert_array_equal(cache.get("k", "ab12").array("a"), a)
+    # a temporary folder of a dead process of this host goes; a live process's stays
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = __import__("socket").gethostname()
+    (got.folder.parent / f"x.tmp-{host}-{dead.pid}-abc").mkdir()
+    (got.folder.parent / f"y.tmp-{host}-{os.getpid()}-abc").mkdir()
+    assert cache.remove_stale() == 1
+    assert [p.name for p in got.folder.parent.glob("*.tmp-*")] == [
+        f"y.tmp-{host}-{os.getpid()}-abc"
+    ]
     path = got.folder / "a.npy"
     path.write_bytes(path.read_bytes()[:-8])  # truncated
     assert cache.get("k", "ab12") is None
