@@ -136,8 +136,10 @@ def plot(runs: list[dict], path: Path) -> None:
     a.legend(loc="center right")
     pair = [r for r in runs if r["n"] == SPEEDUP_N]
     pair.sort(key=lambda r: r["workers"])
-    b.bar([f"{r['workers']} worker{'s' * (r['workers'] > 1)}" for r in pair],
-          [r["evaluate_s"] for r in pair])
+    b.bar(
+        [f"{r['workers']} worker{'s' * (r['workers'] > 1)}" for r in pair],
+        [r["evaluate_s"] for r in pair],
+    )
     if len(pair) == 2:
         b.set_title(f"N = {SPEEDUP_N}: {pair[0]['evaluate_s'] / pair[1]['evaluate_s']:.2f}x")
     b.set(ylabel="evaluate time (s)")
