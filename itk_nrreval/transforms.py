@@ -340,6 +340,13 @@ def jacobian_determinant(
         axis=-1,
     )  # (*spatial, c, k)
     jac = np.eye(dim) + grads @ index_per_mm
+    if dim == 2:  # closed forms: several times faster than LU on millions of small matrices
+        return jac[..., 0, 0] * jac[..., 1, 1] - jac[..., 0, 1] * jac[..., 1, 0]
+    if dim == 3:
+        a, b, c = jac[..., 0, 0], jac[..., 0, 1], jac[..., 0, 2]
+        d, e, f = jac[..., 1, 0], jac[..., 1, 1], jac[..., 1, 2]
+        g, h, i = jac[..., 2, 0], jac[..., 2, 1], jac[..., 2, 2]
+        return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
     return np.linalg.det(jac)
 
 
