@@ -14,6 +14,9 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install -e '.[all]'
 	# nilearn ships the MNI152 2009a template; we read its data files only, so skip its heavy deps.
 	$(PY) -m pip install --no-deps 'nilearn>=0.10'
+	# torch (the `gpu` extra, backend="torch" of specificity): this is the CPU build, resolved from
+	# the machine's wheel cache; it is installed so that the tests exercise the torch path on the CPU.
+	$(PY) -m pip install 'torch==2.13.0'
 	touch $(STAMP)
 
 test: install
