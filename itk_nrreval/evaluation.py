@@ -392,14 +392,7 @@ def evaluate(
             overlap = {w: table.generalized(w) for w in weightings}
         reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
         folds = [folded_fraction(t, reg_grid) for t in chains]
-        if max(folds) > 0:
-            warnings.warn(
-                f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
-                f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
-                "worst: they are not invertible there",
-                RuntimeWarning,
-                stacklevel=2,
-            )
+        _warn_if_folded(name, folds)
         if save_resampled is not None:
             folder = Path(save_resampled) / name
             _save_stack(folder, "image", stack, grid, vector=False)
@@ -413,6 +406,17 @@ def evaluate(
     return _result(m, scores, means, values, weightings, n_samples, seed, distance, interpolation)
 
 
+def _warn_if_folded(name: str, folds: Sequence[float], *, stacklevel: int = 3) -> None:
+    if max(folds) > 0:
+        warnings.warn(
+            f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
+            f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
+            "worst: they are not invertible there",
+            RuntimeWarning,
+            stacklevel=stacklevel,
+        )
+
+
 def _evaluate_scaled(m: Manifest, *, save_resampled, weightings, **kwargs) -> EvaluationResult:
     from .scaleout import evaluate_scaled
 
@@ -420,15 +424,7 @@ def _evaluate_scaled(m: Manifest, *, save_resampled, weightings, **kwargs) -> Ev
         raise ValueError("save_resampled: only the single-process path writes resampled images")
     per_reg, means, values, run = evaluate_scaled(m, weightings=weightings, **kwargs)
     for name, r in per_reg.items():
-        folds = r["folds"]
-        if max(folds) > 0:
-            warnings.warn(
-                f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
-                f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
-                "worst: they are not invertible there",
-                RuntimeWarning,
-                stacklevel=3,
-            )
+        _warn_if_folded(name, r["folds"], stacklevel=4)
     scores = {
         name: RegistrationScores(
             name,

@@ -6,24 +6,19 @@ import argparse
 from pathlib import Path
 
 
-def _samples(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}")
-    return value
+def _int_at_least(minimum: int):
+    """An argparse type: an integer >= minimum."""
 
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return value
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+    return parse
 
 
 def add_parser(sub) -> None:
@@ -36,7 +31,9 @@ def add_parser(sub) -> None:
     )
     p.add_argument("manifest", metavar="MANIFEST", help="manifest (YAML or JSON)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for results and figures")
-    p.add_argument("--samples", type=_samples, default=100_000, metavar="M", help="model samples")
+    p.add_argument(
+        "--samples", type=_int_at_least(2), default=100_000, metavar="M", help="model samples"
+    )
     p.add_argument("--seed", type=int, default=0, metavar="S", help="sample seed (default 0)")
     p.add_argument("--distance", choices=("l1", "l2"), default="l1")
     p.add_argument(
@@ -59,7 +56,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--workers",
-        type=_positive,
+        type=_int_at_least(1),
         metavar="K",
         help="local cluster: K worker processes (default: CPU count); address: wait for K workers",
     )
