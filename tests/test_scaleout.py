@@ -71,6 +71,20 @@ def test_distributed_equals_single_process(tmp_path, distance):
     assert scaled.options == single.options and single.run == {}
 
 
+def test_running_cluster_by_address(tmp_path):
+    from dask.distributed import LocalCluster
+
+    manifest = with_mask(tmp_path)
+    single = nr.evaluate(manifest, **KW)
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
+        scaled = nr.evaluate(
+            manifest, scheduler=cluster.scheduler_address, workers=2, cache=tmp_path / "c", **KW
+        )
+        assert len(cluster.scheduler_info["workers"]) == 2  # still running: not ours to close
+    assert_same_scores(single, scaled)
+    assert scaled.run["scheduler"] == cluster.scheduler_address
+
+
 def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
