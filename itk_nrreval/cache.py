@@ -100,10 +100,9 @@ def _alive(pid: int) -> bool:
 
 @dataclass(frozen=True)
 class CacheEntry:
-    """A verified entry: its folder, the names of its arrays, and its metadata."""
+    """A verified entry: its folder and its metadata."""
 
     folder: Path
-    arrays: tuple[str, ...]
     meta: Mapping[str, Any]
 
     def array(self, name: str, *, mmap: bool = False) -> np.ndarray:
@@ -131,7 +130,7 @@ class DiskCache:
         """An entry already verified by :meth:`get` in this run, opened without re-reading it."""
         folder = self._folder(kind, key)
         info = json.loads((folder / "entry.json").read_text())
-        return CacheEntry(folder, tuple(info["arrays"]), info.get("meta", {}))
+        return CacheEntry(folder, info.get("meta", {}))
 
     def get(self, kind: str, key: str) -> CacheEntry | None:
         """The verified entry, or None when absent or corrupt (a corrupt one is removed)."""
@@ -149,7 +148,7 @@ class DiskCache:
         except (OSError, ValueError, KeyError, TypeError):
             self._discard(folder)
             return None
-        return CacheEntry(folder, tuple(info["arrays"]), info.get("meta", {}))
+        return CacheEntry(folder, info.get("meta", {}))
 
     def put(
         self,
@@ -180,7 +179,7 @@ class DiskCache:
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
-        return CacheEntry(folder, tuple(arrays), dict(meta or {}))
+        return CacheEntry(folder, dict(meta or {}))
 
     def remove_stale(self) -> int:
         """Remove temporary folders left by killed processes of this host; return how many.

@@ -422,21 +422,7 @@ def _evaluate_scaled(m: Manifest, *, save_resampled, weightings, **kwargs) -> Ev
 
     if save_resampled is not None:
         raise ValueError("save_resampled: only the single-process path writes resampled images")
-    per_reg, means, values, run = evaluate_scaled(m, weightings=weightings, **kwargs)
-    for name, r in per_reg.items():
-        _warn_if_folded(name, r["folds"], stacklevel=4)
-    scores = {
-        name: RegistrationScores(
-            name,
-            r["specificity"],
-            r["generalization"],
-            r["overlap"],
-            r["frame"],
-            float(np.mean(r["folds"])),
-            float(max(r["folds"])),
-        )
-        for name, r in per_reg.items()
-    }
+    scores, means, values, run = evaluate_scaled(m, weightings=weightings, **kwargs)
     keys = ("n_samples", "seed", "distance", "interpolation")
     return _result(m, scores, means, values, weightings, *(kwargs[k] for k in keys), run=run)
 

@@ -163,11 +163,6 @@ def _frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Tran
     return field_transform(img)
 
 
-def _label_values_task(path: Path) -> list[int]:
-    arr = sitk.GetArrayFromImage(read_image(path, what="label map"))
-    return [int(v) for v in np.unique(arr)]
-
-
 def _estimate_task(ctx: _Context, common_item, item, reference: Path) -> tuple[str, bool]:
     """Cache ``F_i(p) - p`` on the common grid; return (key, reused)."""
     from .frame import _sampled_before_inversion, frame_estimates
@@ -187,14 +182,12 @@ def _estimate_task(ctx: _Context, common_item, item, reference: Path) -> tuple[s
     return key, False
 
 
-def _spread_task(ctx: _Context, key: str, frame: tuple) -> tuple[float, float, int]:
+def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, float, int]:
     """Sum and max over the mask of ``|F_i(p) - F(p)|`` (mm), and the voxel count."""
-    from .frame import _points_minus_grid
-
     _single_threaded()
     cache = ctx.cache()
     est = cache.open("estimate", key).array("disp")
-    f_disp = _points_minus_grid(_frame_transform(frame, ctx.grid, cache), ctx.grid)
+    f_disp = cache.open("frame_disp", frame_disp_key).array("disp")
     dist = np.linalg.norm(est - f_disp, axis=-1).reshape(-1)
     mask = ctx.mask_flat()
     if mask.size:
@@ -220,7 +213,7 @@ def _resample_task(
     (float32). Its metadata holds per label the gradient sum (over the mask) and whether the
     label is present inside the mask, and the transform's folded fraction.
     """
-    from .frame import resample_images, resample_memberships, resampling_transform
+    from .frame import label_values, resample_images, resample_memberships, resampling_transform
     from .overlap import _gradient_sums
     from .transforms import chain_transform, folded_fraction
 
@@ -254,10 +247,9 @@ def _resample_task(
     reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
     meta: dict = {"folded": folded_fraction(t, reg_grid)}
     if labels is not None:
-        own = _label_values_task(labels)
-        memb = resample_memberships(
-            [labels], [full], g, values=own, show_progress=False
-        )  # (1, K, *spatial)
+        lab = read_image(labels, what="label map")
+        own = [int(v) for v in label_values([lab])]
+        memb = resample_memberships([lab], [full], g, values=own, show_progress=False)
         flat = memb.reshape(1, len(own), -1)
         mask = ctx.mask_flat()
         shape = np.asarray(g.shape, dtype=np.int64)
@@ -381,11 +373,11 @@ def evaluate_scaled(
 ):
     """The body of :func:`itk_nrreval.evaluate` for ``scheduler=`` (see there).
 
-    Returns the keyword arguments of the scores (per registration: specificity,
-    generalization, overlap, frame, folded fractions), the mean images, the label values,
-    and the run's description (scheduler, workers, cache folder and reuse counts).
+    Returns the RegistrationScores by name, the mean images, the label values, and the
+    run's description (scheduler, workers, reuse counts). Warns of folding transforms.
     """
-    from .frame import FrameMapping, common_reference
+    from .evaluation import RegistrationScores, _warn_if_folded
+    from .frame import common_reference, label_values
     from .model import TextureModel
     from .overlap import _table
     from .specificity import texture_measures
@@ -412,21 +404,20 @@ def evaluate_scaled(
 
         values = None
         if m.labels is not None:
-            futs = client.map(_label_values_task, list(m.labels), pure=False)
+            futs = client.map(label_values, [[p] for p in m.labels], pure=False)
             found: set[int] = set()
             for _, vals in _gather_each(client, futs, desc="label values", show=progress):
                 found.update(vals)
             values = [0] + sorted(v for v in found if v != 0)  # channel 0 is background
         components = values[1:] if values is not None else []
 
-        per_reg = {}
+        scores = {}
         means = {}
         common_items = m.registrations[m.common_frame].transforms
         for name, reg in m.registrations.items():
-            frame_spec, frame_info = _frame(
+            frame_spec, frame_digest, frame = _frame(
                 client, ctx, disk, m, name, reg, common_items, counts, progress
             )
-            frame_digest = digest_of([frame_spec[0], frame_spec[1:]])
             n = m.n_images
             futs = [
                 client.submit(
@@ -517,12 +508,9 @@ def evaluate_scaled(
                 )
                 overlap = {w: table.generalized(w) for w in weightings}
             folds = [float(meta["folded"]) for meta in metas]
-            per_reg[name] = dict(
-                specificity=spec,
-                generalization=gen,
-                overlap=overlap,
-                frame=FrameMapping(name, frame_info[0], frame_info[1], *frame_info[2:]),
-                folds=folds,
+            _warn_if_folded(name, folds, stacklevel=5)
+            scores[name] = RegistrationScores(
+                name, spec, gen, overlap, frame, float(np.mean(folds)), float(max(folds))
             )
             means[name] = mean.reshape(grid.shape)
         run = {
@@ -531,13 +519,17 @@ def evaluate_scaled(
             "cache_reused": counts.reused,
             "cache_computed": counts.computed,
         }
-    return per_reg, means, values, run
+    return scores, means, values, run
 
 
 def _frame(client, ctx, disk, m: Manifest, name, reg, common_items, counts, show):
-    """F for registration `name` (as a task description) and its FrameMapping fields."""
+    """F for registration `name`: its task description, the digest of that, its FrameMapping."""
+    from .frame import FrameMapping, _points_minus_grid
+
     if name == m.common_frame:
-        return ("identity",), ("common", sitk.TranslationTransform(ctx.grid.dimension), 0.0, 0.0)
+        spec = ("identity",)
+        f = _frame_transform(spec, ctx.grid, disk)
+        return spec, digest_of([spec[0], spec[1:]]), FrameMapping(name, "common", f, 0.0, 0.0)
     if reg.frame_transform is not None:
         method, spec = "frame_transform", ("chain", reg.frame_transform)
     elif reg.reference_index is not None:
@@ -563,12 +555,17 @@ def _frame(client, ctx, disk, m: Manifest, name, reg, common_items, counts, show
                 total = est.copy() if total is None else total + est
             disk.put("frame", key, {"disp": total / len(keys)})
         spec = ("field", key)
-    futs = [client.submit(_spread_task, ctx, k, spec, pure=False) for k in keys]
+    digest = digest_of([spec[0], spec[1:]])
+    f = _frame_transform(spec, ctx.grid, disk)
+    # F(p) - p on the common grid, once, for every image's spread task
+    disp_key = digest_of(["frame_disp", _FORMAT, ctx.grid, digest])
+    if disk.get("frame_disp", disp_key) is None:
+        disk.put("frame_disp", disp_key, {"disp": _points_minus_grid(f, ctx.grid)})
+    futs = [client.submit(_spread_task, ctx, k, disp_key, pure=False) for k in keys]
     parts = [(0.0, 0.0, 0)] * len(keys)
     for i, part in _gather_each(client, futs, desc=f"{name}: spread", show=show):
         parts[i] = part
-    s = math.fsum(part[0] for part in parts)
-    mx = max(part[1] for part in parts)
     count = sum(part[2] for part in parts)
-    f = _frame_transform(spec, ctx.grid, disk)
-    return spec, (method, f, s / count if count else math.nan, mx if count else math.nan)
+    mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
+    max_mm = max(part[1] for part in parts) if count else math.nan
+    return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
