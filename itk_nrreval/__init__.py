@@ -6,6 +6,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 """
 
 from ._errors import EngineError, InputError
+from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
 from .evaluation import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
@@ -24,8 +25,6 @@ from .specificity import (
 )
 from .validation import ValidationResult, validate
 from .warps import ClampedPlateSpline, cps_warp, max_safe_displacement, random_cps, warp_stack
-
-__version__ = "0.1.0"
 
 __all__ = [
     "appearance_diagnostics",

@@ -28,7 +28,7 @@ import math
 import numba
 import numpy as np
 
-from ._sampling import _fill_normals, _finish, _moments
+from ._sampling import chunk_moments, fill_normals, finish_distances
 
 __all__ = [
     "draw_block",
@@ -58,7 +58,7 @@ def draw_block(sd, key, start, stop, out):
     """Model samples ``start:stop`` into ``out[: stop - start]`` (rows: samples, scaled by sd)."""
     for j in range(stop - start):
         y = out[j]
-        _fill_normals(key, start + j, y)
+        fill_normals(key, start + j, y)
         for k in range(y.shape[0]):
             y[k] *= sd[k]
 
@@ -78,7 +78,7 @@ def _l1_task(train_t, sd, key, start, stop, y, acc, values, nearest, gen_row):
     m = stop - start
     for j in range(m):
         row = y[j]
-        _fill_normals(key, start + j, row)
+        fill_normals(key, start + j, row)
         for k in range(n_modes):
             row[k] *= sd[k]
         values[j] = np.inf
@@ -305,24 +305,24 @@ class _Searcher:
         return values, nearest, gen
 
 
-def _run(searcher, key, n_samples: int, l2: bool, exponent: float, chunk: int):
+def _run(searcher, key, n_samples: int, l2: bool, exponent: float, chunk: int, wrap=None):
     n_chunks = (n_samples + chunk - 1) // chunk
     n_images = searcher.n_images
     means = np.empty(n_chunks)
     m2s = np.empty(n_chunks)
     counts = np.zeros((n_chunks, n_images), dtype=np.int64)
     gen = np.empty((n_chunks, n_images))
-    for c in range(n_chunks):
+    for c in range(n_chunks) if wrap is None else wrap(range(n_chunks)):
         start = c * chunk
         stop = min(n_samples, start + chunk)
         values, nearest, gen[c] = searcher.chunk(key, start, stop)
-        _finish(values, stop - start, l2, exponent)
-        means[c], m2s[c] = _moments(values, stop - start)
+        finish_distances(values, stop - start, l2, exponent)
+        means[c], m2s[c] = chunk_moments(values, stop - start)
         counts[c] = np.bincount(nearest, minlength=n_images)
     return means, m2s, counts, gen
 
 
-def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
+def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk, wrap=None):
     """As :func:`._sampling.run_single`, by blocks of samples; the same numbers.
 
     Parameters
@@ -332,9 +332,11 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
     sd : ndarray of shape (n_modes,)
         Mode standard deviations.
     key : np.uint64
-        Stream key of the seed (``_sampling._key``).
+        Stream key of the seed (``_sampling.stream_key``).
     n_samples, l2, exponent, chunk
         As ``run_single``.
+    wrap : callable, optional
+        Wraps the iterable of chunk indices (a progress bar).
 
     Returns
     -------
@@ -343,7 +345,8 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
     gen : ndarray of shape (n_chunks, n_images)
         Raw (L1 sum or squared L2) nearest-sample distance of each image, per chunk.
     """
-    return _run(_Searcher(train, sd, l2), key, int(n_samples), l2, float(exponent), int(chunk))
+    searcher = _Searcher(train, sd, l2)
+    return _run(searcher, key, int(n_samples), l2, float(exponent), int(chunk), wrap)
 
 
 def run_paired_blocked(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk):
@@ -362,11 +365,11 @@ def run_paired_blocked(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponen
         m = stop - start
         va, na, gen_a[c] = sa.chunk(key, start, stop)
         vb, nb, gen_b[c] = sb.chunk(key, start, stop)
-        _finish(va, m, l2, float(exponent))
-        _finish(vb, m, l2, float(exponent))
-        moments[0, c] = _moments(va, m)
-        moments[1, c] = _moments(vb, m)
-        moments[2, c] = _moments(va - vb, m)
+        finish_distances(va, m, l2, float(exponent))
+        finish_distances(vb, m, l2, float(exponent))
+        moments[0, c] = chunk_moments(va, m)
+        moments[1, c] = chunk_moments(vb, m)
+        moments[2, c] = chunk_moments(va - vb, m)
         counts_a[c] = np.bincount(na, minlength=sa.n_images)
         counts_b[c] = np.bincount(nb, minlength=sb.n_images)
     return moments, counts_a, counts_b, gen_a, gen_b
@@ -424,7 +427,7 @@ class _TorchSearcher:
         return values, nearest, gen.cpu().numpy()
 
 
-def run_single_torch(train, sd, key, n_samples, l2, exponent, chunk, device):
+def run_single_torch(train, sd, key, n_samples, l2, exponent, chunk, device, wrap=None):
     """As :func:`run_single_blocked`, with the distances computed by torch on `device`."""
     searcher = _TorchSearcher(train, sd, l2, device)
-    return _run(searcher, key, int(n_samples), l2, float(exponent), int(chunk))
+    return _run(searcher, key, int(n_samples), l2, float(exponent), int(chunk), wrap)

@@ -19,6 +19,10 @@ import numba
 import numpy as np
 
 __all__ = [
+    "stream_key",
+    "fill_normals",
+    "finish_distances",
+    "chunk_moments",
     "standard_normals",
     "run_single",
     "run_paired",
@@ -113,7 +117,7 @@ def _normal_slow(key, base, attempt, idx, negative, x):
 
 
 @numba.njit(cache=True)
-def _fill_normals(key, mu, out):
+def fill_normals(key, mu, out):
     """Standard normals z(key, mu, k) for k < len(out): each fixed by (key, mu, k) alone.
 
     Ziggurat (Marsaglia & Tsang, 256 layers, as numpy's): normal k of sample mu reads the
@@ -144,7 +148,7 @@ def _fill_normals(key, mu, out):
                 out[k] = _normal_slow(key, base, 0, idx, negative, -x if negative else x)
 
 
-def _key(seed: int) -> np.uint64:
+def stream_key(seed: int) -> np.uint64:
     """The splitmix64-mixed stream key of a user seed."""
     if not 0 <= int(seed) < 2**63:
         raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
@@ -157,10 +161,10 @@ def _key(seed: int) -> np.uint64:
 
 def standard_normals(seed: int, start: int, stop: int, n_modes: int) -> np.ndarray:
     """The standard normals of samples ``start:stop`` as an array (for tests and references)."""
-    key = _key(seed)
+    key = stream_key(seed)
     out = np.empty((stop - start, n_modes))
     for row, mu in enumerate(range(start, stop)):
-        _fill_normals(key, mu, out[row])
+        fill_normals(key, mu, out[row])
     return out
 
 
@@ -201,7 +205,7 @@ def _nearest_one(train_t, y, l2, dist, gen_min):
 def _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen_min):
     """Samples start:stop of the model with mode standard deviations sd: nearest per sample."""
     for mu in range(start, stop):
-        _fill_normals(key, mu, y)
+        fill_normals(key, mu, y)
         for k in range(y.shape[0]):
             y[k] *= sd[k]
         values[mu - start], nearest[mu - start] = _nearest_one(train_t, y, l2, dist, gen_min)
@@ -227,7 +231,7 @@ def nearest_of_samples(train_t, samples, l2, chunk):
 
 
 @numba.njit(cache=True)
-def _finish(values, count, l2, exponent):
+def finish_distances(values, count, l2, exponent):
     """Turn raw nearest distances into |x - y|^exponent in place."""
     for j in range(count):
         v = values[j]
@@ -239,7 +243,7 @@ def _finish(values, count, l2, exponent):
 
 
 @numba.njit(cache=True)
-def _moments(values, count):
+def chunk_moments(values, count):
     s = 0.0
     for j in range(count):
         s += values[j]
@@ -252,24 +256,29 @@ def _moments(values, count):
 
 
 @numba.njit(parallel=True, cache=True)
-def run_single(train_t, sd, key, n_samples, l2, exponent, chunk):
-    """Per-chunk (count, mean, M2) of the sample nearest distances, Voronoi counts, gen minima."""
+def run_single(train_t, sd, key, n_samples, l2, exponent, chunk, first, last):
+    """Per-chunk (count, mean, M2) of the sample nearest distances, Voronoi counts, gen minima.
+
+    Chunk c holds samples ``[c * chunk, min((c + 1) * chunk, n_samples))``; this call runs
+    chunks ``first .. last - 1`` (so a caller can show progress between calls; the numbers
+    of a chunk do not depend on how the chunks are grouped).
+    """
     n_modes, n_images = train_t.shape
-    n_chunks = (n_samples + chunk - 1) // chunk
+    n_chunks = last - first
     means = np.empty(n_chunks)
     m2s = np.empty(n_chunks)
     counts = np.zeros((n_chunks, n_images), dtype=np.int64)
     gen = np.full((n_chunks, n_images), np.inf)
     for c in numba.prange(n_chunks):
-        start = c * chunk
+        start = (first + c) * chunk
         stop = min(n_samples, start + chunk)
         y = np.empty(n_modes)
         dist = np.empty(n_images)
         values = np.empty(stop - start)
         nearest = np.empty(stop - start, dtype=np.int64)
         _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen[c])
-        _finish(values, stop - start, l2, exponent)
-        means[c], m2s[c] = _moments(values, stop - start)
+        finish_distances(values, stop - start, l2, exponent)
+        means[c], m2s[c] = chunk_moments(values, stop - start)
         for j in range(stop - start):
             counts[c, nearest[j]] += 1
     return means, m2s, counts, gen
@@ -318,15 +327,15 @@ def run_paired(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk
             nb,
             gen_b[c],
         )
-        _finish(va, m, l2, exponent)
-        _finish(vb, m, l2, exponent)
-        moments[0, c, 0], moments[0, c, 1] = _moments(va, m)
-        moments[1, c, 0], moments[1, c, 1] = _moments(vb, m)
+        finish_distances(va, m, l2, exponent)
+        finish_distances(vb, m, l2, exponent)
+        moments[0, c, 0], moments[0, c, 1] = chunk_moments(va, m)
+        moments[1, c, 0], moments[1, c, 1] = chunk_moments(vb, m)
         for j in range(m):
             va[j] -= vb[j]
             counts_a[c, na[j]] += 1
             counts_b[c, nb[j]] += 1
-        moments[2, c, 0], moments[2, c, 1] = _moments(va, m)
+        moments[2, c, 0], moments[2, c, 1] = chunk_moments(va, m)
     return moments, counts_a, counts_b, gen_a, gen_b
 
 

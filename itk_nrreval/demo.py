@@ -118,7 +118,7 @@ def correspondence_error(
 
 
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
-    from .reports import _fmt, _pct
+    from .reports import format_number, format_percent
 
     names = list(evaluation.scores)
     err_rank = ranks(error, higher_is_better=False)
@@ -135,17 +135,17 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
         for w in _TABLE_OVERLAPS:
             m = f"overlap.{w}"
             row += [
-                _fmt(s.overlap[w], 3),
+                format_number(s.overlap[w], 3),
                 str(evaluation.ranks[m][name]),
-                _pct(evaluation.relative_ranks[m][name]),
+                format_percent(evaluation.relative_ranks[m][name]),
             ]
         row += [
-            _fmt(s.specificity.value, 4),
-            _fmt(s.specificity.stderr, 2),
+            format_number(s.specificity.value, 4),
+            format_number(s.specificity.stderr, 2),
             str(evaluation.ranks["specificity"][name]),
-            _pct(evaluation.relative_ranks["specificity"][name]),
+            format_percent(evaluation.relative_ranks["specificity"][name]),
         ]
-        row += [_fmt(error[name], 3), str(err_rank[name]), _pct(err_rel[name])]
+        row += [format_number(error[name], 3), str(err_rank[name]), format_percent(err_rel[name])]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
@@ -198,7 +198,7 @@ def run_demo(
     from data_synth import make_population, write_population
 
     from .registration import register
-    from .registration._elastix_worker import ElastixWorker, _elastix_available
+    from .registration._elastix_worker import ElastixWorker, elastix_available
 
     say = log or (lambda line: print(line, file=sys.stderr, flush=True))
     out = Path(out)
@@ -215,7 +215,7 @@ def run_demo(
         manifest.unlink()  # a fresh comparison: registrations of an earlier run do not mix in
     stems = [Path(p).name.split(".")[0] for p in truth.images]
     images = list(truth.images)
-    use_elastix = _elastix_available()
+    use_elastix = elastix_available()
     results = {}
     with ElastixWorker() if use_elastix else contextlib.nullcontext() as worker:
         # One affine stage per reference, shared by the methods that use that reference.

@@ -16,28 +16,16 @@ import os
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import SimpleITK as sitk
 
 from ._errors import InputError
-from ._images import Geometry, mask_array, read_image
-from ._output import atomic_path
-from .frame import (
-    FrameMapping,
-    common_reference,
-    frame_mapping,
-    label_values,
-    read_chains,
-    resample_images,
-    resample_memberships,
-    resampling_transform,
-)
+from .frame import FrameMapping
 from .manifest import Manifest, load_manifest
-from .specificity import GeneralizationResult, SpecificityResult, texture_measures
-from .transforms import folded_fraction
+from .overlap import WEIGHTINGS
+from .pipeline import InProcessExecutor, run_pipeline
+from .specificity import GeneralizationResult, SpecificityResult
 
 __all__ = ["RegistrationScores", "EvaluationResult", "evaluate", "ranks", "relative_ranks"]
 
@@ -120,9 +108,9 @@ class EvaluationResult:
     version : str
         The toolkit version.
     run : dict
-        How the run was executed: empty for the single-process path; with a scheduler, the
-        scheduler, the number of workers, and how many per-image results were reused from the
-        cache (``cache_reused``) or computed (``cache_computed``).
+        How the run was executed: ``scheduler`` (None: in this process), ``workers``, and
+        how many per-image results were reused from the cache (``cache_reused``) or
+        computed (``cache_computed``).
     """
 
     scores: Mapping[str, RegistrationScores]
@@ -236,8 +224,6 @@ def relative_ranks(
 
 
 def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str, ...]:
-    from .overlap import WEIGHTINGS
-
     if distance not in _DISTANCES:
         raise ValueError(f"distance: {distance!r} is not one of {_DISTANCES}")
     if interpolation not in _INTERPOLATIONS:
@@ -253,15 +239,6 @@ def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str,
         if w not in WEIGHTINGS:
             raise ValueError(f"weightings: {w!r} is not one of {WEIGHTINGS}")
     return weightings
-
-
-def _save_stack(folder: Path, stem: str, arrays: np.ndarray, grid: Geometry, vector: bool):
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, arr in enumerate(arrays):
-        img = sitk.GetImageFromArray(np.moveaxis(arr, 0, -1) if vector else arr, isVector=vector)
-        grid.apply_to(img)
-        with atomic_path(folder / f"{stem}_{i:03d}.nii.gz") as tmp:
-            sitk.WriteImage(img, str(tmp), True)
 
 
 def evaluate(
@@ -297,20 +274,21 @@ def evaluate(
     interpolation : {"linear", "bspline"}
         Intensity interpolation; labels are always one-hot memberships resampled linearly.
     progress : bool
-        Progress bars on stderr during resampling.
+        Progress bars on stderr (resampling, model, specificity search).
     save_resampled : path, optional
-        Folder to write each registration's resampled images and membership maps (NIfTI).
-        Single-process path only.
+        Folder to write each registration's resampled images and label memberships
+        (NIfTI; one component per nonzero label value).
     scheduler : str, optional
-        Run on a Dask cluster (:mod:`itk_nrreval.scaleout`): ``"local"`` starts a local
-        cluster of `workers` single-threaded processes; otherwise the address of a running
-        scheduler. Per-image work and voxel-block sums run as tasks, and no process holds
-        all the images. Default: the single-process path (the numbers agree to round-off).
+        Run the tasks on a Dask cluster (:mod:`itk_nrreval.scaleout`): ``"local"`` starts a
+        local cluster of `workers` single-threaded processes; otherwise the address of a
+        running scheduler. Default: in this process. Either way the same tasks run
+        (:mod:`itk_nrreval.pipeline`), no process holds all the images, and the numbers
+        are the same.
     workers : int, optional
         With ``scheduler="local"``, the number of worker processes (default: CPU count);
         with an address, wait until that many workers have joined.
     cache : path, optional
-        With a scheduler, the folder of the per-image result cache (shared by driver and
+        The folder of the per-image result cache (with a scheduler: shared by driver and
         workers): a rerun -- after an interruption, or with more images or registrations --
         recomputes only what changed. Default: a temporary folder, removed afterwards.
 
@@ -330,108 +308,76 @@ def evaluate(
     RuntimeWarning
         When a registration's transforms fold (Jacobian determinant <= 0 somewhere).
     """
-    from .overlap import overlap_table
-
     weightings = _check_options(n_samples, distance, interpolation, weightings)
     m = load_manifest(manifest)
-    if scheduler is not None:
-        return _evaluate_scaled(
-            m,
-            scheduler=scheduler,
-            workers=workers,
-            cache=cache,
-            n_samples=int(n_samples),
-            seed=seed,
-            distance=distance,
-            weightings=weightings,
-            interpolation=interpolation,
-            progress=progress,
-            save_resampled=save_resampled,
-        )
-    ref_img = common_reference(m)
-    grid = Geometry.from_image(ref_img)
-    mask = mask_array(m.mask, shape=grid.shape, geometry=grid) if m.mask is not None else None
-    images = [sitk.Cast(read_image(p, what="image"), sitk.sitkFloat64) for p in m.images]
-    labels = values = None
-    if m.labels is not None:
-        labels = [read_image(p, what="label map") for p in m.labels]
-        found = label_values(labels)
-        values = [0] + [int(v) for v in found if v != 0]  # channel 0 is background
-    common_chains = read_chains(m, m.common_frame)
-    scores: dict[str, RegistrationScores] = {}
-    means: dict[str, np.ndarray] = {}
-    for name, reg in m.registrations.items():
-        chains = common_chains if name == m.common_frame else read_chains(m, name)
-        frame = frame_mapping(
-            m, name, grid=grid, transforms=chains, common_transforms=common_chains, mask=mask
-        )
-        full = [resampling_transform(t, frame.transform) for t in chains]
-        stack = resample_images(
-            images,
-            full,
-            grid,
-            interpolation=interpolation,
-            show_progress=progress,
-            desc=f"{name}: images",
-        )
-        spec, gen = texture_measures(
-            stack, n_samples=int(n_samples), distance=distance, seed=seed, mask=mask
-        )
-        overlap: dict[str, float] = {}
-        memberships = None
-        if labels is not None:
-            memberships = resample_memberships(
-                labels,
-                full,
-                grid,
-                values=values,
-                show_progress=progress,
-                desc=f"{name}: labels",
-            )
-            table = overlap_table(memberships, mask=mask, spacing=grid.spacing)
-            overlap = {w: table.generalized(w) for w in weightings}
-        reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
-        folds = [folded_fraction(t, reg_grid) for t in chains]
-        _warn_if_folded(name, folds)
-        if save_resampled is not None:
-            folder = Path(save_resampled) / name
-            _save_stack(folder, "image", stack, grid, vector=False)
-            if memberships is not None:
-                _save_stack(folder, "memberships", memberships, grid, vector=True)
-        means[name] = stack.mean(axis=0)
+    options = dict(
+        cache=cache,
+        n_samples=int(n_samples),
+        seed=seed,
+        distance=distance,
+        interpolation=interpolation,
+        show_progress=progress,
+        save_resampled=save_resampled,
+    )
+    if scheduler is None:
+        if workers is not None:
+            raise ValueError("workers: only with a scheduler (local or an address)")
+        executor = InProcessExecutor()
+        run = run_pipeline(m, executor, **options)
+        run_info = {"scheduler": None, "workers": 1}
+    else:
+        from .scaleout import DaskExecutor, check_scheduler, cluster_client
+
+        check_scheduler(scheduler, workers)
+        with cluster_client(scheduler, workers=workers) as client:
+            executor = DaskExecutor(client)
+            run = run_pipeline(m, executor, **options)
+        run_info = {"scheduler": scheduler, "workers": executor.n_workers}
+    run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
+    scores = {}
+    for name, r in run.registrations.items():
+        overlap = {w: r.overlap.generalized(w) for w in weightings} if r.overlap else {}
+        _warn_if_folded(name, r.folded)
         scores[name] = RegistrationScores(
-            name, spec, gen, overlap, frame, float(np.mean(folds)), float(max(folds))
+            name,
+            r.specificity,
+            r.generalization,
+            overlap,
+            r.frame,
+            float(np.mean(r.folded)),
+            float(np.max(r.folded)),
         )
-        del stack, memberships
-    return _result(m, scores, means, values, weightings, n_samples, seed, distance, interpolation)
+    means = {name: r.mean_image for name, r in run.registrations.items()}
+    return _result(
+        m,
+        scores,
+        means,
+        run.label_values,
+        weightings,
+        n_samples,
+        seed,
+        distance,
+        interpolation,
+        run=run_info,
+    )
 
 
-def _warn_if_folded(name: str, folds: Sequence[float], *, stacklevel: int = 3) -> None:
+def _warn_if_folded(name: str, folds: Sequence[float]) -> None:
     if max(folds) > 0:
         warnings.warn(
             f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
             f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
             "worst: they are not invertible there",
             RuntimeWarning,
-            stacklevel=stacklevel,
+            stacklevel=3,
         )
 
 
-def _evaluate_scaled(m: Manifest, *, save_resampled, weightings, **kwargs) -> EvaluationResult:
-    from .scaleout import evaluate_scaled
-
-    if save_resampled is not None:
-        raise ValueError("save_resampled: only the single-process path writes resampled images")
-    scores, means, values, run = evaluate_scaled(m, weightings=weightings, **kwargs)
-    keys = ("n_samples", "seed", "distance", "interpolation")
-    return _result(m, scores, means, values, weightings, *(kwargs[k] for k in keys), run=run)
-
-
 def _result(
-    m, scores, means, values, weightings, n_samples, seed, distance, interpolation, run=None
+    m, scores, means, values, weightings, n_samples, seed, distance, interpolation, run
 ) -> EvaluationResult:
     """Ranks and relative ranks of every measure, and the result object."""
-    from . import __version__
+    from ._version import __version__
 
     measures = ["specificity", "generalization"]
     if m.labels is not None:
@@ -461,5 +407,5 @@ def _result(
         m.describe(),
         options,
         __version__,
-        run=dict(run or {}),
+        run=dict(run),
     )

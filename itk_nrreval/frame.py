@@ -32,15 +32,19 @@ import SimpleITK as sitk
 from ._errors import InputError
 from ._images import Geometry, read_image
 from ._progress import progress
-from .manifest import Manifest
-from .transforms import _leaves, chain_transform, displacement_field, field_transform, invert
+from .manifest import Manifest, Registration
+from .memberships import resample_label_memberships
+from .transforms import chain_transform, displacement_field, field_transform, invert, leaves
 
 __all__ = [
     "FrameMapping",
     "common_reference",
     "read_chains",
     "frame_estimates",
+    "frame_method",
     "frame_mapping",
+    "needs_inversion_grid",
+    "points_minus_grid",
     "resampling_transform",
     "resample_images",
     "resample_memberships",
@@ -98,7 +102,7 @@ def _identity(dim: int) -> sitk.Transform:
     return sitk.TranslationTransform(dim)
 
 
-def _points_minus_grid(transform: sitk.Transform, grid: Geometry) -> np.ndarray:
+def points_minus_grid(transform: sitk.Transform, grid: Geometry) -> np.ndarray:
     """``T(p) - p`` on `grid`: numpy array of shape (*spatial_zyx, dim), mm, (x, y, z) last."""
     return sitk.GetArrayFromImage(displacement_field(transform, grid))
 
@@ -135,15 +139,15 @@ def frame_estimates(
     out = np.empty((len(common), *g.shape, g.dimension))
     for i, (tc, tr) in enumerate(zip(common, other, strict=True)):
         # sitk list order: [R^-1, C] means R^-1(C(p))
-        out[i] = _points_minus_grid(sitk.CompositeTransform([invert(tr, grid=other_grid), tc]), g)
+        out[i] = points_minus_grid(sitk.CompositeTransform([invert(tr, grid=other_grid), tc]), g)
     return out
 
 
-def _sampled_before_inversion(transform: sitk.Transform) -> bool:
+def needs_inversion_grid(transform: sitk.Transform) -> bool:
     """Whether inverting `transform` needs a grid (it has a B-spline or similar piece)."""
     return any(
         not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform)
-        for t in _leaves(transform)
+        for t in leaves(transform)
     )
 
 
@@ -154,6 +158,21 @@ def _spread(
     if mask is not None:
         dist = dist[:, np.asarray(mask, bool)]
     return float(dist.mean()), float(dist.max())
+
+
+def frame_method(registration: Registration) -> str:
+    """How F is obtained for a registration other than the common one.
+
+    Returns
+    -------
+    {"frame_transform", "reference_index", "mean"}
+        The first available, in that order (see the module docstring).
+    """
+    if registration.frame_transform is not None:
+        return "frame_transform"
+    if registration.reference_index is not None:
+        return "reference_index"
+    return "mean"
 
 
 def frame_mapping(
@@ -202,12 +221,7 @@ def frame_mapping(
     if name == manifest.common_frame:
         return FrameMapping(name, "common", _identity(g.dimension), 0.0, 0.0)
     if method is None:
-        if reg.frame_transform is not None:
-            method = "frame_transform"
-        elif reg.reference_index is not None:
-            method = "reference_index"
-        else:
-            method = "mean"
+        method = frame_method(reg)
     if method not in _METHODS[1:]:
         raise ValueError(f"method: {method!r} is not one of {_METHODS[1:]}")
     if method == "frame_transform" and reg.frame_transform is None:
@@ -221,7 +235,7 @@ def frame_mapping(
         if transforms is None:
             transforms = read_chains(manifest, name)
         reg_grid = None
-        if any(_sampled_before_inversion(t) for t in transforms):
+        if any(needs_inversion_grid(t) for t in transforms):
             reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
         estimates = frame_estimates(common_transforms, transforms, g, other_grid=reg_grid)
     if method == "frame_transform":
@@ -235,7 +249,7 @@ def frame_mapping(
         f = field_transform(img)
     if estimates is None:
         return FrameMapping(name, method, f, float("nan"), float("nan"))
-    f_disp = _points_minus_grid(f, g)
+    f_disp = points_minus_grid(f, g)
     return FrameMapping(name, method, f, *_spread(estimates, f_disp, mask))
 
 
@@ -325,7 +339,10 @@ def resample_memberships(
     show_progress: bool = True,
     desc: str = "resampling labels",
 ) -> np.ndarray:
-    """Resample label maps as one-hot memberships, linearly, onto `grid`.
+    """Resample label maps as one-hot memberships, linearly, onto `grid` (dense).
+
+    The dense form of :func:`itk_nrreval.memberships.resample_label_memberships` for a
+    few small images; the evaluate pipeline keeps the sparse form.
 
     Parameters
     ----------
@@ -340,7 +357,8 @@ def resample_memberships(
     Returns
     -------
     ndarray of shape (n_images, n_labels, *spatial_zyx), float32
-        Fuzzy memberships in [0, 1] (they sum to 1 inside the field of view, 0 outside).
+        Fuzzy memberships in [0, 1] (they sum to 1 inside the field of view, 0 outside),
+        equal to SimpleITK's linear resampling of the one-hot channels.
     """
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
     values = [int(v) for v in values]
@@ -350,10 +368,5 @@ def resample_memberships(
         progress(pairs, desc=desc, total=len(labels), enabled=show_progress)
     ):
         lab = _as_image(item, "label map")
-        arr = sitk.GetArrayViewFromImage(lab)
-        onehot = np.stack([(arr == v) for v in values], axis=-1).astype(np.float32)
-        vec = sitk.GetImageFromArray(onehot, isVector=True)
-        vec.CopyInformation(lab)
-        res = sitk.GetArrayFromImage(_resample(vec, t, g, sitk.sitkLinear))
-        out[i] = np.moveaxis(res.reshape(*g.shape, len(values)), -1, 0)
+        out[i] = resample_label_memberships(lab, t, g, values=values).dense()
     return out

@@ -44,7 +44,7 @@ import yaml
 
 from ._errors import InputError
 from ._output import write_text
-from .transforms import FIELD_SUFFIXES, TRANSFORM_SUFFIXES, _suffix
+from .transforms import FIELD_SUFFIXES, TRANSFORM_SUFFIXES, file_suffix
 
 __all__ = [
     "Registration",
@@ -374,7 +374,7 @@ def transform_file_dimension(path: Path) -> int:
     RuntimeError, ValueError
         When the file cannot be read as a transform.
     """
-    suffix = _suffix(path)
+    suffix = file_suffix(path)
     if suffix in FIELD_SUFFIXES:
         dim, comps = _image_info(path)
         if comps != dim:
@@ -399,7 +399,7 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
         if not item.is_file():
             problems.append(f"{what}: file not found: {item}")
             return
-        suffix = _suffix(item)
+        suffix = file_suffix(item)
         if suffix not in TRANSFORM_SUFFIXES + FIELD_SUFFIXES:
             problems.append(
                 f"{what}: {item.name}: unknown transform format (expected one of "

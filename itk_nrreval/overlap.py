@@ -13,26 +13,31 @@ and validation in medical image analysis", IEEE TMI 25(11), 2006, eq. (4) withou
 doi:10.1109/TMI.2006.880587.
 
 Everything is read from one per-label table (:class:`OverlapTable`) built in one sweep over the
-voxels: the pair sums of minima and maxima, the volumes and the boundary complexity. Every
-weighting, and the per-label Jaccard, Dice and target overlap, come from that table.
+voxels: the pair sums of minima and maxima, the volumes and (when asked for) the boundary
+complexity and the target-overlap sums. Every weighting, and the per-label Jaccard, Dice and
+target overlap, come from that table. The kernels live in :mod:`._overlap_kernels`.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import os
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import numba
-import numba.extending
 import numpy as np
 import SimpleITK as sitk
-from llvmlite import ir as llvm_ir
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
+from ._overlap_kernels import (
+    label_map_gradient_sums,
+    label_map_sums,
+    membership_gradient_sums,
+    membership_pair_sums,
+    membership_stats,
+)
 from ._progress import progress
 
 __all__ = ["WEIGHTINGS", "OverlapTable", "overlap_table", "generalized_overlap"]
@@ -46,10 +51,7 @@ WEIGHTINGS = (
     "inverse_volume_complexity",
 )
 
-_BLOCK = 256  # voxels per block of fuzzy memberships: (N, _BLOCK) float64 scratch fits L2
-_INDEX_BITS = 29  # float32 -> float64 leaves 29 zero mantissa bits to carry an image index
-_NETWORK_FRACTION = 0.5  # above this share of values strictly in (0, 1), sort by network
-_MAX_LUT = 1 << 22  # largest label-value range mapped through a lookup table
+_COMPLEXITY_WEIGHTINGS = ("complexity", "inverse_volume_complexity")
 _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input shows progress
 
 
@@ -58,12 +60,18 @@ def _check_weighting(weighting: str) -> None:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
 
 
+def _json_value(x):
+    """A float for JSON: NaN (not computed, or undefined) becomes None."""
+    return None if isinstance(x, float) and math.isnan(x) else x
+
+
 @dataclass(frozen=True)
 class OverlapTable:
     """Per-label pair sums, volumes and complexities of a group of label images.
 
-    Built once by :func:`overlap_table`; every scalar measure is read from it, so asking for
-    all five weightings costs one pass over the voxels.
+    Built once by :func:`overlap_table` (or from sums added up elsewhere, by
+    :meth:`from_sums`); every scalar measure is read from it, so asking for all five
+    weightings costs one pass over the voxels.
 
     Attributes
     ----------
@@ -79,16 +87,23 @@ class OverlapTable:
         when no spacing is known).
     complexity : ndarray of float, shape (n_labels,)
         The mean over the images that carry the label of ``sum_v |grad A_il| / sum_v A_il``,
-        in mm^-1: boundary per unit volume. Zero for a label that fills the whole grid.
+        in mm^-1: boundary per unit volume. Zero for a label that fills the whole grid. All
+        NaN when the table was built without it (``has_complexity`` false).
     target_overlap : ndarray of float, shape (n_labels,)
         Klein's target overlap ``|A_i ∩ A_j| / |A_j|`` averaged over the ordered pairs
-        (i != j) whose target j carries the label (intersection as sum of minima).
+        (i != j) whose target j carries the label (intersection as sum of minima). All NaN
+        when the table was built without it (``has_target_overlap`` false).
     spacing : tuple of float
-        Voxel size used for the gradients, mm, ITK order (x, y[, z]).
+        Voxel size used for the gradients and volumes, mm, ITK order (x, y[, z]).
     fuzzy : bool
         True when the input was memberships rather than crisp label maps.
     skipped_labels : tuple of int
         Requested (or fuzzy) labels absent from every image, left out of every sum.
+    has_complexity : bool
+        Whether `complexity` was computed (``overlap_table(..., complexity=True)``); the
+        complexity weightings need it.
+    has_target_overlap : bool
+        Whether `target_overlap` was computed (``overlap_table(..., target_overlap=True)``).
     """
 
     labels: np.ndarray
@@ -101,6 +116,113 @@ class OverlapTable:
     spacing: tuple[float, ...]
     fuzzy: bool
     skipped_labels: tuple[int, ...] = field(default=())
+    has_complexity: bool = True
+    has_target_overlap: bool = True
+
+    @classmethod
+    def from_sums(
+        cls,
+        labels,
+        volume,
+        target_sums,
+        gradient_sums,
+        pair_min,
+        pair_max,
+        *,
+        spacing: Sequence[float],
+        fuzzy: bool,
+        skipped_labels: Sequence[int] = (),
+    ) -> OverlapTable:
+        """The table from its per-image and per-label sums, in voxel units.
+
+        For callers that add the sums up themselves (e.g. over blocks of voxels, with
+        :func:`._overlap_kernels.membership_pair_sums`); :func:`overlap_table` ends here too.
+
+        Parameters
+        ----------
+        labels : array_like of int, shape (n_labels,)
+            The label values, ascending.
+        volume : array_like of float, shape (n_images, n_labels)
+            ``sum_v A_il`` per image and label, voxel units (inside the mask).
+        target_sums : array_like of float, shape (n_images, n_labels), or None
+            ``sum_v sum_{j != i} min(A_il, A_jl)``, voxel units. None: the target overlap is
+            not computed (NaN, ``has_target_overlap`` false).
+        gradient_sums : array_like of float, shape (n_images, n_labels), or None
+            ``sum_v |grad A_il|``, mm^-1 x voxels. None: the complexity is not computed (NaN,
+            ``has_complexity`` false; the complexity weightings then raise).
+        pair_min, pair_max : array_like of float, shape (n_labels,)
+            ``sum_{i<j} sum_v min(A_il, A_jl)`` and the same with max, voxel units.
+        spacing : sequence of float
+            Voxel size in mm, ITK order (x, y[, z]); volumes are scaled by its product.
+        fuzzy : bool
+            Whether the sums come from memberships rather than crisp label maps.
+        skipped_labels : sequence of int
+            Labels left out (absent from every image), for the record.
+
+        Returns
+        -------
+        OverlapTable
+
+        Raises
+        ------
+        ValueError
+            Arrays of inconsistent shapes, or fewer than two images.
+
+        Notes
+        -----
+        ``complexity_l`` is the mean of ``gradient_sums[i, l] / volume[i, l]`` over the images
+        with ``volume[i, l] > 0``; ``target_overlap_l`` the mean of ``target_sums[i, l] /
+        volume[i, l]`` over the same images, divided by N - 1.
+        """
+        values = np.asarray(labels).reshape(-1)
+        # C order throughout: the sums over images below round the same for every caller
+        vol = np.ascontiguousarray(volume, dtype=np.float64)
+        p = np.asarray(pair_min, dtype=np.float64).reshape(-1)
+        q = np.asarray(pair_max, dtype=np.float64).reshape(-1)
+        n_labels = values.size
+        if vol.ndim != 2 or vol.shape[1] != n_labels or p.size != n_labels or q.size != n_labels:
+            raise ValueError(
+                f"from_sums: labels {values.shape}, volume {vol.shape}, pair_min {p.shape} and "
+                f"pair_max {q.shape} do not agree on (n_images, n_labels)"
+            )
+        n_images = vol.shape[0]
+        if n_images < 2:
+            raise ValueError(f"from_sums: need at least 2 images, got {n_images}")
+        for name, arr in (("target_sums", target_sums), ("gradient_sums", gradient_sums)):
+            if arr is not None and np.shape(arr) != vol.shape:
+                raise ValueError(
+                    f"from_sums: {name} has shape {np.shape(arr)}, expected {vol.shape}"
+                )
+        present = vol > 0  # (N, L)
+        carriers = present.sum(0)
+        denom = np.where(present, vol, 1.0)
+        nan = np.full(n_labels, np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if gradient_sums is None:
+                complexity = nan
+            else:
+                gsum = np.ascontiguousarray(gradient_sums, dtype=np.float64)
+                complexity = np.where(present, gsum / denom, 0.0).sum(0) / carriers
+            if target_sums is None:
+                target = nan.copy()
+            else:
+                s_pairs = np.ascontiguousarray(target_sums, dtype=np.float64)
+                target = np.where(present, s_pairs / denom, 0.0).sum(0)
+                target = target / (carriers * (n_images - 1))
+        return cls(
+            labels=values,
+            n_images=n_images,
+            pair_min=p,
+            pair_max=q,
+            volume=vol.mean(axis=0) * float(np.prod(spacing)),
+            complexity=complexity,
+            target_overlap=target,
+            spacing=tuple(float(s) for s in spacing),
+            fuzzy=bool(fuzzy),
+            skipped_labels=tuple(int(v) for v in skipped_labels),
+            has_complexity=gradient_sums is not None,
+            has_target_overlap=target_sums is not None,
+        )
 
     @property
     def jaccard(self) -> np.ndarray:
@@ -125,8 +247,20 @@ class OverlapTable:
             ``"volume"``: 1 (implicit volume weighting); ``"inverse_volume"``: 1 / V_l (mm^-3);
             ``"inverse_volume_squared"``: 1 / V_l^2; ``"complexity"``: the complexity C_l
             (mm^-1); ``"inverse_volume_complexity"``: C_l / V_l.
+
+        Raises
+        ------
+        ValueError
+            An unknown weighting, or a complexity weighting of a table built with
+            ``complexity=False``.
         """
         _check_weighting(weighting)
+        if weighting in _COMPLEXITY_WEIGHTINGS and not self.has_complexity:
+            raise ValueError(
+                f"weighting {weighting!r} needs the label complexities, but this table was "
+                "built with complexity=False (no gradient sums); build it with "
+                "overlap_table(..., complexity=True)"
+            )
         if weighting == "volume":
             return np.ones_like(self.volume)
         if weighting == "inverse_volume":
@@ -142,7 +276,8 @@ class OverlapTable:
 
         In [0, 1]; 1 when every image carries every label on the same voxels. NaN (with a
         warning) when every weight is zero, e.g. complexity weighting of labels without
-        boundary. `weighting` as in :meth:`weights`.
+        boundary. `weighting` as in :meth:`weights` (which raises for a complexity weighting
+        of a table built with ``complexity=False``).
         """
         alpha = self.weights(weighting)
         den = float(alpha @ self.pair_max)
@@ -157,18 +292,33 @@ class OverlapTable:
         return float(alpha @ self.pair_min) / den
 
     def to_dict(self) -> dict:
-        """Plain-Python form: the generalized overlap per weighting and one row per label."""
+        """Plain-Python form: the generalized overlap per weighting and one row per label.
+
+        JSON-ready: a value not computed (complexity or target overlap of a table built
+        without them, and the weightings that need them) or undefined is None, never NaN.
+        """
+        generalized = {
+            w: (
+                None
+                if w in _COMPLEXITY_WEIGHTINGS and not self.has_complexity
+                else _json_value(self.generalized(w))
+            )
+            for w in WEIGHTINGS
+        }
         return {
             "n_images": self.n_images,
             "fuzzy": self.fuzzy,
             "spacing": list(self.spacing),
             "skipped_labels": [int(v) for v in self.skipped_labels],
-            "generalized": {w: self.generalized(w) for w in WEIGHTINGS},
-            "labels": self.rows(),
+            "generalized": generalized,
+            "labels": [{k: _json_value(v) for k, v in row.items()} for row in self.rows()],
         }
 
     def rows(self) -> list[dict]:
-        """One dict per label: value, volume, complexity, Jaccard, Dice, target overlap, sums."""
+        """One dict per label: value, volume, complexity, Jaccard, Dice, target overlap, sums.
+
+        Complexity and target overlap are NaN when the table was built without them.
+        """
         jac, dice = self.jaccard, self.dice
         return [
             {
@@ -196,8 +346,9 @@ def generalized_overlap(
 ) -> float:
     """Generalized Tanimoto overlap of a group of label images (Crum et al. 2006, eq. 4).
 
-    A thin wrapper: ``overlap_table(labels, ...).generalized(weighting)``. To read several
-    weightings, build the table once with :func:`overlap_table`.
+    ``overlap_table(labels, ...).generalized(weighting)``, computing only what `weighting`
+    needs: the gradients only for the complexity weightings, never the target overlap. To
+    read several weightings, build the table once with :func:`overlap_table`.
 
     Parameters
     ----------
@@ -229,6 +380,8 @@ def generalized_overlap(
         include_background=include_background,
         mask=mask,
         spacing=spacing,
+        complexity=weighting in _COMPLEXITY_WEIGHTINGS,
+        target_overlap=False,
     )
     return table.generalized(weighting)
 
@@ -240,6 +393,8 @@ def overlap_table(
     include_background: bool = False,
     mask=None,
     spacing=None,
+    complexity: bool = True,
+    target_overlap: bool = True,
 ) -> OverlapTable:
     """The per-label pair sums, volumes and complexities of N label images, in one pass.
 
@@ -271,6 +426,13 @@ def overlap_table(
         Voxel size in mm, ITK order (x, y[, z]) -- the reverse of the numpy axes -- for bare
         arrays only (images bring their own; passing both is an error). Default 1 along every
         axis. Only the complexity weights depend on it.
+    complexity : bool
+        Compute the label complexities (gradient sums), which the ``"complexity"`` and
+        ``"inverse_volume_complexity"`` weightings need. False skips the gradients (most of
+        the work for crisp maps): the table's `complexity` is NaN and those weightings raise.
+    target_overlap : bool
+        Compute the per-label target overlap (a second pass over the counts for crisp maps).
+        False leaves the table's `target_overlap` NaN.
 
     Returns
     -------
@@ -294,12 +456,14 @@ def overlap_table(
 
     The pair sums avoid the O(N^2 n) loop over pairs. For crisp maps, if c of the N images
     carry label l at a voxel, the voxel adds C(c, 2) to p_l and C(N, 2) - C(N - c, 2) to q_l:
-    O(N n) in all, in exact integer arithmetic. For fuzzy memberships sorted ascending at a
+    O(N n) in all, in exact integer arithmetic, every label in one pass over the maps
+    (:func:`._overlap_kernels.label_map_sums`). For fuzzy memberships sorted ascending at a
     voxel, a_(1) <= ... <= a_(N), it adds ``sum_k a_(k) (N - k)`` to p_l and
     ``sum_k a_(k) (k - 1)`` to q_l. The sort is Batcher's odd-even merge network,
     O(N log^2 N) branch-free comparators run across blocks of voxels at once (268 for
     N = 36, against 630 pairs); voxels where every membership of a label is zero are skipped.
-    Everything streams over the voxels, one label at a time for fuzzy input.
+    Everything streams over the voxels, one label at a time for fuzzy input
+    (:func:`._overlap_kernels.membership_pair_sums`).
 
     Complexity: ``|grad A_il|`` by central differences (one-sided at the grid's faces, as
     :func:`numpy.gradient` with ``edge_order=1``; axes of length 1 contribute nothing), in
@@ -320,50 +484,33 @@ def overlap_table(
         raise InputError(f"label maps: no spatial axis in an array of shape {data.shape}")
     spacing_itk = _spacing(spacing, stack.geometry, len(spatial))
     mask_flat = mask_array(mask, shape=spatial, geometry=stack.geometry)
-    mask_flat = np.zeros(0, np.bool_) if mask_flat is None else mask_flat.reshape(-1)
-    shape = np.asarray(spatial, dtype=np.int64)
-    inv_h = 1.0 / np.asarray(spacing_itk[::-1], dtype=np.float64)
-
-    if fuzzy:
-        values, skipped, vol, s_pairs, gsum, p, q = _fuzzy_sums(
-            data, names, label_values, include_background, mask_flat, shape, inv_h
-        )
-    else:
-        values, skipped, vol, s_pairs, gsum, p, q = _crisp_sums(
-            data, names, label_values, include_background, mask_flat, shape, inv_h
-        )
+    mask_flat = None if mask_flat is None else mask_flat.reshape(-1)
+    sums = _fuzzy_sums if fuzzy else _crisp_sums
+    values, skipped, vol, s_pairs, gsum, p, q = sums(
+        data,
+        names,
+        label_values,
+        include_background,
+        mask_flat,
+        spatial,
+        spacing_itk,
+        complexity=complexity,
+        target_overlap=target_overlap,
+    )
     if skipped:
         warnings.warn(
             f"labels {list(skipped)} are absent from every image and are skipped",
             UserWarning,
             stacklevel=2,
         )
-    return _table(
-        values, vol, s_pairs, gsum, p, q, spacing=spacing_itk, fuzzy=fuzzy, skipped=skipped
-    )
-
-
-def _table(values, vol, s_pairs, gsum, p, q, *, spacing, fuzzy, skipped) -> OverlapTable:
-    """The table from its sums: vol, s_pairs, gsum of shape (N, L) in voxel units, p, q (L,).
-
-    Shared with :mod:`itk_nrreval.scaleout`, which adds the sums up over voxel blocks.
-    """
-    n_images = vol.shape[0]
-    present = vol > 0  # (N, L)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        complexity = np.where(present, gsum / np.where(present, vol, 1.0), 0.0).sum(0)
-        complexity = complexity / present.sum(0)
-        target = np.where(present, s_pairs / np.where(present, vol, 1.0), 0.0).sum(0)
-        target = target / (present.sum(0) * (n_images - 1))
-    return OverlapTable(
-        labels=values,
-        n_images=n_images,
-        pair_min=p,
-        pair_max=q,
-        volume=vol.mean(axis=0) * float(np.prod(spacing)),
-        complexity=complexity,
-        target_overlap=target,
-        spacing=tuple(spacing),
+    return OverlapTable.from_sums(
+        values,
+        vol,
+        s_pairs,
+        gsum,
+        p,
+        q,
+        spacing=spacing_itk,
         fuzzy=fuzzy,
         skipped_labels=skipped,
     )
@@ -448,12 +595,22 @@ def _no_labels(names, include_background: bool) -> InputError:
 # -- crisp label maps ----------------------------------------------------------------------
 
 
-def _crisp_sums(data, names, label_values, include_background, mask_flat, shape, inv_h):
+def _crisp_sums(
+    data,
+    names,
+    label_values,
+    include_background,
+    mask_flat,
+    spatial,
+    spacing_itk,
+    *,
+    complexity: bool,
+    target_overlap: bool,
+):
+    """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
     n_images = data.shape[0]
     flat = data.reshape(n_images, -1)
-    if data.dtype == np.bool_:
-        flat = flat.view(np.uint8)
-    elif np.issubdtype(data.dtype, np.floating):  # a crisp map from a floating-point file
+    if np.issubdtype(data.dtype, np.floating):  # a crisp map from a floating-point file
         for i in range(n_images):
             row = flat[i]
             bad = row != np.round(row)
@@ -464,173 +621,68 @@ def _crisp_sums(data, names, label_values, include_background, mask_flat, shape,
                     "multi-component image per subject"
                 )
         flat = flat.astype(np.int64)
-    has_mask = mask_flat.size > 0
-    lo, hi = int(flat.min()), int(flat.max())
-    use_lut = hi - lo < _MAX_LUT
-    if use_lut:
-        seen = np.zeros(hi - lo + 1, dtype=bool)
-        for i in range(n_images):
-            row = flat[i][mask_flat] if has_mask else flat[i]
-            seen |= np.bincount((row.astype(np.int64) - lo), minlength=hi - lo + 1) > 0
-        present_values = np.flatnonzero(seen).astype(np.int64) + lo
-    else:
-        present_values = np.unique(
-            np.concatenate(
-                [np.unique(flat[i][mask_flat] if has_mask else flat[i]) for i in range(n_images)]
-            )
-        ).astype(np.int64)
 
     if label_values is None:
-        values = present_values if include_background else present_values[present_values != 0]
+        exclude = () if include_background else (0,)
+        values, pm, vol, s_pairs = label_map_sums(
+            flat, exclude=exclude, mask=mask_flat, target_overlap=target_overlap
+        )
         skipped: tuple[int, ...] = ()
         if values.size == 0:
             raise _no_labels(names, include_background)
     else:
         wanted = _explicit_values(label_values)
-        keep = np.isin(wanted, present_values)
+        _, pm, vol, s_pairs = label_map_sums(
+            flat, values=wanted, mask=mask_flat, target_overlap=target_overlap
+        )
+        keep = vol.sum(axis=0) > 0  # present inside the mask in some image
         values = wanted[keep]
         skipped = tuple(int(v) for v in wanted[~keep])
         if values.size == 0:
             raise InputError(
                 f"{names[0]} .. {names[-1]}: none of the labels {wanted.tolist()} is present"
             )
+        pm, vol = pm[keep], vol[:, keep]
+        s_pairs = None if s_pairs is None else s_pairs[:, keep]
 
-    n_labels = values.size
-    idx = np.empty((flat.shape[1], n_images), dtype=np.int32)  # voxel-major for the kernel
-    if use_lut:
-        lut = np.full(hi - lo + 1, -1, dtype=np.int32)
-        lut[values - lo] = np.arange(n_labels, dtype=np.int32)
-        for i in range(n_images):
-            idx[:, i] = lut[flat[i].astype(np.int64) - lo]
-    else:
-        for i in range(n_images):
-            row = flat[i].astype(np.int64)
-            pos = np.clip(np.searchsorted(values, row), 0, n_labels - 1)
-            idx[:, i] = np.where(values[pos] == row, pos, -1)
-
-    vol, s_pairs, gsum = _crisp_kernel(idx, n_labels, mask_flat, shape, inv_h)
-    # sum over images of (c - 1) at their voxels = sum over ordered pairs of intersections.
-    p_int = s_pairs.sum(axis=0) // 2
-    q_int = (n_images - 1) * vol.sum(axis=0) - p_int  # pair sums of a_i + a_j are min + max
+    gsum = None
+    if complexity:
+        gsum = label_map_gradient_sums(
+            flat, values, shape=spatial, spacing=spacing_itk, mask=mask_flat
+        )
+    q = (n_images - 1) * vol.sum(axis=0) - pm  # pair sums of a_i + a_j are min + max
     return (
         values,
         skipped,
         vol.astype(np.float64),
-        s_pairs.astype(np.float64),
+        None if s_pairs is None else s_pairs.astype(np.float64),
         gsum,
-        p_int.astype(np.float64),
-        q_int.astype(np.float64),
+        pm.astype(np.float64),
+        q.astype(np.float64),
     )
-
-
-@numba.njit(cache=True, nogil=True)
-def _crisp_kernel(idx, n_labels, mask, shape, inv_h):  # pragma: no cover - compiled
-    """Per image and label: voxel count, sum of (c - 1) over its voxels, sum of |grad|.
-
-    ``idx`` is (n_voxels, N) of dense label indices (-1: not evaluated), voxels in C order of
-    `shape`; ``c`` is the number of images carrying the label at the voxel. ``mask`` is a
-    flat boolean array, or empty for no mask. Gradients as numpy.gradient, edge_order=1:
-    along an axis with neighbours p and m (the voxel itself at a face), the indicator of
-    label l changes by ``[p == l] - [m == l]``, so only labels p and m get a component, of
-    squared size ``f^2`` (f = 1 / (2 h) inside, 1 / h at a face).
-    """
-    n_vox, n_img = idx.shape
-    ndim = shape.size
-    strides = np.ones(ndim, np.int64)
-    for d in range(ndim - 2, -1, -1):
-        strides[d] = strides[d + 1] * shape[d + 1]
-    has_mask = mask.size > 0
-    vol = np.zeros((n_img, n_labels), np.int64)
-    spair = np.zeros((n_img, n_labels), np.int64)
-    gsum = np.zeros((n_img, n_labels), np.float64)
-    gpart = np.zeros((n_img, n_labels), np.float64)
-    cnt = np.zeros(n_labels, np.int64)
-    gsq = np.zeros(n_labels, np.float64)
-    touched = np.empty(2 * ndim, np.int64)
-    coords = np.zeros(ndim, np.int64)
-    plus = np.empty(ndim, np.int64)
-    minus = np.empty(ndim, np.int64)
-    fac2 = np.empty(ndim, np.float64)
-    for v in range(n_vox):
-        if v > 0:  # advance the C-order coordinates of v
-            d = ndim - 1
-            coords[d] += 1
-            while coords[d] == shape[d] and d > 0:
-                coords[d] = 0
-                d -= 1
-                coords[d] += 1
-        if has_mask and not mask[v]:
-            continue
-        if v % 4096 == 0:  # blocked summation keeps float rounding small
-            for i in range(n_img):
-                for k in range(n_labels):
-                    gsum[i, k] += gpart[i, k]
-                    gpart[i, k] = 0.0
-        # pair counts
-        for i in range(n_img):
-            k = idx[v, i]
-            if k >= 0:
-                cnt[k] += 1
-        for i in range(n_img):
-            k = idx[v, i]
-            if k >= 0:
-                vol[i, k] += 1
-                spair[i, k] += cnt[k] - 1
-        for i in range(n_img):
-            k = idx[v, i]
-            if k >= 0:
-                cnt[k] = 0
-        # neighbours along each axis, with numpy.gradient's edge rule
-        n_ax = 0
-        for d in range(ndim):
-            if shape[d] == 1:
-                continue
-            if coords[d] == 0:
-                plus[n_ax] = v + strides[d]
-                minus[n_ax] = v
-                fac2[n_ax] = inv_h[d] * inv_h[d]
-            elif coords[d] == shape[d] - 1:
-                plus[n_ax] = v
-                minus[n_ax] = v - strides[d]
-                fac2[n_ax] = inv_h[d] * inv_h[d]
-            else:
-                plus[n_ax] = v + strides[d]
-                minus[n_ax] = v - strides[d]
-                fac2[n_ax] = 0.25 * inv_h[d] * inv_h[d]
-            n_ax += 1
-        for i in range(n_img):
-            n_t = 0
-            for d in range(n_ax):
-                a = idx[plus[d], i]
-                b = idx[minus[d], i]
-                if a != b:
-                    if a >= 0:
-                        if gsq[a] == 0.0:
-                            touched[n_t] = a
-                            n_t += 1
-                        gsq[a] += fac2[d]
-                    if b >= 0:
-                        if gsq[b] == 0.0:
-                            touched[n_t] = b
-                            n_t += 1
-                        gsq[b] += fac2[d]
-            for t in range(n_t):
-                c = touched[t]
-                gpart[i, c] += math.sqrt(gsq[c])
-                gsq[c] = 0.0
-    gsum += gpart
-    return vol, spair, gsum
 
 
 # -- fuzzy memberships ---------------------------------------------------------------------
 
 
-def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape, inv_h):
+def _fuzzy_sums(
+    data,
+    names,
+    label_values,
+    include_background,
+    mask_flat,
+    spatial,
+    spacing_itk,
+    *,
+    complexity: bool,
+    target_overlap: bool,
+):
+    """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
     n_images, n_comp = data.shape[:2]
     flat = data.reshape(n_images, n_comp, -1)
     if flat.dtype not in (np.float32, np.float64):
         flat = flat.astype(np.float64)
-    lows, highs, present = _membership_stats(flat, mask_flat)
+    lows, highs, present = membership_stats(flat, mask=mask_flat)
     for i in range(n_images):
         lo, hi = float(lows[i]), float(highs[i])
         if lo < 0.0 or hi > 1.0:
@@ -660,440 +712,22 @@ def _fuzzy_sums(data, names, label_values, include_background, mask_flat, shape,
     gsum = np.zeros((n_images, n_labels))
     p = np.zeros(n_labels)
     q = np.zeros(n_labels)
-    active = np.empty(flat.shape[2], dtype=bool)
-    net_lo, net_hi = _sorting_network(n_images)
-    # float32 memberships carry the image index in the low bits of their float64 sort key
-    packed = flat.dtype == np.float32 and n_images <= 1 << _INDEX_BITS
     work = n_images * n_labels * flat.shape[2]
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
     ):
-        comp = int(values[k])
-        _active_voxels(flat, comp, mask_flat, active)
-        voxels = np.flatnonzero(active)  # where some image has a nonzero membership
-        _gradient_sums(flat, comp, mask_flat, shape, inv_h, gsum[:, k])
-        p[k], q[k] = _pair_sums(
-            flat, comp, voxels, net_lo, net_hi, _NETWORK_FRACTION, packed, vol[:, k], s_pairs[:, k]
-        )
-    return values, skipped, vol, s_pairs, gsum, p, q
-
-
-@numba.njit(cache=True, parallel=True)
-def _membership_stats(flat, mask):  # pragma: no cover - compiled
-    """Per image the smallest and largest membership (whole grid), and per image and
-    component whether a membership is nonzero inside the mask: one pass, one image per
-    thread."""
-    n_img, n_comp, n = flat.shape
-    lows = np.empty(n_img)
-    highs = np.empty(n_img)
-    present = np.zeros((n_img, n_comp), np.bool_)
-    has_mask = mask.size > 0
-    for i in numba.prange(n_img):
-        lo = np.inf
-        hi = -np.inf
-        for k in range(n_comp):
-            row = flat[i, k]
-            nonzero = False
-            for v in range(n):
-                a = row[v]
-                lo = min(lo, a)
-                hi = max(hi, a)
-                nonzero |= a != 0 and (not has_mask or mask[v])
-            present[i, k] = nonzero
-        lows[i] = lo
-        highs[i] = hi
-    return lows, highs, present
-
-
-@numba.njit(cache=True, parallel=True)
-def _active_voxels(flat, comp, mask, active):  # pragma: no cover - compiled
-    """``active[v]``: some image has a nonzero membership of `comp` at v inside the mask."""
-    n_img, _, n = flat.shape
-    n_chunks = (n + 4095) // 4096
-    for c in numba.prange(n_chunks):
-        start = c * 4096
-        stop = min(start + 4096, n)
-        act = active[start:stop]
-        act[:] = False
-        for i in range(n_img):
-            row = flat[i, comp, start:stop]
-            for t in range(stop - start):
-                act[t] |= row[t] != 0
-        if mask.size > 0:
-            mk = mask[start:stop]
-            for t in range(stop - start):
-                act[t] &= mk[t]
-
-
-@numba.njit(cache=True, parallel=True)
-def _pair_sums(
-    flat, comp, voxels, net_lo, net_hi, dense_share, packed, vol, spair
-):  # pragma: no cover - compiled
-    """Pair sums of component `comp` of the memberships `flat` (N, n_comp, n_vox) over
-    `voxels`, in blocks of ``_BLOCK`` voxels shared among the threads.
-
-    A block where more than `dense_share` of the values lie strictly in (0, 1) is sorted by
-    the network (:func:`_packed_network_kernel` for float32 input when `packed`, else
-    :func:`_network_pair_kernel`), any other by :func:`_sparse_pair_kernel`. Each block
-    writes its own partial sums, added up in block order afterwards: the result does not
-    depend on the number of threads. Adds to ``vol`` and ``spair`` (N,); returns (sum of
-    pairwise minima, sum of maxima).
-    """
-    n_img = flat.shape[0]
-    n_blocks = (voxels.size + _BLOCK - 1) // _BLOCK
-    pmin = np.zeros(n_blocks)
-    pmax = np.zeros(n_blocks)
-    vparts = np.zeros((n_blocks, n_img))
-    sparts = np.zeros((n_blocks, n_img))
-    for b in numba.prange(n_blocks):
-        start = b * _BLOCK
-        stop = min(start + _BLOCK, voxels.size)
-        block = np.empty((n_img, stop - start))
-        fractional = _gather(flat, comp, voxels[start:stop], block)
-        if fractional > dense_share * block.size:
-            if packed:
-                pk, qk = _packed_network_kernel(block, net_lo, net_hi, vparts[b], sparts[b])
-            else:
-                pk, qk = _network_pair_kernel(block, net_lo, net_hi, vparts[b], sparts[b])
-        else:
-            pk, qk = _sparse_pair_kernel(block, vparts[b], sparts[b])
-        pmin[b] = pk
-        pmax[b] = qk
-    for b in range(n_blocks):
-        for i in range(n_img):
-            vol[i] += vparts[b, i]
-            spair[i] += sparts[b, i]
-    return pmin.sum(), pmax.sum()
-
-
-@numba.njit(cache=True, parallel=True)
-def _gradient_sums(flat, comp, mask, shape, inv_h, out):  # pragma: no cover - compiled
-    """``out[i] = sum_v |grad flat[i, comp]|`` over the mask, one image per thread.
-
-    Computed only on the slabs (along the first axis) within two of a nonzero one: farther
-    out the gradient is zero, and two zero slabs on each side make the cut-out's face rule
-    give the full grid's values.
-    """
-    n_img = flat.shape[0]
-    n = flat.shape[2]
-    plane = n // shape[0]
-    for i in numba.prange(n_img):
-        row = flat[i, comp]
-        first = -1
-        for v in range(n):
-            if row[v] != 0:
-                first = v
-                break
-        if first < 0:
-            out[i] = 0.0
-            continue
-        last = first
-        for v in range(n - 1, first, -1):
-            if row[v] != 0:
-                last = v
-                break
-        lo = max(first // plane - 2, 0)
-        hi = min(last // plane + 3, shape[0])
-        sub_shape = shape.copy()
-        sub_shape[0] = hi - lo
-        sub_mask = mask[lo * plane : hi * plane] if mask.size > 0 else mask
-        out[i] = _grad_sum_kernel(row[lo * plane : hi * plane], sub_mask, sub_shape, inv_h)
-
-
-@numba.njit(cache=True, nogil=True)
-def _gather(flat, comp, voxels, out):  # pragma: no cover - compiled
-    """Copy ``flat[:, comp, voxels]`` into ``out[:, :len(voxels)]`` (as float64); return how
-    many of the values lie strictly between 0 and 1."""
-    fractional = 0
-    for i in range(flat.shape[0]):
-        for t in range(voxels.size):
-            a = np.float64(flat[i, comp, voxels[t]])
-            out[i, t] = a
-            if 0.0 < a < 1.0:
-                fractional += 1
-    return fractional
-
-
-@functools.lru_cache(maxsize=16)
-def _sorting_network(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Batcher's odd-even merge sort for `n` keys as comparator pairs (lo, hi), lo < hi.
-
-    Built for the next power of two and pruned of comparators that reach past `n` (those
-    keys would be +inf, so the pruned comparators never swap). 268 comparators for n = 36.
-    """
-    pairs = []
-    p = 1
-    while p < n:
-        k = p
-        while k >= 1:
-            for j in range(k % p, n - k, 2 * k):
-                for i in range(min(k, n - j - k)):
-                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
-                        pairs.append((i + j, i + j + k))
-            k //= 2
-        p *= 2
-    lo = np.array([a for a, _ in pairs], dtype=np.int64)
-    hi = np.array([b for _, b in pairs], dtype=np.int64)
-    return lo, hi
-
-
-def _float_minmax(name: str):
-    """A numba intrinsic for ``llvm.minnum`` / ``llvm.maxnum`` on float64 (inputs not NaN).
-
-    Unlike ``min(x, y)`` (compare and select, which LLVM turns into masked stores when the
-    result goes back where x came from) these vectorize to plain ``vminpd`` / ``vmaxpd``.
-    """
-
-    @numba.extending.intrinsic
-    def fn(typingctx, x, y):
-        def codegen(context, builder, signature, args):
-            dbl = llvm_ir.DoubleType()
-            f = builder.module.declare_intrinsic(name, [dbl], llvm_ir.FunctionType(dbl, [dbl, dbl]))
-            return builder.call(f, args, fastmath=("nnan",))
-
-        return numba.types.float64(numba.types.float64, numba.types.float64), codegen
-
-    return fn
-
-
-_fmin = _float_minmax("llvm.minnum")
-_fmax = _float_minmax("llvm.maxnum")
-
-
-@numba.njit(cache=True, nogil=True)
-def _packed_network_kernel(block, net_lo, net_hi, vol, spair):  # pragma: no cover - compiled
-    """As :func:`_network_pair_kernel`, for float32 memberships (held in `block` as float64,
-    which it overwrites).
-
-    Layout: the sort keys are an (N, m) float64 array, row i holding image i's memberships
-    of the m voxels of the block, so every comparator (lo, hi) of the network is one
-    branch-free pass ``x = min(row lo, row hi), row hi = max(...)`` over m contiguous values
-    (SIMD across voxels). The image index rides along inside the key: a float32 value as
-    float64 has its low 29 mantissa bits zero, and writing i there keeps the order of the
-    values (nonnegative floats order like their bit patterns; ties break by image), so the
-    sort moves keys only, instead of keys and a separate index array. After the sort, rank
-    row k is split back into the exact value and the image index.
-    """
-    n_img, m = block.shape
-    keys = block  # sorted in place
-    bits = keys.view(np.int64)
-    for i in range(n_img):
-        bi = bits[i]
-        for t in range(m):
-            bi[t] |= i
-    for c in range(net_lo.size):
-        va = keys[net_lo[c]]
-        vb = keys[net_hi[c]]
-        for t in range(m):
-            x = va[t]
-            y = vb[t]
-            va[t] = _fmin(x, y)
-            vb[t] = _fmax(x, y)
-    low = np.int64((1 << _INDEX_BITS) - 1)
-    img = np.empty(m, np.int64)
-    below = np.zeros(m)
-    pmin = 0.0
-    pmax = 0.0
-    for k in range(n_img):
-        bk = bits[k]
-        for t in range(m):
-            i = bk[t] & low
-            img[t] = i
-            bk[t] -= i  # keys[k, t] is now the membership itself
-        vk = keys[k]
-        up = n_img - 1 - k
-        total = 0.0
-        for t in range(m):
-            a = vk[t]
-            total += a
-            spair[img[t]] += a * up + below[t]
-            vol[img[t]] += a
-            below[t] += a
-        pmin += total * up
-        pmax += total * k
-    return pmin, pmax
-
-
-@numba.njit(cache=True, nogil=True)
-def _network_pair_kernel(block, net_lo, net_hi, vol, spair):  # pragma: no cover - compiled
-    """Pair sums of the memberships `block` (N, n_voxels) by sorting every voxel's column.
-
-    The columns are sorted ascending with the comparator network (net_lo, net_hi), run on
-    whole rows at once (branch-free, vectorized across voxels), carrying each value's image
-    index. With a_(k) the k-th smallest (k = 0..N-1), a voxel adds ``a_(k) (N - 1 - k)`` to
-    the sum of pairwise minima, ``a_(k) k`` to the maxima, and ``sum_{m<k} a_(m) +
-    a_(k) (N - 1 - k)`` (= ``sum_{j != i} min(a_i, a_j)``) to ``spair`` of its image i; ties
-    do not matter. Adds memberships to ``vol``; returns (sum of minima, sum of maxima).
-    """
-    n_img, m = block.shape
-    val = np.empty((n_img, m), np.float64)
-    img = np.empty((n_img, m), np.int64)
-    for i in range(n_img):
-        for t in range(m):
-            val[i, t] = block[i, t]
-            img[i, t] = i
-    for c in range(net_lo.size):
-        va = val[net_lo[c]]
-        vb = val[net_hi[c]]
-        ia = img[net_lo[c]]
-        ib = img[net_hi[c]]
-        for t in range(m):
-            x = va[t]
-            y = vb[t]
-            i1 = ia[t]
-            i2 = ib[t]
-            swap = y < x
-            va[t] = y if swap else x
-            vb[t] = x if swap else y
-            ia[t] = i2 if swap else i1
-            ib[t] = i1 if swap else i2
-    below = np.zeros(m)
-    vpart = np.zeros(n_img)
-    spart = np.zeros(n_img)
-    pmin = 0.0
-    pmax = 0.0
-    for k in range(n_img):
-        vk = val[k]
-        ik = img[k]
-        up = n_img - 1 - k
-        total = 0.0
-        for t in range(m):
-            a = vk[t]
-            total += a
-            spart[ik[t]] += a * up + below[t]
-            vpart[ik[t]] += a
-            below[t] += a
-        pmin += total * up
-        pmax += total * k
-    for i in range(n_img):
-        vol[i] += vpart[i]
-        spair[i] += spart[i]
-    return pmin, pmax
-
-
-@numba.njit(cache=True, nogil=True)
-def _sparse_pair_kernel(block, vol, spair):  # pragma: no cover - compiled
-    """As :func:`_network_pair_kernel`, for memberships that are mostly exactly 0 or 1.
-
-    Per voxel, zeros take the lowest ranks and add nothing, the o ones take the top ranks,
-    and only the fractional values in between are sorted (insertion sort, carrying the
-    image index): O(N) for a voxel without fractional values.
-    """
-    n_img, m = block.shape
-    vals = np.empty(n_img, np.float64)
-    ids = np.empty(n_img, np.int64)
-    ones = np.empty(n_img, np.int64)
-    vpart = np.zeros(n_img, np.float64)
-    spart = np.zeros(n_img, np.float64)
-    pmin = 0.0
-    pmax = 0.0
-    for t in range(m):
-        n_frac = 0
-        n_one = 0
-        for i in range(n_img):
-            a = np.float64(block[i, t])
-            if a == 0.0:
-                continue
-            if a == 1.0:
-                ones[n_one] = i
-                n_one += 1
-                continue
-            j = n_frac
-            while j > 0 and vals[j - 1] > a:
-                vals[j] = vals[j - 1]
-                ids[j] = ids[j - 1]
-                j -= 1
-            vals[j] = a
-            ids[j] = i
-            n_frac += 1
-        if n_frac + n_one == 0:
-            continue
-        first = n_img - n_one - n_frac  # 0-based rank of the smallest nonzero value
-        below = 0.0
-        for r in range(n_frac):
-            rank = first + r
-            a = vals[r]
-            up = a * (n_img - 1 - rank)
-            pmin += up
-            pmax += a * rank
-            spart[ids[r]] += up + below
-            vpart[ids[r]] += a
-            below += a
-        if n_one > 0:
-            top = n_img - n_one  # ones hold ranks top .. N - 1
-            pmin += n_one * (n_one - 1) / 2.0
-            pmax += (top + n_img - 1) * n_one / 2.0
-            for r in range(n_one):  # min with the other ones (1 each) and every smaller value
-                spart[ones[r]] += (n_one - 1) + below
-                vpart[ones[r]] += 1.0
-    for i in range(n_img):
-        vol[i] += vpart[i]
-        spair[i] += spart[i]
-    return pmin, pmax
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "nsz"})
-def _grad_sum_kernel(row, mask, shape, inv_h):  # pragma: no cover - compiled
-    """``sum_v |grad row|`` over the masked voxels; `row` flat in C order of `shape`.
-
-    One pass, line by line along the last (contiguous) axis: the squared differences of
-    every axis go into a line of scratch (the neighbouring lines along the other axes are
-    whole lines too, so every inner loop is contiguous and vectorizes), then the line's
-    square roots are summed. ``mask`` is flat boolean or empty (no mask).
-    """
-    n = row.size
-    ndim = shape.size
-    nx = shape[ndim - 1]
-    strides = np.ones(ndim, np.int64)
-    for d in range(ndim - 2, -1, -1):
-        strides[d] = strides[d + 1] * shape[d + 1]
-    coords = np.zeros(ndim, np.int64)
-    g = np.zeros(nx)
-    fx1 = inv_h[ndim - 1]
-    fx2 = 0.5 * fx1
-    total = 0.0
-    for base in range(0, n, nx):
-        r = row[base : base + nx]
-        if nx > 1:  # last axis: one-sided at the ends, central inside
-            e = (np.float64(r[1]) - np.float64(r[0])) * fx1
-            g[0] = e * e
-            e = (np.float64(r[nx - 1]) - np.float64(r[nx - 2])) * fx1
-            g[nx - 1] = e * e
-            hi = r[2:]
-            lo = r[: nx - 2]
-            mid = g[1 : nx - 1]
-            for t in range(nx - 2):
-                e = (np.float64(hi[t]) - np.float64(lo[t])) * fx2
-                mid[t] = e * e
-        else:
-            g[0] = 0.0
-        for d in range(ndim - 1):  # the other axes: whole neighbouring lines
-            size = shape[d]
-            if size == 1:
-                continue
-            c = coords[d]
-            f = inv_h[d] if c == 0 or c == size - 1 else 0.5 * inv_h[d]
-            up = base + strides[d] if c < size - 1 else base
-            down = base - strides[d] if c > 0 else base
-            rp = row[up : up + nx]
-            rm = row[down : down + nx]
-            for t in range(nx):
-                e = (np.float64(rp[t]) - np.float64(rm[t])) * f
-                g[t] += e * e
-        for start in range(0, nx, 4096):  # blocked summation keeps float rounding small
-            part = 0.0
-            stop = min(start + 4096, nx)
-            if mask.size > 0:
-                mk = mask[base : base + nx]
-                for t in range(start, stop):
-                    part += math.sqrt(g[t]) if mk[t] else 0.0
-            else:
-                for t in range(start, stop):
-                    part += math.sqrt(g[t])
-            total += part
-        for d in range(ndim - 2, -1, -1):  # advance the coordinates of the line
-            coords[d] += 1
-            if coords[d] < shape[d]:
-                break
-            coords[d] = 0
-    return total
+        rows = flat[:, int(values[k])]  # (N, n_voxels), rows adjacent in memory
+        if complexity:
+            gsum[:, k] = membership_gradient_sums(
+                rows, shape=spatial, spacing=spacing_itk, mask=mask_flat
+            )
+        p[k], q[k], vol[:, k], s_pairs[:, k] = membership_pair_sums(rows, mask=mask_flat)
+    return (
+        values,
+        skipped,
+        vol,
+        s_pairs if target_overlap else None,
+        gsum if complexity else None,
+        p,
+        q,
+    )

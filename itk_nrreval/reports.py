@@ -21,7 +21,7 @@ import numpy as np
 from ._output import atomic_path, write_text
 from .evaluation import EvaluationResult
 
-__all__ = ["summary_table", "results_csv", "write_reports"]
+__all__ = ["summary_table", "results_csv", "write_reports", "format_number", "format_percent"]
 
 _TABLE_OVERLAPS = (
     ("overlap.inverse_volume", "Overlap (inverse volume)"),
@@ -29,13 +29,15 @@ _TABLE_OVERLAPS = (
 )
 
 
-def _fmt(v, digits: int = 4) -> str:
+def format_number(v, digits: int = 4) -> str:
+    """`v` to `digits` significant digits; an en dash for None or NaN."""
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "–"
     return f"{v:.{digits}g}"
 
 
-def _pct(v) -> str:
+def format_percent(v) -> str:
+    """A percentage with one decimal; an en dash for None."""
     return "–" if v is None else f"{v:.1f}%"
 
 
@@ -57,16 +59,16 @@ def summary_table(result: EvaluationResult) -> str:
         row = [name]
         for m, _ in cols:
             row += [
-                _fmt(s.measures()[m]),
+                format_number(s.measures()[m]),
                 str(result.ranks[m][name]),
-                _pct(result.relative_ranks[m][name]),
+                format_percent(result.relative_ranks[m][name]),
             ]
         for m, r in (("specificity", s.specificity), ("generalization", s.generalization)):
             row += [
-                _fmt(r.value),
-                _fmt(r.stderr, 2),
+                format_number(r.value),
+                format_number(r.stderr, 2),
                 str(result.ranks[m][name]),
-                _pct(result.relative_ranks[m][name]),
+                format_percent(result.relative_ranks[m][name]),
             ]
         rows.append(row)
     lines = [
@@ -86,8 +88,8 @@ def summary_table(result: EvaluationResult) -> str:
     ]
     for name, s in result.scores.items():
         notes.append(
-            f"| {name} | {s.frame.method} | {_fmt(s.frame.spread_mean_mm, 3)} | "
-            f"{_fmt(s.frame.spread_max_mm, 3)} | {s.folded_fraction:.2%} |"
+            f"| {name} | {s.frame.method} | {format_number(s.frame.spread_mean_mm, 3)} | "
+            f"{format_number(s.frame.spread_max_mm, 3)} | {s.folded_fraction:.2%} |"
         )
     return "\n".join(lines + notes) + "\n"
 

@@ -19,10 +19,12 @@ import importlib.util
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from . import _blocked, _sampling
 from ._errors import InputError
+from ._progress import progress
 from .model import TextureModel
 
 __all__ = [
@@ -172,25 +174,50 @@ def _torch_device(backend: str, n_images: int, distance: str):
 
 
 def _single_pass(
-    model: TextureModel, n_samples: int, distance: str, exponent: float, seed: int, backend: str
+    model: TextureModel,
+    n_samples: int,
+    distance: str,
+    exponent: float,
+    seed: int,
+    backend: str,
+    *,
+    show: bool = False,
+    desc: str = "specificity",
 ):
     """Per-chunk (means, m2s, counts, gen) of one model: per-sample, blocked or torch path."""
     l2 = distance == "l2"
     sd = np.sqrt(model.mode_variances)
-    key = _sampling._key(seed)
+    key = _sampling.stream_key(seed)
     chunk = _sampling.CHUNK
+    n_chunks = (n_samples + chunk - 1) // chunk
+
+    def wrap(chunks):
+        return progress(chunks, desc=desc, total=n_chunks, enabled=show)
+
     device = _torch_device(backend, model.n_images, distance)
     if device is not None:
         return _blocked.run_single_torch(
-            model.training_params, sd, key, n_samples, l2, exponent, chunk, device
+            model.training_params, sd, key, n_samples, l2, exponent, chunk, device, wrap
         )
     if model.n_images >= _BLOCKED_MIN_IMAGES[distance]:
         return _blocked.run_single_blocked(
-            model.training_params, sd, key, n_samples, l2, exponent, chunk
+            model.training_params, sd, key, n_samples, l2, exponent, chunk, wrap
         )
-    return _sampling.run_single(
-        np.ascontiguousarray(model.training_params.T), sd, key, n_samples, l2, exponent, chunk
-    )
+    train_t = np.ascontiguousarray(model.training_params.T)
+    # Groups of chunks, a few per thread, so that a progress bar can move between groups.
+    group = 4 * numba.get_num_threads()
+    parts = [
+        _sampling.run_single(
+            train_t, sd, key, n_samples, l2, exponent, chunk, c, min(c + group, n_chunks)
+        )
+        for c in progress(
+            range(0, n_chunks, group),
+            desc=desc,
+            total=(n_chunks + group - 1) // group,
+            enabled=show,
+        )
+    ]
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
 
 
 def _generalization_values(gen_min: np.ndarray, distance: str, exponent: float) -> np.ndarray:
@@ -209,10 +236,14 @@ def texture_measures(
     seed: int = 0,
     mask=None,
     backend: str = "auto",
+    progress: bool = False,
+    desc: str = "specificity",
 ) -> tuple[SpecificityResult, GeneralizationResult]:
     """Specificity and generalization from one pass over the same M samples.
 
     Takes the same arguments as :func:`specificity`; use it when both are wanted.
+    `progress` shows a progress bar (labelled `desc`) on stderr during the search; the
+    numbers do not depend on it.
 
     Returns
     -------
@@ -234,7 +265,14 @@ def texture_measures(
     _check_modes(model)
     chunk = _sampling.CHUNK
     means, m2s, counts, gen = _single_pass(
-        model, int(n_samples), distance, float(exponent), int(seed), backend
+        model,
+        int(n_samples),
+        distance,
+        float(exponent),
+        int(seed),
+        backend,
+        show=progress,
+        desc=desc,
     )
     mean, m2 = _sampling.combine_moments(means, m2s, int(n_samples), chunk)
     spec = SpecificityResult(
@@ -412,7 +450,7 @@ def compare_specificity(
         np.sqrt(ma.mode_variances),
         b_params,
         np.sqrt(mb.mode_variances),
-        _sampling._key(seed),
+        _sampling.stream_key(seed),
         int(n_samples),
         l2,
         float(exponent),

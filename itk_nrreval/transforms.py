@@ -34,6 +34,8 @@ __all__ = [
     "TRANSFORM_SUFFIXES",
     "FIELD_SUFFIXES",
     "read_transform",
+    "file_suffix",
+    "leaves",
     "chain_transform",
     "flatten",
     "write_transform",
@@ -52,7 +54,8 @@ FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 TransformLike = "sitk.Transform | str | os.PathLike"
 
 
-def _suffix(path: Path) -> str:
+def file_suffix(path: Path) -> str:
+    """The lower-case suffix that decides a file's format (``.nii.gz`` counts as one)."""
     name = path.name.lower()
     return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
@@ -115,7 +118,7 @@ def read_transform(item: sitk.Transform | str | os.PathLike) -> sitk.Transform:
     path = Path(item)
     if not path.is_file():
         raise InputError(f"{path}: transform file not found")
-    suffix = _suffix(path)
+    suffix = file_suffix(path)
     try:
         if suffix in FIELD_SUFFIXES:
             return field_transform(sitk.ReadImage(str(path)))
@@ -165,13 +168,13 @@ def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sit
     return flatten(sitk.CompositeTransform(list(reversed(transforms))))
 
 
-def _leaves(transform: sitk.Transform) -> list[sitk.Transform]:
+def leaves(transform: sitk.Transform) -> list[sitk.Transform]:
     """Sub-transforms of a (possibly nested) composite, in SimpleITK list order."""
     t = transform.Downcast()
     if isinstance(t, sitk.CompositeTransform):
         out = []
         for i in range(t.GetNumberOfTransforms()):
-            out.extend(_leaves(t.GetNthTransform(i)))
+            out.extend(leaves(t.GetNthTransform(i)))
         return out
     return [t]
 
@@ -181,10 +184,10 @@ def flatten(transform: sitk.Transform) -> sitk.Transform:
 
     A composite of one transform becomes that transform.
     """
-    leaves = _leaves(transform)
-    if len(leaves) == 1:
-        return leaves[0]
-    return sitk.CompositeTransform(leaves)
+    parts = leaves(transform)
+    if len(parts) == 1:
+        return parts[0]
+    return sitk.CompositeTransform(parts)
 
 
 def write_transform(transform: sitk.Transform, path: str | os.PathLike) -> Path:
@@ -265,8 +268,8 @@ def invert(
     InputError
         A piece that is neither linear nor a displacement field, and no `grid`.
     """
-    leaves = _leaves(chain_transform(transform))
-    inverted = [_invert_one(t, grid, max_iterations, max_error, mean_error) for t in leaves]
+    parts = leaves(chain_transform(transform))
+    inverted = [_invert_one(t, grid, max_iterations, max_error, mean_error) for t in parts]
     # sitk list [a, b] means a(b(p)); its inverse is b^-1(a^-1(q)): list [b^-1, a^-1].
     inverted = list(reversed(inverted))
     return inverted[0] if len(inverted) == 1 else sitk.CompositeTransform(inverted)

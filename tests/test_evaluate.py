@@ -152,7 +152,7 @@ def test_evaluate_cli_ranks_registrations_by_quality(tmp_path, capsys):
     for png in ("specificity.png", "specificity_vs_overlap.png", "mean_images.png"):
         assert (out / png).read_bytes()[:4] == b"\x89PNG"
     saved = sitk.ReadImage(str(out / "resampled" / "truth" / "memberships_000.nii.gz"))
-    assert saved.GetNumberOfComponentsPerPixel() == 4  # background + 3 labels
+    assert saved.GetNumberOfComponentsPerPixel() == 3  # labels 1..3 (background not stored)
     assert not list(out.rglob(".*tmp*"))
 
 

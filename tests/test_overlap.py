@@ -170,7 +170,7 @@ def test_fuzzy_matches_all_pairs(seed, n, shape, n_comp, dtype, ties):
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 13, 36, 37, 64])
 def test_sorting_network_sorts(rng, n):
-    from itk_nrreval.overlap import _sorting_network
+    from itk_nrreval._overlap_kernels import _sorting_network
 
     lo, hi = _sorting_network(n)
     assert np.all(lo < hi) and (hi.max(initial=0) < n)
@@ -191,9 +191,9 @@ def test_many_images_and_long_runs_of_voxels(rng):
 
 @pytest.mark.parametrize("share", [0.0, 1.0])  # force the sorting network / the sparse sort
 def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
-    from itk_nrreval import overlap
+    from itk_nrreval import _overlap_kernels
 
-    monkeypatch.setattr(overlap, "_NETWORK_FRACTION", share)
+    monkeypatch.setattr(_overlap_kernels, "_NETWORK_FRACTION", share)
     a = rng.choice([0.0, 0.0, 0.0, 1.0, 1.0, 0.3, 0.7], size=(9, 3, 6, 7))
     a[:, :, :2] = rng.random((9, 3, 2, 7))
     _assert_matches(nr.overlap_table(a, include_background=True), _brute(a))
@@ -203,9 +203,9 @@ def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
 def test_packed_float32_network_on_ties_and_many_blocks(rng, monkeypatch, n):
     # float32 input sorts keys carrying the image index in their low bits; force that kernel
     # on every block, with exact zeros and ones, ties, tiny values and a partial last block
-    from itk_nrreval import overlap
+    from itk_nrreval import _overlap_kernels
 
-    monkeypatch.setattr(overlap, "_NETWORK_FRACTION", 0.0)
+    monkeypatch.setattr(_overlap_kernels, "_NETWORK_FRACTION", 0.0)
     a = rng.choice([0.0, 1.0, 0.25, 0.5, 1e-30, 0.7], size=(n, 2, 3, 7, 31)).astype(np.float32)
     a[:, :, 0] = rng.random((n, 2, 7, 31))
     a[0, 1, 1] = 0.0  # one image missing from a slab of voxels
@@ -411,6 +411,340 @@ def test_float_scalar_images_must_hold_integers():
     bad = ok + [sitk.GetImageFromArray(np.array([[0.0, 1.5], [2.0, 1.0]]))]
     with pytest.raises(nr.InputError, match=r"label map\[2\]: non-integer values in a crisp"):
         nr.overlap_table(bad)
+
+
+# -- computing only what is asked for ----------------------------------------------------------
+
+
+def _assert_partial_matches(table: nr.OverlapTable, ref: dict, *, complexity, target) -> None:
+    """As _assert_matches, for a table built with some quantities left out (NaN)."""
+    for name in ("pair_min", "pair_max", "volume"):
+        np.testing.assert_allclose(getattr(table, name), ref[name], rtol=1e-12, err_msg=name)
+    for name, computed in (("complexity", complexity), ("target_overlap", target)):
+        if computed:
+            np.testing.assert_allclose(getattr(table, name), ref[name], rtol=1e-12)
+        else:
+            assert np.isnan(getattr(table, name)).all(), name
+    assert table.has_complexity == complexity and table.has_target_overlap == target
+    for w in WEIGHTINGS:
+        if w in ("complexity", "inverse_volume_complexity") and not complexity:
+            continue
+        expected = ref["generalized"][w]
+        if np.isnan(expected):
+            with pytest.warns(RuntimeWarning, match="every label weight is zero"):
+                assert np.isnan(table.generalized(w))
+        else:
+            assert table.generalized(w) == pytest.approx(expected, rel=1e-12, abs=0), w
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(2, 7),
+    shape=st.lists(st.integers(1, 7), min_size=1, max_size=3),
+    n_values=st.integers(2, 12),
+    use_mask=st.booleans(),
+    complexity=st.booleans(),
+    target=st.booleans(),
+)
+def test_crisp_kernel_options_match_all_pairs(
+    seed, n, shape, n_values, use_mask, complexity, target
+):
+    # up to 12 labels for 2 images: both the dense count sweep and the revisit of the images
+    rng = np.random.default_rng(seed)
+    crisp = rng.integers(0, n_values, size=(n, *shape)) * 2 - 3
+    spacing_itk = rng.uniform(0.3, 3.0, size=len(shape))
+    mask = rng.random(shape) < 0.6 if use_mask else None
+    if mask is not None and not mask.any():
+        mask = None
+    inside = crisp[:, mask] if mask is not None else crisp
+    values = np.unique(inside)
+    values = values[values != 0]
+    if values.size == 0:
+        return
+    table = nr.overlap_table(
+        crisp, spacing=spacing_itk, mask=mask, complexity=complexity, target_overlap=target
+    )
+    np.testing.assert_array_equal(table.labels, values)
+    ref = _brute(_one_hot(crisp, values), spacing_np=spacing_itk[::-1], mask=mask)
+    _assert_partial_matches(table, ref, complexity=complexity, target=target)
+
+
+@pytest.mark.parametrize(
+    "kind",
+    ["int8", "uint16", "bool", "wide_range", "huge_range", "strided_rows", "many_labels"],
+)
+def test_crisp_label_encodings_and_paths(rng, kind):
+    # lookup table, range scan before counting, binary search; one voxel block and several
+    shape = (5, 9, 131)  # 5895 voxels: several count blocks, the last one partial
+    n = 4
+    if kind == "int8":
+        crisp = rng.integers(-3, 4, size=(n, *shape)).astype(np.int8)
+    elif kind == "uint16":
+        crisp = (rng.integers(0, 5, size=(n, *shape)) * 1000).astype(np.uint16)
+    elif kind == "bool":
+        crisp = rng.random((n, *shape)) < 0.4
+    elif kind == "wide_range":  # more than 1024 values apart: scanned for presence first
+        crisp = rng.choice(np.array([0, 3, 5000, -90000], np.int32), size=(n, *shape))
+    elif kind == "huge_range":  # more than 2^22 apart: binary search instead of a table
+        crisp = rng.choice(np.array([0, 7, 1 << 40, -(1 << 33)]), size=(n, *shape))
+    elif kind == "strided_rows":  # one component of a larger array: rows not adjacent
+        crisp = rng.integers(0, 4, size=(n, 3, *shape)).astype(np.int16)[:, 1]
+    else:  # more labels than twice the images
+        crisp = rng.integers(0, 40, size=(n, *shape)).astype(np.int32)
+    mask = rng.random(shape) < 0.8
+    values = np.unique(crisp[:, mask])
+    values = values[values != 0]
+    table = nr.overlap_table(crisp, mask=mask, spacing=(0.7, 1.3, 2.0))
+    np.testing.assert_array_equal(table.labels, values.astype(np.int64))
+    ref = _brute(_one_hot(crisp, values), spacing_np=(2.0, 1.3, 0.7), mask=mask)
+    _assert_matches(table, ref)
+
+
+@pytest.mark.parametrize("fuzzy", [False, True])
+def test_results_do_not_depend_on_the_thread_count(rng, fuzzy):
+    numba = pytest.importorskip("numba")
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two numba threads")
+    if fuzzy:
+        data = rng.random((9, 3, 6, 40, 50)).astype(np.float32)
+        data[:, :, :, :20] = np.round(data[:, :, :, :20])  # sparse and sorted blocks
+    else:
+        data = _smooth_crisp(rng, 9, (6, 40, 50), 7)
+    mask = rng.random(data.shape[-3:]) < 0.9
+    before = numba.get_num_threads()
+    tables = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            tables.append(nr.overlap_table(data, mask=mask, spacing=(0.5, 1.0, 2.0)))
+    finally:
+        numba.set_num_threads(before)
+    one, two = tables
+    for name in ("pair_min", "pair_max", "volume", "complexity", "target_overlap"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(two, name), err_msg=name)
+
+
+def test_table_without_complexity_says_so(rng):
+    crisp = _smooth_crisp(rng, 4, (6, 7), 3)
+    table = nr.overlap_table(crisp, complexity=False, target_overlap=False)
+    assert not table.has_complexity and not table.has_target_overlap
+    assert np.isnan(table.complexity).all() and np.isnan(table.target_overlap).all()
+    for w in ("complexity", "inverse_volume_complexity"):
+        with pytest.raises(ValueError, match=r"table was built with complexity=False"):
+            table.weights(w)
+        with pytest.raises(ValueError, match=r"table was built with complexity=False"):
+            table.generalized(w)
+    full = nr.overlap_table(crisp)
+    assert table.generalized("inverse_volume") == full.generalized("inverse_volume")
+    data = table.to_dict()
+    text = json.dumps(data, allow_nan=False)  # valid JSON: None, never NaN
+    assert data["generalized"]["complexity"] is None
+    assert data["generalized"]["inverse_volume_complexity"] is None
+    assert data["generalized"]["volume"] == full.generalized("volume")
+    assert all(r["complexity"] is None and r["target_overlap"] is None for r in data["labels"])
+    assert json.loads(text)["labels"][0]["jaccard"] == full.rows()[0]["jaccard"]
+    rows = table.rows()
+    assert all(np.isnan(r["complexity"]) and np.isnan(r["target_overlap"]) for r in rows)
+    fuzzy = rng.random((3, 3, 5, 6))
+    ftable = nr.overlap_table(fuzzy, complexity=False)
+    assert ftable.has_target_overlap and not ftable.has_complexity
+    with pytest.raises(ValueError, match=r"table was built with complexity=False"):
+        ftable.generalized("complexity")
+    np.testing.assert_array_equal(ftable.target_overlap, nr.overlap_table(fuzzy).target_overlap)
+
+
+def test_to_dict_of_undefined_overlap_is_valid_json():
+    full = np.ones((3, 4, 4), np.int32)  # no boundary: complexity weights all zero
+    with pytest.warns(RuntimeWarning, match="every label weight is zero"):
+        data = nr.overlap_table(full).to_dict()
+    assert data["generalized"]["complexity"] is None
+    json.dumps(data, allow_nan=False)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(2, 6),
+    shape=st.lists(st.integers(1, 6), min_size=1, max_size=3),
+    fuzzy=st.booleans(),
+    use_mask=st.booleans(),
+    weighting=st.sampled_from(WEIGHTINGS),
+)
+def test_generalized_overlap_equals_the_full_table(seed, n, shape, fuzzy, use_mask, weighting):
+    # generalized_overlap computes only what its weighting needs; the number must not change
+    rng = np.random.default_rng(seed)
+    data = rng.random((n, 3, *shape)) if fuzzy else rng.integers(0, 4, size=(n, *shape))
+    mask = rng.random(shape) < 0.7 if use_mask else None
+    if mask is not None and not mask.any():
+        mask = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # absent components, undefined complexity weights
+        try:
+            full = nr.overlap_table(data, mask=mask).generalized(weighting)
+        except nr.InputError:  # nothing to evaluate inside the mask
+            return
+        fast = nr.generalized_overlap(data, weighting=weighting, mask=mask)
+    assert fast == full or (np.isnan(fast) and np.isnan(full))
+
+
+# -- the shared kernels and OverlapTable.from_sums ------------------------------------------------
+
+
+def _brute_pairs(a: np.ndarray, mask=None):
+    """(pair_min, pair_max, volume, target_sums) of (N, n) memberships by all-pairs loops."""
+    a = np.asarray(a, np.float64)
+    inside = np.ones(a.shape[1], bool) if mask is None else mask
+    n = a.shape[0]
+    p = q = 0.0
+    target = np.zeros(n)
+    for i in range(n):
+        for j in range(n):
+            if i == j:
+                continue
+            lo = np.minimum(a[i], a[j])[inside].sum()
+            target[i] += lo
+            if i < j:
+                p += lo
+                q += np.maximum(a[i], a[j])[inside].sum()
+    return p, q, a[:, inside].sum(axis=1), target
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("use_mask", [False, True])
+def test_membership_pair_sums_against_all_pairs(rng, dtype, use_mask):
+    from itk_nrreval._overlap_kernels import membership_pair_sums
+
+    for n in (2, 5, 37):
+        a = rng.choice([0.0, 0.0, 1.0, 0.5, 0.25], size=(n, 900))
+        a[:, :300] = rng.random((n, 300))  # dense blocks go to the sorting network
+        a = a.astype(dtype)
+        mask = rng.random(900) < 0.7 if use_mask else None
+        p, q, vol, target = membership_pair_sums(a, mask=mask)
+        ref = _brute_pairs(a, mask)
+        assert isinstance(p, float) and isinstance(q, float)
+        assert p == pytest.approx(ref[0], rel=1e-12) and q == pytest.approx(ref[1], rel=1e-12)
+        np.testing.assert_allclose(vol, ref[2], rtol=1e-12)
+        np.testing.assert_allclose(target, ref[3], rtol=1e-12)
+        assert vol.shape == target.shape == (n,) and vol.dtype == np.float64
+
+
+def test_membership_gradient_sum_against_numpy_gradient(rng):
+    from itk_nrreval._overlap_kernels import membership_gradient_sum, membership_gradient_sums
+
+    for shape, spacing_itk in (((7, 5, 6), (0.5, 1.5, 2.5)), ((1, 9), (1.2, 3.0)), ((11,), (0.7,))):
+        a = rng.random((3, *shape)) * (rng.random((3, *shape)) < 0.5)
+        a[0] = 0.0
+        a[1, ...] = 0.0
+        a[1].reshape(-1)[a[1].size // 2] = 0.75  # one voxel: a few slabs around it only
+        mask = rng.random(shape) < 0.7
+        axes = [d for d in range(len(shape)) if shape[d] > 1]
+        spacing_np = spacing_itk[::-1]
+        for m in (None, mask):
+            inside = np.ones(shape, bool) if m is None else m
+            expected = []
+            for i in range(3):
+                comps = np.gradient(a[i], *[spacing_np[d] for d in axes], axis=axes)
+                comps = [comps] if len(axes) == 1 else comps
+                expected.append(np.sqrt(sum(c**2 for c in comps))[inside].sum())
+            flat_mask = None if m is None else m.reshape(-1)
+            one = [
+                membership_gradient_sum(
+                    a[i].reshape(-1), shape=shape, spacing=spacing_itk, mask=flat_mask
+                )
+                for i in range(3)
+            ]
+            np.testing.assert_allclose(one, expected, rtol=1e-12, atol=1e-12)
+            assert one[0] == 0.0
+            many = membership_gradient_sums(
+                a.reshape(3, -1), shape=shape, spacing=spacing_itk, mask=flat_mask
+            )
+            np.testing.assert_array_equal(many, one)
+    with pytest.raises(ValueError, match="does not hold"):
+        membership_gradient_sum(np.zeros(10), shape=(3, 4), spacing=(1, 1))
+    with pytest.raises(ValueError, match="spacing must be 2 positive numbers"):
+        membership_gradient_sum(np.zeros(12), shape=(3, 4), spacing=(1,))
+
+
+def test_label_map_sums_counts_pairs_exactly(rng):
+    from itk_nrreval._overlap_kernels import label_map_sums
+
+    crisp = rng.integers(0, 5, size=(6, 700))
+    mask = rng.random(700) < 0.6
+    for values, m, target in (([1, 3, 9], None, True), ([0, 4], mask, False), (None, mask, True)):
+        got_values, pm, vol, tgt = label_map_sums(
+            crisp, values=values, exclude=(0, 2), mask=m, target_overlap=target
+        )
+        inside = np.ones(700, bool) if m is None else m
+        expected_values = [1, 3, 4] if values is None else values
+        np.testing.assert_array_equal(got_values, expected_values)
+        for k, v in enumerate(expected_values):
+            hit = (crisp == v) & inside
+            c = hit.sum(axis=0)
+            assert pm[k] == (c * (c - 1) // 2).sum()
+            np.testing.assert_array_equal(vol[:, k], hit.sum(axis=1))
+            if target:
+                np.testing.assert_array_equal(tgt[:, k], (hit * (c - 1)).sum(axis=1))
+        assert pm.dtype == vol.dtype == np.int64
+        assert (tgt is None) != target
+    with pytest.raises(ValueError, match="integer dtype"):
+        label_map_sums(np.zeros((2, 5)))
+
+
+@pytest.mark.parametrize("fuzzy", [False, True])
+def test_from_sums_round_trip_equals_overlap_table(rng, fuzzy):
+    from itk_nrreval._overlap_kernels import (
+        label_map_gradient_sums,
+        label_map_sums,
+        membership_gradient_sums,
+        membership_pair_sums,
+    )
+
+    shape, spacing_itk = (5, 6, 7), (0.6, 1.1, 2.3)
+    mask = rng.random(shape) < 0.8
+    flat_mask = mask.reshape(-1)
+    if fuzzy:
+        data = rng.random((5, 4, *shape)) * (rng.random((5, 4, *shape)) < 0.6)
+        labels = np.arange(1, 4)
+        flat = data.reshape(5, 4, -1)
+        vol, target, grad = (np.zeros((5, 3)) for _ in range(3))
+        p, q = np.zeros(3), np.zeros(3)
+        for k, comp in enumerate(labels):
+            p[k], q[k], vol[:, k], target[:, k] = membership_pair_sums(
+                flat[:, comp], mask=flat_mask
+            )
+            grad[:, k] = membership_gradient_sums(
+                flat[:, comp], shape=shape, spacing=spacing_itk, mask=flat_mask
+            )
+    else:
+        data = _smooth_crisp(rng, 5, shape, 4)
+        flat = data.reshape(5, -1)
+        labels, pm, vol, target = label_map_sums(flat, exclude=(0,), mask=flat_mask)
+        grad = label_map_gradient_sums(flat, labels, shape=shape, spacing=spacing_itk, mask=mask)
+        p, q = pm, 4 * vol.sum(axis=0) - pm
+    table = nr.OverlapTable.from_sums(
+        labels, vol, target, grad, p, q, spacing=spacing_itk, fuzzy=fuzzy
+    )
+    reference = nr.overlap_table(data, mask=mask, spacing=spacing_itk)
+    for name in ("labels", "pair_min", "pair_max", "volume", "complexity", "target_overlap"):
+        np.testing.assert_array_equal(getattr(table, name), getattr(reference, name), name)
+    assert table.spacing == reference.spacing and table.fuzzy == reference.fuzzy
+    assert table.to_dict() == reference.to_dict()
+
+    partial = nr.OverlapTable.from_sums(
+        labels, vol, None, None, p, q, spacing=spacing_itk, fuzzy=fuzzy, skipped_labels=(9,)
+    )
+    assert np.isnan(partial.complexity).all() and np.isnan(partial.target_overlap).all()
+    assert partial.skipped_labels == (9,)
+    assert partial.generalized("inverse_volume") == reference.generalized("inverse_volume")
+    with pytest.raises(ValueError, match="built with complexity=False"):
+        partial.generalized("complexity")
+    with pytest.raises(ValueError, match=r"gradient_sums has shape \(5, 2\), expected \(5, 3\)"):
+        nr.OverlapTable.from_sums(
+            labels, vol, None, grad[:, :2], p, q, spacing=spacing_itk, fuzzy=fuzzy
+        )
+    with pytest.raises(ValueError, match="do not agree on"):
+        nr.OverlapTable.from_sums(labels, vol, None, None, p[:2], q, spacing=(1, 1, 1), fuzzy=0)
 
 
 # -- command line ----------------------------------------------------------------------------

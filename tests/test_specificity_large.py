@@ -63,9 +63,9 @@ def test_blocked_equals_per_sample(model_300, monkeypatch, distance, exponent):
 def test_blocked_is_bit_identical_to_run_single(model_300, distance):
     train = model_300.training_params
     sd = np.sqrt(model_300.mode_variances)
-    key = _sampling._key(2)
+    key = _sampling.stream_key(2)
     l2 = distance == "l2"
-    old = _sampling.run_single(np.ascontiguousarray(train.T), sd, key, 1000, l2, 1.0, 256)
+    old = _sampling.run_single(np.ascontiguousarray(train.T), sd, key, 1000, l2, 1.0, 256, 0, 4)
     new = _blocked.run_single_blocked(train, sd, key, 1000, l2, 1.0, 256)
     for a, b in zip(old, new, strict=True):
         np.testing.assert_array_equal(a, b)
@@ -75,7 +75,7 @@ def test_blocked_is_bit_identical_to_run_single(model_300, distance):
 def test_blocked_independent_of_chunks_blocks_and_threads(model_300, monkeypatch, distance):
     train = model_300.training_params
     sd = np.sqrt(model_300.mode_variances)
-    key = _sampling._key(9)
+    key = _sampling.stream_key(9)
     l2 = distance == "l2"
     n = 1200
 

@@ -22,7 +22,7 @@ COMMANDS = [demo, evaluate, specificity, overlap, synth, register, validate, dia
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .. import __version__
+    from .._version import __version__
 
     parser = argparse.ArgumentParser(
         prog="nrreval",

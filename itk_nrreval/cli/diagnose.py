@@ -243,8 +243,8 @@ def save_cell_figure(results: Sequence, path: str | Path) -> Path:
 
 def write_reports(results: Sequence, out: str | Path, *, images: Sequence[str] = ()) -> list[Path]:
     """Write the Markdown and CSV tables, the JSON and the figure into `out` (atomically)."""
-    from .. import __version__
     from .._output import write_json, write_text
+    from .._version import __version__
 
     out = Path(out)
     paths = [out / "appearance_table1.md", out / "appearance_table1.csv"]

@@ -63,7 +63,8 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--cache",
         metavar="CACHE",
-        help="per-image result cache for --scheduler (default DIR/cache); a rerun reuses it",
+        help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
+        "with more images or registrations, computes only what is new",
     )
     p.set_defaults(func=run)
 
@@ -74,15 +75,11 @@ def run(args: argparse.Namespace) -> int:
     from ..manifest import load_manifest
     from ..reports import summary_table, write_reports
 
-    if args.scheduler is None and (args.workers is not None or args.cache is not None):
-        raise InputError("--workers and --cache need --scheduler (local or an address)")
-    if args.scheduler is not None and args.save_resampled:
-        raise InputError("--save-resampled works without --scheduler only")
+    if args.scheduler is None and args.workers is not None:
+        raise InputError("--workers needs --scheduler (local or an address)")
     manifest = load_manifest(args.manifest)  # every problem, before DIR is created
     out = Path(args.out)
-    cache = None
-    if args.scheduler is not None:
-        cache = Path(args.cache) if args.cache is not None else out / "cache"
+    cache = Path(args.cache) if args.cache is not None else out / "cache"
     result = evaluate(
         manifest,
         n_samples=args.samples,
@@ -96,11 +93,11 @@ def run(args: argparse.Namespace) -> int:
     )
     write_reports(result, out, figures=not args.no_figures)
     print(summary_table(result), end="")
-    if result.run:
-        r = result.run
-        print(
-            f"{r['workers']} Dask workers; per-image results: {r['cache_reused']} reused from "
-            f"{cache}/, {r['cache_computed']} computed"
-        )
+    r = result.run
+    where = f"on {r['workers']} Dask workers" if r["scheduler"] else "in this process"
+    print(
+        f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
+        f"{r['cache_computed']} computed"
+    )
     print(f"results written to {out}/")
     return 0

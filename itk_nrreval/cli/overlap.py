@@ -42,7 +42,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import __version__
+    from .._version import __version__
     from ..overlap import WEIGHTINGS, overlap_table
 
     weightings = list(dict.fromkeys(args.weighting)) if args.weighting else list(WEIGHTINGS)

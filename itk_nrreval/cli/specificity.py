@@ -31,7 +31,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import __version__
+    from .._version import __version__
     from ..specificity import texture_measures
 
     spec, gen = texture_measures(

@@ -83,7 +83,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .. import __version__
+    from .._version import __version__
     from ..validation import manifest_set, synthetic_set, validate
 
     if args.n_images < 3:

@@ -54,7 +54,7 @@ from ..transforms import flatten, write_transform
 from ._common import EngineError, load_images, resample, with_options
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
-from .fluid import FluidOptions, _import_ants, fluid_to_reference
+from .fluid import FluidOptions, fluid_to_reference, import_ants
 from .groupwise import (
     GroupwiseOptions,
     groupwise_register,
@@ -262,7 +262,7 @@ def register(
     if method == "groupwise" and reference is not None:
         raise InputError("groupwise registers to the evolving group mean: do not give a reference")
     if method == "fluid" and engine == "ants":
-        _import_ants()  # fail before any work when antspyx is missing
+        import_ants()  # fail before any work when antspyx is missing
     imgs, paths = load_images(images)
     n = len(imgs)
     if engine == "elastix-stack" and imgs[0].GetDimension() != 2:

@@ -46,7 +46,7 @@ import SimpleITK as sitk
 from .._errors import InputError
 from ._common import EngineError
 
-__all__ = ["ElastixWorker"]
+__all__ = ["ElastixWorker", "elastix_available"]
 
 
 class ElastixWorker:
@@ -61,7 +61,7 @@ class ElastixWorker:
     """
 
     def __init__(self) -> None:
-        if not _elastix_available():
+        if not elastix_available():
             raise InputError(
                 "itk-elastix is not installed: pip install itk-elastix (or use --engine simpleitk)"
             )
@@ -325,7 +325,8 @@ def _stack_bsplines(pm: dict[str, list[str]]) -> list[sitk.BSplineTransform]:
     return out
 
 
-def _elastix_available() -> bool:
+def elastix_available() -> bool:
+    """Whether the itk-elastix package is installed (checked without importing it)."""
     from importlib import metadata  # noqa: PLC0415
 
     try:

@@ -24,7 +24,7 @@ from .._progress import progress
 from ..transforms import field_transform, read_transform
 from ._common import EngineError, resample
 
-__all__ = ["FluidOptions", "demons_register", "fluid_to_reference"]
+__all__ = ["FluidOptions", "demons_register", "fluid_to_reference", "import_ants"]
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,7 @@ def fluid_to_reference(
     The reference image itself (`reference_index`) keeps its identity affine.
     """
     if engine == "ants":
-        ants = _import_ants()
+        ants = import_ants()
     out = []
     for i, (img, aff) in progress(
         list(enumerate(zip(images, affines, strict=True))),
@@ -153,7 +153,8 @@ def fluid_to_reference(
     return out
 
 
-def _import_ants():
+def import_ants():
+    """The ``ants`` module (antspyx), or an InputError saying how to install it."""
     try:
         import ants  # noqa: PLC0415
     except ImportError:

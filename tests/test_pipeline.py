@@ -1,4 +1,4 @@
-"""Scale-out: Dask evaluation equals the single-process path; the per-image disk cache."""
+"""The evaluate dataflow: Dask equals in-process; the per-image cache and resume on both."""
 
 from __future__ import annotations
 
@@ -23,6 +23,8 @@ from itk_nrreval.cli import main
 pytest.importorskip("dask.distributed")
 
 KW = dict(n_samples=2000, seed=5, progress=False)
+# the two executors: in this process, and a one-worker local Dask cluster
+EXECUTORS = {"in_process": {}, "dask": {"scheduler": "local", "workers": 1}}
 
 
 def with_mask(tmp_path) -> Path:
@@ -68,7 +70,8 @@ def test_distributed_equals_single_process(tmp_path, distance):
     assert scaled.run["cache_reused"] == 0
     # the frame estimates of the two non-common registrations, then every resampled image
     assert scaled.run["cache_computed"] == 2 * 6 + 3 * 6
-    assert scaled.options == single.options and single.run == {}
+    assert scaled.options == single.options
+    assert single.run["scheduler"] is None and single.run["cache_computed"] == 2 * 6 + 3 * 6
 
 
 def test_running_cluster_by_address(tmp_path):
@@ -85,10 +88,11 @@ def test_running_cluster_by_address(tmp_path):
     assert scaled.run["scheduler"] == cluster.scheduler_address
 
 
-def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path):
+@pytest.mark.parametrize("executor", EXECUTORS)
+def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(scheduler="local", workers=1, cache=cache, **KW)
+    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
     first = nr.evaluate(manifest, **kw)
     again = nr.evaluate(manifest, **kw)
     assert again.run["cache_reused"] == first.run["cache_computed"] == 30
@@ -111,10 +115,11 @@ def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path):
     assert t2.overlap == pytest.approx(t.overlap, rel=1e-12)
 
 
-def test_corrupt_cache_entries_are_recomputed(tmp_path):
+@pytest.mark.parametrize("executor", EXECUTORS)
+def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(scheduler="local", workers=1, cache=cache, **KW)
+    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
     first = nr.evaluate(manifest, **kw)
     entries = sorted((cache / "resampled").glob("*/*/entry.json"))
     assert len(entries) == 18
@@ -161,12 +166,14 @@ def slow_case(tmp_path) -> Path:
     return path
 
 
-def test_killed_run_restarts_from_cache(tmp_path):
+@pytest.mark.parametrize("executor", EXECUTORS)
+def test_killed_run_restarts_from_cache(tmp_path, executor):
     manifest = slow_case(tmp_path)
     cache, out = tmp_path / "cache", tmp_path / "out"
     cmd = [sys.executable, "-m", "itk_nrreval", "evaluate", str(manifest), "--out", str(out)]
-    cmd += ["--samples", "2000", "--seed", "5", "--scheduler", "local", "--workers", "1"]
-    cmd += ["--cache", str(cache), "--no-figures"]
+    cmd += ["--samples", "2000", "--seed", "5", "--cache", str(cache), "--no-figures"]
+    if executor == "dask":
+        cmd += ["--scheduler", "local", "--workers", "1"]
     proc = subprocess.Popen(
         cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
     )
@@ -200,7 +207,7 @@ def test_cli_scheduler_errors(tmp_path, capsys):
     manifest = with_mask(tmp_path)
     out = tmp_path / "out"
     assert main(["evaluate", str(manifest), "--out", str(out), "--workers", "2"]) == 2
-    assert "--workers and --cache need --scheduler" in capsys.readouterr().err
+    assert "--workers needs --scheduler" in capsys.readouterr().err
     assert main(["evaluate", str(manifest), "--out", str(out), "--scheduler", "nowhere"]) == 2
     err = capsys.readouterr().err
     assert "scheduler: 'nowhere' is neither 'local' nor an address" in err
@@ -214,7 +221,7 @@ def test_cli_local_scheduler_reports_cache(tmp_path, capsys):
     args = ["evaluate", str(manifest), "--out", str(out), "--samples", "500", "--no-figures"]
     assert main(args + ["--scheduler", "local", "--workers", "2"]) == 0
     printed = capsys.readouterr().out
-    assert "2 Dask workers; per-image results: 0 reused" in printed
+    assert "ran on 2 Dask workers; per-image results: 0 reused" in printed
     assert (out / "cache" / "resampled").is_dir()
     assert json.loads((out / "results.json").read_text())["run"]["cache_computed"] == 30
 

@@ -1,0 +1,621 @@
+"""The evaluate dataflow, written once: per-image tasks, per-voxel-block sums, the driver.
+
+:func:`itk_nrreval.evaluate` runs here, in this process by default or on a Dask cluster
+(:mod:`itk_nrreval.scaleout`); both run the same task functions, the executor only maps
+them. The work is cut so that no process holds the N x n data (N images, n voxels):
+
+1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
+   other than the common one); then the image resampled into the common frame, its fuzzy
+   label memberships (sparse: the voxels where each label is nonzero), the per-image sums
+   the overlap needs (label gradients, presence) and the transform's folded fraction. Each
+   result is written to a disk cache under a digest of everything it depends on (input
+   file contents, transforms, the frame, grid, mask, settings; :mod:`itk_nrreval.cache`),
+   so a rerun -- after an interruption, or with more images or registrations -- finds it
+   there instead of recomputing it;
+2. **per voxel block** (a few tasks per registration): every image's block is read back
+   (memory-mapped) to add that block's share of the N x N Gram matrix of the centred
+   images, the mean image, and the overlap pair sums per label;
+3. **on the driver**: the blocks' sums are added up in block order (so the numbers do not
+   depend on the order tasks finish in); the texture model comes from the Gram matrix
+   (:meth:`TextureModel.from_gram`), specificity and generalization from the model, the
+   overlap from its per-label sums (:meth:`OverlapTable.from_sums`).
+
+Peak memory is therefore independent of N apart from the N x N Gram matrix: one image
+and its memberships per task, one voxel block of all N images (``_BLOCK_BYTES``) per
+reduction, one mean image per registration on the driver. The cache folder must be visible
+to the driver and every worker (a shared filesystem on a cluster).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import tempfile
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import SimpleITK as sitk
+
+from ._errors import InputError
+from ._images import Geometry, mask_array, read_image
+from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
+from ._progress import progress
+from .cache import DiskCache, digest_of
+from .frame import (
+    FrameMapping,
+    common_reference,
+    frame_estimates,
+    frame_method,
+    label_values,
+    needs_inversion_grid,
+    points_minus_grid,
+    resample_images,
+    resampling_transform,
+)
+from .manifest import Manifest
+from .memberships import SparseMemberships, resample_label_memberships
+from .model import TextureModel
+from .overlap import OverlapTable
+from .specificity import GeneralizationResult, SpecificityResult, texture_measures
+from .transforms import chain_transform, field_transform, folded_fraction
+
+__all__ = [
+    "Executor",
+    "InProcessExecutor",
+    "RegistrationRun",
+    "PipelineRun",
+    "run_pipeline",
+]
+
+_FORMAT = 2  # bump when what a cache entry holds changes
+_BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
+
+
+# ----------------------------------------------------------------------------- executors
+
+
+class Executor(Protocol):
+    """Maps a task function over argument tuples; yields ``(index, result)`` as each ends.
+
+    Implementations: :class:`InProcessExecutor` (this process, in order) and
+    :class:`itk_nrreval.scaleout.DaskExecutor` (one task per call on a cluster).
+    """
+
+    n_workers: int
+
+    def map(
+        self, fn: Callable, calls: Sequence[tuple], *, desc: str, show: bool
+    ) -> Iterator[tuple[int, Any]]: ...
+
+
+class InProcessExecutor:
+    """Run every task in this process, one after the other, in order.
+
+    Tasks use the threads SimpleITK and numba give them (all cores by default).
+    """
+
+    n_workers = 1
+
+    def map(
+        self, fn: Callable, calls: Sequence[tuple], *, desc: str, show: bool
+    ) -> Iterator[tuple[int, Any]]:
+        for i, args in enumerate(progress(calls, desc=desc, total=len(calls), enabled=show)):
+            yield i, fn(*args)
+
+
+# ----------------------------------------------------------------------------- tasks
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What every task of one run needs (small; pickled into each task on a cluster)."""
+
+    root: str
+    grid: Geometry
+    mask_key: str | None
+
+    def cache(self) -> DiskCache:
+        return DiskCache(self.root)
+
+    def mask_flat(self) -> np.ndarray | None:
+        """The mask over the flattened grid (numpy order), or None."""
+        if self.mask_key is None:
+            return None
+        return self.cache().open("mask", self.mask_key).array("mask")
+
+
+def _frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Transform:
+    """F from its description: ("identity",), ("chain", item) or ("field", key)."""
+    if spec[0] == "identity":
+        return sitk.TranslationTransform(grid.dimension)
+    if spec[0] == "chain":
+        return chain_transform(spec[1])
+    disp = cache.open("frame", spec[1]).array("disp")
+    img = sitk.GetImageFromArray(disp, isVector=True)
+    grid.apply_to(img)
+    return field_transform(img)
+
+
+def _estimate_task(ctx: _Context, common_item, item, reference: Path) -> tuple[str, bool]:
+    """Cache ``F_i(p) - p`` on the common grid; return (key, reused)."""
+    cache = ctx.cache()
+    key = digest_of(["estimate", _FORMAT, ctx.grid, common_item, item, reference])
+    if cache.get("estimate", key) is not None:
+        return key, True
+    tr = chain_transform(item)
+    reg_grid = None
+    if needs_inversion_grid(tr):
+        reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
+    disp = frame_estimates([chain_transform(common_item)], [tr], ctx.grid, other_grid=reg_grid)[0]
+    cache.put("estimate", key, {"disp": disp})
+    return key, False
+
+
+def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, float, int]:
+    """Sum and max over the mask of ``|F_i(p) - F(p)|`` (mm), and the voxel count."""
+    cache = ctx.cache()
+    est = cache.open("estimate", key).array("disp")
+    f_disp = cache.open("frame_disp", frame_disp_key).array("disp")
+    dist = np.linalg.norm(est - f_disp, axis=-1).reshape(-1)
+    mask = ctx.mask_flat()
+    if mask is not None:
+        dist = dist[mask]
+    return float(dist.sum()), float(dist.max()), int(dist.size)
+
+
+def _resample_task(
+    ctx: _Context,
+    image: Path,
+    labels: Path | None,
+    item,
+    frame: tuple,
+    frame_digest: str,
+    reference: Path,
+    interpolation: str,
+) -> tuple[str, bool, dict]:
+    """Resample one image (and its label memberships) into the common frame; cache it.
+
+    The entry holds ``image`` (n,) float64 over the whole grid, and for the labels the
+    nonzero memberships of the image's own nonzero label values, in compressed form:
+    ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices, ascending per label), ``lab_val``
+    (float32). Its metadata holds per label the gradient sum (over the mask) and whether the
+    label is present inside the mask, and the transform's folded fraction.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    key = digest_of(
+        [
+            "resampled",
+            _FORMAT,
+            g,
+            ctx.mask_key,
+            image,
+            labels,
+            item,
+            frame_digest,
+            reference,
+            interpolation,
+        ]
+    )
+    entry = cache.get("resampled", key)
+    if entry is not None:
+        return key, True, dict(entry.meta)
+    t = chain_transform(item)
+    full = resampling_transform(t, _frame_transform(frame, g, cache))
+    arrays = {
+        "image": resample_images(
+            [image], [full], g, interpolation=interpolation, show_progress=False
+        )[0].reshape(-1)
+    }
+    reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
+    meta: dict = {"folded": folded_fraction(t, reg_grid)}
+    if labels is not None:
+        lab = read_image(labels, what="label map")
+        own = [int(v) for v in label_values([lab]) if v != 0]  # background: not evaluated
+        memb = resample_label_memberships(lab, full, g, values=own)
+        mask = ctx.mask_flat()
+        gsum, present = [], []
+        row = np.zeros(int(np.prod(g.shape)), np.float32)
+        for k in range(len(own)):
+            idx, val = memb.label(k)
+            row[idx] = val
+            gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
+            row[idx] = 0
+            present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
+        arrays.update(lab_ptr=memb.ptr, lab_idx=memb.index, lab_val=memb.weight)
+        meta.update(labels=own, gsum=gsum, present=present)
+    cache.put("resampled", key, arrays, meta)
+    return key, False, meta
+
+
+def _block_task(
+    ctx: _Context, keys: Sequence[str], start: int, stop: int, components: Sequence[int]
+) -> dict:
+    """One voxel block [start, stop) of the flattened grid, over all N images.
+
+    Returns the block's Gram matrix of the centred masked intensities (N, N), the mean
+    image on the block (stop - start,), and per label value of `components` the pair sums
+    p, q (L,) and per image the volume and target-overlap sums (N, L), voxel units.
+    """
+    cache = ctx.cache()
+    entries = [cache.open("resampled", k) for k in keys]
+    n = len(entries)
+    x = np.empty((n, stop - start))
+    for i, e in enumerate(entries):
+        x[i] = e.array("image", mmap=True)[start:stop]
+    mask = ctx.mask_flat()
+    mask = mask[start:stop] if mask is not None else None
+    mean = x.mean(axis=0)
+    xm = x[:, mask] if mask is not None else x
+    centred = xm - xm.mean(axis=0)
+    out = {"gram": centred @ centred.T, "mean": mean}
+    del x, xm, centred
+    n_labels = len(components)
+    p, q = np.zeros(n_labels), np.zeros(n_labels)
+    vol, spair = np.zeros((n, n_labels)), np.zeros((n, n_labels))
+    if n_labels:
+        lookups = [{v: j for j, v in enumerate(e.meta["labels"])} for e in entries]
+        arrays = [
+            (e.array("lab_ptr"), e.array("lab_idx", mmap=True), e.array("lab_val", mmap=True))
+            for e in entries
+        ]
+        block = np.zeros((n, stop - start), np.float32)
+        for k, value in enumerate(components):
+            block[:] = 0
+            for i, (ptr, idx, val) in enumerate(arrays):
+                j = lookups[i].get(int(value))
+                if j is None:
+                    continue
+                own = idx[ptr[j] : ptr[j + 1]]
+                lo, hi = np.searchsorted(own, [start, stop])
+                block[i, np.asarray(own[lo:hi]) - start] = val[ptr[j] + lo : ptr[j] + hi]
+            p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(block, mask=mask)
+    out.update(p=p, q=q, vol=vol, spair=spair)
+    return out
+
+
+# ----------------------------------------------------------------------------- the driver
+
+
+@dataclass(frozen=True)
+class RegistrationRun:
+    """What the dataflow computes for one registration (the driver's inputs to a report).
+
+    Attributes
+    ----------
+    name : str
+    specificity : SpecificityResult
+    generalization : GeneralizationResult
+    overlap : OverlapTable or None
+        None without labels.
+    frame : FrameMapping
+    folded : ndarray of shape (n_images,)
+        Per image, the fraction of the registration's reference-grid voxels where its
+        transform folds (Jacobian determinant <= 0).
+    mean_image : ndarray of shape (*spatial_zyx,)
+        The mean resampled image on the common grid.
+    """
+
+    name: str
+    specificity: SpecificityResult
+    generalization: GeneralizationResult
+    overlap: OverlapTable | None
+    frame: FrameMapping
+    folded: np.ndarray
+    mean_image: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
+class PipelineRun:
+    """Every registration's :class:`RegistrationRun`, the label values, and how it ran.
+
+    Attributes
+    ----------
+    registrations : dict of str to RegistrationRun
+        In the manifest's order.
+    label_values : list of int or None
+        ``[0, *labels]``: background then every nonzero label value found (None without
+        labels); the overlap table's labels are indices into this list.
+    grid : Geometry
+        The common grid.
+    cache_reused, cache_computed : int
+        Per-image results found in the cache, and computed.
+    """
+
+    registrations: Mapping[str, RegistrationRun]
+    label_values: list[int] | None
+    grid: Geometry
+    cache_reused: int
+    cache_computed: int
+
+
+@dataclass
+class _Counts:
+    reused: int = 0
+    computed: int = 0
+
+    def add(self, reused: bool) -> None:
+        if reused:
+            self.reused += 1
+        else:
+            self.computed += 1
+
+
+def _block_bounds(n_images: int, n_voxels: int) -> list[tuple[int, int]]:
+    size = max(4096, _BLOCK_BYTES // (8 * n_images)) // 4096 * 4096
+    size = min(size, n_voxels)
+    return [(a, min(a + size, n_voxels)) for a in range(0, n_voxels, size)]
+
+
+def run_pipeline(
+    m: Manifest,
+    executor: Executor,
+    *,
+    cache: str | os.PathLike | None,
+    n_samples: int,
+    seed: int,
+    distance: str,
+    interpolation: str,
+    show_progress: bool,
+    save_resampled: str | os.PathLike | None = None,
+) -> PipelineRun:
+    """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
+
+    Parameters
+    ----------
+    m : Manifest
+        Already checked.
+    executor : Executor
+        Where tasks run.
+    cache : path, optional
+        The per-image result cache (default: a temporary folder, removed afterwards).
+    n_samples, seed, distance, interpolation
+        As :func:`itk_nrreval.evaluate`.
+    show_progress : bool
+        Progress bars on stderr.
+    save_resampled : path, optional
+        Write each registration's resampled images and label memberships (NIfTI) here.
+
+    Returns
+    -------
+    PipelineRun
+    """
+    grid = Geometry.from_image(common_reference(m))
+    mask = mask_array(m.mask, shape=grid.shape, geometry=grid) if m.mask is not None else None
+    with contextlib.ExitStack() as stack:
+        if cache is None:
+            cache = stack.enter_context(tempfile.TemporaryDirectory(prefix="nrreval-cache-"))
+        disk = DiskCache(cache)
+        disk.remove_stale()
+        mask_key = None
+        if mask is not None:
+            flat_mask = mask.reshape(-1).astype(np.bool_)
+            mask_key = digest_of(["mask", flat_mask])
+            if disk.get("mask", mask_key) is None:
+                disk.put("mask", mask_key, {"mask": flat_mask})
+        ctx = _Context(str(Path(cache).resolve()), grid, mask_key)
+        counts = _Counts()
+
+        values = None
+        if m.labels is not None:
+            found: set[int] = set()
+            calls = [([p],) for p in m.labels]
+            for _, vals in executor.map(
+                label_values, calls, desc="label values", show=show_progress
+            ):
+                found.update(int(v) for v in vals)
+            values = [0] + sorted(v for v in found if v != 0)  # index 0: background
+
+        runs = {}
+        for name, reg in m.registrations.items():
+            frame_spec, frame_digest, frame = _frame(
+                executor, ctx, disk, m, name, counts, show_progress
+            )
+            calls = [
+                (
+                    ctx,
+                    m.images[i],
+                    m.labels[i] if m.labels is not None else None,
+                    reg.transforms[i],
+                    frame_spec,
+                    frame_digest,
+                    reg.reference,
+                    interpolation,
+                )
+                for i in range(m.n_images)
+            ]
+            keys: list[str] = [""] * m.n_images
+            metas: list[dict] = [{}] * m.n_images
+            for i, (key, reused, meta) in executor.map(
+                _resample_task, calls, desc=f"{name}: resampling", show=show_progress
+            ):
+                keys[i], metas[i] = key, meta
+                counts.add(reused)
+            if save_resampled is not None:
+                _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
+            runs[name] = _reduce(
+                executor,
+                ctx,
+                name,
+                keys,
+                metas,
+                frame,
+                values,
+                mask,
+                n_samples=n_samples,
+                seed=seed,
+                distance=distance,
+                show=show_progress,
+            )
+    return PipelineRun(runs, values, grid, counts.reused, counts.computed)
+
+
+def _reduce(
+    executor, ctx, name, keys, metas, frame, values, mask, *, n_samples, seed, distance, show
+) -> RegistrationRun:
+    """Block sums -> model -> specificity and generalization; pair sums -> overlap table."""
+    grid = ctx.grid
+    n = len(keys)
+    n_vox = int(np.prod(grid.shape))
+    bounds = _block_bounds(n, n_vox)
+    components = values[1:] if values is not None else []
+    calls = [(ctx, keys, a, b, components) for a, b in bounds]
+    gram = np.zeros((n, n))
+    mean = np.empty(n_vox)
+    n_lab = len(components)
+    p, q = np.zeros(n_lab), np.zeros(n_lab)
+    vol, spair = np.zeros((n, n_lab)), np.zeros((n, n_lab))
+    # Sums are taken in block order, whatever order the blocks finish in, so that a run's
+    # numbers do not depend on the executor's timing.
+    pending: dict[int, dict] = {}
+    next_block = 0
+    for b, res in executor.map(_block_task, calls, desc=f"{name}: model", show=show):
+        pending[b] = res
+        while next_block in pending:
+            res = pending.pop(next_block)
+            gram += res["gram"]
+            mean[bounds[next_block][0] : bounds[next_block][1]] = res["mean"]
+            p += res["p"]
+            q += res["q"]
+            vol += res["vol"]
+            spair += res["spair"]
+            next_block += 1
+    model = TextureModel.from_gram(
+        gram,
+        mean=mean[mask.reshape(-1)] if mask is not None else mean,
+        mask=mask,
+        geometry=grid,
+    )
+    spec, gen = texture_measures(
+        model,
+        n_samples=n_samples,
+        distance=distance,
+        seed=seed,
+        progress=show,
+        desc=f"{name}: specificity",
+    )
+    table = None
+    if values is not None:
+        present = np.zeros(n_lab, bool)
+        gsum = np.zeros((n, n_lab))
+        for i, meta in enumerate(metas):
+            own = {v: j for j, v in enumerate(meta["labels"])}
+            for k, v in enumerate(components):
+                if v in own:
+                    present[k] |= meta["present"][own[v]]
+                    gsum[i, k] = meta["gsum"][own[v]]
+        comps = np.arange(1, len(values), dtype=np.int64)  # indices into values
+        if not present.any():
+            raise InputError("label maps: no label other than background 0 in the mask")
+        skipped = tuple(int(c) for c in comps[~present])
+        if skipped:
+            warnings.warn(
+                f"labels {[values[c] for c in skipped]} are absent from every image and "
+                "are skipped",
+                UserWarning,
+                stacklevel=4,
+            )
+        table = OverlapTable.from_sums(
+            comps[present],
+            vol[:, present],
+            spair[:, present],
+            gsum[:, present],
+            p[present],
+            q[present],
+            spacing=grid.spacing,
+            fuzzy=True,
+            skipped_labels=skipped,
+        )
+    folds = np.array([float(meta["folded"]) for meta in metas])
+    return RegistrationRun(name, spec, gen, table, frame, folds, mean.reshape(grid.shape))
+
+
+def _frame(executor, ctx, disk, m: Manifest, name, counts, show):
+    """F for registration `name`: its task description, the digest of that, its FrameMapping."""
+    reg = m.registrations[name]
+    common_items = m.registrations[m.common_frame].transforms
+    if name == m.common_frame:
+        spec = ("identity",)
+        f = _frame_transform(spec, ctx.grid, disk)
+        return spec, digest_of([spec[0], spec[1:]]), FrameMapping(name, "common", f, 0.0, 0.0)
+    method = frame_method(reg)
+    if method == "frame_transform":
+        spec = ("chain", reg.frame_transform)
+    elif method == "reference_index":
+        spec = ("chain", common_items[reg.reference_index])
+    else:
+        spec = None
+    calls = [(ctx, common_items[i], reg.transforms[i], reg.reference) for i in range(m.n_images)]
+    keys = [""] * m.n_images
+    for i, (key, reused) in executor.map(_estimate_task, calls, desc=f"{name}: frame", show=show):
+        keys[i] = key
+        counts.add(reused)
+    if spec is None:
+        key = digest_of(["frame", _FORMAT, keys])
+        if disk.get("frame", key) is None:
+            total = None
+            for k in keys:  # streamed: one field in memory at a time
+                est = disk.open("estimate", k).array("disp")
+                total = est.copy() if total is None else total + est
+            disk.put("frame", key, {"disp": total / len(keys)})
+        spec = ("field", key)
+    digest = digest_of([spec[0], spec[1:]])
+    f = _frame_transform(spec, ctx.grid, disk)
+    # F(p) - p on the common grid, once, for every image's spread task
+    disp_key = digest_of(["frame_disp", _FORMAT, ctx.grid, digest])
+    if disk.get("frame_disp", disp_key) is None:
+        disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
+    calls = [(ctx, k, disp_key) for k in keys]
+    parts = [(0.0, 0.0, 0)] * len(keys)
+    for i, part in executor.map(_spread_task, calls, desc=f"{name}: frame spread", show=show):
+        parts[i] = part
+    count = sum(part[2] for part in parts)
+    mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
+    max_mm = max(part[1] for part in parts) if count else math.nan
+    return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
+
+
+def _save_resampled(
+    disk: DiskCache,
+    keys: Sequence[str],
+    metas: Sequence[dict],
+    grid: Geometry,
+    folder: Path,
+    values: list[int] | None,
+) -> None:
+    """Write ``image_###.nii.gz`` and (with labels) ``memberships_###.nii.gz``.
+
+    The memberships have one component per nonzero label value (``values[1:]``, in that
+    order); background is one minus their sum inside an image's field of view.
+    """
+    from ._output import atomic_path
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, key in enumerate(keys):
+        entry = disk.open("resampled", key)
+        img = sitk.GetImageFromArray(entry.array("image").reshape(grid.shape))
+        grid.apply_to(img)
+        with atomic_path(folder / f"image_{i:03d}.nii.gz") as tmp:
+            sitk.WriteImage(img, str(tmp), True)
+        if values is None:
+            continue
+        memb = SparseMemberships(
+            values=np.asarray(metas[i]["labels"], np.int64),
+            shape=grid.shape,
+            ptr=entry.array("lab_ptr"),
+            index=entry.array("lab_idx"),
+            weight=entry.array("lab_val"),
+        )
+        dense = np.zeros((len(values) - 1, *grid.shape), np.float32)
+        own = memb.dense()
+        for j, v in enumerate(metas[i]["labels"]):
+            dense[values.index(v) - 1] = own[j]
+        vec = sitk.GetImageFromArray(np.moveaxis(dense, 0, -1), isVector=True)
+        grid.apply_to(vec)
+        with atomic_path(folder / f"memberships_{i:03d}.nii.gz") as tmp:
+            sitk.WriteImage(vec, str(tmp), True)

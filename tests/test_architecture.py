@@ -1,0 +1,111 @@
+"""The package's structure: no reaching into another module's private names, no import
+cycle, and no Dask unless a scheduler is asked for."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import itk_nrreval
+
+PACKAGE = Path(itk_nrreval.__file__).resolve().parent
+
+
+def _modules() -> dict[str, Path]:
+    """Dotted module name -> file, for every module of the package."""
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _is_package(name: str, modules: dict[str, Path]) -> bool:
+    return modules[name].name == "__init__.py"
+
+
+def _imports(name: str, modules: dict[str, Path]):
+    """(line, imported module, imported names) of every import of a package module in
+    `name`, at any depth (function-level imports included)."""
+    tree = ast.parse(modules[name].read_text())
+    here = name if _is_package(name, modules) else name.rpartition(".")[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here
+                for _ in range(node.level - 1):
+                    base = base.rpartition(".")[0]
+                target = f"{base}.{node.module}" if node.module else base
+            else:
+                target = node.module or ""
+            if target in modules:
+                yield node.lineno, target, [a.name for a in node.names]
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name in modules:
+                    yield node.lineno, a.name, []
+
+
+def test_no_module_imports_a_private_name_of_a_sibling():
+    modules = _modules()
+    offences = []
+    for name in modules:
+        bound_modules = {}
+        for line, target, names in _imports(name, modules):
+            for imported in names:
+                if f"{target}.{imported}" in modules:  # a (possibly private) module: fine
+                    bound_modules[imported] = f"{target}.{imported}"
+                elif imported.startswith("_") and not imported.startswith("__"):
+                    offences.append(f"{name}:{line} imports {imported} from {target}")
+        # attribute access into a module imported by name: `_sampling._key`
+        tree = ast.parse(modules[name].read_text())
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in bound_modules
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+            ):
+                offences.append(f"{name}:{node.lineno} uses {node.value.id}.{node.attr}")
+    assert offences == []
+
+
+def test_no_import_cycle():
+    modules = _modules()
+    graph = {name: set() for name in modules}
+    for name in modules:
+        for _, target, names in _imports(name, modules):
+            subs = [f"{target}.{n}" for n in names if f"{target}.{n}" in modules]
+            graph[name].update(subs or [target])
+    # the package's __init__ files import their submodules; a submodule importing its own
+    # package's __init__ back would be a cycle, and is caught like any other
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycles.append(" -> ".join(path[path.index(nxt) :] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, path + [nxt])
+        state[node] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+    assert cycles == []
+
+
+def test_evaluation_imports_no_dask():
+    code = (
+        "import sys, itk_nrreval.evaluation; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
