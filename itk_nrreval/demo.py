@@ -126,7 +126,7 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
     header = ["Registration"]
     for w in _TABLE_OVERLAPS:
         header += [f"Overlap ({w.replace('_', ' ')})", "Rank", "Rel."]
-    header += ["Specificity", "Std. error", "Rank", "Rel."]
+    header += ["Specificity", "95% CI (subjects)", "MC s.e.", "Rank", "Rel."]
     header += ["True corr. error (mm)", "Rank", "Rel."]
     lines = ["| " + " | ".join(header) + " |", "|---" + "|--:" * (len(header) - 1) + "|"]
     for name in names:
@@ -139,15 +139,21 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
                 str(evaluation.ranks[m][name]),
                 format_percent(evaluation.relative_ranks[m][name]),
             ]
+        iv = s.intervals.get("specificity")
+        ci = "–" if iv is None else f"[{format_number(iv.lo, 4)}, {format_number(iv.hi, 4)}]"
         row += [
             format_number(s.specificity.value, 4),
+            ci,
             format_number(s.specificity.stderr, 2),
             str(evaluation.ranks["specificity"][name]),
             format_percent(evaluation.relative_ranks["specificity"][name]),
         ]
         row += [format_number(error[name], 3), str(err_rank[name]), format_percent(err_rel[name])]
+        if s.flags:
+            row[0] += " (flagged)"
         lines.append("| " + " | ".join(row) + " |")
-    return "\n".join(lines) + "\n"
+    text = list(evaluation.verdict.text) if evaluation.verdict is not None else []
+    return "\n".join([*text, "", *lines]) + "\n"
 
 
 def _agreement(evaluation: EvaluationResult, error: dict[str, float]) -> dict[str, float]:

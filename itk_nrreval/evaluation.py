@@ -11,6 +11,7 @@ random numbers), so differences between registrations are not sampling noise.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import warnings
@@ -21,13 +22,33 @@ from typing import Any
 import numpy as np
 
 from ._errors import InputError
+from ._progress import progress
+from .confidence import (
+    Comparison,
+    Interval,
+    compare,
+    jackknife_groups,
+    jackknife_interval,
+    overlap_replicates,
+    probability_best,
+    specificity_replicates,
+)
 from .frame import FrameMapping
 from .manifest import Manifest, load_manifest
 from .overlap import WEIGHTINGS
 from .pipeline import InProcessExecutor, run_pipeline
+from .plausibility import Plausibility, Thresholds, combine, flags, smallest_extent_mm
 from .specificity import GeneralizationResult, SpecificityResult
 
-__all__ = ["RegistrationScores", "EvaluationResult", "evaluate", "ranks", "relative_ranks"]
+__all__ = [
+    "RegistrationScores",
+    "EvaluationResult",
+    "Verdict",
+    "evaluate",
+    "verdict",
+    "ranks",
+    "relative_ranks",
+]
 
 _DISTANCES = ("l1", "l2")
 _INTERPOLATIONS = ("linear", "bspline")
@@ -41,18 +62,25 @@ class RegistrationScores:
     ----------
     name : str
     specificity : SpecificityResult
-        Lower is better.
+        Lower is better. Its ``stderr`` is Monte-Carlo error only; the subject-level
+        interval is ``intervals["specificity"]``.
     generalization : GeneralizationResult
         Lower is better.
     overlap : dict of str to float
         Generalized Tanimoto overlap per weighting (empty without labels); higher is better.
     frame : FrameMapping
         How the registration's frame was reached, and the spread (mm) of its estimates.
-    folded_fraction : float
-        Mean over images of the fraction of the registration's reference-grid voxels where
-        the image's transform folds (Jacobian determinant <= 0).
-    folded_max : float
-        The largest per-image folded fraction.
+    plausibility : Plausibility
+        Its transforms' deformation plausibility, combined over the images
+        (:func:`itk_nrreval.plausibility.combine`), on its own reference grid.
+    flags : tuple of str
+        Why the registration is implausible, in words; empty when it is plausible.
+    intervals : dict of str to Interval
+        Subject-level 95% interval per measure (``specificity``, ``generalization``,
+        ``overlap.<weighting>``); empty when confidence was not computed.
+    probability_best : dict of str to float
+        Per measure, the probability that this registration is the best of those compared
+        (:func:`itk_nrreval.confidence.probability_best`).
     """
 
     name: str
@@ -60,8 +88,20 @@ class RegistrationScores:
     generalization: GeneralizationResult
     overlap: Mapping[str, float]
     frame: FrameMapping
-    folded_fraction: float
-    folded_max: float
+    plausibility: Plausibility
+    flags: tuple[str, ...] = ()
+    intervals: Mapping[str, Interval] = field(default_factory=dict)
+    probability_best: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def folded_fraction(self) -> float:
+        """Mean over images of the fraction of voxels where the transform folds."""
+        return self.plausibility.folded_fraction
+
+    @property
+    def folded_max(self) -> float:
+        """The largest per-image folded fraction."""
+        return self.plausibility.folded_max
 
     def measures(self) -> dict[str, float]:
         """Every scalar score by measure name (``specificity``, ``overlap.<weighting>``...)."""
@@ -70,13 +110,33 @@ class RegistrationScores:
         return out
 
     def to_dict(self) -> dict:
+        def ci(measure):
+            iv = self.intervals.get(measure)
+            return iv.to_list() if iv is not None else None
+
+        def se(measure):
+            iv = self.intervals.get(measure)
+            return iv.stderr if iv is not None and math.isfinite(iv.stderr) else None
+
+        plaus = self.plausibility.to_dict()
+        plaus["flags"] = list(self.flags)
         return {
-            "specificity": {"value": self.specificity.value, "stderr": self.specificity.stderr},
+            "specificity": {
+                "value": self.specificity.value,
+                "stderr": self.specificity.stderr,
+                "stderr_subjects": se("specificity"),
+                "ci95": ci("specificity"),
+            },
             "generalization": {
                 "value": self.generalization.value,
                 "stderr": self.generalization.stderr,
+                "stderr_subjects": se("generalization"),
+                "ci95": ci("generalization"),
             },
-            "overlap": dict(self.overlap),
+            "overlap": {w: _json_float(v) for w, v in self.overlap.items()},
+            "overlap_ci95": {w: ci(f"overlap.{w}") for w in self.overlap},
+            "plausibility": plaus,
+            "probability_best": {m: _json_float(v) for m, v in self.probability_best.items()},
             "frame": self.frame.to_dict(),
             "folded_fraction": self.folded_fraction,
             "folded_max": self.folded_max,
@@ -85,8 +145,32 @@ class RegistrationScores:
 
 
 @dataclass(frozen=True)
+class Verdict:
+    """The headline: which registration is best, in order and in words.
+
+    Attributes
+    ----------
+    ranking : tuple of str
+        Every registration, by specificity (lower first), every flagged registration after
+        every unflagged one.
+    best : tuple of str
+        The top unflagged registration and those not separable from it (subject-level 95%
+        interval of the specificity difference includes 0).
+    text : tuple of str
+        The verdict as sentences.
+    """
+
+    ranking: tuple[str, ...]
+    best: tuple[str, ...]
+    text: tuple[str, ...]
+
+    def to_dict(self) -> dict:
+        return {"ranking": list(self.ranking), "best": list(self.best), "text": list(self.text)}
+
+
+@dataclass(frozen=True)
 class EvaluationResult:
-    """Every registration's scores, ranks and relative ranks.
+    """Every registration's scores, ranks, confidence and the verdict.
 
     Attributes
     ----------
@@ -104,13 +188,17 @@ class EvaluationResult:
     inputs : dict
         The manifest's description (:meth:`Manifest.describe`).
     options : dict
-        n_samples, seed, distance, interpolation, weightings.
+        n_samples, seed, distance, interpolation, weightings, confidence settings, flag
+        thresholds.
     version : str
         The toolkit version.
     run : dict
         How the run was executed: ``scheduler`` (None: in this process), ``workers``, and
         how many per-image results were reused from the cache (``cache_reused``) or
         computed (``cache_computed``).
+    comparisons : tuple of Comparison
+        Every pairwise difference per measure with its subject-level interval.
+    verdict : Verdict or None
     """
 
     scores: Mapping[str, RegistrationScores]
@@ -122,6 +210,8 @@ class EvaluationResult:
     options: Mapping[str, Any]
     version: str
     run: Mapping[str, Any] = field(default_factory=dict)
+    comparisons: tuple[Comparison, ...] = ()
+    verdict: Verdict | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -146,10 +236,16 @@ class EvaluationResult:
             "options": dict(self.options),
             "inputs": dict(self.inputs),
             "registrations": regs,
+            "comparisons": [c.to_dict() for c in self.comparisons],
+            "verdict": self.verdict.to_dict() if self.verdict is not None else None,
         }
         if self.run:
             out["run"] = dict(self.run)
         return out
+
+
+def _json_float(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
 
 
 def higher_is_better(measure: str) -> bool:
@@ -223,6 +319,110 @@ def relative_ranks(
     return out
 
 
+def _join(names: Sequence[str]) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def verdict(
+    scores: Mapping[str, RegistrationScores],
+    comparisons: Sequence[Comparison],
+    *,
+    has_labels: bool,
+) -> Verdict:
+    """The headline ranking and its sentences.
+
+    Registrations are ordered by specificity (lower first), every flagged one after every
+    unflagged one. The best are the top unflagged registration and those whose specificity
+    difference from it is not separable (its subject-level 95% interval includes 0). With
+    labels, a sentence says the same of the inverse-volume overlap, the ground-truth
+    reference. Each flagged registration gets a sentence saying why.
+
+    Parameters
+    ----------
+    scores : dict of str to RegistrationScores
+    comparisons : sequence of Comparison
+        From :func:`itk_nrreval.confidence.compare` (empty: no confidence computed).
+    has_labels : bool
+
+    Returns
+    -------
+    Verdict
+    """
+    names = list(scores)
+    flagged = [n for n in names if scores[n].flags]
+    unflagged = [n for n in names if not scores[n].flags]
+    spec = {n: scores[n].specificity.value for n in names}
+    ranking = sorted(unflagged, key=spec.get) + sorted(flagged, key=spec.get)
+    pool = [n for n in ranking if n in unflagged] or ranking
+    text = []
+
+    def separable(measure: str, a: str, b: str) -> bool | None:
+        for c in comparisons:
+            if c.measure == measure and {c.a, c.b} == {a, b}:
+                return c.separable
+        return None
+
+    top = pool[0]
+    others = "every other unflagged registration" if flagged else "every other registration"
+    if not unflagged:
+        text.append(
+            "Every registration is flagged as implausible; the ranking below is "
+            "by specificity alone."
+        )
+    if len(pool) == 1:
+        best = (top,)
+        text.append(f"{top} is the only unflagged registration.")
+    elif separable("specificity", top, pool[1]) is None:
+        best = (top,)
+        text.append(
+            f"{top} has the lowest specificity; subject-level confidence was not computed, so "
+            "whether the others differ from it on other subjects is not known."
+        )
+    else:
+        ties = [n for n in pool[1:] if not separable("specificity", top, n)]
+        best = (top, *ties)
+        if not ties:
+            text.append(f"{top} is best by specificity (separable from {others}).")
+        else:
+            verb = "is" if len(ties) == 1 else "are"
+            text.append(
+                f"{top} has the lowest specificity, but {_join(ties)} {verb} not separable "
+                "from it on this data (the 95% subject-level interval of the difference "
+                "includes 0)."
+            )
+        rest = [n for n in pool if n not in best]
+        for a, b in zip(rest, rest[1:], strict=False):
+            if not separable("specificity", a, b):
+                text.append(f"{a} and {b} are not separable on this data.")
+    overlap = "overlap.inverse_volume"
+    if has_labels and all(overlap in scores[n].measures() for n in names):
+        value = {n: scores[n].measures()[overlap] for n in names}
+        by_overlap = sorted(names, key=lambda n: -value[n])
+        top_o = by_overlap[0]
+        if separable(overlap, top_o, by_overlap[1] if len(names) > 1 else top_o) is None:
+            text.append(f"By inverse-volume overlap (the ground-truth reference) {top_o} is best.")
+        else:
+            ties = [n for n in by_overlap[1:] if not separable(overlap, top_o, n)]
+            if ties:
+                verb = "is" if len(ties) == 1 else "are"
+                text.append(
+                    f"By inverse-volume overlap (the ground-truth reference) {top_o} is highest, "
+                    f"but {_join(ties)} {verb} not separable from it."
+                )
+            else:
+                text.append(
+                    f"By inverse-volume overlap (the ground-truth reference) {top_o} is best "
+                    "(separable from every other registration)."
+                )
+    for n in flagged:
+        text.append(
+            f"{n} is flagged: {'; '.join(scores[n].flags)}. It is ranked after every "
+            "unflagged registration."
+        )
+    return Verdict(tuple(ranking), tuple(best), tuple(text))
+
+
 def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str, ...]:
     if distance not in _DISTANCES:
         raise ValueError(f"distance: {distance!r} is not one of {_DISTANCES}")
@@ -254,6 +454,11 @@ def evaluate(
     scheduler: str | None = None,
     workers: int | None = None,
     cache: str | os.PathLike | None = None,
+    confidence: bool = True,
+    confidence_samples: int | None = None,
+    resamples: int | None = None,
+    thresholds: Thresholds | None = None,
+    inverse_consistency: bool = True,
 ) -> EvaluationResult:
     """Resample every registration into the common frame and score it.
 
@@ -291,6 +496,23 @@ def evaluate(
         The folder of the per-image result cache (with a scheduler: shared by driver and
         workers): a rerun -- after an interruption, or with more images or registrations --
         recomputes only what changed. Default: a temporary folder, removed afterwards.
+    confidence : bool
+        Subject-level 95% intervals of every score and every pairwise difference, and the
+        probability that each registration is best (:mod:`itk_nrreval.confidence`): a
+        grouped jackknife over the subjects, each replicate's model from the Gram matrix.
+    confidence_samples : int, optional
+        Model samples per jackknife replicate (default ``min(n_samples, 100_000)``); the
+        same seed as the main run (common random numbers).
+    resamples : int, optional
+        Jackknife groups G for specificity and generalization (default ``min(N, 50)``;
+        G = N leaves one subject out at a time). The overlap is always leave-one-out
+        (exact and free from the per-image sums).
+    thresholds : Thresholds, optional
+        Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
+        whose docstring gives the defaults and their rationale). A flagged registration keeps
+        its scores, but the verdict ranks it after every unflagged one.
+    inverse_consistency : bool
+        Measure each transform's inverse consistency (one numerical inversion per image).
 
     Returns
     -------
@@ -306,11 +528,19 @@ def evaluate(
     Warns
     -----
     RuntimeWarning
-        When a registration's transforms fold (Jacobian determinant <= 0 somewhere).
+        When a registration is flagged as implausible (folding, rough fields, a frame
+        that the registrations disagree about).
     """
     weightings = _check_options(n_samples, distance, interpolation, weightings)
+    thresholds = Thresholds() if thresholds is None else thresholds
+    if confidence_samples is None:
+        confidence_samples = min(int(n_samples), 100_000)
+    _check_positive("confidence_samples", confidence_samples, 2)
+    if resamples is not None:
+        _check_positive("resamples", resamples, 2)
     m = load_manifest(manifest)
     options = dict(
+        inverse_consistency=inverse_consistency,
         cache=cache,
         n_samples=int(n_samples),
         seed=seed,
@@ -334,20 +564,64 @@ def evaluate(
             run = run_pipeline(m, executor, **options)
         run_info = {"scheduler": scheduler, "workers": executor.n_workers}
     run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
+    regs = run.registrations
+    plaus = {name: combine(r.plausibility) for name, r in regs.items()}
+    extent = smallest_extent_mm(run.grid)
+    reg_flags = flags(
+        plaus,
+        frame_spread_mm={name: r.frame.spread_mean_mm for name, r in regs.items()},
+        extent_mm=extent,
+        thresholds=thresholds,
+    )
+    values = {
+        name: {
+            "specificity": r.specificity.value,
+            "generalization": r.generalization.value,
+            **{
+                f"overlap.{w}": (r.overlap.generalized(w) if r.overlap is not None else math.nan)
+                for w in (weightings if r.overlap is not None else ())
+            },
+        }
+        for name, r in regs.items()
+    }
+    intervals: dict[str, dict] = {name: {} for name in regs}
+    best_p: dict[str, dict] = {name: {} for name in regs}
+    comparisons: list[Comparison] = []
+    if confidence and m.n_images >= 4:
+        reps = _replicates(run, weightings, resamples, confidence_samples, distance, seed, progress)
+        for measure, by_name in reps.items():
+            vals = {name: values[name][measure] for name in regs}
+            for name in regs:
+                intervals[name][measure] = jackknife_interval(vals[name], by_name[name])
+            comparisons += compare(measure, vals, by_name)
+            pb = probability_best(
+                vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
+            )
+            for name in regs:
+                best_p[name][measure] = pb[name]
     scores = {}
-    for name, r in run.registrations.items():
-        overlap = {w: r.overlap.generalized(w) for w in weightings} if r.overlap else {}
-        _warn_if_folded(name, r.folded)
+    for name, r in regs.items():
+        overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
         scores[name] = RegistrationScores(
             name,
             r.specificity,
             r.generalization,
             overlap,
             r.frame,
-            float(np.mean(r.folded)),
-            float(np.max(r.folded)),
+            plaus[name],
+            tuple(reg_flags[name]),
+            intervals[name],
+            best_p[name],
         )
-    means = {name: r.mean_image for name, r in run.registrations.items()}
+    _warn_if_flagged(scores)
+    means = {name: r.mean_image for name, r in regs.items()}
+    options = {
+        "confidence": bool(confidence and m.n_images >= 4),
+        "confidence_samples": int(confidence_samples),
+        "resamples": len(jackknife_groups(m.n_images, resamples)) if m.n_images >= 4 else None,
+        "inverse_consistency": bool(inverse_consistency),
+        "thresholds": dataclasses.asdict(thresholds),
+    }
     return _result(
         m,
         scores,
@@ -359,22 +633,62 @@ def evaluate(
         distance,
         interpolation,
         run=run_info,
+        comparisons=comparisons,
+        extra_options=options,
     )
 
 
-def _warn_if_folded(name: str, folds: Sequence[float]) -> None:
-    if max(folds) > 0:
-        warnings.warn(
-            f"registration {name!r}: transforms fold (Jacobian determinant <= 0) on "
-            f"{np.mean(folds):.2%} of its reference grid on average, {max(folds):.2%} at "
-            "worst: they are not invertible there",
-            RuntimeWarning,
-            stacklevel=3,
+def _check_positive(name: str, value, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+
+
+def _replicates(run, weightings, resamples, n_samples, distance, seed, show):
+    """Per measure, per registration, the jackknife replicates (same groups for all)."""
+    regs = run.registrations
+    n = next(iter(regs.values())).gram.shape[0]
+    groups = jackknife_groups(n, resamples if resamples is not None else min(n, 50))
+    out: dict[str, dict[str, np.ndarray]] = {"specificity": {}, "generalization": {}}
+    for name, r in progress(regs.items(), desc="confidence", total=len(regs), enabled=show):
+        spec, gen = specificity_replicates(
+            r.gram, groups=groups, n_samples=n_samples, distance=distance, seed=seed
         )
+        out["specificity"][name], out["generalization"][name] = spec, gen
+    if all(r.overlap_sums is not None for r in regs.values()):
+        for name, r in regs.items():
+            sums = dict(r.overlap_sums)
+            labels = sums.pop("labels")
+            by_w = overlap_replicates(
+                **sums, labels=labels, spacing=run.grid.spacing, weightings=weightings
+            )
+            for w, arr in by_w.items():
+                out.setdefault(f"overlap.{w}", {})[name] = arr
+    return out
+
+
+def _warn_if_flagged(scores: Mapping[str, RegistrationScores]) -> None:
+    for name, s in scores.items():
+        if s.flags:
+            warnings.warn(
+                f"registration {name!r} is flagged as implausible: {'; '.join(s.flags)}",
+                RuntimeWarning,
+                stacklevel=3,
+            )
 
 
 def _result(
-    m, scores, means, values, weightings, n_samples, seed, distance, interpolation, run
+    m,
+    scores,
+    means,
+    values,
+    weightings,
+    n_samples,
+    seed,
+    distance,
+    interpolation,
+    run,
+    comparisons=(),
+    extra_options=None,
 ) -> EvaluationResult:
     """Ranks and relative ranks of every measure, and the result object."""
     from ._version import __version__
@@ -395,6 +709,7 @@ def _result(
         "interpolation": interpolation,
         "weightings": list(weightings),
         "label_values": values,
+        **(extra_options or {}),
     }
     if not scores:  # pragma: no cover - the manifest has at least one registration
         raise InputError("manifest: no registrations")
@@ -408,4 +723,6 @@ def _result(
         options,
         __version__,
         run=dict(run),
+        comparisons=tuple(comparisons),
+        verdict=verdict(scores, comparisons, has_labels=m.labels is not None),
     )

@@ -36,8 +36,10 @@ class TextureModel:
         ``|b_i - b_j|_2`` equals the image-space distance ``|I_i - I_j|_2``.
     mode_variances : ndarray of shape (n_modes,)
         Variance along each mode (unbiased, divided by N - 1), in decreasing order.
-    mean : ndarray of shape (n_voxels,)
-        The mean image over the evaluated voxels (inside the mask), flattened in numpy order.
+    mean : ndarray of shape (n_voxels,) or None
+        The mean image over the evaluated voxels (inside the mask), flattened in numpy order;
+        None for a model built from a Gram matrix alone (it scores samples in parameter
+        space, but cannot rebuild images).
     mask : ndarray of bool, shape (*spatial), or None
         The evaluated voxels; None means all.
     geometry : Geometry or None
@@ -46,7 +48,7 @@ class TextureModel:
 
     training_params: np.ndarray
     mode_variances: np.ndarray
-    mean: np.ndarray
+    mean: np.ndarray | None
     mask: np.ndarray | None
     geometry: Geometry | None
 
@@ -100,21 +102,21 @@ class TextureModel:
         cls,
         gram: np.ndarray,
         *,
-        mean: np.ndarray,
+        mean: np.ndarray | None = None,
         mask: np.ndarray | None = None,
         geometry: Geometry | None = None,
     ) -> TextureModel:
         """The model from the Gram matrix of the centred images, computed elsewhere.
 
         This is how a model is built when the images never sit in one process
-        (:mod:`itk_nrreval.scaleout` sums the Gram matrix over voxel blocks).
+        (:mod:`itk_nrreval.pipeline` sums the Gram matrix over voxel blocks).
 
         Parameters
         ----------
         gram : ndarray of shape (n_images, n_images)
             ``G_ij = sum_v (I_i(v) - mean(v)) (I_j(v) - mean(v))`` over the evaluated voxels.
-        mean : ndarray of shape (n_voxels,)
-            The mean image over the evaluated voxels.
+        mean : ndarray of shape (n_voxels,), optional
+            The mean image over the evaluated voxels (None: unknown; see ``mean``).
         mask : ndarray of bool of shape (*spatial), optional
         geometry : Geometry, optional
 
@@ -148,7 +150,7 @@ class TextureModel:
         return cls(
             training_params=params,
             mode_variances=eigenvalues / (n - 1),
-            mean=np.asarray(mean),
+            mean=None if mean is None else np.asarray(mean),
             mask=mask,
             geometry=geometry,
         )

@@ -7,7 +7,8 @@ them. The work is cut so that no process holds the N x n data (N images, n voxel
 1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
    other than the common one); then the image resampled into the common frame, its fuzzy
    label memberships (sparse: the voxels where each label is nonzero), the per-image sums
-   the overlap needs (label gradients, presence) and the transform's folded fraction. Each
+   the overlap needs (label gradients, presence) and the deformation's plausibility
+   (:mod:`itk_nrreval.plausibility`, on the registration's own reference grid). Each
    result is written to a disk cache under a digest of everything it depends on (input
    file contents, transforms, the frame, grid, mask, settings; :mod:`itk_nrreval.cache`),
    so a rerun -- after an interruption, or with more images or registrations -- finds it
@@ -61,8 +62,9 @@ from .manifest import Manifest
 from .memberships import SparseMemberships, resample_label_memberships
 from .model import TextureModel
 from .overlap import OverlapTable
+from .plausibility import Plausibility, deformation_plausibility
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
-from .transforms import chain_transform, field_transform, folded_fraction
+from .transforms import chain_transform, field_transform, invert
 
 __all__ = [
     "Executor",
@@ -118,6 +120,7 @@ class _Context:
     root: str
     grid: Geometry
     mask_key: str | None
+    inverse_consistency: bool = True
 
     def cache(self) -> DiskCache:
         return DiskCache(self.root)
@@ -177,6 +180,7 @@ def _resample_task(
     frame_digest: str,
     reference: Path,
     interpolation: str,
+    reg_mask_key: str | None,
 ) -> tuple[str, bool, dict]:
     """Resample one image (and its label memberships) into the common frame; cache it.
 
@@ -184,7 +188,8 @@ def _resample_task(
     nonzero memberships of the image's own nonzero label values, in compressed form:
     ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices, ascending per label), ``lab_val``
     (float32). Its metadata holds per label the gradient sum (over the mask) and whether the
-    label is present inside the mask, and the transform's folded fraction.
+    label is present inside the mask, and the deformation's plausibility measures on the
+    registration's reference grid (inside the mask mapped there, `reg_mask_key`).
     """
     cache = ctx.cache()
     g = ctx.grid
@@ -200,6 +205,8 @@ def _resample_task(
             frame_digest,
             reference,
             interpolation,
+            reg_mask_key,
+            ctx.inverse_consistency,
         ]
     )
     entry = cache.get("resampled", key)
@@ -213,7 +220,13 @@ def _resample_task(
         )[0].reshape(-1)
     }
     reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
-    meta: dict = {"folded": folded_fraction(t, reg_grid)}
+    reg_mask = None
+    if reg_mask_key is not None:
+        reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
+    plaus = deformation_plausibility(
+        t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency
+    )
+    meta: dict = {"plausibility": plaus.to_dict()}
     if labels is not None:
         lab = read_image(labels, what="label map")
         own = [int(v) for v in label_values([lab]) if v != 0]  # background: not evaluated
@@ -294,11 +307,17 @@ class RegistrationRun:
     overlap : OverlapTable or None
         None without labels.
     frame : FrameMapping
-    folded : ndarray of shape (n_images,)
-        Per image, the fraction of the registration's reference-grid voxels where its
-        transform folds (Jacobian determinant <= 0).
+    plausibility : list of Plausibility, length n_images
+        Each transform's deformation plausibility on the registration's reference grid.
     mean_image : ndarray of shape (*spatial_zyx,)
         The mean resampled image on the common grid.
+    gram : ndarray of shape (n_images, n_images)
+        Gram matrix of the centred resampled images (inside the mask): the model of any
+        subset of the subjects follows from it (:mod:`itk_nrreval.confidence`).
+    overlap_sums : dict of str to ndarray, or None
+        The per-image sums the overlap table was built from (``labels``, ``volume``,
+        ``target_sums``, ``gradient_sums``, ``pair_min``, ``pair_max``; see
+        :meth:`OverlapTable.from_sums`); None without labels.
     """
 
     name: str
@@ -306,8 +325,10 @@ class RegistrationRun:
     generalization: GeneralizationResult
     overlap: OverlapTable | None
     frame: FrameMapping
-    folded: np.ndarray
+    plausibility: list[Plausibility]
     mean_image: np.ndarray = field(repr=False)
+    gram: np.ndarray = field(repr=False)
+    overlap_sums: Mapping[str, np.ndarray] | None = field(repr=False)
 
 
 @dataclass(frozen=True)
@@ -363,6 +384,7 @@ def run_pipeline(
     interpolation: str,
     show_progress: bool,
     save_resampled: str | os.PathLike | None = None,
+    inverse_consistency: bool = True,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -380,6 +402,8 @@ def run_pipeline(
         Progress bars on stderr.
     save_resampled : path, optional
         Write each registration's resampled images and label memberships (NIfTI) here.
+    inverse_consistency : bool
+        Measure each transform's inverse consistency (one numerical inversion per image).
 
     Returns
     -------
@@ -398,7 +422,7 @@ def run_pipeline(
             mask_key = digest_of(["mask", flat_mask])
             if disk.get("mask", mask_key) is None:
                 disk.put("mask", mask_key, {"mask": flat_mask})
-        ctx = _Context(str(Path(cache).resolve()), grid, mask_key)
+        ctx = _Context(str(Path(cache).resolve()), grid, mask_key, inverse_consistency)
         counts = _Counts()
 
         values = None
@@ -416,6 +440,7 @@ def run_pipeline(
             frame_spec, frame_digest, frame = _frame(
                 executor, ctx, disk, m, name, counts, show_progress
             )
+            reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg.reference)
             calls = [
                 (
                     ctx,
@@ -426,6 +451,7 @@ def run_pipeline(
                     frame_digest,
                     reg.reference,
                     interpolation,
+                    reg_mask_key,
                 )
                 for i in range(m.n_images)
             ]
@@ -499,7 +525,7 @@ def _reduce(
         progress=show,
         desc=f"{name}: specificity",
     )
-    table = None
+    table = sums = None
     if values is not None:
         present = np.zeros(n_lab, bool)
         gsum = np.zeros((n, n_lab))
@@ -520,19 +546,21 @@ def _reduce(
                 UserWarning,
                 stacklevel=4,
             )
+        sums = {
+            "labels": comps[present],
+            "volume": vol[:, present],
+            "target_sums": spair[:, present],
+            "gradient_sums": gsum[:, present],
+            "pair_min": p[present],
+            "pair_max": q[present],
+        }
         table = OverlapTable.from_sums(
-            comps[present],
-            vol[:, present],
-            spair[:, present],
-            gsum[:, present],
-            p[present],
-            q[present],
-            spacing=grid.spacing,
-            fuzzy=True,
-            skipped_labels=skipped,
+            *sums.values(), spacing=grid.spacing, fuzzy=True, skipped_labels=skipped
         )
-    folds = np.array([float(meta["folded"]) for meta in metas])
-    return RegistrationRun(name, spec, gen, table, frame, folds, mean.reshape(grid.shape))
+    plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
+    return RegistrationRun(
+        name, spec, gen, table, frame, plaus, mean.reshape(grid.shape), gram, sums
+    )
 
 
 def _frame(executor, ctx, disk, m: Manifest, name, counts, show):
@@ -578,6 +606,45 @@ def _frame(executor, ctx, disk, m: Manifest, name, counts, show):
     mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
     max_mm = max(part[1] for part in parts) if count else math.nan
     return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
+
+
+def _registration_mask(
+    disk: DiskCache,
+    ctx: _Context,
+    mask: np.ndarray | None,
+    frame: FrameMapping,
+    frame_digest: str,
+    reference: Path,
+) -> str | None:
+    """Cache the mask carried into the registration's reference frame; return its key.
+
+    The mask lives on the common grid; a registration's transforms are defined on its own
+    reference grid, where the plausibility measures are taken. A reference voxel q is inside
+    when ``F^-1(q)`` falls in the mask (nearest neighbour). None without a mask.
+    """
+    if mask is None:
+        return None
+    reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
+    key = digest_of(["reg_mask", _FORMAT, ctx.mask_key, frame_digest, ctx.grid, reg_grid])
+    if disk.get("reg_mask", key) is not None:
+        return key
+    img = sitk.GetImageFromArray(mask.astype(np.uint8))
+    ctx.grid.apply_to(img)
+    back = sitk.TranslationTransform(ctx.grid.dimension)
+    if frame.method != "common":
+        back = invert(frame.transform, grid=ctx.grid)
+    res = sitk.Resample(
+        img,
+        size=list(reg_grid.size),
+        transform=back,
+        interpolator=sitk.sitkNearestNeighbor,
+        outputOrigin=list(reg_grid.origin),
+        outputSpacing=list(reg_grid.spacing),
+        outputDirection=list(reg_grid.direction),
+        defaultPixelValue=0,
+    )
+    disk.put("reg_mask", key, {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)})
+    return key
 
 
 def _save_resampled(

@@ -41,37 +41,59 @@ def format_percent(v) -> str:
     return "–" if v is None else f"{v:.1f}%"
 
 
+def _ci(s, measure: str) -> str:
+    iv = s.intervals.get(measure)
+    if iv is None or not math.isfinite(iv.lo):
+        return "–"
+    return f"[{format_number(iv.lo)}, {format_number(iv.hi)}]"
+
+
 def summary_table(result: EvaluationResult) -> str:
-    """A Markdown table like the paper's Table 3 (scores, ranks, relative ranks).
+    """The verdict in words, then a Markdown table like the paper's Table 3.
 
     Columns: for each overlap weighting present among inverse volume and inverse volume &
-    complexity, then specificity and generalization: score (and standard error), rank and
-    relative rank. Lower is better for specificity and generalization, higher for overlap.
+    complexity, then specificity and generalization: score, subject-level 95% interval,
+    rank and relative rank (specificity also its Monte-Carlo standard error); then the
+    plausibility flags. Lower is better for specificity and generalization, higher for
+    overlap. A second table gives each registration's frame and deformation plausibility.
     """
     cols = [(m, title) for m, title in _TABLE_OVERLAPS if m in result.ranks]
     header = ["Registration"]
     for _, title in cols:
-        header += [f"{title}", "Rank", "Rel. rank"]
-    header += ["Specificity", "Std. error", "Rank", "Rel. rank"]
-    header += ["Generalization", "Std. error", "Rank", "Rel. rank"]
+        header += [f"{title}", "95% CI", "Rank", "Rel. rank"]
+    header += ["Specificity", "95% CI", "MC s.e.", "Rank", "Rel. rank"]
+    header += ["Generalization", "95% CI", "Rank", "Rel. rank", "Flags"]
+    order = list(result.verdict.ranking) if result.verdict is not None else list(result.scores)
     rows = []
-    for name, s in result.scores.items():
+    for name in order:
+        s = result.scores[name]
         row = [name]
         for m, _ in cols:
             row += [
                 format_number(s.measures()[m]),
+                _ci(s, m),
                 str(result.ranks[m][name]),
                 format_percent(result.relative_ranks[m][name]),
             ]
-        for m, r in (("specificity", s.specificity), ("generalization", s.generalization)):
-            row += [
-                format_number(r.value),
-                format_number(r.stderr, 2),
-                str(result.ranks[m][name]),
-                format_percent(result.relative_ranks[m][name]),
-            ]
+        row += [
+            format_number(s.specificity.value),
+            _ci(s, "specificity"),
+            format_number(s.specificity.stderr, 2),
+            str(result.ranks["specificity"][name]),
+            format_percent(result.relative_ranks["specificity"][name]),
+        ]
+        row += [
+            format_number(s.generalization.value),
+            _ci(s, "generalization"),
+            str(result.ranks["generalization"][name]),
+            format_percent(result.relative_ranks["generalization"][name]),
+            "; ".join(s.flags) if s.flags else "–",
+        ]
         rows.append(row)
-    lines = [
+    head = []
+    if result.verdict is not None:
+        head = [*result.verdict.text, ""]
+    lines = head + [
         "| " + " | ".join(header) + " |",
         "|" + "|".join("---" if i == 0 else "--:" for i in range(len(header))) + "|",
     ]
@@ -79,17 +101,29 @@ def summary_table(result: EvaluationResult) -> str:
     o = result.options
     notes = [
         "",
-        f"Common frame: {result.common_frame}. Specificity and generalization: lower is better "
-        f"({o['distance'].upper()} distance, {o['n_samples']} samples, seed {o['seed']}); "
-        "overlap: higher is better. Relative rank: best 100%, worst 0%.",
+        f"Rows in the verdict's order (by specificity, flagged registrations last). Common "
+        f"frame: {result.common_frame}. Specificity and generalization: lower is better "
+        f"({o['distance'].upper()} distance in the model's parameter space, in the images' "
+        f"intensity units; M = {o['n_samples']} samples, seed {o['seed']}); overlap: higher "
+        "is better. 95% CI: subject-level interval (jackknife over the subjects: would the "
+        "score hold for other subjects?). MC s.e.: Monte-Carlo standard error of the "
+        "specificity estimate only (it shrinks as M grows). Rank: 1 is best. Rel. rank: "
+        "100% for the best score, 0% for the worst, linear between, (worst - x) / "
+        "(worst - best).",
         "",
-        "| Registration | Frame from | Spread mean (mm) | Spread max (mm) | Folded (mean) |",
-        "|---|---|--:|--:|--:|",
+        "| Registration | Frame from | Spread mean (mm) | Spread max (mm) | Folded (mean) | "
+        "Folded (worst image) | SDlogJ | det J min | det J max | Inverse consistency (mm) |",
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|",
     ]
-    for name, s in result.scores.items():
+    for name in order:
+        s = result.scores[name]
+        pl = s.plausibility
         notes.append(
             f"| {name} | {s.frame.method} | {format_number(s.frame.spread_mean_mm, 3)} | "
-            f"{format_number(s.frame.spread_max_mm, 3)} | {s.folded_fraction:.2%} |"
+            f"{format_number(s.frame.spread_max_mm, 3)} | {pl.folded_fraction:.2%} | "
+            f"{pl.folded_max:.2%} | {format_number(pl.sdlogj, 3)} | "
+            f"{format_number(pl.jacobian_min, 3)} | {format_number(pl.jacobian_max, 3)} | "
+            f"{format_number(pl.inverse_consistency_mm, 3)} |"
         )
     return "\n".join(lines + notes) + "\n"
 
@@ -97,13 +131,17 @@ def summary_table(result: EvaluationResult) -> str:
 def results_csv(result: EvaluationResult) -> str:
     """One row per registration: scores, standard errors, ranks, relative ranks, frame."""
     fields = ["registration", "specificity", "specificity_stderr"]
+    fields += ["specificity_ci95_lo", "specificity_ci95_hi"]
     fields += ["generalization", "generalization_stderr"]
+    fields += ["generalization_ci95_lo", "generalization_ci95_hi"]
     overlaps = [m for m in result.measures if m.startswith("overlap.")]
     fields += overlaps
+    fields += [f"{m}_ci95_{e}" for m in overlaps for e in ("lo", "hi")]
     fields += [f"rank.{m}" for m in result.measures]
     fields += [f"relative_rank.{m}" for m in result.measures]
     fields += ["frame_method", "frame_spread_mean_mm", "frame_spread_max_mm"]
-    fields += ["folded_fraction", "folded_max"]
+    fields += ["folded_fraction", "folded_max", "sdlogj", "jacobian_min", "jacobian_max"]
+    fields += ["inverse_consistency_mm", "flags"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
@@ -119,7 +157,16 @@ def results_csv(result: EvaluationResult) -> str:
             "frame_spread_max_mm": s.frame.spread_max_mm,
             "folded_fraction": s.folded_fraction,
             "folded_max": s.folded_max,
+            "sdlogj": s.plausibility.sdlogj,
+            "jacobian_min": s.plausibility.jacobian_min,
+            "jacobian_max": s.plausibility.jacobian_max,
+            "inverse_consistency_mm": s.plausibility.inverse_consistency_mm,
+            "flags": "; ".join(s.flags),
         }
+        for m in ["specificity", "generalization", *overlaps]:
+            iv = s.intervals.get(m)
+            row[f"{m}_ci95_lo"] = iv.lo if iv is not None else None
+            row[f"{m}_ci95_hi"] = iv.hi if iv is not None else None
         row.update({m: s.measures()[m] for m in overlaps})
         row.update({f"rank.{m}": result.ranks[m][name] for m in result.measures})
         row.update({f"relative_rank.{m}": result.relative_ranks[m][name] for m in result.measures})
@@ -156,19 +203,36 @@ def _figures(result: EvaluationResult, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     written = []
-    names = list(result.names)
+    names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
     spec = [result.scores[n].specificity for n in names]
-    fig, ax = plt.subplots(figsize=(max(4, 1.2 * len(names)), 3.5))
-    ax.errorbar(
-        range(len(names)),
-        [s.value for s in spec],
-        yerr=[s.stderr for s in spec],
-        fmt="o",
-        capsize=4,
+    values = np.array([s.value for s in spec])
+    ivs = [result.scores[n].intervals.get("specificity") for n in names]
+    has_ci = all(iv is not None and math.isfinite(iv.lo) for iv in ivs)
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.3 * len(names)), 3.8))
+    colors = ["tab:red" if result.scores[n].flags else "tab:blue" for n in names]
+    if has_ci:
+        err = np.array([[v - iv.lo, iv.hi - v] for v, iv in zip(values, ivs, strict=True)]).T
+    else:
+        err = np.array([[s.stderr for s in spec]] * 2)
+    for x, (v, c) in enumerate(zip(values, colors, strict=True)):
+        ax.errorbar(x, v, yerr=err[:, x : x + 1], fmt="o", capsize=5, color=c)
+    labels = [f"{n}\n(flagged)" if result.scores[n].flags else n for n in names]
+    ax.set_xticks(range(len(names)), labels, rotation=30, ha="right")
+    o = result.options
+    ax.set_ylabel(f"specificity ({o['distance'].upper()}; lower is better)")
+    mc = max(s.stderr for s in spec)
+    what = (
+        "bars: 95% subject-level interval (jackknife over subjects)"
+        if has_ci
+        else "bars: Monte-Carlo standard error"
     )
-    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
-    ax.set_ylabel("specificity (lower is better)")
-    ax.set_title("Specificity ± standard error")
+    ax.set_title(
+        f"Specificity, M = {o['n_samples']:,} samples; {what}\n"
+        f"Monte-Carlo s.e. at most {mc:.2g}"
+        + (" (too small to draw)" if has_ci else "")
+        + "; red: flagged as implausible",
+        fontsize=8,
+    )
     _save_figure(fig, out / "specificity.png")
     written.append(out / "specificity.png")
 

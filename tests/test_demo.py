@@ -46,3 +46,15 @@ def test_truth_has_no_correspondence_error_and_identity_has_the_true_spread(tmp_
     sub = correspondence_error(result, manifest, inverse, mask=mask)
     assert sub["identity"] > 1.0
     np.testing.assert_allclose(sub["identity"], expected, rtol=1e-6)
+
+
+def test_demo_genuine_registrations_are_not_flagged(tmp_path):
+    from itk_nrreval.demo import run_demo
+
+    result = run_demo(out=tmp_path, n=12, n_samples=20_000, progress=False, log=lambda _: None)
+    scores = result.evaluation.scores
+    for name in ("fluid", "groupwise", "pairwise_near", "affine"):
+        assert scores[name].flags == (), (name, scores[name].flags)
+        assert name in result.evaluation.verdict.ranking
+    assert result.evaluation.verdict.text  # the verdict in words heads the demo table
+    assert result.table.startswith(result.evaluation.verdict.text[0])

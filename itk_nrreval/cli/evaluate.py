@@ -22,6 +22,8 @@ def _int_at_least(minimum: int):
 
 
 def add_parser(sub) -> None:
+    from ..plausibility import Thresholds
+
     p = sub.add_parser(
         "evaluate",
         help="rank registrations of the same images by specificity and overlap",
@@ -66,13 +68,93 @@ def add_parser(sub) -> None:
         help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
         "with more images or registrations, computes only what is new",
     )
+    c = p.add_argument_group("subject-level confidence (jackknife over the subjects)")
+    c.add_argument(
+        "--no-confidence", action="store_true", help="skip the intervals and comparisons"
+    )
+    c.add_argument(
+        "--confidence-samples",
+        type=_int_at_least(2),
+        metavar="M",
+        help="model samples per jackknife replicate (default min(M, 100000))",
+    )
+    c.add_argument(
+        "--resamples",
+        type=_int_at_least(2),
+        metavar="G",
+        help="jackknife groups for specificity (default min(N, 50); N: leave one out)",
+    )
+    f = p.add_argument_group(
+        "plausibility flags (a flagged registration is ranked after every unflagged one)"
+    )
+    d = Thresholds()
+    f.add_argument(
+        "--flag-folded-mean",
+        type=_fraction,
+        default=d.folded_mean,
+        metavar="F",
+        help=f"flag a mean folded fraction above F (default {d.folded_mean:g})",
+    )
+    f.add_argument(
+        "--flag-folded-max",
+        type=_fraction,
+        default=d.folded_max,
+        metavar="F",
+        help=f"flag one image's folded fraction above F (default {d.folded_max:g})",
+    )
+    f.add_argument(
+        "--flag-sdlogj-ratio",
+        type=_positive,
+        default=d.sdlogj_ratio,
+        metavar="R",
+        help=f"flag SDlogJ above R x the median of the registrations (default {d.sdlogj_ratio:g})",
+    )
+    f.add_argument(
+        "--flag-sdlogj-floor",
+        type=_positive,
+        default=d.sdlogj_floor,
+        metavar="S",
+        help=f"... and above S (default {d.sdlogj_floor:g})",
+    )
+    f.add_argument(
+        "--flag-frame-spread",
+        type=_fraction,
+        default=d.frame_spread_fraction,
+        metavar="F",
+        help="flag a mean frame spread above F x the smallest field-of-view extent "
+        f"(default {d.frame_spread_fraction:g})",
+    )
+    f.add_argument(
+        "--no-inverse-consistency",
+        action="store_true",
+        help="skip the inverse-consistency error (one numerical inversion per image)",
+    )
     p.set_defaults(func=run)
+
+
+def _number(text: str, ok, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not ok(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    return _number(text, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
+
+
+def _positive(text: str) -> float:
+    return _number(text, lambda v: 0 < v < float("inf"), "a positive number")
 
 
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from ..evaluation import evaluate
     from ..manifest import load_manifest
+    from ..plausibility import Thresholds
     from ..reports import summary_table, write_reports
 
     if args.scheduler is None and args.workers is not None:
@@ -90,6 +172,17 @@ def run(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         workers=args.workers,
         cache=cache,
+        confidence=not args.no_confidence,
+        confidence_samples=args.confidence_samples,
+        resamples=args.resamples,
+        inverse_consistency=not args.no_inverse_consistency,
+        thresholds=Thresholds(
+            folded_mean=args.flag_folded_mean,
+            folded_max=args.flag_folded_max,
+            sdlogj_ratio=args.flag_sdlogj_ratio,
+            sdlogj_floor=args.flag_sdlogj_floor,
+            frame_spread_fraction=args.flag_frame_spread,
+        ),
     )
     write_reports(result, out, figures=not args.no_figures)
     print(summary_table(result), end="")

@@ -1,0 +1,354 @@
+"""Subject-level confidence: would the scores, and their order, hold for other subjects?
+
+The standard error of :class:`SpecificityResult` is Monte-Carlo error only: it shrinks as
+M grows and says nothing about the N subjects being a sample. Here the *subjects* are
+resampled by the jackknife: the score is recomputed with each subject (or group of
+subjects) left out, and the spread of those replicates estimates the subject-level standard
+error (Efron & Tibshirani, *An Introduction to the Bootstrap*, 1993, ch. 11; Shao & Wu,
+Ann. Stat. 17(3), 1989, for deleting groups).
+
+Why the jackknife rather than the bootstrap: a bootstrap set repeats subjects, and a
+repeated image is a training point at distance 0 from itself; the model of such a set has
+fewer modes and its nearest-training distances are biased by the copies. Leaving subjects
+out keeps every replicate a set of distinct subjects, costs exactly one model per replicate
+(each from the N x N Gram matrix: no image is resampled again), and is deterministic.
+
+- **Specificity and generalization**: grouped jackknife with G groups (subject i in group
+  ``i mod G``; G = N is leave-one-out); each replicate's model comes from the Gram matrix
+  with the group's rows and columns removed and re-centred, and its samples use the same
+  seed as every other replicate and registration (common random numbers), so Monte-Carlo
+  noise largely cancels in differences.
+- **Overlap**: leave-one-subject-out, exact and free from the per-image sums: leaving
+  subject k out removes ``target_sums[k]`` from the pair sums of minima and
+  ``(N - 2) vol_k + sum_j vol_j - target_sums[k]`` from those of maxima.
+
+Intervals are ``score +- t_{0.975, G-1} SE`` with ``SE^2 = (G - 1) / G sum_g (r_g - r_bar)^2``;
+a difference between two registrations is computed the same way from the paired replicates
+(same subjects left out), and two registrations are *separable* when its interval excludes 0.
+The probability that a registration is best is that of a normal with the replicates'
+covariance across registrations (an approximation: it treats the jackknife covariance as
+exact).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from .model import TextureModel
+from .overlap import OverlapTable
+from .specificity import texture_measures
+
+__all__ = [
+    "Interval",
+    "Comparison",
+    "jackknife_groups",
+    "jackknife_interval",
+    "specificity_replicates",
+    "overlap_replicates",
+    "compare",
+    "probability_best",
+]
+
+LEVEL = 0.95
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A score with its subject-level standard error and 95% interval.
+
+    Attributes
+    ----------
+    value : float
+        The score on all subjects.
+    stderr : float
+        Jackknife standard error over subjects.
+    lo, hi : float
+        ``value -+ t_{0.975, G-1} stderr``.
+    n_replicates : int
+        G, the number of leave-out replicates.
+    """
+
+    value: float
+    stderr: float
+    lo: float
+    hi: float
+    n_replicates: int
+
+    def to_list(self) -> list[float | None]:
+        return [_finite_or_none(self.lo), _finite_or_none(self.hi)]
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The difference ``a - b`` of one measure between two registrations.
+
+    Attributes
+    ----------
+    measure : str
+        ``"specificity"``, ``"generalization"`` or ``"overlap.<weighting>"``.
+    a, b : str
+        The registrations.
+    difference : float
+        ``score(a) - score(b)`` on all subjects.
+    ci95 : tuple of float
+        Its subject-level 95% interval.
+    separable : bool
+        The interval excludes 0.
+    """
+
+    measure: str
+    a: str
+    b: str
+    difference: float
+    ci95: tuple[float, float]
+    separable: bool
+
+    def to_dict(self) -> dict:
+        return {
+            "measure": self.measure,
+            "a": self.a,
+            "b": self.b,
+            "difference": _finite_or_none(self.difference),
+            "ci95": [_finite_or_none(v) for v in self.ci95],
+            "separable": self.separable,
+        }
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def jackknife_groups(n_images: int, n_groups: int | None = None) -> list[np.ndarray]:
+    """Subject indices of each leave-out group: subject i in group ``i mod G``.
+
+    Parameters
+    ----------
+    n_images : int
+        N >= 4 (every replicate keeps at least 3 images for a model).
+    n_groups : int, optional
+        G; default N (leave-one-out). Clipped to N.
+
+    Returns
+    -------
+    list of ndarray of int, length G
+    """
+    if n_images < 4:
+        raise ValueError(f"n_images: the jackknife needs at least 4 images, got {n_images}")
+    g = n_images if n_groups is None else min(int(n_groups), n_images)
+    if g < 2:
+        raise ValueError(f"n_groups: expected at least 2, got {n_groups!r}")
+    if n_images - math.ceil(n_images / g) < 3:
+        raise ValueError(f"n_groups: {g} groups of {n_images} images leave fewer than 3 images")
+    return [np.arange(k, n_images, g) for k in range(g)]
+
+
+def jackknife_interval(value: float, replicates: np.ndarray, *, level: float = LEVEL) -> Interval:
+    """The jackknife standard error of `value` from its leave-out `replicates`, and interval.
+
+    Parameters
+    ----------
+    value : float
+        The statistic on all subjects.
+    replicates : ndarray of shape (n_groups,)
+        The statistic with each group left out.
+    level : float
+        Coverage of the interval (t quantile with G - 1 degrees of freedom).
+
+    Returns
+    -------
+    Interval
+    """
+    r = np.asarray(replicates, dtype=np.float64)
+    g = r.size
+    if g < 2 or not np.all(np.isfinite(r)):
+        return Interval(float(value), math.nan, math.nan, math.nan, g)
+    se = math.sqrt((g - 1) / g * float(np.sum((r - r.mean()) ** 2)))
+    t = float(stats.t.ppf(0.5 + level / 2, g - 1))
+    return Interval(float(value), se, value - t * se, value + t * se, g)
+
+
+def _centred(gram: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The Gram matrix of the images `keep`, centred on their own mean (from the full one).
+
+    With ``y_i`` centred on the full mean, ``y_i - mean_S(y) = x_i - mean_S(x)``, so the
+    subset's Gram matrix is ``H G[S, S] H`` with ``H = I - 1 1^T / |S|``.
+    """
+    sub = gram[np.ix_(keep, keep)]
+    row = sub.mean(axis=0)
+    return sub - row[None, :] - row[:, None] + row.mean()
+
+
+def specificity_replicates(
+    gram: np.ndarray,
+    *,
+    groups: Sequence[np.ndarray],
+    n_samples: int,
+    distance: str,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Specificity and generalization of each leave-group-out model.
+
+    Parameters
+    ----------
+    gram : ndarray of shape (n_images, n_images)
+        Gram matrix of the centred images (:meth:`TextureModel.from_gram`).
+    groups : sequence of ndarray of int
+        From :func:`jackknife_groups`.
+    n_samples, distance, seed
+        As :func:`itk_nrreval.texture_measures`; the same seed for every replicate.
+
+    Returns
+    -------
+    specificity, generalization : ndarray of shape (n_groups,)
+    """
+    n = gram.shape[0]
+    spec = np.empty(len(groups))
+    gen = np.empty(len(groups))
+    for k, out in enumerate(groups):
+        keep = np.setdiff1d(np.arange(n), out)
+        model = TextureModel.from_gram(_centred(gram, keep))
+        s, g = texture_measures(model, n_samples=n_samples, distance=distance, seed=seed)
+        spec[k], gen[k] = s.value, g.value
+    return spec, gen
+
+
+def overlap_replicates(
+    volume: np.ndarray,
+    target_sums: np.ndarray,
+    gradient_sums: np.ndarray,
+    pair_min: np.ndarray,
+    pair_max: np.ndarray,
+    *,
+    labels: np.ndarray,
+    spacing: Sequence[float],
+    weightings: Sequence[str],
+) -> dict[str, np.ndarray]:
+    """The generalized overlap with each subject left out, from the per-image sums.
+
+    Parameters
+    ----------
+    volume, target_sums, gradient_sums : ndarray of shape (n_images, n_labels)
+        As :meth:`OverlapTable.from_sums` (voxel units).
+    pair_min, pair_max : ndarray of shape (n_labels,)
+    labels : ndarray of shape (n_labels,)
+    spacing : sequence of float
+        Voxel size in mm, ITK order.
+    weightings : sequence of str
+
+    Returns
+    -------
+    dict of str to ndarray of shape (n_images,)
+        Per weighting, the overlap of the N - 1 other subjects, subject k left out.
+
+    Notes
+    -----
+    Leaving subject k out removes the pairs (k, j): ``sum_j min(A_k, A_j)`` is
+    ``target_sums[k]``, and ``sum_j max(A_k, A_j) = sum_j (A_k + A_j - min(A_k, A_j))``
+    is ``(N - 1) vol_k + (sum_j vol_j - vol_k) - target_sums[k]``. Labels no remaining
+    subject carries drop out.
+    """
+    vol = np.asarray(volume, np.float64)
+    n = vol.shape[0]
+    total = vol.sum(axis=0)
+    out = {w: np.empty(n) for w in weightings}
+    for k in range(n):
+        keep = np.arange(n) != k
+        p = pair_min - target_sums[k]
+        q = pair_max - ((n - 2) * vol[k] + total - target_sums[k])
+        present = vol[keep].sum(axis=0) > 0
+        table = OverlapTable.from_sums(
+            labels[present],
+            vol[keep][:, present],
+            None,
+            gradient_sums[keep][:, present],
+            p[present],
+            q[present],
+            spacing=spacing,
+            fuzzy=True,
+        )
+        for w in weightings:
+            out[w][k] = table.generalized(w)
+    return out
+
+
+def compare(
+    measure: str,
+    values: Mapping[str, float],
+    replicates: Mapping[str, np.ndarray],
+    *,
+    level: float = LEVEL,
+) -> list[Comparison]:
+    """Every pairwise difference of one measure, with its paired jackknife interval.
+
+    Parameters
+    ----------
+    measure : str
+    values : dict of str to float
+        Each registration's score on all subjects.
+    replicates : dict of str to ndarray of shape (n_groups,)
+        Each registration's leave-out replicates (the same groups for all).
+    level : float
+
+    Returns
+    -------
+    list of Comparison
+        One per unordered pair (a before b in the order of `values`).
+    """
+    names = list(values)
+    out = []
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            diff = values[a] - values[b]
+            iv = jackknife_interval(diff, replicates[a] - replicates[b], level=level)
+            separable = bool(math.isfinite(iv.lo) and (iv.lo > 0 or iv.hi < 0))
+            out.append(Comparison(measure, a, b, diff, (iv.lo, iv.hi), separable))
+    return out
+
+
+def probability_best(
+    values: Mapping[str, float],
+    replicates: Mapping[str, np.ndarray],
+    *,
+    higher_is_better: bool,
+    n_draws: int = 20_000,
+    seed: int = 0,
+) -> dict[str, float]:
+    """Probability that each registration has the best score, over subject samples.
+
+    Draws from a normal centred on the scores with the jackknife covariance of the
+    replicates across registrations (paired: the same subjects left out), and counts how
+    often each registration is best.
+
+    Parameters
+    ----------
+    values : dict of str to float
+    replicates : dict of str to ndarray of shape (n_groups,)
+    higher_is_better : bool
+    n_draws : int
+    seed : int
+
+    Returns
+    -------
+    dict of str to float
+        Sums to 1 (NaN for all when a replicate is not finite).
+    """
+    names = list(values)
+    r = np.stack([np.asarray(replicates[k], np.float64) for k in names])  # (R, G)
+    mu = np.array([values[k] for k in names], np.float64)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(mu))):
+        return {k: math.nan for k in names}
+    g = r.shape[1]
+    dev = r - r.mean(axis=1, keepdims=True)
+    cov = (g - 1) / g * dev @ dev.T
+    rng = np.random.default_rng(seed)
+    # eigh rather than cholesky: the covariance may be singular (identical registrations)
+    w, v = np.linalg.eigh(cov)
+    draws = mu + (rng.standard_normal((n_draws, len(names))) * np.sqrt(np.clip(w, 0, None))) @ v.T
+    best = np.argmax(draws, axis=1) if higher_is_better else np.argmin(draws, axis=1)
+    counts = np.bincount(best, minlength=len(names))
+    return {k: float(c) / n_draws for k, c in zip(names, counts, strict=True)}

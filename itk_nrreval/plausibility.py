@@ -1,0 +1,446 @@
+"""Deformation plausibility: folding, Jacobian roughness and inverse consistency of a transform.
+
+An evaluation without ground truth scores how well a registration makes the images *look*
+alike; a registration can game that by tearing and folding space (Rohlfing, IEEE TMI 31(2),
+2012). This module measures the deformation itself, so that such registrations are flagged
+whatever their image scores.
+
+Conventions
+-----------
+* Every transform maps **reference (fixed) points to image (moving) points**, in physical
+  coordinates (mm, LPS), as ITK writes them. The plausibility of one image's transform is
+  measured on a grid -- the registration's own reference grid, on which the transform acts.
+* Jacobians are taken in physical units with the grid's direction cosines honoured
+  (:func:`itk_nrreval.transforms.jacobian_determinant`), on the transform **as given**: nothing
+  is clipped before folds are counted. (A widespread evaluation script clips ``det J`` to
+  ``1e-9`` before counting ``det J <= 0`` and so never reports a fold.)
+* Masks are boolean arrays in numpy order (``(z, y, x)``) of the grid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import SimpleITK as sitk
+
+from ._errors import InputError
+from ._images import Geometry
+from .transforms import chain_transform, displacement_field, invert, jacobian_determinant
+
+__all__ = [
+    "Plausibility",
+    "Thresholds",
+    "deformation_plausibility",
+    "combine",
+    "flags",
+    "smallest_extent_mm",
+]
+
+#: Voxels per slab (with its halo) above which the grid is processed in slabs along its last
+#: ITK axis (z in 3D): the Jacobian of one slab takes about 200 bytes per voxel.
+SLAB_VOXELS = 1 << 20
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """How physically plausible a deformation is (one image's transform, or a registration).
+
+    Attributes
+    ----------
+    folded_fraction : float
+        Fraction of the evaluated voxels where the Jacobian determinant is <= 0 (the map
+        folds space there); in [0, 1]. For a registration: the mean over its images.
+    folded_max : float
+        The largest folded fraction of a single image (one image: equal to
+        `folded_fraction`).
+    sdlogj : float
+        Standard deviation (population, ``ddof=0``) of ``log det J`` over the evaluated
+        voxels that do not fold; NaN when every voxel folds. 0 for a linear transform. For a
+        registration: the mean over its images.
+    jacobian_min, jacobian_max : float
+        Extreme Jacobian determinants over the evaluated voxels (unclipped; negative where
+        the map folds). For a registration: over all its images.
+    inverse_consistency_mm : float or None
+        Mean round-trip error ``|T^-1(T(p)) - p|`` (mm) over the evaluated voxels, with
+        ``T^-1`` from :func:`itk_nrreval.transforms.invert`; about 0 for linear transforms.
+        None when not computed or when the inverse could not be computed. For a
+        registration: the mean over its images (None if any image has None).
+    """
+
+    folded_fraction: float
+    folded_max: float
+    sdlogj: float
+    jacobian_min: float
+    jacobian_max: float
+    inverse_consistency_mm: float | None = None
+
+    def to_dict(self) -> dict:
+        """The fields as a JSON-safe dict: NaN and infinities become None."""
+        return {k: _json_number(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> Plausibility:
+        """Inverse of :meth:`to_dict` (None back to NaN, except the inverse consistency)."""
+        nan = math.nan
+        return cls(
+            folded_fraction=float(data["folded_fraction"]),
+            folded_max=float(data["folded_max"]),
+            sdlogj=nan if data["sdlogj"] is None else float(data["sdlogj"]),
+            jacobian_min=nan if data["jacobian_min"] is None else float(data["jacobian_min"]),
+            jacobian_max=nan if data["jacobian_max"] is None else float(data["jacobian_max"]),
+            inverse_consistency_mm=data["inverse_consistency_mm"],
+        )
+
+
+def _json_number(value):
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _geometry(grid: Geometry | sitk.Image) -> Geometry:
+    if isinstance(grid, Geometry):
+        return grid
+    if isinstance(grid, sitk.Image):
+        return Geometry.from_image(grid)
+    raise InputError(f"grid: expected a Geometry or a SimpleITK image, got {type(grid).__name__}")
+
+
+def smallest_extent_mm(grid: Geometry | sitk.Image) -> float:
+    """The grid's smallest physical extent (mm): ``min_k size_k * spacing_k``.
+
+    The field of view that :func:`flags` relates a frame spread to (``extent_mm``).
+    """
+    g = _geometry(grid)
+    return float(min(n * s for n, s in zip(g.size, g.spacing, strict=True)))
+
+
+def _slabs(g: Geometry, max_voxels: int) -> Iterator[tuple[slice, Geometry, Geometry, slice]]:
+    """Split `g` along its last ITK axis (numpy axis 0) into slabs.
+
+    Yields ``(rows, halo_grid, slab_grid, inner)``: the numpy rows of the slab, the grid of the
+    slab with one row of halo on each side (inside the grid), the grid of the slab alone,
+    and the slab's rows inside the halo grid's array. Central differences inside a slab
+    extended by its halo are those of the whole grid, so the Jacobians agree exactly.
+    """
+    n = g.size[-1]
+    per_row = max(1, math.prod(g.size[:-1]))
+    rows_per_slab = n if n * per_row <= max_voxels else max(1, max_voxels // per_row - 2)
+    step = np.asarray(g.direction, np.float64).reshape(g.dimension, g.dimension)[:, -1]
+    step = step * g.spacing[-1]  # physical offset of one row along the last axis
+
+    def sub(start: int, stop: int) -> Geometry:
+        origin = tuple(float(o) for o in np.asarray(g.origin) + start * step)
+        return Geometry((*g.size[:-1], stop - start), g.spacing, origin, g.direction)
+
+    for start in range(0, n, rows_per_slab):
+        stop = min(start + rows_per_slab, n)
+        lo, hi = max(start - 1, 0), min(stop + 1, n)
+        yield slice(start, stop), sub(lo, hi), sub(start, stop), slice(start - lo, stop - lo)
+
+
+def deformation_plausibility(
+    transform: sitk.Transform,
+    grid: Geometry | sitk.Image,
+    *,
+    mask: np.ndarray | None = None,
+    inverse_consistency: bool = True,
+    max_slab_voxels: int = SLAB_VOXELS,
+) -> Plausibility:
+    """Folding, SDlogJ, Jacobian range and inverse consistency of a transform on a grid.
+
+    Parameters
+    ----------
+    transform : sitk.Transform (or a path / chain in ANTs order)
+        Maps reference points to image points (mm, LPS); measured as given, never clipped.
+    grid : Geometry or sitk.Image
+        The grid of points p (voxel centres) on which the transform is evaluated: the
+        registration's reference grid. Size ``(x, y[, z])``, numpy shape ``grid.shape``.
+    mask : ndarray of bool, shape ``grid.shape`` (numpy order), optional
+        Evaluate only these voxels (the Jacobian still uses their neighbours).
+    inverse_consistency : bool
+        Invert the transform with :func:`itk_nrreval.transforms.invert` (linear parts
+        exactly, displacement fields numerically on their own grid, other non-linear pieces
+        after sampling them on `grid`) and measure the round trip. False leaves
+        ``inverse_consistency_mm`` None (and saves a field inversion).
+    max_slab_voxels : int
+        Grids larger than this are processed in slabs along the last axis (z in 3D) so that
+        memory stays bounded; the result does not depend on it.
+
+    Returns
+    -------
+    Plausibility
+        ``folded_max`` equals ``folded_fraction`` (one image).
+
+    Raises
+    ------
+    InputError
+        A grid of another dimension than the transform, a mask of the wrong shape, or an
+        empty mask.
+
+    Notes
+    -----
+    With ``u(p) = T(p) - p`` sampled on the grid (:func:`displacement_field`), the Jacobian
+    determinant is ``det J(p) = det(I + du/dx)`` with derivatives in physical coordinates
+    (central differences inside the grid, one-sided at its border), and
+
+    * ``folded_fraction = #{p : det J(p) <= 0} / #p``;
+    * ``sdlogj = std{log det J(p) : det J(p) > 0}`` (Leow et al., IEEE TMI 26(6), 2007;
+      the Learn2Reg challenges' smoothness measure), accumulated slab by slab with the
+      parallel-variance formula of Chan et al.;
+    * ``inverse_consistency_mm = mean_p |T^-1(T(p)) - p|``, with the composite
+      ``T^-1 o T`` sampled as a displacement field on the grid. For linear transforms this
+      is rounding error; for a displacement field it is the error of the numerical inverse,
+      which grows where the field folds (a folded map has no inverse) or leaves the grid
+      (the inverse is zero at its field's border).
+
+    The sums run over the evaluated voxels (the mask), all at once on grids of at most
+    `max_slab_voxels` voxels and otherwise slab by slab, each slab with one row of halo so
+    that its central differences are the whole grid's.
+    """
+    g = _geometry(grid)
+    t = chain_transform(transform)
+    if t.GetDimension() != g.dimension:
+        raise InputError(
+            f"transform: {t.GetDimension()}D transform on a {g.dimension}D grid {g.size}"
+        )
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != g.shape:
+            raise InputError(f"mask: shape {mask.shape} differs from the grid's {g.shape}")
+        mask = mask.astype(bool, copy=False)
+        if not mask.any():
+            raise InputError("mask: empty (no voxel to evaluate)")
+
+    round_trip = None
+    if inverse_consistency:
+        try:
+            inverse = invert(t, grid=g)
+            round_trip = chain_transform([t, inverse])  # p -> T^-1(T(p))
+        except (InputError, RuntimeError):
+            round_trip = None
+
+    count = folded = 0
+    n_log, mean_log, m2_log = 0, 0.0, 0.0
+    jmin, jmax = math.inf, -math.inf
+    err_sum = 0.0
+    for rows, halo_grid, slab_grid, inner in _slabs(g, max(int(max_slab_voxels), 1)):
+        field = displacement_field(t, halo_grid)
+        det = jacobian_determinant(
+            sitk.GetArrayViewFromImage(field), spacing=g.spacing, direction=g.direction
+        )[inner]
+        del field
+        sel = None if mask is None else mask[rows]
+        if sel is not None:
+            if not sel.any():
+                continue
+            det = det[sel]
+        det = det.ravel()
+        count += det.size
+        folded += int(np.count_nonzero(det <= 0))
+        jmin = min(jmin, float(det.min()))
+        jmax = max(jmax, float(det.max()))
+        logs = np.log(det[det > 0])
+        if logs.size:  # Chan et al.: merge (n, mean, M2) of this slab into the running ones
+            m = float(logs.mean())
+            m2 = float(np.sum((logs - m) ** 2))
+            total = n_log + logs.size
+            delta = m - mean_log
+            mean_log += delta * logs.size / total
+            m2_log += m2 + delta * delta * n_log * logs.size / total
+            n_log = total
+        if round_trip is not None:
+            err = sitk.GetArrayViewFromImage(displacement_field(round_trip, slab_grid))
+            norms = np.sqrt(np.sum(err * err, axis=-1))
+            err_sum += float(norms[sel].sum() if sel is not None else norms.sum())
+
+    consistency = None
+    if round_trip is not None and math.isfinite(err_sum):
+        consistency = err_sum / count
+    fraction = folded / count
+    return Plausibility(
+        folded_fraction=fraction,
+        folded_max=fraction,
+        sdlogj=math.sqrt(m2_log / n_log) if n_log else math.nan,
+        jacobian_min=jmin,
+        jacobian_max=jmax,
+        inverse_consistency_mm=consistency,
+    )
+
+
+def combine(per_image: Sequence[Plausibility]) -> Plausibility:
+    """One registration's plausibility from its images' (every image weighs the same).
+
+    Parameters
+    ----------
+    per_image : sequence of Plausibility
+        One per image of the registration (at least one).
+
+    Returns
+    -------
+    Plausibility
+        ``folded_fraction``: mean over images; ``folded_max``: max; ``sdlogj``: mean over
+        the images where it is defined (NaN if none: every voxel of every image folds);
+        ``jacobian_min`` / ``jacobian_max``: min / max; ``inverse_consistency_mm``: mean,
+        None if any image has None.
+    """
+    items = list(per_image)
+    if not items:
+        raise InputError("combine: no per-image plausibility given")
+    sd = [p.sdlogj for p in items if math.isfinite(p.sdlogj)]
+    ic = [p.inverse_consistency_mm for p in items]
+    return Plausibility(
+        folded_fraction=float(np.mean([p.folded_fraction for p in items])),
+        folded_max=float(max(p.folded_max for p in items)),
+        sdlogj=float(np.mean(sd)) if sd else math.nan,
+        jacobian_min=float(min(p.jacobian_min for p in items)),
+        jacobian_max=float(max(p.jacobian_max for p in items)),
+        inverse_consistency_mm=None if any(v is None for v in ic) else float(np.mean(ic)),
+    )
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """When :func:`flags` calls a registration implausible.
+
+    Attributes
+    ----------
+    folded_mean : float
+        Flag a mean folded fraction above this (default 1e-3: 0.1 % of the voxels).
+    folded_max : float
+        ... or a single image's folded fraction above this (default 1e-2: 1 %).
+    sdlogj_ratio : float
+        Flag an SDlogJ more than this many times the median over the registrations
+        compared (default 2) ...
+    sdlogj_floor : float
+        ... and above this absolute value (default 0.2). With fewer than 3 registrations
+        compared (no meaningful median) the bound is ``sdlogj_ratio * sdlogj_floor``
+        (default 0.4) alone.
+    frame_spread_fraction : float
+        Flag a mean spread of the frame estimates above this fraction of the common grid's
+        smallest physical extent (default 0.05: 5 %).
+
+    Notes
+    -----
+    Rationale for the defaults:
+
+    * **Folding** (``det J <= 0``) is physically implausible for anatomy: tissue does not
+      pass through itself. Diffeomorphic registrations (SyN, fluid, stationary-velocity
+      demons) fold nowhere up to discretisation, and a well-regularised B-spline only on a
+      tiny fraction of the voxels, typically well below 0.1 %. A mean above 0.1 % or any
+      image above 1 % therefore says the regularisation let go somewhere, which is also
+      how image-similarity scores are gamed (Rohlfing 2012).
+    * **SDlogJ** measures the roughness of the deformation: the spread of local log volume
+      changes (Leow et al. 2007; reported by the Learn2Reg challenges). Its scale depends on
+      the anatomy and the population, so it is judged relative to the registrations being
+      compared: more than twice their median. The absolute floor of 0.2 (local volume
+      changes of about +-20 % at one standard deviation) keeps small differences among
+      smooth registrations from ever flagging. With fewer than three registrations a median
+      says little, so only SDlogJ above ``ratio * floor`` = 0.4 (volume changes by a factor
+      of about 1.5 at one standard deviation) is flagged.
+    * **Frame spread**: a registration whose reference is not the common frame is brought in
+      by a transform F estimated from each of its images; when those estimates disagree by
+      more than 5 % of the field of view on average, the registrations do not agree about
+      where the common frame is, and comparing them in it is doubtful.
+    """
+
+    folded_mean: float = 1e-3
+    folded_max: float = 1e-2
+    sdlogj_ratio: float = 2.0
+    sdlogj_floor: float = 0.2
+    frame_spread_fraction: float = 0.05
+
+
+def _percent(fraction: float) -> str:
+    v = 100.0 * fraction
+    return f"{v:.0f}%" if v >= 10 else f"{v:.2g}%"
+
+
+def flags(
+    plausibility: Mapping[str, Plausibility],
+    *,
+    frame_spread_mm: Mapping[str, float] | None = None,
+    extent_mm: float | None = None,
+    thresholds: Thresholds = Thresholds(),  # noqa: B008 - frozen, immutable default
+) -> dict[str, list[str]]:
+    """Short human-readable reasons why each registration's deformation is implausible.
+
+    Parameters
+    ----------
+    plausibility : mapping of str to Plausibility
+        Per registration (normally from :func:`combine`), all those being compared.
+    frame_spread_mm : mapping of str to float, optional
+        Per registration, the mean spread (mm) of its frame estimates (missing, None or NaN:
+        not judged). Needs `extent_mm`.
+    extent_mm : float, optional
+        The common grid's smallest physical extent (mm), e.g. :func:`smallest_extent_mm`.
+    thresholds : Thresholds
+
+    Returns
+    -------
+    dict of str to list of str
+        For every registration named in `plausibility` or `frame_spread_mm`, its reasons,
+        empty when plausible, e.g. ``"2.2% of voxels fold (Jacobian determinant <= 0; 4.3%
+        in the worst image)"``, ``"SDlogJ 0.83 is 4.1x the median of the registrations
+        compared (0.20)"``, ``"frame estimates spread 12.5 mm on average (6.2% of the 200
+        mm field of view)"``.
+
+    Raises
+    ------
+    InputError
+        `frame_spread_mm` without a positive `extent_mm`.
+
+    Notes
+    -----
+    A registration is flagged for folding when ``folded_fraction > folded_mean`` or
+    ``folded_max > thresholds.folded_max``; for roughness, with ``m`` the median SDlogJ over
+    the registrations compared (itself included; those with an undefined SDlogJ left out),
+    when at least three are compared and ``sdlogj > sdlogj_ratio * m`` and
+    ``sdlogj > sdlogj_floor``, or, with fewer than three, when
+    ``sdlogj > sdlogj_ratio * sdlogj_floor``; for the frame when
+    ``spread > frame_spread_fraction * extent_mm``. See :class:`Thresholds` for why.
+    """
+    th = thresholds
+    spreads = dict(frame_spread_mm or {})
+    if spreads and not (extent_mm is not None and extent_mm > 0):
+        raise InputError("flags: frame_spread_mm needs the common grid's extent_mm (> 0)")
+    out: dict[str, list[str]] = {name: [] for name in plausibility}
+    for name in spreads:
+        out.setdefault(name, [])
+
+    sds = [p.sdlogj for p in plausibility.values() if math.isfinite(p.sdlogj)]
+    median = float(np.median(sds)) if len(sds) >= 3 else None
+    for name, p in plausibility.items():
+        reasons = out[name]
+        if p.folded_fraction > th.folded_mean or p.folded_max > th.folded_max:
+            reasons.append(
+                f"{_percent(p.folded_fraction)} of voxels fold (Jacobian determinant <= 0; "
+                f"{_percent(p.folded_max)} in the worst image)"
+            )
+        if not math.isfinite(p.sdlogj):  # every voxel folds: the folding reason says it
+            continue
+        if median is not None:
+            if p.sdlogj > th.sdlogj_ratio * median and p.sdlogj > th.sdlogj_floor:
+                times = f"{p.sdlogj / median:.1f}x" if median > 0 else "far above"
+                reasons.append(
+                    f"SDlogJ {p.sdlogj:.2f} is {times} the median of the registrations "
+                    f"compared ({median:.2f})"
+                )
+        elif p.sdlogj > th.sdlogj_ratio * th.sdlogj_floor:
+            reasons.append(
+                f"SDlogJ {p.sdlogj:.2f} is above {th.sdlogj_ratio * th.sdlogj_floor:.2f} "
+                f"(too few registrations compared for a median)"
+            )
+    for name, spread in spreads.items():
+        if spread is None or not math.isfinite(spread):
+            continue
+        if spread > th.frame_spread_fraction * extent_mm:
+            out[name].append(
+                f"frame estimates spread {spread:.1f} mm on average ({_percent(spread / extent_mm)}"
+                f" of the {extent_mm:.0f} mm field of view)"
+            )
+    return out

@@ -1,0 +1,154 @@
+"""Subject-level confidence: jackknife replicates against brute force, interval coverage."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import itk_nrreval as nr
+from itk_nrreval._overlap_kernels import membership_gradient_sum, membership_pair_sums
+from itk_nrreval.confidence import (
+    compare,
+    jackknife_groups,
+    jackknife_interval,
+    overlap_replicates,
+    probability_best,
+    specificity_replicates,
+)
+from itk_nrreval.model import TextureModel
+
+
+def gram_of(images: np.ndarray) -> np.ndarray:
+    flat = images.reshape(images.shape[0], -1)
+    centred = flat - flat.mean(axis=0)
+    return centred @ centred.T
+
+
+def test_groups_partition_the_subjects():
+    groups = jackknife_groups(10, 4)
+    assert sorted(np.concatenate(groups).tolist()) == list(range(10))
+    assert [g.tolist() for g in groups][:2] == [[0, 4, 8], [1, 5, 9]]
+    assert len(jackknife_groups(7)) == 7  # default: leave one out
+    with pytest.raises(ValueError, match="at least 4 images"):
+        jackknife_groups(3)
+    with pytest.raises(ValueError, match="fewer than 3 images"):
+        jackknife_groups(5, 2)
+
+
+@pytest.mark.parametrize("distance", ["l1", "l2"])
+def test_replicates_equal_specificity_of_the_subjects_left(distance):
+    rng = np.random.default_rng(1)
+    images = rng.normal(size=(9, 12, 11)) + np.linspace(0, 3, 9)[:, None, None]
+    groups = jackknife_groups(9, 3)
+    spec, gen = specificity_replicates(
+        gram_of(images), groups=groups, n_samples=3000, distance=distance, seed=4
+    )
+    for k, out in enumerate(groups):
+        keep = np.setdiff1d(np.arange(9), out)
+        s, g = nr.texture_measures(images[keep], n_samples=3000, distance=distance, seed=4)
+        assert spec[k] == pytest.approx(s.value, rel=1e-9)
+        assert gen[k] == pytest.approx(g.value, rel=1e-9)
+
+
+def test_gram_model_without_mean_scores_like_the_image_model():
+    rng = np.random.default_rng(2)
+    images = rng.normal(size=(6, 40))
+    a = nr.specificity(images, n_samples=2000, seed=1)
+    b = nr.specificity(TextureModel.from_gram(gram_of(images)), n_samples=2000, seed=1)
+    assert b.value == pytest.approx(a.value, rel=1e-10)
+
+
+def fuzzy_memberships(rng, n: int, n_labels: int, shape) -> np.ndarray:
+    """Random partial-volume memberships (N, L + 1, *shape), component 0 background."""
+    logits = rng.normal(size=(n, n_labels + 1, *shape)) * 3
+    m = np.exp(logits - logits.max(axis=1, keepdims=True))
+    m /= m.sum(axis=1, keepdims=True)
+    m[m < 0.05] = 0.0  # exact zeros, as resampled one-hot memberships have
+    m /= m.sum(axis=1, keepdims=True)
+    m[:, 3] *= rng.random(n)[:, None, None] < 0.7  # label 3 missing in some subjects
+    return m.astype(np.float32)
+
+
+@pytest.mark.parametrize("mask", [False, True])
+def test_overlap_replicates_equal_the_overlap_of_the_subjects_left(mask):
+    rng = np.random.default_rng(3)
+    memb = fuzzy_memberships(rng, 7, 4, (9, 10))
+    m = rng.random((9, 10)) < 0.8 if mask else None
+    spacing = (0.7, 1.3)
+    n = memb.shape[0]
+    labels = nr.overlap_table(memb, mask=m, spacing=spacing).labels
+    # per-image sums (voxel units) from the kernels the pipeline uses
+    flat = memb.reshape(n, memb.shape[1], -1)
+    mflat = None if m is None else m.reshape(-1)
+    vol = np.zeros((n, labels.size))
+    spair = np.zeros((n, labels.size))
+    gsum = np.zeros((n, labels.size))
+    p = np.zeros(labels.size)
+    q = np.zeros(labels.size)
+    for k, comp in enumerate(labels):
+        p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(flat[:, comp], mask=mflat)
+        for i in range(n):
+            gsum[i, k] = membership_gradient_sum(
+                flat[i, comp], shape=(9, 10), spacing=spacing, mask=mflat
+            )
+    weightings = nr.WEIGHTINGS
+    reps = overlap_replicates(
+        vol, spair, gsum, p, q, labels=labels, spacing=spacing, weightings=weightings
+    )
+    for k in range(n):
+        keep = np.arange(n) != k
+        table = nr.overlap_table(memb[keep], mask=m, spacing=spacing)
+        for w in weightings:
+            assert reps[w][k] == pytest.approx(table.generalized(w), rel=1e-12, abs=1e-14), (k, w)
+
+
+def test_jackknife_of_a_mean_is_the_classic_standard_error():
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=25)
+    reps = np.array([np.delete(x, k).mean() for k in range(x.size)])
+    iv = jackknife_interval(x.mean(), reps)
+    assert iv.stderr == pytest.approx(x.std(ddof=1) / math.sqrt(x.size), rel=1e-12)
+    assert iv.lo < x.mean() < iv.hi and iv.n_replicates == 25
+
+
+def null_and_clear(seed: int, n: int = 16):
+    """Two registrations with identically distributed images, and a clearly worse one."""
+    rng = np.random.default_rng(seed)
+    modes = rng.normal(size=(4, 150))
+
+    def population(noise: float) -> np.ndarray:
+        return rng.normal(size=(n, 4)) @ modes + noise * rng.normal(size=(n, 150))
+
+    return population(1.0), population(1.0), population(2.0)
+
+
+def test_null_difference_covers_zero_and_clear_difference_excludes_it():
+    covered = 0
+    clear = 0
+    seeds = range(40)
+    groups = jackknife_groups(16)
+    for seed in seeds:
+        a, b, worse = null_and_clear(seed)
+        vals, reps = {}, {}
+        for name, images in (("a", a), ("b", b), ("worse", worse)):
+            reps[name] = specificity_replicates(
+                gram_of(images), groups=groups, n_samples=4000, distance="l1", seed=seed
+            )[0]
+            vals[name] = nr.specificity(images, n_samples=4000, seed=seed).value
+        by_pair = {(c.a, c.b): c for c in compare("specificity", vals, reps)}
+        lo, hi = by_pair[("a", "b")].ci95
+        covered += lo <= 0 <= hi
+        clear += by_pair[("a", "worse")].separable and by_pair[("a", "worse")].difference < 0
+    assert covered >= 0.9 * len(seeds)
+    assert clear >= 0.9 * len(seeds)
+
+
+def test_probability_best():
+    reps = {"a": np.array([1.0, 1.1, 0.9, 1.0]), "b": np.array([3.0, 3.2, 2.9, 3.1])}
+    pb = probability_best({"a": 1.0, "b": 3.0}, reps, higher_is_better=False)
+    assert pb == {"a": 1.0, "b": 0.0}
+    same = {"a": reps["a"], "b": reps["a"] + 0.0}
+    pb = probability_best({"a": 1.0, "b": 1.0}, same, higher_is_better=True, n_draws=4000)
+    assert sum(pb.values()) == pytest.approx(1.0)

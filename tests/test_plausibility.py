@@ -1,0 +1,309 @@
+"""Deformation plausibility: analytic folding, unclipped Jacobians, inverse consistency, flags,
+and Rohlfing's class-matching cheat caught by it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from data_synth.cheat import class_matching_cheat
+from data_synth.population import make_population
+from itk_nrreval import InputError
+from itk_nrreval._images import Geometry
+from itk_nrreval.plausibility import (
+    Plausibility,
+    Thresholds,
+    combine,
+    deformation_plausibility,
+    flags,
+    smallest_extent_mm,
+)
+from itk_nrreval.transforms import field_transform
+
+
+def _rotation(dim: int, angles_deg) -> np.ndarray:
+    a = np.radians(angles_deg)
+    if dim == 2:
+        return np.array([[np.cos(a[0]), -np.sin(a[0])], [np.sin(a[0]), np.cos(a[0])]])
+    rz = np.array([[np.cos(a[0]), -np.sin(a[0]), 0], [np.sin(a[0]), np.cos(a[0]), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(a[1]), -np.sin(a[1])], [0, np.sin(a[1]), np.cos(a[1])]])
+    return rz @ rx
+
+
+def _grid(size, spacing, origin=None, rotation=None) -> Geometry:
+    dim = len(size)
+    d = np.eye(dim) if rotation is None else rotation
+    origin = (0.0,) * dim if origin is None else origin
+    return Geometry(
+        tuple(size), tuple(map(float, spacing)), tuple(map(float, origin)), tuple(d.ravel())
+    )
+
+
+def _points(g: Geometry) -> np.ndarray:
+    """Physical voxel centres, shape (*g.shape, dim), ITK component order."""
+    dim = g.dimension
+    index = np.indices(g.shape)[::-1].reshape(dim, -1).astype(float)  # ITK order
+    m = np.asarray(g.direction).reshape(dim, dim) @ np.diag(g.spacing)
+    p = np.asarray(g.origin)[:, None] + m @ index
+    return np.moveaxis(p.reshape(dim, *g.shape), 0, -1)
+
+
+def _field(g: Geometry, u: np.ndarray) -> sitk.Transform:
+    img = sitk.GetImageFromArray(np.ascontiguousarray(u, dtype=np.float64), isVector=True)
+    return field_transform(g.apply_to(img))
+
+
+def _sine(g: Geometry, *, k: float, period: float, axis, phase: float = 0.3):
+    """u(p) = a sin(2 pi e.p / L + phase) e with 2 pi a / L = k: det J = 1 + k cos(theta(p))."""
+    e = np.asarray(axis, float) / np.linalg.norm(axis)
+    theta = 2 * np.pi * (_points(g) @ e) / period + phase
+    a = k * period / (2 * np.pi)
+    return _field(g, a * np.sin(theta)[..., None] * e), theta
+
+
+def _interior(shape) -> np.ndarray:
+    m = np.zeros(shape, bool)
+    m[(slice(1, -1),) * len(shape)] = True
+    return m
+
+
+# ------------------------------------------------------------------------------------------
+# folding against analytic fractions
+
+
+def test_sine_field_folds_on_the_analytic_fraction():
+    # det J = 1 + k cos(theta) folds where cos(theta) <= -1/k: a fraction arccos(1/k)/pi = 1/3
+    # of a period for k = 2. Central differences over h = 2 pi dx / L see k sin(h)/h instead
+    # of k, so the discrete count on the sample points is predicted exactly by that k.
+    g = _grid((256, 12), (0.5, 1.0))  # L = 64 mm: 128 samples per period, 2 periods
+    k, period = 2.0, 64.0
+    t, theta = _sine(g, k=k, period=period, axis=(1, 0))
+    mask = _interior(g.shape)  # central differences only (one-sided at the border)
+    h = 2 * np.pi * g.spacing[0] / period
+    det_discrete = 1 + k * np.sin(h) / h * np.cos(theta[mask])
+    assert np.abs(det_discrete).min() > 1e-6  # no sample sits on the fold threshold
+    p = deformation_plausibility(t, g, mask=mask, inverse_consistency=False)
+    assert p.folded_fraction == pytest.approx(np.mean(det_discrete <= 0), abs=1e-12)
+    assert p.folded_max == p.folded_fraction
+    # against the continuous fraction: the sampling of the period (1/128) and the sinc factor
+    assert p.folded_fraction == pytest.approx(math.acos(1 / k) / math.pi, abs=0.01)
+    assert p.jacobian_min == pytest.approx(1 - k * np.sin(h) / h, abs=1e-3)
+    assert p.jacobian_max == pytest.approx(1 + k * np.sin(h) / h, abs=1e-3)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_same_physical_field_on_an_oblique_anisotropic_grid(dim):
+    # The same physical field sampled on a rotated, anisotropic grid: the discrete Jacobian
+    # folds on the fraction of the (interior) sample points where the continuous det J <= 0,
+    # within 0.01 (the sinc factors of the index-axis differences shift it by < 0.005 here).
+    # (The grid spans no whole number of periods along the field, so that fraction is not 1/3.)
+    k, period = 2.0, 32.0
+    axis = (1.0, 0.4, 0.2)[:dim]
+    if dim == 2:
+        g = _grid((120, 90), (0.5, 0.8), (-20.0, 5.0), _rotation(2, [30]))
+    else:
+        g = _grid((48, 40, 32), (0.6, 0.9, 1.2), (-10.0, 4.0, 2.0), _rotation(3, [30, 20]))
+    t, theta = _sine(g, k=k, period=period, axis=axis)
+    mask = _interior(g.shape)
+    p = deformation_plausibility(t, g, mask=mask, inverse_consistency=False)
+    analytic = np.mean(1 + k * np.cos(theta[mask]) <= 0)
+    assert p.folded_fraction == pytest.approx(analytic, abs=0.01)
+
+
+def test_slabs_give_the_single_shot_result():
+    g = _grid((20, 18, 30), (1.0, 1.3, 0.9), (3.0, -2.0, 1.0), _rotation(3, [15, -25]))
+    t, _ = _sine(g, k=1.6, period=14.0, axis=(0.3, 0.5, 1.0))
+    mask = np.zeros(g.shape, bool)
+    mask[3:25, 2:, 4:] = True
+    whole = deformation_plausibility(t, g, mask=mask)
+    slabbed = deformation_plausibility(t, g, mask=mask, max_slab_voxels=3 * 20 * 18)
+    for name in ("folded_fraction", "sdlogj", "jacobian_min", "jacobian_max"):
+        assert getattr(slabbed, name) == pytest.approx(getattr(whole, name), rel=1e-12, abs=1e-14)
+    assert slabbed.inverse_consistency_mm == pytest.approx(whole.inverse_consistency_mm, rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------
+# linear transforms, inverse consistency, no clipping, masks
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_affine_is_plausible_with_constant_jacobian(dim):
+    rng = np.random.default_rng(7)
+    matrix = np.eye(dim) + 0.15 * rng.standard_normal((dim, dim))
+    a = sitk.AffineTransform(dim)
+    a.SetMatrix(matrix.ravel().tolist())
+    a.SetTranslation(rng.normal(size=dim).tolist())
+    a.SetCenter([5.0] * dim)
+    size = (30, 24, 16)[:dim]
+    g = _grid(size, (1.2, 0.8, 1.5)[:dim], (-4.0, 2.0, 1.0)[:dim], _rotation(dim, [25, 10]))
+    p = deformation_plausibility(a, g)
+    det = float(np.linalg.det(matrix))
+    assert det > 0
+    assert p.folded_fraction == 0.0
+    assert p.sdlogj == pytest.approx(0.0, abs=1e-9)
+    assert p.jacobian_min == pytest.approx(det, abs=1e-9)
+    assert p.jacobian_max == pytest.approx(det, abs=1e-9)
+    assert p.inverse_consistency_mm < 1e-6
+
+
+def test_reflection_is_counted_not_clipped():
+    # det = -0.5 everywhere: a clip-to-1e-9-then-count script would report no fold
+    a = sitk.AffineTransform(2)
+    a.SetMatrix([-0.5, 0.0, 0.0, 1.0])
+    p = deformation_plausibility(a, _grid((16, 16), (1.0, 1.0)))
+    assert p.folded_fraction == 1.0
+    assert p.jacobian_min == pytest.approx(-0.5, abs=1e-9)
+    assert math.isnan(p.sdlogj)
+    d = p.to_dict()
+    assert d["sdlogj"] is None
+    json.dumps(d, allow_nan=False)
+
+
+def _band_field() -> tuple[Geometry, sitk.Transform]:
+    # u_x = -1.5 (x - 10) on 10 <= x <= 20 mm, constant outside: det J = 1 - 1.5 = -0.5 on
+    # the 9 columns 11..19, 1 - 0.75 = 0.25 on columns 10 and 20, 1 elsewhere
+    g = _grid((40, 10), (1.0, 1.0))
+    u = np.zeros((*g.shape, 2))
+    u[..., 0] = -1.5 * np.clip(np.arange(40) - 10.0, 0, 10)
+    return g, _field(g, u)
+
+
+def test_negative_jacobian_is_reported_as_is():
+    g, t = _band_field()
+    p = deformation_plausibility(t, g)
+    assert p.jacobian_min == pytest.approx(-0.5, abs=1e-9)
+    assert p.jacobian_max == pytest.approx(1.0, abs=1e-9)
+    assert p.folded_fraction == pytest.approx(9 / 40)
+    # SDlogJ over the unfolded voxels only: 2 columns at log 0.25, 29 at log 1 = 0
+    logs = np.r_[np.full(2, np.log(0.25)), np.zeros(29)]
+    assert p.sdlogj == pytest.approx(logs.std(), rel=1e-9)
+
+
+def test_mask_restricts_the_count():
+    g, t = _band_field()
+    left = np.zeros(g.shape, bool)
+    left[:, :10] = True
+    band = np.zeros(g.shape, bool)
+    band[:, 11:20] = True
+    assert deformation_plausibility(t, g, mask=left).folded_fraction == 0.0
+    inside = deformation_plausibility(t, g, mask=band, inverse_consistency=False)
+    assert inside.folded_fraction == 1.0
+    assert inside.jacobian_max == pytest.approx(-0.5, abs=1e-9)
+    with pytest.raises(InputError, match="shape"):
+        deformation_plausibility(t, g, mask=band.T)
+    with pytest.raises(InputError, match="empty"):
+        deformation_plausibility(t, g, mask=np.zeros(g.shape, bool))
+
+
+def test_inverse_consistency_small_for_smooth_large_for_folded():
+    g = _grid((64, 64), (1.0, 1.0), (-32.0, -32.0))
+    # a Gaussian bump: 2 mm peak, sigma 8 mm, det J in [0.85, 1.15], ~0 at the border
+    r2 = np.sum(_points(g) ** 2, axis=-1)
+    u = 2.0 * np.exp(-r2 / (2 * 8.0**2))[..., None] * np.array([0.8, 0.6])
+    smooth = deformation_plausibility(_field(g, u), g)
+    assert smooth.folded_fraction == 0.0
+    assert smooth.inverse_consistency_mm < 0.05  # voxel = 1 mm
+    folded, _ = _sine(g, k=2.0, period=32.0, axis=(1, 0))
+    bad = deformation_plausibility(folded, g)
+    assert bad.folded_fraction > 0.25
+    assert bad.inverse_consistency_mm > 0.2
+    assert bad.inverse_consistency_mm > 10 * smooth.inverse_consistency_mm
+    off = deformation_plausibility(folded, g, inverse_consistency=False)
+    assert off.inverse_consistency_mm is None
+
+
+# ------------------------------------------------------------------------------------------
+# combine and flags
+
+
+def _p(folded=0.0, sd=0.1, folded_max=None, ic=0.01, jmin=0.5, jmax=1.5) -> Plausibility:
+    return Plausibility(folded, folded if folded_max is None else folded_max, sd, jmin, jmax, ic)
+
+
+def test_combine():
+    c = combine([_p(0.01, 0.2, ic=0.1, jmin=-0.3), _p(0.03, 0.4, ic=0.3, jmax=2.0)])
+    assert c.folded_fraction == pytest.approx(0.02)
+    assert c.folded_max == pytest.approx(0.03)
+    assert c.sdlogj == pytest.approx(0.3)
+    assert (c.jacobian_min, c.jacobian_max) == (-0.3, 2.0)
+    assert c.inverse_consistency_mm == pytest.approx(0.2)
+    assert combine([_p(ic=0.1), _p(ic=None)]).inverse_consistency_mm is None
+    assert combine([_p(sd=math.nan), _p(sd=0.2)]).sdlogj == pytest.approx(0.2)
+    with pytest.raises(InputError):
+        combine([])
+
+
+def test_flags_folding():
+    out = flags({"smooth": _p(), "folding": _p(0.022, folded_max=0.043), "tiny": _p(5e-4)})
+    assert out["smooth"] == [] and out["tiny"] == []
+    (reason,) = out["folding"]
+    assert reason == "2.2% of voxels fold (Jacobian determinant <= 0; 4.3% in the worst image)"
+    # one image above 1 % is enough, even with a small mean
+    (reason,) = flags({"a": _p(5e-4, folded_max=0.02)})["a"]
+    assert "0.05%" in reason and "2% in the worst image" in reason
+    assert (
+        flags({"a": _p(0.022)}, thresholds=Thresholds(folded_mean=0.05, folded_max=0.05))["a"] == []
+    )
+
+
+def test_flags_sdlogj():
+    regs = {"a": _p(sd=0.1), "b": _p(sd=0.2), "c": _p(sd=0.2), "rough": _p(sd=0.8)}
+    out = flags(regs)
+    assert out["a"] == out["b"] == out["c"] == []
+    assert out["rough"] == ["SDlogJ 0.80 is 4.0x the median of the registrations compared (0.20)"]
+    # smooth registrations differing by a large ratio stay below the floor
+    assert all(
+        v == [] for v in flags({"a": _p(sd=0.01), "b": _p(sd=0.02), "c": _p(sd=0.1)}).values()
+    )
+    # fewer than three: the absolute bound ratio * floor = 0.4
+    out = flags({"a": _p(sd=0.5), "b": _p(sd=0.3)})
+    assert out["b"] == []
+    assert out["a"] and out["a"][0].startswith("SDlogJ 0.50 is above 0.40")
+
+
+def test_flags_frame_spread():
+    assert smallest_extent_mm(_grid((100, 80, 50), (2.0, 2.5, 4.0))) == 200.0
+    out = flags({"a": _p(), "b": _p()}, frame_spread_mm={"a": 12.5, "b": 9.0}, extent_mm=200.0)
+    assert out["b"] == []
+    assert out["a"] == [
+        "frame estimates spread 12.5 mm on average (6.2% of the 200 mm field of view)"
+    ]
+    with pytest.raises(InputError, match="extent_mm"):
+        flags({"a": _p()}, frame_spread_mm={"a": 12.5})
+
+
+# ------------------------------------------------------------------------------------------
+# Rohlfing's cheat: images alike, deformation implausible
+
+
+def test_class_matching_cheat_matches_classes_but_is_implausible():
+    pop = make_population("phantom", dim=2, n=4, seed=3, size=64)
+    ref = pop.template_labels
+    ref_classes = sitk.GetArrayFromImage(ref)
+    grid = Geometry.from_image(ref)
+    for s in pop.subjects[:2]:
+        affine = s.template_to_subject.GetNthTransform(0)  # [A, phi]: the pose A
+        aligned = sitk.Resample(s.labels, ref, affine, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+        cheat = class_matching_cheat(ref, aligned, affine)
+        moved = sitk.Resample(s.labels, ref, cheat, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+        truth = sitk.Resample(
+            s.labels, ref, s.template_to_subject, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8
+        )
+        # the cheat's classes match the reference better than the true correspondence does
+        agree = np.mean(sitk.GetArrayFromImage(moved) == ref_classes)
+        assert agree > 0.99
+        assert agree > np.mean(sitk.GetArrayFromImage(truth) == ref_classes)
+        # ... while its deformation folds and is rough (measured: 3-8 % folded, SDlogJ 6-9,
+        # det J down to -1 and beyond; the true transform: no fold, SDlogJ ~0.15)
+        bad = deformation_plausibility(cheat, grid)
+        good = deformation_plausibility(s.template_to_subject, grid)
+        assert bad.folded_fraction > 0.005
+        assert bad.sdlogj > 1.0 and bad.sdlogj > 5 * good.sdlogj
+        assert good.folded_fraction == 0.0 and good.jacobian_min > 0
+        assert bad.inverse_consistency_mm > 10 * good.inverse_consistency_mm
+        out = flags({"cheat": bad, "truth": good})
+        assert out["truth"] == [] and len(out["cheat"]) == 2

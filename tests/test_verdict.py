@@ -1,0 +1,126 @@
+"""The verdict: a class-matching cheat is flagged and ranked last; intervals and sentences."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import yaml
+from test_evaluate import N_IMAGES, make_case
+
+import itk_nrreval as nr
+from data_synth.cheat import class_matching_cheat
+from itk_nrreval.cli import main
+
+KW = dict(n_samples=3000, seed=2, progress=False)
+
+
+@pytest.fixture(scope="module")
+def cheat_case(tmp_path_factory):
+    """make_case's truth / perturbed / identity registrations plus Rohlfing's cheat."""
+    tmp_path = tmp_path_factory.mktemp("cheat")
+    data = make_case(tmp_path)
+    # reference classes: the template's labels (0 background, 1..3): its intensity / 100
+    template = sitk.ReadImage(str(tmp_path / "template.nii.gz"))
+    classes = sitk.GetImageFromArray(
+        np.round(sitk.GetArrayFromImage(template) / 100.0).astype(np.int16)
+    )
+    classes.CopyInformation(template)
+    items = []
+    for i in range(N_IMAGES):
+        subject = sitk.ReadImage(str(tmp_path / f"lab{i}.nii.gz"))  # on the template grid
+        cheat = class_matching_cheat(classes, subject, sitk.AffineTransform(2))
+        path = tmp_path / f"cheat{i}.h5"
+        sitk.WriteTransform(cheat, str(path))
+        items.append(path.name)
+    data["registrations"]["cheat"] = {"reference": "template.nii.gz", "transforms": items}
+    manifest = tmp_path / "manifest.yaml"
+    manifest.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.warns(RuntimeWarning, match="'cheat' is flagged as implausible"):
+        result = nr.evaluate(manifest, **KW)
+    return manifest, result
+
+
+def test_cheat_is_flagged_and_ranked_after_every_genuine_registration(cheat_case):
+    _, result = cheat_case
+    cheat = result.scores["cheat"]
+    assert cheat.flags and "fold" in cheat.flags[0]
+    assert cheat.plausibility.folded_fraction > 1e-3
+    assert cheat.plausibility.jacobian_min <= 0  # never clipped
+    assert result.verdict.ranking[-1] == "cheat"
+    assert "cheat" not in result.verdict.best
+    assert not result.scores["truth"].flags and not result.scores["perturbed"].flags
+    assert result.verdict.ranking[:2] == ("truth", "perturbed")
+    assert any(t.startswith("cheat is flagged: ") for t in result.verdict.text)
+
+
+def test_intervals_comparisons_and_results_json(cheat_case, tmp_path):
+    manifest, result = cheat_case
+    truth = result.scores["truth"]
+    iv = truth.intervals["specificity"]
+    assert iv.lo < truth.specificity.value < iv.hi
+    # subject-level uncertainty is far larger than Monte-Carlo error
+    assert iv.stderr > 3 * truth.specificity.stderr
+    pair = next(
+        c
+        for c in result.comparisons
+        if c.measure == "specificity" and {c.a, c.b} == {"truth", "identity"}
+    )
+    assert pair.separable and (pair.difference < 0) == (pair.a == "truth")
+    assert sum(s.probability_best["specificity"] for s in result.scores.values()) == (
+        pytest.approx(1.0)
+    )
+    out = tmp_path / "out"
+    assert main(["evaluate", str(manifest), "--out", str(out), "--samples", "3000"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    reg = res["registrations"]["cheat"]
+    lo, hi = reg["specificity"]["ci95"]
+    assert lo < reg["specificity"]["value"] < hi
+    p = reg["plausibility"]
+    assert set(p) >= {
+        "folded_fraction",
+        "sdlogj",
+        "jacobian_min",
+        "jacobian_max",
+        "inverse_consistency_mm",
+        "flags",
+    }
+    assert p["flags"] and res["registrations"]["truth"]["plausibility"]["flags"] == []
+    c = res["comparisons"][0]
+    assert set(c) == {"measure", "a", "b", "difference", "ci95", "separable"}
+    assert res["verdict"]["ranking"][-1] == "cheat"
+    assert res["verdict"]["best"][0] == "truth" and res["verdict"]["text"]
+    summary = (out / "summary.md").read_text()
+    assert summary.startswith(res["verdict"]["text"][0])
+    assert "95% CI" in summary and "cheat is flagged" in summary
+    json.dumps(res, allow_nan=False)  # valid JSON: no NaN anywhere
+
+
+def test_confidence_off_gives_no_intervals(tmp_path):
+    make_case(tmp_path)
+    result = nr.evaluate(tmp_path / "manifest.yaml", confidence=False, **KW)
+    assert result.comparisons == () and result.scores["truth"].intervals == {}
+    assert result.verdict.best == ("truth",)
+    assert "not computed" in result.verdict.text[0]
+    with pytest.raises(ValueError, match="confidence_samples: expected an integer >= 2"):
+        nr.evaluate(tmp_path / "manifest.yaml", confidence_samples=1, **KW)
+
+
+def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):
+    manifest, _ = cheat_case
+    out = tmp_path / "out"
+    args = ["evaluate", str(manifest), "--out", str(out), "--samples", "2000", "--no-figures"]
+    loose = ["--flag-folded-mean", "1", "--flag-folded-max", "1", "--flag-sdlogj-ratio", "1e9"]
+    assert main(args + loose + ["--no-confidence", "--no-inverse-consistency"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["registrations"]["cheat"]["plausibility"]["flags"] == []
+    assert res["registrations"]["cheat"]["plausibility"]["inverse_consistency_mm"] is None
+    assert res["options"]["thresholds"]["folded_mean"] == 1.0
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:  # argparse: usage, then the error line
+        main(args + ["--flag-folded-mean", "2"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--flag-folded-mean: expected a fraction in [0, 1], got '2'" in err
