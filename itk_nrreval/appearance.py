@@ -48,7 +48,7 @@ from . import _sampling
 from ._errors import InputError
 from ._images import Geometry, read_image
 from ._progress import progress as _progress_bar
-from .frame import read_chains, resample_images
+from .frame import read_chains, resample_images, resample_onto
 from .manifest import Manifest, load_manifest
 from .model import TextureModel
 from .transforms import chain_transform, displacement_field, field_transform, flatten, invert
@@ -362,18 +362,8 @@ class AppearanceModel:
             max_error=max_error,
             mean_error=mean_error,
         )
-        texture = grid.apply_to(sitk.GetImageFromArray(g))
-        out = sitk.Resample(
-            texture,
-            size=list(grid.size),
-            transform=inverse,
-            interpolator=sitk.sitkLinear,
-            outputOrigin=list(grid.origin),
-            outputSpacing=list(grid.spacing),
-            outputDirection=list(grid.direction),
-            defaultPixelValue=0.0,
-            outputPixelType=sitk.sitkFloat64,
-        )
+        texture = grid.apply_to(sitk.GetImageFromArray(np.asarray(g, dtype=np.float64)))
+        out = resample_onto(texture, inverse, grid, sitk.sitkLinear)
         return sitk.GetArrayFromImage(out)
 
 

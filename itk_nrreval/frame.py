@@ -46,6 +46,7 @@ __all__ = [
     "needs_inversion_grid",
     "points_minus_grid",
     "resampling_transform",
+    "resample_onto",
     "resample_images",
     "resample_memberships",
     "label_values",
@@ -303,16 +304,21 @@ def resample_images(
         progress(pairs, desc=desc, total=len(images), enabled=show_progress)
     ):
         img = sitk.Cast(_as_image(item, "image"), sitk.sitkFloat64)
-        out[i] = sitk.GetArrayFromImage(_resample(img, t, g, _INTERPOLATORS[interpolation]))
+        out[i] = sitk.GetArrayFromImage(resample_onto(img, t, g, _INTERPOLATORS[interpolation]))
     return out
 
 
-def _resample(img: sitk.Image, t: sitk.Transform, g: Geometry, interp) -> sitk.Image:
+def resample_onto(img: sitk.Image, t: sitk.Transform, g: Geometry, interpolator: int) -> sitk.Image:
+    """`img` resampled onto grid `g` through `t` (grid points -> image points), 0 outside.
+
+    `interpolator` is a SimpleITK interpolator (``sitk.sitkLinear``...); the pixel type
+    stays the input's.
+    """
     return sitk.Resample(
         img,
         size=list(g.size),
         transform=t,
-        interpolator=interp,
+        interpolator=interpolator,
         outputOrigin=list(g.origin),
         outputSpacing=list(g.spacing),
         outputDirection=list(g.direction),

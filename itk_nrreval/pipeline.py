@@ -56,6 +56,7 @@ from .frame import (
     needs_inversion_grid,
     points_minus_grid,
     resample_images,
+    resample_onto,
     resampling_transform,
 )
 from .manifest import Manifest
@@ -633,16 +634,7 @@ def _registration_mask(
     back = sitk.TranslationTransform(ctx.grid.dimension)
     if frame.method != "common":
         back = invert(frame.transform, grid=ctx.grid)
-    res = sitk.Resample(
-        img,
-        size=list(reg_grid.size),
-        transform=back,
-        interpolator=sitk.sitkNearestNeighbor,
-        outputOrigin=list(reg_grid.origin),
-        outputSpacing=list(reg_grid.spacing),
-        outputDirection=list(reg_grid.direction),
-        defaultPixelValue=0,
-    )
+    res = resample_onto(img, back, reg_grid, sitk.sitkNearestNeighbor)
     disk.put("reg_mask", key, {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)})
     return key
 

@@ -171,7 +171,7 @@ def test_killed_run_restarts_from_cache(tmp_path, executor):
     manifest = slow_case(tmp_path)
     cache, out = tmp_path / "cache", tmp_path / "out"
     cmd = [sys.executable, "-m", "itk_nrreval", "evaluate", str(manifest), "--out", str(out)]
-    cmd += ["--samples", "2000", "--seed", "5", "--cache", str(cache), "--no-figures"]
+    cmd += ["--samples", "2000", "--seed", "5", "--cache", str(cache), "--no-figures", "--quiet"]
     if executor == "dask":
         cmd += ["--scheduler", "local", "--workers", "1"]
     proc = subprocess.Popen(
@@ -266,3 +266,16 @@ def test_digest_follows_file_content_not_name(tmp_path):
     t = sitk.TranslationTransform(2, (1.0, 0.0))
     assert digest_of(t) == digest_of(sitk.TranslationTransform(2, (1.0, 0.0)))
     assert digest_of(t) != digest_of(sitk.TranslationTransform(2, (1.0, 1e-9)))
+
+
+def test_progress_bars_on_stderr_unless_quiet(tmp_path, capsys):
+    manifest = with_mask(tmp_path)
+    args = ["evaluate", str(manifest), "--samples", "500", "--no-figures"]
+    assert main(args + ["--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    for step in ("resampling", "model", "specificity", "confidence"):
+        assert step in err, step
+    assert main(args + ["--out", str(tmp_path / "b"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "resampling" not in captured.err and "specificity" not in captured.err
+    assert "| truth |" in captured.out  # results still printed

@@ -50,6 +50,7 @@ def add_parser(sub) -> None:
         help="also write the resampled images and membership maps (NIfTI) under DIR/resampled",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (for logs)")
     p.add_argument(
         "--scheduler",
         metavar="local|ADDRESS",
@@ -168,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         distance=args.distance,
         interpolation=args.interpolation,
+        progress=not args.quiet,
         save_resampled=out / "resampled" if args.save_resampled else None,
         scheduler=args.scheduler,
         workers=args.workers,
