@@ -8,7 +8,9 @@ the first offending file.
 
 from __future__ import annotations
 
+import functools
 import os
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,18 +102,61 @@ class ImageStack:
 
 
 def read_image(path: str | os.PathLike, *, what: str = "image") -> sitk.Image:
-    """Read one image with SimpleITK, turning any failure into a one-line :class:`InputError`."""
+    """Read one image with SimpleITK, turning any failure into a one-line :class:`InputError`.
+
+    NIfTI files are also read once (per process and file version) with nibabel, in slabs,
+    because SimpleITK's NIfTI reader hides two kinds of damage: it returns NaN voxels as 0,
+    and it zero-fills a truncated ``.nii.gz`` without a word. Either is an InputError here.
+    """
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: {what} file not found")
     if path.is_dir():
         raise InputError(f"{path}: is a directory, expected an {what} file")
     try:
-        return sitk.ReadImage(str(path))
+        image = sitk.ReadImage(str(path))
     except RuntimeError as exc:
         first = str(exc).strip().splitlines()
         reason = next((ln for ln in first if "ERROR" not in ln and ln.strip()), "unreadable")
         raise InputError(f"{path}: cannot read {what} ({reason.strip()[:160]})") from None
+    if path.name.lower().endswith((".nii", ".nii.gz")):
+        stat = path.stat()
+        _check_nifti(str(path.resolve()), stat.st_size, stat.st_mtime_ns, what, str(path))
+    return image
+
+
+_NIFTI_SLAB_BYTES = 1 << 26  # 64 MiB of voxel data per slab
+
+
+@functools.lru_cache(maxsize=4096)
+def _check_nifti(path: str, size: int, mtime_ns: int, what: str, shown: str) -> None:
+    """Read a NIfTI file's voxels with nibabel, slab by slab: every byte there, all finite.
+
+    `size` and `mtime_ns` are part of the cache key, so a file that changes is checked again;
+    `shown` is the path as the user gave it, for messages.
+    """
+    import nibabel as nib
+    from nibabel.filebasedimages import ImageFileError
+
+    try:
+        img = nib.load(path, keep_file_open=True)
+        proxy = img.dataobj
+        shape = tuple(int(n) for n in img.shape)
+        floating = np.issubdtype(img.get_data_dtype(), np.floating) or (
+            img.header.get_slope_inter()[0] not in (None, 1.0)
+        )
+        # NIfTI stores the first axis fastest: slabs along the last axis are contiguous.
+        per_index = int(np.prod(shape[:-1])) * img.get_data_dtype().itemsize
+        step = max(1, _NIFTI_SLAB_BYTES // max(per_index, 1))
+        for start in range(0, shape[-1], step):
+            block = np.asarray(proxy[..., start : start + step])
+            if floating and not np.isfinite(block).all():
+                raise InputError(f"{shown}: {what} contains NaN or infinite voxel values")
+    except InputError:
+        raise
+    except (EOFError, OSError, ValueError, zlib.error, ImageFileError) as exc:
+        reason = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{shown}: {what} file is truncated or corrupt ({reason})") from None
 
 
 def _as_sitk(item, name: str, what: str) -> sitk.Image:

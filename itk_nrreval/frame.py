@@ -328,12 +328,36 @@ def resample_onto(img: sitk.Image, t: sitk.Transform, g: Geometry, interpolator:
 
 
 def label_values(labels: Sequence) -> np.ndarray:
-    """Sorted union of the values found in the label maps (background 0 included if present)."""
+    """Sorted union of the values found in the label maps (background 0 included if present).
+
+    Returns
+    -------
+    ndarray of int64
+        The label values.
+
+    Raises
+    ------
+    InputError
+        A label map that is not scalar, or holds a value that is not an integer (an
+        intensity image given as a label map, most likely); the message names the file.
+    """
     values = set()
-    for item in labels:
-        arr = sitk.GetArrayFromImage(_as_image(item, "label map"))
-        values.update(np.unique(arr).tolist())
-    return np.array(sorted(values))
+    for i, item in enumerate(labels):
+        name = str(item) if isinstance(item, (str, os.PathLike)) else f"label map[{i}]"
+        img = _as_image(item, "label map")
+        if img.GetNumberOfComponentsPerPixel() != 1:
+            raise InputError(f"{name}: a label map must be a scalar image")
+        arr = sitk.GetArrayViewFromImage(img)
+        found = np.unique(arr)
+        if found.dtype.kind == "f":
+            bad = found[~np.isfinite(found) | (found != np.round(found))]
+            if bad.size:
+                raise InputError(
+                    f"{name}: label map holds non-integer values (e.g. {float(bad[0]):g}; "
+                    f"{bad.size} of {found.size} distinct values): is it an intensity image?"
+                )
+        values.update(int(v) for v in found)
+    return np.array(sorted(values), dtype=np.int64)
 
 
 def resample_memberships(

@@ -75,7 +75,7 @@ __all__ = [
     "run_pipeline",
 ]
 
-_FORMAT = 2  # bump when what a cache entry holds changes
+_FORMAT = 3  # bump when what a cache entry holds changes
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
 
 
@@ -215,9 +215,10 @@ def _resample_task(
         return key, True, dict(entry.meta)
     t = chain_transform(item)
     full = resampling_transform(t, _frame_transform(frame, g, cache))
+    raw = read_image(image, what="image")
     arrays = {
         "image": resample_images(
-            [image], [full], g, interpolation=interpolation, show_progress=False
+            [raw], [full], g, interpolation=interpolation, show_progress=False
         )[0].reshape(-1)
     }
     reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
@@ -227,7 +228,7 @@ def _resample_task(
     plaus = deformation_plausibility(
         t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency
     )
-    meta: dict = {"plausibility": plaus.to_dict()}
+    meta: dict = {"plausibility": plaus.to_dict(), "label_like": _label_like(raw)}
     if labels is not None:
         lab = read_image(labels, what="label map")
         own = [int(v) for v in label_values([lab]) if v != 0]  # background: not evaluated
@@ -245,6 +246,22 @@ def _resample_task(
         meta.update(labels=own, gsum=gsum, present=present)
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
+
+
+_LABEL_LIKE_VALUES = 32  # an image with at most this many distinct integer values
+
+
+def _label_like(image: sitk.Image) -> int | None:
+    """The number of distinct values when `image` looks like a label map, else None.
+
+    A label map given as an image scores as a wildly variable texture (every label boundary
+    a step of several intensity units): worth a warning, not an error.
+    """
+    arr = sitk.GetArrayViewFromImage(image)
+    if arr.dtype.kind == "f" and not np.array_equal(arr, np.round(arr)):
+        return None
+    found = np.unique(arr)
+    return int(found.size) if found.size <= _LABEL_LIKE_VALUES else None
 
 
 def _block_task(
@@ -437,6 +454,7 @@ def run_pipeline(
             values = [0] + sorted(v for v in found if v != 0)  # index 0: background
 
         runs = {}
+        warned: set[int] = set()
         for name, reg in m.registrations.items():
             frame_spec, frame_digest, frame = _frame(
                 executor, ctx, disk, m, name, counts, show_progress
@@ -463,6 +481,14 @@ def run_pipeline(
             ):
                 keys[i], metas[i] = key, meta
                 counts.add(reused)
+                if meta.get("label_like") and i not in warned:
+                    warned.add(i)
+                    warnings.warn(
+                        f"{m.images[i]}: the image holds only {meta['label_like']} distinct "
+                        "integer values: is it a label map given as an image?",
+                        UserWarning,
+                        stacklevel=3,
+                    )
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
             runs[name] = _reduce(
