@@ -10,7 +10,31 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "write_json", "write_text"]
+__all__ = ["atomic_path", "write_json", "write_text", "check_output_folder"]
+
+
+def check_output_folder(path: str | os.PathLike, *, option: str = "--out") -> Path:
+    """Refuse, before any work, an output folder that cannot be one or cannot be written.
+
+    Raises
+    ------
+    InputError
+        `path` is an existing file, or the folder (or its nearest existing parent, where it
+        would be created) is not writable.
+    """
+    from ._errors import InputError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{option} {path}: exists and is not a folder")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{option} {path}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{option} {path}: {existing} is not writable")
+    return path
 
 
 def _default_mode() -> int:

@@ -113,3 +113,65 @@ def test_a_label_map_given_as_an_image_is_warned_about(tmp_path):
     (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     with pytest.warns(UserWarning, match=r"lab1.nii.gz: the image holds only \d distinct integer"):
         nr.evaluate(tmp_path / "manifest.yaml", n_samples=500, progress=False)
+
+
+@pytest.mark.parametrize(
+    "option, value, message",
+    [
+        ("--samples", "0", "--samples: expected an integer >= 2, got '0'"),
+        ("--samples", "-5", "--samples: expected an integer >= 2, got '-5'"),
+        ("--samples", "1", "--samples: expected an integer >= 2, got '1'"),
+        ("--samples", "1e12", "more samples than the sampler can number"),
+        ("--samples", "many", "--samples: expected an integer >= 2, got 'many'"),
+        ("--seed", "-1", "--seed: expected an integer in [0, "),
+        ("--workers", "0", "--workers: expected an integer >= 1, got '0'"),
+        ("--flag-folded-max", "1.5", "--flag-folded-max: expected a fraction in [0, 1]"),
+        ("--confidence-samples", "1", "--confidence-samples: expected an integer >= 2"),
+    ],
+)
+def test_numeric_options_are_checked_when_parsed(tmp_path, capsys, option, value, message):
+    make_case(tmp_path)
+    out = tmp_path / "out"
+    assert (
+        main(["evaluate", str(tmp_path / "manifest.yaml"), "--out", str(out), option, value]) == 2
+    )
+    assert_one_line(capsys.readouterr().err, message)
+    assert not out.exists()
+
+
+def test_samples_in_exponent_notation_are_accepted(tmp_path, capsys):
+    make_case(tmp_path, with_labels=False)
+    out = tmp_path / "out"
+    args = ["evaluate", str(tmp_path / "manifest.yaml"), "--out", str(out), "--samples", "2e3"]
+    assert main(args + ["--quiet", "--no-figures", "--no-confidence"]) == 0
+    import json
+
+    assert json.loads((out / "results.json").read_text())["options"]["n_samples"] == 2000
+
+
+@pytest.mark.parametrize("kind", ["file", "under-a-file"])
+def test_out_that_cannot_be_a_folder_fails_before_any_work(tmp_path, capsys, kind):
+    make_case(tmp_path)
+    blocker = tmp_path / "blocker"
+    blocker.write_text("not a folder")
+    out = blocker if kind == "file" else blocker / "sub"
+    code, err = run_cli(["evaluate", str(tmp_path / "manifest.yaml"), "--out", str(out)], capsys)
+    assert code == 2
+    assert_one_line(err, f"--out {out}")
+    assert blocker.read_text() == "not a folder"
+
+
+def test_cli_warnings_are_one_readable_line(tmp_path, capsys):
+    import yaml
+
+    data = make_case(tmp_path)
+    data["images"][1] = "lab1.nii.gz"  # a label map given as an image: a warning
+    (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    args = ["evaluate", str(tmp_path / "manifest.yaml"), "--out", str(tmp_path / "o")]
+    code, err = run_cli(args + ["--quiet", "--samples", "500", "--no-figures"], capsys)
+    assert code == 0
+    warning_lines = [ln for ln in err.splitlines() if "warning" in ln]
+    assert warning_lines and all(
+        ln.startswith("nrreval evaluate: warning: ") for ln in warning_lines
+    )
+    assert "warnings.warn" not in err and ".py:" not in err

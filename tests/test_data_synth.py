@@ -288,4 +288,4 @@ def test_synth_command_refuses_a_file_as_output(tmp_path, capsys):
     target = tmp_path / "file.txt"
     target.write_text("x")
     assert main(["synth", "--out", str(target), "--n", "1"]) == 2
-    assert re.search(r"exists and is not a directory", capsys.readouterr().err)
+    assert re.search(r"exists and is not a folder", capsys.readouterr().err)

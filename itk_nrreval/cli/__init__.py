@@ -9,11 +9,12 @@ becomes one line on stderr and exit code 2, a failed registration engine
 
 from __future__ import annotations
 
-import argparse
 import sys
+import warnings
 
 from .._errors import EngineError, InputError
 from . import demo, diagnose, evaluate, overlap, register, specificity, synth, validate
+from ._options import OneLineParser
 
 __all__ = ["main"]
 
@@ -21,15 +22,15 @@ __all__ = ["main"]
 COMMANDS = [demo, evaluate, specificity, overlap, synth, register, validate, diagnose]
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> OneLineParser:
     from .._version import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="nrreval",
         description="Evaluate non-rigid registrations of a group of images without ground truth.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     sub.required = True
     for module in COMMANDS:
         module.add_parser(sub)
@@ -38,9 +39,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a usage error (one line on stderr)
+        return int(exc.code or 0)
+
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        # a warning is for the user, not the developer: no source file, no source line
+        print(f"nrreval {args.command}: warning: {message}", file=sys.stderr)
+
+    try:
+        with warnings.catch_warnings():  # restores warnings.showwarning on the way out
+            warnings.showwarning = one_line
+            return int(args.func(args) or 0)
     except InputError as exc:
         print(f"nrreval {args.command}: error: {exc}", file=sys.stderr)
         return 2

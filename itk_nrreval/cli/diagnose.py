@@ -23,6 +23,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .._errors import InputError
+from .._output import check_output_folder
+from ._options import samples, seed
 
 __all__ = ["add_parser", "run", "table1_markdown", "table1_csv", "save_cell_figure"]
 
@@ -47,33 +49,25 @@ def add_parser(sub) -> None:
         help="a registration of the manifest (repeat for several)",
     )
     p.add_argument(
-        "--samples", default="1000", metavar="M", help="model samples (default 1000, as the paper)"
+        "--samples",
+        type=samples,
+        default=1000,
+        metavar="M",
+        help="model samples (default 1000, as the paper)",
     )
-    p.add_argument("--seed", default="0", metavar="S", help="sample seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="sample seed (default 0)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the table and figure")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
-
-
-def _integer(text: str, option: str, lowest: int) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = None
-    if value is None or value < lowest:
-        raise InputError(f"{option}: expected an integer >= {lowest}, got {text!r}")
-    return value
 
 
 def run(args: argparse.Namespace) -> int:
     from ..appearance import appearance_diagnostics
     from ..manifest import load_manifest
 
-    n_samples = _integer(args.samples, "--samples", 2)
-    seed = _integer(args.seed, "--seed", 0)
+    n_samples = args.samples
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a directory")
+    check_output_folder(out)
     manifest = load_manifest(args.manifest)  # every problem, before any work
     names = list(dict.fromkeys(args.registration))
     unknown = [n for n in names if n not in manifest.registrations]
@@ -87,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
             manifest,
             registration=name,
             n_samples=n_samples,
-            seed=seed,
+            seed=args.seed,
             progress=not args.no_progress,
         )
         for name in names

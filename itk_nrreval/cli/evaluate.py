@@ -5,20 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-
-def _int_at_least(minimum: int):
-    """An argparse type: an integer >= minimum."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
-        return value
-
-    return parse
+from ._options import fraction, integer, positive, samples, seed
 
 
 def add_parser(sub) -> None:
@@ -34,9 +21,9 @@ def add_parser(sub) -> None:
     p.add_argument("manifest", metavar="MANIFEST", help="manifest (YAML or JSON)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for results and figures")
     p.add_argument(
-        "--samples", type=_int_at_least(2), default=100_000, metavar="M", help="model samples"
+        "--samples", type=samples, default=100_000, metavar="M", help="model samples (1e5 works)"
     )
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="sample seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="sample seed (default 0)")
     p.add_argument("--distance", choices=("l1", "l2"), default="l1")
     p.add_argument(
         "--interpolation",
@@ -59,7 +46,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--workers",
-        type=_int_at_least(1),
+        type=integer(1),
         metavar="K",
         help="local cluster: K worker processes (default: CPU count); address: wait for K workers",
     )
@@ -75,13 +62,13 @@ def add_parser(sub) -> None:
     )
     c.add_argument(
         "--confidence-samples",
-        type=_int_at_least(2),
+        type=integer(2),
         metavar="M",
         help="model samples per jackknife replicate (default min(M, 100000))",
     )
     c.add_argument(
         "--resamples",
-        type=_int_at_least(2),
+        type=integer(2),
         metavar="G",
         help="jackknife groups for specificity (default min(N, 50); N: leave one out)",
     )
@@ -91,35 +78,35 @@ def add_parser(sub) -> None:
     d = Thresholds()
     f.add_argument(
         "--flag-folded-mean",
-        type=_fraction,
+        type=fraction,
         default=d.folded_mean,
         metavar="F",
         help=f"flag a mean folded fraction above F (default {d.folded_mean:g})",
     )
     f.add_argument(
         "--flag-folded-max",
-        type=_fraction,
+        type=fraction,
         default=d.folded_max,
         metavar="F",
         help=f"flag one image's folded fraction above F (default {d.folded_max:g})",
     )
     f.add_argument(
         "--flag-sdlogj-ratio",
-        type=_positive,
+        type=positive,
         default=d.sdlogj_ratio,
         metavar="R",
         help=f"flag SDlogJ above R x the median of the registrations (default {d.sdlogj_ratio:g})",
     )
     f.add_argument(
         "--flag-sdlogj-floor",
-        type=_positive,
+        type=positive,
         default=d.sdlogj_floor,
         metavar="S",
         help=f"... and above S (default {d.sdlogj_floor:g})",
     )
     f.add_argument(
         "--flag-frame-spread",
-        type=_fraction,
+        type=fraction,
         default=d.frame_spread_fraction,
         metavar="F",
         help="flag a mean frame spread above F x the smallest field-of-view extent "
@@ -133,26 +120,9 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _number(text: str, ok, what: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not ok(value):
-        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
-    return value
-
-
-def _fraction(text: str) -> float:
-    return _number(text, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")
-
-
-def _positive(text: str) -> float:
-    return _number(text, lambda v: 0 < v < float("inf"), "a positive number")
-
-
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
+    from .._output import check_output_folder
     from ..evaluation import evaluate
     from ..manifest import load_manifest
     from ..plausibility import Thresholds
@@ -160,8 +130,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
+    out = check_output_folder(args.out)
     manifest = load_manifest(args.manifest)  # every problem, before DIR is created
-    out = Path(args.out)
     cache = Path(args.cache) if args.cache is not None else out / "cache"
     result = evaluate(
         manifest,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ._options import seed
+
 
 def add_parser(sub) -> None:
     from ..registration import ENGINES
@@ -41,7 +43,7 @@ def add_parser(sub) -> None:
         "(default DIR/../manifest.yaml; created if needed)",
     )
     p.add_argument("--name", help="registration name in the manifest (default: the method)")
-    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 

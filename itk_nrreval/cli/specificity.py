@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .._output import write_json
+from ._options import positive, samples, seed
 
 
 def add_parser(sub) -> None:
@@ -19,13 +20,17 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--mask", help="evaluate only voxels where this image is nonzero")
     p.add_argument(
-        "--samples", type=int, default=100_000, metavar="M", help="model samples (default 100000)"
+        "--samples",
+        type=samples,
+        default=100_000,
+        metavar="M",
+        help="model samples (default 100000)",
     )
     p.add_argument(
         "--distance", choices=("l1", "l2"), default="l1", help="parameter-space distance"
     )
-    p.add_argument("--exponent", type=float, default=1.0, metavar="L", help="the paper's lambda")
-    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--exponent", type=positive, default=1.0, metavar="L", help="the paper's lambda")
+    p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--json", metavar="OUT", help="also write the numbers to this JSON file")
     p.set_defaults(func=run)
 

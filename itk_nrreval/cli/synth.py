@@ -11,6 +11,8 @@ import argparse
 from pathlib import Path
 
 from .._errors import InputError
+from .._output import check_output_folder
+from ._options import seed
 
 
 def add_parser(sub) -> None:
@@ -29,7 +31,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--n", type=int, default=36, metavar="N", help="number of subjects (default 36)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument("--spacing", type=float, default=None, metavar="MM", help="voxel size in mm")
     p.add_argument(
         "--warp",
@@ -49,8 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from data_synth.writing import write_population
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out}: exists and is not a directory")
+    check_output_folder(out)
     if args.kind not in ("phantom", "mni"):
         raise InputError(f"--kind must be 'phantom' or 'mni', got {args.kind!r}")
     if args.dim not in (2, 3):

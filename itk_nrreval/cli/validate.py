@@ -7,6 +7,7 @@ from pathlib import Path
 
 from .._errors import InputError
 from .._output import atomic_path, write_json, write_text
+from ._options import seed
 
 
 def _floats(text: str) -> list[float]:
@@ -76,7 +77,7 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--knots", type=int, default=25, metavar="K", help="CPS knots per warp (default 25)"
     )
-    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--jobs", type=int, default=2, metavar="J", help="threads (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
