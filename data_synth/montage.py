@@ -79,9 +79,7 @@ def save_montage(
         Size of one panel (inches) and resolution.
     """
     import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
+    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
 
     from itk_nrreval._output import atomic_path
 

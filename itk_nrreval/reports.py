@@ -185,11 +185,8 @@ def _json_default(o):
 
 
 def _save_figure(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    plt.close(fig)
 
 
 def _middle_slice(img: np.ndarray) -> np.ndarray:
@@ -197,10 +194,8 @@ def _middle_slice(img: np.ndarray) -> np.ndarray:
 
 
 def _figures(result: EvaluationResult, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    # Figure objects without pyplot: no process-wide backend is chosen or changed
+    from matplotlib.figure import Figure
 
     written = []
     names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
@@ -208,7 +203,8 @@ def _figures(result: EvaluationResult, out: Path) -> list[Path]:
     values = np.array([s.value for s in spec])
     ivs = [result.scores[n].intervals.get("specificity") for n in names]
     has_ci = all(iv is not None and math.isfinite(iv.lo) for iv in ivs)
-    fig, ax = plt.subplots(figsize=(max(4.5, 1.3 * len(names)), 3.8))
+    fig = Figure(figsize=(max(4.5, 1.3 * len(names)), 3.8))
+    ax = fig.subplots()
     colors = ["tab:red" if result.scores[n].flags else "tab:blue" for n in names]
     if has_ci:
         err = np.array([[v - iv.lo, iv.hi - v] for v, iv in zip(values, ivs, strict=True)]).T
@@ -239,7 +235,8 @@ def _figures(result: EvaluationResult, out: Path) -> list[Path]:
     overlap = next((m for m, _ in _TABLE_OVERLAPS if m in result.ranks), None)
     overlap = overlap or next((m for m in result.measures if m.startswith("overlap.")), None)
     if overlap is not None:
-        fig, ax = plt.subplots(figsize=(4.5, 3.5))
+        fig = Figure(figsize=(4.5, 3.5))
+        ax = fig.subplots()
         xs = [result.scores[n].measures()[overlap] for n in names]
         ax.errorbar(xs, [s.value for s in spec], yerr=[s.stderr for s in spec], fmt="o", capsize=3)
         for x, s, n in zip(xs, spec, names, strict=True):
@@ -249,7 +246,8 @@ def _figures(result: EvaluationResult, out: Path) -> list[Path]:
         _save_figure(fig, out / "specificity_vs_overlap.png")
         written.append(out / "specificity_vs_overlap.png")
 
-    fig, axes = plt.subplots(1, len(names), figsize=(2.6 * len(names), 2.8), squeeze=False)
+    fig = Figure(figsize=(2.6 * len(names), 2.8))
+    axes = fig.subplots(1, len(names), squeeze=False)
     lo = min(float(np.min(result.mean_images[n])) for n in names)
     hi = max(float(np.max(result.mean_images[n])) for n in names)
     for ax, n in zip(axes[0], names, strict=True):

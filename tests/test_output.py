@@ -32,3 +32,22 @@ def test_temporary_keeps_the_suffix(tmp_path):
         assert tmp.name.endswith(".nii.gz") and tmp.parent == tmp_path
         tmp.write_bytes(b"x")
     assert (tmp_path / "image.nii.gz").exists()
+
+
+def test_reports_leave_the_matplotlib_backend_alone(tmp_path):
+    import matplotlib
+    from test_evaluate import make_case
+
+    import itk_nrreval as nr
+    from itk_nrreval.reports import write_reports
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")  # a backend a user might have chosen
+    try:
+        make_case(tmp_path)
+        result = nr.evaluate(tmp_path / "manifest.yaml", n_samples=500, progress=False)
+        written = write_reports(result, tmp_path / "out")
+        assert any(p.suffix == ".png" for p in written)
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)

@@ -199,18 +199,14 @@ def table1_csv(results: Sequence) -> str:
 
 def save_cell_figure(results: Sequence, path: str | Path) -> Path:
     """Cell-population bars, raw vs projected, one panel per registration (PNG, atomic)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
 
     from .._output import atomic_path
 
     path = Path(path)
-    fig, axes = plt.subplots(
-        len(results), 1, figsize=(9, 2.2 * len(results) + 0.6), squeeze=False, sharex=True
-    )
+    fig = Figure(figsize=(9, 2.2 * len(results) + 0.6))
+    axes = fig.subplots(len(results), 1, squeeze=False, sharex=True)
     for ax, r in zip(axes[:, 0], results, strict=True):
         x = np.arange(1, r.n_images + 1)
         ax.bar(x - 0.2, r.raw.counts, width=0.4, color="tab:orange", label="raw")
@@ -231,7 +227,6 @@ def save_cell_figure(results: Sequence, path: str | Path) -> Path:
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()))
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
-    plt.close(fig)
     return path
 
 

@@ -139,10 +139,8 @@ def plot_fig2(result, path, *, weighting: str | None = None) -> None:
     unperturbed specificity (d = 0). Written to `path` (PNG).
     """
     import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import numpy as np
+    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
 
     from ..validation import FIT_FROM
 
@@ -151,9 +149,10 @@ def plot_fig2(result, path, *, weighting: str | None = None) -> None:
     s = result.column("specificity")
     se = result.column("specificity_stderr")
     o = result.column(f"overlap_{w}")
-    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=120)
+    fig = Figure(figsize=(6.4, 4.8), dpi=120)
+    ax = fig.subplots()
     levels = np.unique(d)
-    cmap = plt.get_cmap("viridis", len(levels))
+    cmap = matplotlib.colormaps["viridis"].resampled(len(levels))
     for k, v in enumerate(levels):
         sel = d == v
         ax.errorbar(o[sel], s[sel], yerr=se[sel], fmt="o", ms=5, color=cmap(k), label=f"{v:g}")
@@ -173,18 +172,15 @@ def plot_fig2(result, path, *, weighting: str | None = None) -> None:
     ax.legend(title="d (pixels)", fontsize=7, title_fontsize=8, ncol=2, loc="best")
     fig.tight_layout()
     fig.savefig(path, format="png")
-    plt.close(fig)
 
 
 def plot_vs_d(result, path) -> None:
     """Specificity and overlap against d: mean over repeats, error bars one SD (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     m = result.means()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4), dpi=120)
+    fig = Figure(figsize=(10, 4), dpi=120)
+    a1, a2 = fig.subplots(1, 2)
     a1.errorbar(m["displacement"], m["specificity"], yerr=m["specificity_sd"], fmt="o-", capsize=3)
     a1.set_xlabel("mean displacement d (pixels)")
     a1.set_ylabel("specificity")
@@ -203,4 +199,3 @@ def plot_vs_d(result, path) -> None:
     a2.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, format="png")
-    plt.close(fig)
