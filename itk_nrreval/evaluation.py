@@ -382,8 +382,10 @@ def verdict(
     else:
         ties = [n for n in pool[1:] if not separable("specificity", top, n)]
         best = (top, *ties)
+        pb = scores[top].probability_best.get("specificity")
+        chance = f"; probability of being best {pb:.2f}" if pb is not None and pb == pb else ""
         if not ties:
-            text.append(f"{top} is best by specificity (separable from {others}).")
+            text.append(f"{top} is best by specificity (separable from {others}{chance}).")
         else:
             verb = "is" if len(ties) == 1 else "are"
             text.append(
