@@ -5,12 +5,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "write_json", "write_text", "check_output_folder"]
+__all__ = ["atomic_path", "write_json", "write_text", "check_output_folder", "staged_folder"]
 
 
 def check_output_folder(path: str | os.PathLike, *, option: str = "--out") -> Path:
@@ -76,3 +77,57 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 def write_json(path: str | os.PathLike, data: Any) -> None:
     """Write `data` as indented JSON to `path` atomically."""
     write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",)) -> Iterator[Path]:
+    """Yield a temporary sibling of `out` to write a whole result into; swap it in on success.
+
+    On success the previous `out` (if any) is replaced by the new folder in two renames,
+    carrying over the entries named in `keep` (the per-image cache, which a rerun reuses);
+    on failure the temporary folder is removed and `out` is left exactly as it was. So `out`
+    always holds one complete result, never a mix of an old run's files and a new one's.
+    A process killed mid-run leaves ``<out>.tmp-<pid>-*`` beside `out`, never a damaged `out`.
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_stages(out)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-{os.getpid()}-", dir=out.parent))
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    os.chmod(tmp, 0o777 & ~_umask())
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-{os.getpid()}-", dir=out.parent))
+    os.rmdir(old)
+    os.rename(out, old)
+    os.rename(tmp, out)
+    for name in keep:
+        if (old / name).exists() and not (out / name).exists():
+            os.rename(old / name, out / name)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def _remove_stale_stages(out: Path) -> None:
+    """Remove ``<out>.tmp-<pid>-*`` / ``<out>.old-<pid>-*`` folders of processes that are gone."""
+    stages = [*out.parent.glob(f"{out.name}.tmp-*-*"), *out.parent.glob(f"{out.name}.old-*-*")]
+    for path in stages:
+        pid = path.name[len(out.name) + 5 :].split("-", 1)[0]
+        if not pid.isdigit() or not path.is_dir():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except PermissionError:
+            pass

@@ -51,3 +51,42 @@ def test_reports_leave_the_matplotlib_backend_alone(tmp_path):
         assert matplotlib.get_backend() == "svg"
     finally:
         matplotlib.use(before)
+
+
+def test_staged_folder_swaps_a_complete_result_in_and_keeps_the_cache(tmp_path):
+    from itk_nrreval._output import staged_folder
+
+    out = tmp_path / "out"
+    (out / "cache").mkdir(parents=True)
+    (out / "cache" / "entry").write_text("cached")
+    (out / "results.json").write_text("old")
+    (out / "stale.png").write_text("old figure")
+    with staged_folder(out) as stage:
+        assert stage.parent == tmp_path and stage != out
+        (stage / "results.json").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["cache", "results.json"]
+    assert (out / "results.json").read_text() == "new"
+    assert (out / "cache" / "entry").read_text() == "cached"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing left beside it
+
+
+def test_staged_folder_failure_leaves_the_previous_result(tmp_path):
+    import pytest
+
+    from itk_nrreval._output import staged_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "results.json").write_text("old")
+    with pytest.raises(KeyboardInterrupt):
+        with staged_folder(out) as stage:
+            (stage / "results.json").write_text("half")
+            raise KeyboardInterrupt
+    assert (out / "results.json").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    # a stage left by a killed process is removed by the next run
+    dead = tmp_path / "out.tmp-999999999-abc"
+    dead.mkdir()
+    with staged_folder(out):
+        pass
+    assert not dead.exists()
