@@ -8,10 +8,18 @@ images of a group give a shape-free texture model; its specificity scores the re
 from ._errors import EngineError, InputError
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
-from .evaluation import EvaluationResult, RegistrationScores, evaluate, ranks, relative_ranks
+from .evaluation import (
+    EvaluationResult,
+    RegistrationScores,
+    Verdict,
+    evaluate,
+    ranks,
+    relative_ranks,
+)
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
+from .plausibility import Plausibility, Thresholds, deformation_plausibility
 from .registration import RegistrationResult, register
 from .specificity import (
     GeneralizationResult,
@@ -57,6 +65,10 @@ __all__ = [
     "add_registration",
     "EvaluationResult",
     "RegistrationScores",
+    "Verdict",
+    "Plausibility",
+    "Thresholds",
+    "deformation_plausibility",
     "evaluate",
     "ranks",
     "relative_ranks",
