@@ -3,6 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+TORCH_STAMP := $(VENV)/.installed-torch
 
 .PHONY: install test demo bench lint clean
 
@@ -14,12 +15,16 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -m pip install -e '.[all]'
 	# nilearn ships the MNI152 2009a template; we read its data files only, so skip its heavy deps.
 	$(PY) -m pip install --no-deps 'nilearn>=0.10'
-	# torch (the `gpu` extra, backend="torch" of specificity): this is the CPU build, resolved from
-	# the machine's wheel cache; it is installed so that the tests exercise the torch path on the CPU.
-	$(PY) -m pip install 'torch==2.13.0'
 	touch $(STAMP)
 
-test: install
+# torch (the `gpu` extra, backend="torch" of specificity) is only for the tests, which exercise
+# the torch path on the CPU: the CPU build, resolved from the machine's wheel cache. `make demo`
+# does not need it.
+$(TORCH_STAMP): $(STAMP)
+	$(PY) -m pip install 'torch==2.13.0'
+	touch $(TORCH_STAMP)
+
+test: install $(TORCH_STAMP)
 	$(PY) -m pytest -q
 
 demo: install
