@@ -75,7 +75,7 @@ __all__ = [
     "run_pipeline",
 ]
 
-_FORMAT = 3  # bump when what a cache entry holds changes
+_FORMAT = 4  # bump when what a cache entry holds changes
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
 
 
@@ -145,17 +145,15 @@ def _frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Tran
     return field_transform(img)
 
 
-def _estimate_task(ctx: _Context, common_item, item, reference: Path) -> tuple[str, bool]:
+def _estimate_task(ctx: _Context, common_item, item, reg_grid: Geometry) -> tuple[str, bool]:
     """Cache ``F_i(p) - p`` on the common grid; return (key, reused)."""
     cache = ctx.cache()
-    key = digest_of(["estimate", _FORMAT, ctx.grid, common_item, item, reference])
+    key = digest_of(["estimate", _FORMAT, ctx.grid, common_item, item, reg_grid])
     if cache.get("estimate", key) is not None:
         return key, True
     tr = chain_transform(item)
-    reg_grid = None
-    if needs_inversion_grid(tr):
-        reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
-    disp = frame_estimates([chain_transform(common_item)], [tr], ctx.grid, other_grid=reg_grid)[0]
+    other = reg_grid if needs_inversion_grid(tr) else None
+    disp = frame_estimates([chain_transform(common_item)], [tr], ctx.grid, other_grid=other)[0]
     cache.put("estimate", key, {"disp": disp})
     return key, False
 
@@ -179,9 +177,10 @@ def _resample_task(
     item,
     frame: tuple,
     frame_digest: str,
-    reference: Path,
+    reg_grid: Geometry,
     interpolation: str,
     reg_mask_key: str | None,
+    own_values: Sequence[int] | None,
 ) -> tuple[str, bool, dict]:
     """Resample one image (and its label memberships) into the common frame; cache it.
 
@@ -190,7 +189,8 @@ def _resample_task(
     ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices, ascending per label), ``lab_val``
     (float32). Its metadata holds per label the gradient sum (over the mask) and whether the
     label is present inside the mask, and the deformation's plausibility measures on the
-    registration's reference grid (inside the mask mapped there, `reg_mask_key`).
+    registration's reference grid `reg_grid` (inside the mask mapped there, `reg_mask_key`).
+    `own_values` are the label map's own nonzero values (found once by the driver).
     """
     cache = ctx.cache()
     g = ctx.grid
@@ -204,7 +204,7 @@ def _resample_task(
             labels,
             item,
             frame_digest,
-            reference,
+            reg_grid,
             interpolation,
             reg_mask_key,
             ctx.inverse_consistency,
@@ -221,7 +221,6 @@ def _resample_task(
             [raw], [full], g, interpolation=interpolation, show_progress=False
         )[0].reshape(-1)
     }
-    reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
@@ -231,7 +230,7 @@ def _resample_task(
     meta: dict = {"plausibility": plaus.to_dict(), "label_like": _label_like(raw)}
     if labels is not None:
         lab = read_image(labels, what="label map")
-        own = [int(v) for v in label_values([lab]) if v != 0]  # background: not evaluated
+        own = [int(v) for v in own_values]
         memb = resample_label_memberships(lab, full, g, values=own)
         mask = ctx.mask_flat()
         gsum, present = [], []
@@ -444,22 +443,24 @@ def run_pipeline(
         counts = _Counts()
 
         values = None
+        own_values: list[list[int] | None] = [None] * m.n_images
         if m.labels is not None:
-            found: set[int] = set()
             calls = [([p],) for p in m.labels]
-            for _, vals in executor.map(
+            for i, vals in executor.map(
                 label_values, calls, desc="label values", show=show_progress
             ):
-                found.update(int(v) for v in vals)
-            values = [0] + sorted(v for v in found if v != 0)  # index 0: background
+                own_values[i] = [int(v) for v in vals if v != 0]  # background: not evaluated
+            found = {v for vals in own_values for v in vals}
+            values = [0, *sorted(found)]  # index 0: background
 
         runs = {}
         warned: set[int] = set()
         for name, reg in m.registrations.items():
+            reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
             frame_spec, frame_digest, frame = _frame(
-                executor, ctx, disk, m, name, counts, show_progress
+                executor, ctx, disk, m, name, reg_grid, counts, show_progress
             )
-            reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg.reference)
+            reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
             calls = [
                 (
                     ctx,
@@ -468,9 +469,10 @@ def run_pipeline(
                     reg.transforms[i],
                     frame_spec,
                     frame_digest,
-                    reg.reference,
+                    reg_grid,
                     interpolation,
                     reg_mask_key,
+                    own_values[i],
                 )
                 for i in range(m.n_images)
             ]
@@ -590,7 +592,7 @@ def _reduce(
     )
 
 
-def _frame(executor, ctx, disk, m: Manifest, name, counts, show):
+def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
     """F for registration `name`: its task description, the digest of that, its FrameMapping."""
     reg = m.registrations[name]
     common_items = m.registrations[m.common_frame].transforms
@@ -605,7 +607,7 @@ def _frame(executor, ctx, disk, m: Manifest, name, counts, show):
         spec = ("chain", common_items[reg.reference_index])
     else:
         spec = None
-    calls = [(ctx, common_items[i], reg.transforms[i], reg.reference) for i in range(m.n_images)]
+    calls = [(ctx, common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)]
     keys = [""] * m.n_images
     for i, (key, reused) in executor.map(_estimate_task, calls, desc=f"{name}: frame", show=show):
         keys[i] = key
@@ -641,7 +643,7 @@ def _registration_mask(
     mask: np.ndarray | None,
     frame: FrameMapping,
     frame_digest: str,
-    reference: Path,
+    reg_grid: Geometry,
 ) -> str | None:
     """Cache the mask carried into the registration's reference frame; return its key.
 
@@ -651,7 +653,6 @@ def _registration_mask(
     """
     if mask is None:
         return None
-    reg_grid = Geometry.from_image(read_image(reference, what="reference image"))
     key = digest_of(["reg_mask", _FORMAT, ctx.mask_key, frame_digest, ctx.grid, reg_grid])
     if disk.get("reg_mask", key) is not None:
         return key
