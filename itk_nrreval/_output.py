@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -11,7 +12,25 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["atomic_path", "write_json", "write_text", "check_output_folder", "staged_folder"]
+import numpy as np
+
+__all__ = [
+    "atomic_path",
+    "write_json",
+    "write_text",
+    "check_output_folder",
+    "staged_folder",
+    "json_number",
+]
+
+
+def json_number(value: Any) -> Any:
+    """`value` for JSON: a NaN or infinite float becomes None (JSON has neither), a numpy
+    float a Python float; anything else passes unchanged."""
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
 
 
 def check_output_folder(path: str | os.PathLike, *, option: str = "--out") -> Path:

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from ._output import json_number
 from .model import TextureModel
 from .overlap import OverlapTable
 from .specificity import texture_measures
@@ -80,7 +81,7 @@ class Interval:
     n_replicates: int
 
     def to_list(self) -> list[float | None]:
-        return [_finite_or_none(self.lo), _finite_or_none(self.hi)]
+        return [json_number(self.lo), json_number(self.hi)]
 
 
 @dataclass(frozen=True)
@@ -113,14 +114,10 @@ class Comparison:
             "measure": self.measure,
             "a": self.a,
             "b": self.b,
-            "difference": _finite_or_none(self.difference),
-            "ci95": [_finite_or_none(v) for v in self.ci95],
+            "difference": json_number(self.difference),
+            "ci95": [json_number(v) for v in self.ci95],
             "separable": self.separable,
         }
-
-
-def _finite_or_none(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 def jackknife_groups(n_images: int, n_groups: int | None = None) -> list[np.ndarray]:

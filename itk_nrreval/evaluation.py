@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from ._errors import InputError
+from ._output import json_number
 from ._progress import progress
 from .confidence import (
     Comparison,
@@ -116,7 +117,7 @@ class RegistrationScores:
 
         def se(measure):
             iv = self.intervals.get(measure)
-            return iv.stderr if iv is not None and math.isfinite(iv.stderr) else None
+            return json_number(iv.stderr) if iv is not None else None
 
         plaus = self.plausibility.to_dict()
         plaus["flags"] = list(self.flags)
@@ -133,10 +134,10 @@ class RegistrationScores:
                 "stderr_subjects": se("generalization"),
                 "ci95": ci("generalization"),
             },
-            "overlap": {w: _json_float(v) for w, v in self.overlap.items()},
+            "overlap": {w: json_number(v) for w, v in self.overlap.items()},
             "overlap_ci95": {w: ci(f"overlap.{w}") for w in self.overlap},
             "plausibility": plaus,
-            "probability_best": {m: _json_float(v) for m, v in self.probability_best.items()},
+            "probability_best": {m: json_number(v) for m, v in self.probability_best.items()},
             "frame": self.frame.to_dict(),
             "folded_fraction": self.folded_fraction,
             "folded_max": self.folded_max,
@@ -242,10 +243,6 @@ class EvaluationResult:
         if self.run:
             out["run"] = dict(self.run)
         return out
-
-
-def _json_float(v: float) -> float | None:
-    return float(v) if math.isfinite(v) else None
 
 
 def higher_is_better(measure: str) -> bool:

@@ -31,6 +31,7 @@ import SimpleITK as sitk
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
+from ._output import json_number
 from ._overlap_kernels import (
     label_map_gradient_sums,
     label_map_sums,
@@ -58,11 +59,6 @@ _PROGRESS_MIN_WORK = 50_000_000  # image-label-voxels above which fuzzy input sh
 def _check_weighting(weighting: str) -> None:
     if weighting not in WEIGHTINGS:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-
-
-def _json_value(x):
-    """A float for JSON: NaN (not computed, or undefined) becomes None."""
-    return None if isinstance(x, float) and math.isnan(x) else x
 
 
 @dataclass(frozen=True)
@@ -301,7 +297,7 @@ class OverlapTable:
             w: (
                 None
                 if w in _COMPLEXITY_WEIGHTINGS and not self.has_complexity
-                else _json_value(self.generalized(w))
+                else json_number(self.generalized(w))
             )
             for w in WEIGHTINGS
         }
@@ -311,7 +307,7 @@ class OverlapTable:
             "spacing": list(self.spacing),
             "skipped_labels": [int(v) for v in self.skipped_labels],
             "generalized": generalized,
-            "labels": [{k: _json_value(v) for k, v in row.items()} for row in self.rows()],
+            "labels": [{k: json_number(v) for k, v in row.items()} for row in self.rows()],
         }
 
     def rows(self) -> list[dict]:

@@ -28,6 +28,7 @@ import SimpleITK as sitk
 
 from ._errors import InputError
 from ._images import Geometry
+from ._output import json_number
 from .transforms import chain_transform, displacement_field, invert, jacobian_determinant
 
 __all__ = [
@@ -79,7 +80,7 @@ class Plausibility:
 
     def to_dict(self) -> dict:
         """The fields as a JSON-safe dict: NaN and infinities become None."""
-        return {k: _json_number(v) for k, v in asdict(self).items()}
+        return {k: json_number(v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_dict(cls, data: Mapping) -> Plausibility:
@@ -93,13 +94,6 @@ class Plausibility:
             jacobian_max=nan if data["jacobian_max"] is None else float(data["jacobian_max"]),
             inverse_consistency_mm=data["inverse_consistency_mm"],
         )
-
-
-def _json_number(value):
-    if value is None:
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def _geometry(grid: Geometry | sitk.Image) -> Geometry:
