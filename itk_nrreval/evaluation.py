@@ -577,7 +577,7 @@ def evaluate(
             "specificity": r.specificity.value,
             "generalization": r.generalization.value,
             **{
-                f"overlap.{w}": (r.overlap.generalized(w) if r.overlap is not None else math.nan)
+                f"overlap.{w}": r.overlap.generalized(w)
                 for w in (weightings if r.overlap is not None else ())
             },
         }
