@@ -241,11 +241,13 @@ def invert(
 ) -> sitk.Transform:
     """The inverse mapping (image points to reference points).
 
-    Linear transforms are inverted exactly. A displacement field is inverted on its own
-    grid with ``sitk.InvertDisplacementField`` (fixed-point iteration; never the slow
-    ``InverseDisplacementField``). A chain is inverted piece by piece in reverse order:
-    ``(t2 o t1)^-1 = t1^-1 o t2^-1``, so each field is inverted where it lives. Other
-    smooth pieces (B-splines) are first sampled as a displacement field on `grid`.
+    Linear transforms are inverted exactly. A displacement field is inverted with
+    ``sitk.InvertDisplacementField`` (fixed-point iteration; never the slow
+    ``InverseDisplacementField``) on its own grid grown by its largest displacement, so
+    that the inverse is right wherever the field moves points off its grid. A chain is
+    inverted piece by piece in reverse order: ``(t2 o t1)^-1 = t1^-1 o t2^-1``, so each
+    field is inverted where it lives. Other smooth pieces (B-splines) are first sampled as
+    a displacement field on `grid`.
 
     Parameters
     ----------
@@ -285,13 +287,12 @@ def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean
             )
         t = field_transform(displacement_field(t, grid))
     if isinstance(t, sitk.DisplacementFieldTransform):
-        field = t.GetDisplacementField()
         inverse = sitk.InvertDisplacementField(
-            field,
+            _edge_padded(t.GetDisplacementField()),
             maximumNumberOfIterations=int(iterations),
             maxErrorToleranceThreshold=float(max_error),
             meanErrorToleranceThreshold=float(mean_error),
-            enforceBoundaryCondition=True,
+            enforceBoundaryCondition=False,
         )
         return field_transform(inverse)
     if t.IsLinear():
@@ -300,6 +301,32 @@ def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean
         except RuntimeError as exc:
             raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
     raise AssertionError("unreachable: every piece is linear or a field here")
+
+
+def _edge_padded(field: sitk.Image) -> sitk.Image:
+    """`field` on its grid grown by its largest displacement, extended by its edge values.
+
+    The inverse of ``p -> p + u(p)`` is needed wherever the forward map lands, which reaches
+    up to ``max |u|`` beyond the field's own grid: inverted on that grid alone, it would be the
+    identity there (a 12 mm shift came back 12 mm out). Beyond the grown grid no point of the
+    field's grid can land, so the inverse is the identity there, as ITK gives outside a field.
+    The extension by edge values is what lets the fixed-point inversion find preimages inside
+    the grid for points that landed outside it.
+    """
+    arr = sitk.GetArrayFromImage(field)  # (*zyx, dim), mm
+    reach = float(np.sqrt((arr**2).sum(axis=-1)).max()) if arr.size else 0.0
+    if reach == 0.0:
+        return field
+    dim = field.GetDimension()
+    spacing = np.array(field.GetSpacing())
+    pad = np.ceil(reach / spacing).astype(int) + 1  # voxels per ITK axis
+    padded = np.pad(arr, [*((k, k) for k in pad[::-1]), (0, 0)], mode="edge")
+    out = sitk.GetImageFromArray(padded, isVector=True)
+    direction = np.array(field.GetDirection()).reshape(dim, dim)
+    out.SetSpacing(field.GetSpacing())
+    out.SetDirection(field.GetDirection())
+    out.SetOrigin((np.array(field.GetOrigin()) - direction @ (pad * spacing)).tolist())
+    return out
 
 
 def jacobian_determinant(

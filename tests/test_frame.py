@@ -7,6 +7,7 @@ import pytest
 import SimpleITK as sitk
 
 from itk_nrreval.frame import (
+    frame_estimates,
     frame_mapping,
     resample_images,
     resample_memberships,
@@ -154,3 +155,45 @@ def test_memberships_one_hot_and_fuzzy():
     shifted = 0.5 * (expected[:, :, :-1] + expected[:, :, 1:])
     np.testing.assert_allclose(m[1][:, :, :-1], shifted, atol=1e-6)
     np.testing.assert_allclose(m[1][:, :, :-1].sum(axis=0), 1.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_frame_estimates_when_the_reference_is_not_co_located_with_the_images(dim):
+    """R's reference grid lies 10 mm off the common grid (and the images), oblique.
+
+    ``T_i^R(r) = T_i^C(r - s)`` as displacement fields on R's own grid, so ``F(p) = p + s``
+    exactly. Each estimate ``(T_i^R)^-1(T_i^C(p))`` needs the inverse of a field at points
+    that lie off that field's grid; inverted on its own grid, it was the identity there and
+    the estimates were off by up to 10 mm (issue 15, item 5).
+    """
+    common = grid(dim, 18 if dim == 2 else 10)
+    theta = 0.35
+    rot = np.eye(dim)
+    rot[:2, :2] = [[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]]
+    common.SetDirection(rot.ravel().tolist())
+    s = 10.0 * rot[:, 0] + (0.0 if dim == 2 else np.array([0.0, 0.0, 1.5]))
+    reg = sitk.Image(common)
+    reg.SetOrigin((np.array(common.GetOrigin()) + s).tolist())
+    t_common, t_reg = [], []
+    for i in range(3):
+        w = smooth_field(common, seed=i, amplitude=0.5)  # T_i^C(p) = p + w(p), common grid
+        tc = field_transform(w)
+        t_common.append(tc)
+        # T_i^R(r) = T_i^C(r - s): sample r -> T_i^C(r - s) - r on R's grid.
+        shift = sitk.TranslationTransform(dim, (-s).tolist())
+        t_reg.append(
+            field_transform(
+                sitk.TransformToDisplacementField(
+                    sitk.CompositeTransform([tc, shift]),
+                    sitk.sitkVectorFloat64,
+                    reg.GetSize(),
+                    reg.GetOrigin(),
+                    reg.GetSpacing(),
+                    reg.GetDirection(),
+                )
+            )
+        )
+    est = frame_estimates(t_common, t_reg, common)  # F_i(p) - p, (n, *zyx, dim)
+    err = np.linalg.norm(est - s, axis=-1)
+    # Linear interpolation of the inverse field on a 10-voxel grid: ~0.1 mm at worst.
+    assert err.max() < 0.15 and np.percentile(err, 90) < 0.05, err.max()
