@@ -37,7 +37,7 @@ from .confidence import (
 from .frame import FrameMapping
 from .manifest import Manifest, load_manifest
 from .overlap import WEIGHTINGS
-from .pipeline import InProcessExecutor, run_pipeline
+from .pipeline import Coverage, InProcessExecutor, run_pipeline
 from .plausibility import Plausibility, Thresholds, combine, flags, smallest_extent_mm
 from .specificity import GeneralizationResult, SpecificityResult
 
@@ -82,6 +82,9 @@ class RegistrationScores:
     probability_best : dict of str to float
         Per measure, the probability that this registration is the best of those compared
         (:func:`itk_nrreval.confidence.probability_best`).
+    coverage : Coverage or None
+        How much of the common grid its images cover; the scores are taken where every
+        image covers it under every registration (:class:`itk_nrreval.pipeline.Coverage`).
     """
 
     name: str
@@ -93,6 +96,7 @@ class RegistrationScores:
     flags: tuple[str, ...] = ()
     intervals: Mapping[str, Interval] = field(default_factory=dict)
     probability_best: Mapping[str, float] = field(default_factory=dict)
+    coverage: Coverage | None = None
 
     @property
     def folded_fraction(self) -> float:
@@ -139,6 +143,7 @@ class RegistrationScores:
             "plausibility": plaus,
             "probability_best": {m: json_number(v) for m, v in self.probability_best.items()},
             "frame": self.frame.to_dict(),
+            "coverage": self.coverage.to_dict() if self.coverage is not None else None,
             "folded_fraction": self.folded_fraction,
             "folded_max": self.folded_max,
             "n_modes": self.specificity.n_modes,
@@ -611,6 +616,7 @@ def evaluate(
             tuple(reg_flags[name]),
             intervals[name],
             best_p[name],
+            r.coverage,
         )
     _warn_if_flagged(scores)
     means = {name: r.mean_image for name, r in regs.items()}

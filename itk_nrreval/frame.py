@@ -278,6 +278,7 @@ def resample_images(
     interpolation: str = "linear",
     show_progress: bool = True,
     desc: str = "resampling",
+    outside: float = 0.0,
 ) -> np.ndarray:
     """Resample each image onto `grid` through its transform (grid points -> image points).
 
@@ -289,11 +290,13 @@ def resample_images(
     interpolation : {"linear", "bspline"}
     show_progress : bool
         A progress bar on stderr.
+    outside : float
+        The value of grid points mapped outside an image's field of view (NaN marks them).
 
     Returns
     -------
     ndarray of shape (n_images, *spatial_zyx), float64
-        Zero outside each image's field of view.
+        `outside` (0 by default) outside each image's field of view.
     """
     if interpolation not in _INTERPOLATORS:
         raise ValueError(f"interpolation: {interpolation!r} is not one of {tuple(_INTERPOLATORS)}")
@@ -304,15 +307,19 @@ def resample_images(
         progress(pairs, desc=desc, total=len(images), enabled=show_progress)
     ):
         img = sitk.Cast(_as_image(item, "image"), sitk.sitkFloat64)
-        out[i] = sitk.GetArrayFromImage(resample_onto(img, t, g, _INTERPOLATORS[interpolation]))
+        res = resample_onto(img, t, g, _INTERPOLATORS[interpolation], outside=outside)
+        out[i] = sitk.GetArrayFromImage(res)
     return out
 
 
-def resample_onto(img: sitk.Image, t: sitk.Transform, g: Geometry, interpolator: int) -> sitk.Image:
-    """`img` resampled onto grid `g` through `t` (grid points -> image points), 0 outside.
+def resample_onto(
+    img: sitk.Image, t: sitk.Transform, g: Geometry, interpolator: int, *, outside: float = 0.0
+) -> sitk.Image:
+    """`img` resampled onto grid `g` through `t` (grid points -> image points).
 
     `interpolator` is a SimpleITK interpolator (``sitk.sitkLinear``...); the pixel type
-    stays the input's.
+    stays the input's. Grid points that `t` maps outside the image's field of view (beyond
+    half a voxel past its outer voxel centres, ITK's rule) get the value `outside`.
     """
     return sitk.Resample(
         img,
@@ -322,7 +329,7 @@ def resample_onto(img: sitk.Image, t: sitk.Transform, g: Geometry, interpolator:
         outputOrigin=list(g.origin),
         outputSpacing=list(g.spacing),
         outputDirection=list(g.direction),
-        defaultPixelValue=0.0,
+        defaultPixelValue=float(outside),
         outputPixelType=img.GetPixelID(),
     )
 

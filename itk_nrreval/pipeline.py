@@ -30,6 +30,7 @@ to the driver and every worker (a shared filesystem on a cluster).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import tempfile
@@ -68,6 +69,7 @@ from .specificity import GeneralizationResult, SpecificityResult, texture_measur
 from .transforms import chain_transform, field_transform, invert
 
 __all__ = [
+    "Coverage",
     "Executor",
     "InProcessExecutor",
     "RegistrationRun",
@@ -75,7 +77,7 @@ __all__ = [
     "run_pipeline",
 ]
 
-_FORMAT = 4  # bump when what a cache entry holds changes
+_FORMAT = 5  # bump when what a cache entry holds changes
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
 
 
@@ -184,13 +186,15 @@ def _resample_task(
 ) -> tuple[str, bool, dict]:
     """Resample one image (and its label memberships) into the common frame; cache it.
 
-    The entry holds ``image`` (n,) float64 over the whole grid, and for the labels the
-    nonzero memberships of the image's own nonzero label values, in compressed form:
-    ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices, ascending per label), ``lab_val``
-    (float32). Its metadata holds per label the gradient sum (over the mask) and whether the
-    label is present inside the mask, and the deformation's plausibility measures on the
-    registration's reference grid `reg_grid` (inside the mask mapped there, `reg_mask_key`).
-    `own_values` are the label map's own nonzero values (found once by the driver).
+    The entry holds ``image`` (n,) float64 over the whole grid (0 outside the image's field
+    of view), ``covered`` (the voxels inside that field of view, ``np.packbits`` of a bool
+    (n,)), and for the labels the nonzero memberships of the image's own nonzero label
+    values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices,
+    ascending per label), ``lab_val`` (float32). Its metadata holds the label values, the
+    fraction of the mask (or grid) the image covers, and the deformation's plausibility
+    measures on the registration's reference grid `reg_grid` (inside the mask mapped there,
+    `reg_mask_key`). `own_values` are the label map's own nonzero values (found once by the
+    driver).
     """
     cache = ctx.cache()
     g = ctx.grid
@@ -216,35 +220,67 @@ def _resample_task(
     t = chain_transform(item)
     full = resampling_transform(t, _frame_transform(frame, g, cache))
     raw = read_image(image, what="image")
-    arrays = {
-        "image": resample_images(
-            [raw], [full], g, interpolation=interpolation, show_progress=False
-        )[0].reshape(-1)
-    }
+    values = resample_images(
+        [raw], [full], g, interpolation=interpolation, show_progress=False, outside=np.nan
+    )[0].reshape(-1)
+    covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
+    values[~covered] = 0.0
+    arrays = {"image": values, "covered": np.packbits(covered)}
+    mask = ctx.mask_flat()
+    inside = covered[mask] if mask is not None else covered
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
     plaus = deformation_plausibility(
         t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency
     )
-    meta: dict = {"plausibility": plaus.to_dict(), "label_like": _label_like(raw)}
+    meta: dict = {
+        "plausibility": plaus.to_dict(),
+        "label_like": _label_like(raw),
+        "coverage": float(inside.mean()) if inside.size else 0.0,
+    }
     if labels is not None:
         lab = read_image(labels, what="label map")
         own = [int(v) for v in own_values]
         memb = resample_label_memberships(lab, full, g, values=own)
-        mask = ctx.mask_flat()
-        gsum, present = [], []
-        row = np.zeros(int(np.prod(g.shape)), np.float32)
-        for k in range(len(own)):
-            idx, val = memb.label(k)
-            row[idx] = val
-            gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
-            row[idx] = 0
-            present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
         arrays.update(lab_ptr=memb.ptr, lab_idx=memb.index, lab_val=memb.weight)
-        meta.update(labels=own, gsum=gsum, present=present)
+        meta.update(labels=own)
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
+
+
+def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
+    """Per label of one resampled image: its gradient sum and its presence, in the region.
+
+    The region is ``ctx.mask_key`` (the voxels every image covers, inside the mask). Returns
+    ``({"gsum": [...], "present": [...]}, reused)``, one entry per label of the image.
+    """
+    cache = ctx.cache()
+    sums_key = digest_of(["label_sums", _FORMAT, key, ctx.mask_key])
+    found = cache.get("label_sums", sums_key)
+    if found is not None:
+        return dict(found.meta), True
+    g = ctx.grid
+    entry = cache.open("resampled", key)
+    memb = SparseMemberships(
+        values=np.asarray(entry.meta["labels"], np.int64),
+        shape=g.shape,
+        ptr=entry.array("lab_ptr"),
+        index=entry.array("lab_idx"),
+        weight=entry.array("lab_val"),
+    )
+    mask = ctx.mask_flat()
+    gsum, present = [], []
+    row = np.zeros(int(np.prod(g.shape)), np.float32)
+    for k in range(len(memb.values)):
+        idx, val = memb.label(k)
+        row[idx] = val
+        gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
+        row[idx] = 0
+        present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
+    meta = {"gsum": gsum, "present": present}
+    cache.put("label_sums", sums_key, {}, meta)
+    return meta, False
 
 
 _LABEL_LIKE_VALUES = 32  # an image with at most this many distinct integer values
@@ -313,6 +349,91 @@ def _block_task(
 
 
 @dataclass(frozen=True)
+class Coverage:
+    """How much of the common grid a registration's images cover (their fields of view).
+
+    A common-grid voxel that a transform maps outside image i's field of view has no value
+    in image i. The scores are therefore taken over the voxels every image covers under
+    every registration (inside the mask), the same voxels for every registration so that
+    their scores compare.
+
+    Attributes
+    ----------
+    fraction : float
+        The fraction of the mask's (or grid's) voxels covered by every image under this
+        registration.
+    per_image : tuple of float, length n_images
+        Each image's covered fraction of the mask (or grid) under this registration.
+    evaluated : float
+        The fraction of the mask (or grid) where the scores are taken: covered by every
+        image under every registration (the same for every registration of a run).
+    """
+
+    fraction: float
+    per_image: tuple[float, ...]
+    evaluated: float
+
+    def to_dict(self) -> dict:
+        return {
+            "fraction": self.fraction,
+            "evaluated": self.evaluated,
+            "per_image_min": min(self.per_image) if self.per_image else None,
+        }
+
+
+_COVERAGE_WARNING = 0.9  # warn when the scores are taken on less of the mask than this
+
+
+def _region(
+    disk: DiskCache, grid: Geometry, mask: np.ndarray | None, m: Manifest, resampled: Mapping
+) -> tuple[np.ndarray | None, dict[str, Coverage]]:
+    """The voxels every image covers under every registration (inside the mask).
+
+    Returns the region (bool, the grid's numpy shape; None when it is the whole grid and
+    there is no mask) and each registration's :class:`Coverage`.
+    """
+    n_vox = int(np.prod(grid.shape))
+    base = mask.reshape(-1).astype(bool) if mask is not None else None
+    total = int(base.sum()) if base is not None else n_vox
+    every = np.ones(n_vox, bool)
+    fractions: dict[str, tuple[float, tuple[float, ...]]] = {}
+    for name, (keys, metas, _frame) in resampled.items():
+        covered = np.ones(n_vox, bool)
+        for k in keys:
+            bits = disk.open("resampled", k).array("covered")
+            covered &= np.unpackbits(bits, count=n_vox).astype(bool)
+        inside = covered[base] if base is not None else covered
+        per_image = tuple(float(meta["coverage"]) for meta in metas)
+        fractions[name] = (float(inside.sum()) / total if total else 0.0, per_image)
+        every &= covered
+    region = every & base if base is not None else every
+    evaluated = float(region.sum()) / total if total else 0.0
+    where = "inside the mask" if mask is not None else "of the common grid"
+    if not region.any():
+        raise InputError(
+            f"no voxel {where} is covered by every image under every registration: "
+            "check the images' fields of view and the transforms"
+        )
+    if evaluated < _COVERAGE_WARNING:
+        name = min(fractions, key=lambda r: fractions[r][0])
+        frac, per_image = fractions[name]
+        i = int(np.argmin(per_image))
+        warnings.warn(
+            f"the scores are taken on the {evaluated:.0%} of the voxels {where} that every "
+            f"image covers under every registration; least: registration {name!r} "
+            f"({frac:.0%}), its image {m.images[i]} ({per_image[i]:.0%})",
+            UserWarning,
+            stacklevel=4,
+        )
+    coverage = {
+        name: Coverage(frac, per_image, evaluated) for name, (frac, per_image) in fractions.items()
+    }
+    if base is None and region.all():
+        return None, coverage
+    return region.reshape(grid.shape), coverage
+
+
+@dataclass(frozen=True)
 class RegistrationRun:
     """What the dataflow computes for one registration (the driver's inputs to a report).
 
@@ -326,6 +447,8 @@ class RegistrationRun:
     frame : FrameMapping
     plausibility : list of Plausibility, length n_images
         Each transform's deformation plausibility on the registration's reference grid.
+    coverage : Coverage
+        How much of the common grid (inside the mask) its images cover.
     mean_image : ndarray of shape (*spatial_zyx,)
         The mean resampled image on the common grid.
     gram : ndarray of shape (n_images, n_images)
@@ -343,6 +466,7 @@ class RegistrationRun:
     overlap: OverlapTable | None
     frame: FrameMapping
     plausibility: list[Plausibility]
+    coverage: Coverage
     mean_image: np.ndarray = field(repr=False)
     gram: np.ndarray = field(repr=False)
     overlap_sums: Mapping[str, np.ndarray] | None = field(repr=False)
@@ -453,7 +577,7 @@ def run_pipeline(
             found = {v for vals in own_values for v in vals}
             values = [0, *sorted(found)]  # index 0: background
 
-        runs = {}
+        resampled: dict[str, tuple] = {}
         warned: set[int] = set()
         for name, reg in m.registrations.items():
             reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
@@ -493,15 +617,37 @@ def run_pipeline(
                     )
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
+            resampled[name] = (keys, metas, frame)
+
+        region, coverage = _region(disk, grid, mask, m, resampled)
+        region_ctx = ctx
+        if region is not None and (mask is None or not np.array_equal(region, mask)):
+            flat = region.reshape(-1)
+            region_key = digest_of(["mask", flat])
+            if disk.get("mask", region_key) is None:
+                disk.put("mask", region_key, {"mask": flat})
+            region_ctx = dataclasses.replace(ctx, mask_key=region_key)
+
+        runs = {}
+        for name, (keys, metas, frame) in resampled.items():
+            if values is not None:
+                calls = [(region_ctx, k) for k in keys]
+                metas = [dict(meta) for meta in metas]
+                # cheap and derived from the resampled entries: not in the counts
+                for i, (sums, _reused) in executor.map(
+                    _label_sums_task, calls, desc=f"{name}: label sums", show=show_progress
+                ):
+                    metas[i].update(sums)
             runs[name] = _reduce(
                 executor,
-                ctx,
+                region_ctx,
                 name,
                 keys,
                 metas,
                 frame,
                 values,
-                mask,
+                region,
+                coverage[name],
                 n_samples=n_samples,
                 seed=seed,
                 distance=distance,
@@ -511,7 +657,20 @@ def run_pipeline(
 
 
 def _reduce(
-    executor, ctx, name, keys, metas, frame, values, mask, *, n_samples, seed, distance, show
+    executor,
+    ctx,
+    name,
+    keys,
+    metas,
+    frame,
+    values,
+    mask,
+    coverage,
+    *,
+    n_samples,
+    seed,
+    distance,
+    show,
 ) -> RegistrationRun:
     """Block sums -> model -> specificity and generalization; pair sums -> overlap table."""
     grid = ctx.grid
@@ -588,7 +747,7 @@ def _reduce(
         )
     plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
     return RegistrationRun(
-        name, spec, gen, table, frame, plaus, mean.reshape(grid.shape), gram, sums
+        name, spec, gen, table, frame, plaus, coverage, mean.reshape(grid.shape), gram, sums
     )
 
 
