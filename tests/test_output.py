@@ -90,3 +90,33 @@ def test_staged_folder_failure_leaves_the_previous_result(tmp_path):
     with staged_folder(out):
         pass
     assert not dead.exists()
+
+
+def test_register_cli_replaces_its_output_folder_whole(tmp_path, capsys):
+    """A second `nrreval register` into the same folder leaves only the new run's files."""
+    import numpy as np
+    import SimpleITK as sitk
+
+    from itk_nrreval.cli import main
+
+    paths = []
+    for i in range(3):
+        arr = np.zeros((24, 24), np.float32)
+        arr[6 + i : 16 + i, 5:17] = 100.0
+        paths.append(str(tmp_path / f"s{i}.nii.gz"))
+        sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+    out = tmp_path / "affine"
+    out.mkdir()
+    (out / "stale_from_an_old_run.h5").write_text("old")
+    args = ["register", "--images", *paths, "--method", "affine", "--out", str(out)]
+    assert main([*args, "--no-progress", "--reference", paths[0]]) == 0
+    assert not (out / "stale_from_an_old_run.h5").exists()
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["reference.nii.gz", "registration.json", *(f"{i:03d}_s{i}.h5" for i in range(3))]
+    )
+    assert [p for p in tmp_path.iterdir() if ".tmp-" in p.name or ".old-" in p.name] == []
+    # the manifest points at the final folder, not the temporary one it was written in
+    from itk_nrreval.manifest import load_manifest
+
+    m = load_manifest(tmp_path / "manifest.yaml")
+    assert all(str(t[0]).startswith(str(out)) for t in m.registrations["affine"].transforms)

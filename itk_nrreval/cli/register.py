@@ -49,10 +49,11 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._output import check_output_folder, staged_folder
     from ..manifest import add_registration
     from ..registration import register
 
-    out = Path(args.out)
+    out = check_output_folder(args.out)  # before the (long) registration
     reference = args.reference
     result = register(  # an EngineError becomes one line and exit code 1 (cli.main)
         args.images,
@@ -64,7 +65,13 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     names = [_stem(p) for p in args.images]
-    paths = result.write(out, names=names)
+    # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
+    with staged_folder(out, keep=()) as stage:
+        staged = result.write(stage, names=names)
+    paths = {
+        "reference": out / staged["reference"].name,
+        "transforms": [out / p.name for p in staged["transforms"]],
+    }
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
     name = args.name or (
         f"{args.method}-{args.reference_choice}" if args.reference_choice else args.method
