@@ -8,6 +8,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 from ._errors import EngineError, InputError
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
+from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
     EvaluationResult,
     RegistrationScores,
@@ -38,6 +39,8 @@ __all__ = [
     "appearance_diagnostics",
     "AppearanceDiagnostics",
     "CellPopulations",
+    "diagnose",
+    "DiagnosticsResult",
     "cps_warp",
     "max_safe_displacement",
     "random_cps",

@@ -11,18 +11,20 @@ random numbers), so differences between registrations are not sampling noise.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ._errors import InputError
-from ._output import json_number
+from ._output import check_output_folder, json_number, staged_folder
 from ._progress import progress
 from .confidence import (
     Comparison,
@@ -227,6 +229,25 @@ class EvaluationResult:
     def measures(self) -> tuple[str, ...]:
         """Measure names, in report order."""
         return tuple(self.ranks)
+
+    def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> list[Path]:
+        """Write the reports ``nrreval evaluate`` writes into `out_dir` (created if needed).
+
+        ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict and
+        the paper's Table 3 layout) and, with `figures`, ``specificity.png``,
+        ``specificity_vs_overlap.png`` and ``mean_images.png``
+        (:func:`itk_nrreval.reports.write_reports`). Each file is written under a temporary
+        name and renamed when complete; files of other names in `out_dir` are left alone
+        (``evaluate(..., out=DIR)`` swaps a whole folder in instead).
+
+        Returns
+        -------
+        list of Path
+            The files written.
+        """
+        from .reports import write_reports
+
+        return write_reports(self, out_dir, figures=figures)
 
     def to_dict(self) -> dict:
         """The content of ``results.json``."""
@@ -454,7 +475,7 @@ def evaluate(
     weightings: Sequence[str] | None = None,
     interpolation: str = "linear",
     progress: bool = True,
-    save_resampled: str | os.PathLike | None = None,
+    save_resampled: str | os.PathLike | bool | None = None,
     scheduler: str | None = None,
     workers: int | None = None,
     cache: str | os.PathLike | None = None,
@@ -463,13 +484,17 @@ def evaluate(
     resamples: int | None = None,
     thresholds: Thresholds | None = None,
     inverse_consistency: bool = True,
+    out: str | os.PathLike | None = None,
+    figures: bool = True,
 ) -> EvaluationResult:
     """Resample every registration into the common frame and score it.
 
     Parameters
     ----------
     manifest : Manifest, dict or path
-        See :mod:`itk_nrreval.manifest`; checked in full before any heavy work.
+        See :mod:`itk_nrreval.manifest`; checked in full before any heavy work. In a dict,
+        every image and transform may be an object in memory (``sitk.Image``, ITK Python
+        images and transforms, ``sitk.Transform``, an array with its grid), mixed with paths.
     n_samples : int
         M, the model samples for specificity (the same M and seed for every registration).
     seed : int
@@ -484,9 +509,10 @@ def evaluate(
         Intensity interpolation; labels are always one-hot memberships resampled linearly.
     progress : bool
         Progress bars on stderr (resampling, model, specificity search).
-    save_resampled : path, optional
+    save_resampled : path or bool, optional
         Folder to write each registration's resampled images and label memberships
-        (NIfTI; one component per nonzero label value).
+        (NIfTI; one component per nonzero label value); True: ``out/resampled`` (with
+        `out`).
     scheduler : str, optional
         Run the tasks on a Dask cluster (:mod:`itk_nrreval.scaleout`): ``"local"`` starts a
         local cluster of `workers` single-threaded processes; otherwise the address of a
@@ -499,7 +525,11 @@ def evaluate(
     cache : path, optional
         The folder of the per-image result cache (with a scheduler: shared by driver and
         workers): a rerun -- after an interruption, or with more images or registrations --
-        recomputes only what changed. Default: a temporary folder, removed afterwards.
+        recomputes only what changed. Entries are keyed by the inputs' content (voxel values,
+        grids, transform parameters), so objects in memory find the entries of the same
+        images and transforms given as files, and the same objects find them again in a new
+        process. Default: ``out/cache`` with `out`, else a temporary folder, removed
+        afterwards.
     confidence : bool
         Subject-level 95% intervals of every score and every pairwise difference, and the
         probability that each registration is best (:mod:`itk_nrreval.confidence`): a
@@ -517,6 +547,13 @@ def evaluate(
         its scores, but the verdict ranks it after every unflagged one.
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
+    out : path, optional
+        Also write the reports :meth:`EvaluationResult.write` writes into this folder, as
+        ``nrreval evaluate --out`` does: the run writes into a temporary sibling folder that
+        replaces `out` only when complete (the cache carried over), so `out` holds one
+        complete result or the previous one, never a mix.
+    figures : bool
+        With `out`: also write the PNG figures.
 
     Returns
     -------
@@ -525,7 +562,8 @@ def evaluate(
     Raises
     ------
     InputError
-        A bad manifest (every problem listed in one message).
+        A bad manifest (every problem listed in one message), or an `out` that cannot be a
+        folder.
     ValueError
         An option outside its accepted values.
 
@@ -542,105 +580,120 @@ def evaluate(
     _check_positive("confidence_samples", confidence_samples, 2)
     if resamples is not None:
         _check_positive("resamples", resamples, 2)
+    if isinstance(save_resampled, bool) and save_resampled and out is None:
+        raise ValueError("save_resampled=True: only with out= (it means out/resampled)")
+    if out is not None:
+        out = check_output_folder(out, option="out")
     m = load_manifest(manifest)
-    options = dict(
-        inverse_consistency=inverse_consistency,
-        cache=cache,
-        n_samples=int(n_samples),
-        seed=seed,
-        distance=distance,
-        interpolation=interpolation,
-        show_progress=progress,
-        save_resampled=save_resampled,
-    )
-    if scheduler is None:
-        if workers is not None:
-            raise ValueError("workers: only with a scheduler (local or an address)")
-        executor = InProcessExecutor()
-        run = run_pipeline(m, executor, **options)
-        run_info = {"scheduler": None, "workers": 1}
-    else:
-        from .scaleout import DaskExecutor, check_scheduler, cluster_client
-
-        check_scheduler(scheduler, workers)
-        with cluster_client(scheduler, workers=workers) as client:
-            executor = DaskExecutor(client)
-            run = run_pipeline(m, executor, **options)
-        run_info = {"scheduler": scheduler, "workers": executor.n_workers}
-    run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
-    regs = run.registrations
-    plaus = {name: combine(r.plausibility) for name, r in regs.items()}
-    extent = smallest_extent_mm(run.grid)
-    reg_flags = flags(
-        plaus,
-        frame_spread_mm={name: r.frame.spread_mean_mm for name, r in regs.items()},
-        extent_mm=extent,
-        thresholds=thresholds,
-    )
-    values = {
-        name: {
-            "specificity": r.specificity.value,
-            "generalization": r.generalization.value,
-            **{
-                f"overlap.{w}": r.overlap.generalized(w)
-                for w in (weightings if r.overlap is not None else ())
-            },
-        }
-        for name, r in regs.items()
-    }
-    intervals: dict[str, dict] = {name: {} for name in regs}
-    best_p: dict[str, dict] = {name: {} for name in regs}
-    comparisons: list[Comparison] = []
-    if confidence and m.n_images >= 4:
-        reps = _replicates(run, weightings, resamples, confidence_samples, distance, seed, progress)
-        for measure, by_name in reps.items():
-            vals = {name: values[name][measure] for name in regs}
-            for name in regs:
-                intervals[name][measure] = jackknife_interval(vals[name], by_name[name])
-            comparisons += compare(measure, vals, by_name)
-            pb = probability_best(
-                vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
-            )
-            for name in regs:
-                best_p[name][measure] = pb[name]
-    scores = {}
-    for name, r in regs.items():
-        overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
-        scores[name] = RegistrationScores(
-            name,
-            r.specificity,
-            r.generalization,
-            overlap,
-            r.frame,
-            plaus[name],
-            tuple(reg_flags[name]),
-            intervals[name],
-            best_p[name],
-            r.coverage,
+    # with `out`, everything is written into a temporary sibling swapped in at the end
+    stage_or_none = staged_folder(out) if out is not None else contextlib.nullcontext()
+    with stage_or_none as stage:
+        if stage is not None:
+            cache = out / "cache" if cache is None else cache
+            save_resampled = stage / "resampled" if save_resampled is True else save_resampled
+        options = dict(
+            inverse_consistency=inverse_consistency,
+            cache=cache,
+            n_samples=int(n_samples),
+            seed=seed,
+            distance=distance,
+            interpolation=interpolation,
+            show_progress=progress,
+            save_resampled=save_resampled or None,
         )
-    _warn_if_flagged(scores)
-    means = {name: r.mean_image for name, r in regs.items()}
-    options = {
-        "confidence": bool(confidence and m.n_images >= 4),
-        "confidence_samples": int(confidence_samples),
-        "resamples": len(jackknife_groups(m.n_images, resamples)) if m.n_images >= 4 else None,
-        "inverse_consistency": bool(inverse_consistency),
-        "thresholds": dataclasses.asdict(thresholds),
-    }
-    return _result(
-        m,
-        scores,
-        means,
-        run.label_values,
-        weightings,
-        n_samples,
-        seed,
-        distance,
-        interpolation,
-        run=run_info,
-        comparisons=comparisons,
-        extra_options=options,
-    )
+        if scheduler is None:
+            if workers is not None:
+                raise ValueError("workers: only with a scheduler (local or an address)")
+            executor = InProcessExecutor()
+            run = run_pipeline(m, executor, **options)
+            run_info = {"scheduler": None, "workers": 1}
+        else:
+            from .scaleout import DaskExecutor, check_scheduler, cluster_client
+
+            check_scheduler(scheduler, workers)
+            with cluster_client(scheduler, workers=workers) as client:
+                executor = DaskExecutor(client)
+                run = run_pipeline(m, executor, **options)
+            run_info = {"scheduler": scheduler, "workers": executor.n_workers}
+        run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
+        regs = run.registrations
+        plaus = {name: combine(r.plausibility) for name, r in regs.items()}
+        extent = smallest_extent_mm(run.grid)
+        reg_flags = flags(
+            plaus,
+            frame_spread_mm={name: r.frame.spread_mean_mm for name, r in regs.items()},
+            extent_mm=extent,
+            thresholds=thresholds,
+        )
+        values = {
+            name: {
+                "specificity": r.specificity.value,
+                "generalization": r.generalization.value,
+                **{
+                    f"overlap.{w}": r.overlap.generalized(w)
+                    for w in (weightings if r.overlap is not None else ())
+                },
+            }
+            for name, r in regs.items()
+        }
+        intervals: dict[str, dict] = {name: {} for name in regs}
+        best_p: dict[str, dict] = {name: {} for name in regs}
+        comparisons: list[Comparison] = []
+        if confidence and m.n_images >= 4:
+            reps = _replicates(
+                run, weightings, resamples, confidence_samples, distance, seed, progress
+            )
+            for measure, by_name in reps.items():
+                vals = {name: values[name][measure] for name in regs}
+                for name in regs:
+                    intervals[name][measure] = jackknife_interval(vals[name], by_name[name])
+                comparisons += compare(measure, vals, by_name)
+                pb = probability_best(
+                    vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
+                )
+                for name in regs:
+                    best_p[name][measure] = pb[name]
+        scores = {}
+        for name, r in regs.items():
+            overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
+            scores[name] = RegistrationScores(
+                name,
+                r.specificity,
+                r.generalization,
+                overlap,
+                r.frame,
+                plaus[name],
+                tuple(reg_flags[name]),
+                intervals[name],
+                best_p[name],
+                r.coverage,
+            )
+        _warn_if_flagged(scores)
+        means = {name: r.mean_image for name, r in regs.items()}
+        options = {
+            "confidence": bool(confidence and m.n_images >= 4),
+            "confidence_samples": int(confidence_samples),
+            "resamples": len(jackknife_groups(m.n_images, resamples)) if m.n_images >= 4 else None,
+            "inverse_consistency": bool(inverse_consistency),
+            "thresholds": dataclasses.asdict(thresholds),
+        }
+        result = _result(
+            m,
+            scores,
+            means,
+            run.label_values,
+            weightings,
+            n_samples,
+            seed,
+            distance,
+            interpolation,
+            run=run_info,
+            comparisons=comparisons,
+            extra_options=options,
+        )
+        if stage is not None:
+            result.write(stage, figures=figures)
+    return result
 
 
 def _check_positive(name: str, value, minimum: int) -> None:

@@ -30,7 +30,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ._errors import InputError
-from ._images import Geometry, read_image
+from ._images import Geometry, InMemoryImage, read_image
 from ._progress import progress
 from .manifest import Manifest, Registration
 from .memberships import resample_label_memberships
@@ -265,7 +265,7 @@ def resampling_transform(transform: sitk.Transform, frame: sitk.Transform) -> si
 def _as_image(item, what: str) -> sitk.Image:
     if isinstance(item, sitk.Image):
         return item
-    if isinstance(item, (str, os.PathLike)):
+    if isinstance(item, (str, os.PathLike, InMemoryImage)):
         return read_image(item, what=what)
     raise InputError(f"{what}: expected a SimpleITK image or a path, got {type(item).__name__}")
 
@@ -350,7 +350,7 @@ def label_values(labels: Sequence) -> np.ndarray:
     """
     values = set()
     for i, item in enumerate(labels):
-        name = str(item) if isinstance(item, (str, os.PathLike)) else f"label map[{i}]"
+        name = f"label map[{i}]" if isinstance(item, sitk.Image) else str(item)  # path or item
         img = _as_image(item, "label map")
         if img.GetNumberOfComponentsPerPixel() != 1:
             raise InputError(f"{name}: a label map must be a scalar image")

@@ -23,11 +23,31 @@ Every transform maps reference (fixed) points to image (moving) points. A chain 
 in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
 :mod:`itk_nrreval.transforms`. Relative paths are relative to the manifest's folder.
 
+The same content may be given as a dict (:func:`load_manifest`), and there, wherever a path
+is accepted, an object in memory is too, mixed freely with paths:
+
+* images, labels, mask, references: a ``SimpleITK.Image``, an ITK Python image, or a numpy
+  array with its grid, ``{"array": a, "spacing": s, "origin": o, "direction": d}`` (numpy
+  order ``(z, y, x)``; spacing and origin in ITK (x, y[, z]) order, mm, LPS; direction
+  row-major; see :mod:`itk_nrreval._images`);
+* transforms and ``frame_transform``: a ``SimpleITK.Transform`` of any kind (composites
+  included), an ITK Python transform, or a displacement field as an image (any of the
+  image forms above, one vector component per dimension, mm).
+
+Each object is kept as an :class:`~itk_nrreval._images.InMemoryImage` /
+:class:`~itk_nrreval.transforms.InMemoryTransform`: a private copy (later changes to the
+object do not reach the manifest), named after its place for messages
+(``registrations.fluid.transforms[3]``), and keyed in the result cache by its content --
+the key a file with the same content gets, so files and objects share cache entries.
+
 :func:`load_manifest` checks everything that can be checked without heavy work (keys,
 counts, files present, image / transform dimensions, the ``common_frame`` name) and reports
-every problem at once in one :class:`InputError`. :func:`write_manifest` writes paths
-relative to the manifest's folder; :func:`add_registration` adds or replaces one
-registration in a manifest file, creating it when needed.
+every problem at once in one :class:`InputError`; objects get the same checks and the same
+messages (the item named instead of the file), and, like files, their voxel values (NaN,
+label values) are checked when they are read. :func:`write_manifest` writes paths
+relative to the manifest's folder (a manifest with objects cannot be written);
+:func:`add_registration` adds or replaces one registration in a manifest file, creating it
+when needed.
 """
 
 from __future__ import annotations
@@ -43,8 +63,15 @@ import SimpleITK as sitk
 import yaml
 
 from ._errors import InputError
+from ._images import InMemoryImage
 from ._output import write_text
-from .transforms import FIELD_SUFFIXES, TRANSFORM_SUFFIXES, file_suffix
+from .transforms import (
+    FIELD_SUFFIXES,
+    TRANSFORM_SUFFIXES,
+    InMemoryTransform,
+    field_components_problem,
+    file_suffix,
+)
 
 __all__ = [
     "Registration",
@@ -60,7 +87,9 @@ __all__ = [
 _TOP_KEYS = ("images", "labels", "mask", "common_frame", "registrations")
 _REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform")
 
-TransformItem = "Path | sitk.Transform"
+ImageItem = "Path | InMemoryImage"
+TransformItem = "Path | InMemoryTransform"
+_IN_MEMORY = (InMemoryImage, InMemoryTransform)
 
 
 @dataclass(frozen=True)
@@ -69,19 +98,20 @@ class Registration:
 
     Attributes
     ----------
-    reference : Path
-        Image whose grid is this registration's reference frame (absolute path).
-    transforms : tuple of tuple of (Path or sitk.Transform), length n_images
+    reference : Path or InMemoryImage
+        Image whose grid is this registration's reference frame (absolute path, or an
+        image given in memory).
+    transforms : tuple of tuple of (Path or InMemoryTransform), length n_images
         Per image, its chain in ANTs ``fwdtransforms`` order (a single transform is a chain
         of one). Each maps reference points (mm, LPS) to image points.
     reference_index : int or None
         Index k of the training image that is this registration's reference (pairwise
         registration to image k), or None.
-    frame_transform : Path or sitk.Transform or None
+    frame_transform : Path or InMemoryTransform or None
         A transform from the common frame into this registration's frame, or None.
     """
 
-    reference: Path
+    reference: Any
     transforms: tuple[tuple[Any, ...], ...]
     reference_index: int | None = None
     frame_transform: Any = None
@@ -93,9 +123,9 @@ class Manifest:
 
     Attributes
     ----------
-    images : tuple of Path, length n_images
-    labels : tuple of Path or None
-    mask : Path or None
+    images : tuple of (Path or InMemoryImage), length n_images
+    labels : tuple of (Path or InMemoryImage), or None
+    mask : Path or InMemoryImage or None
     common_frame : str
         Name of the registration whose reference frame is the common frame.
     registrations : dict of str to Registration
@@ -104,9 +134,9 @@ class Manifest:
         The manifest file, or None for a manifest built from a dict.
     """
 
-    images: tuple[Path, ...]
-    labels: tuple[Path, ...] | None
-    mask: Path | None
+    images: tuple[Any, ...]
+    labels: tuple[Any, ...] | None
+    mask: Any
     common_frame: str
     registrations: Mapping[str, Registration] = field(default_factory=dict)
     source: Path | None = None
@@ -120,18 +150,27 @@ class Manifest:
         """Registration names, in the manifest's order."""
         return tuple(self.registrations)
 
+    @property
+    def in_memory(self) -> bool:
+        """Whether any image or transform was given as an object rather than a file."""
+        items = [*self.images, *(self.labels or ()), self.mask]
+        for r in self.registrations.values():
+            items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
+        return any(isinstance(item, _IN_MEMORY) for item in items)
+
     def describe(self) -> dict:
-        """A JSON-ready description of the inputs (paths as given, absolute)."""
+        """A JSON-ready description of the inputs (absolute paths; objects described by their
+        manifest item, type and content digest)."""
         return {
             "manifest": None if self.source is None else str(self.source),
             "n_images": self.n_images,
-            "images": [str(p) for p in self.images],
-            "labels": None if self.labels is None else [str(p) for p in self.labels],
-            "mask": None if self.mask is None else str(self.mask),
+            "images": [_describe_item(p) for p in self.images],
+            "labels": None if self.labels is None else [_describe_item(p) for p in self.labels],
+            "mask": _describe_item(self.mask),
             "common_frame": self.common_frame,
             "registrations": {
                 name: {
-                    "reference": str(r.reference),
+                    "reference": _describe_item(r.reference),
                     "reference_index": r.reference_index,
                     "frame_transform": _describe_item(r.frame_transform),
                     "transforms": [[_describe_item(t) for t in chain] for chain in r.transforms],
@@ -144,8 +183,8 @@ class Manifest:
 def _describe_item(item) -> Any:
     if item is None:
         return None
-    if isinstance(item, sitk.Transform):
-        return f"<in-memory {item.GetName()}>"
+    if isinstance(item, _IN_MEMORY):
+        return item.describe()
     return str(item)
 
 
@@ -164,14 +203,15 @@ def load_manifest(
     ----------
     source : path or mapping
         A YAML / JSON manifest file, or the same content as a dict (a :class:`Manifest` is
-        returned unchanged). In a dict, transforms may also be in-memory ``sitk.Transform``.
+        returned unchanged). In a dict, every image and transform may also be an object in
+        memory (SimpleITK, ITK Python, an array with its grid; see the module docstring).
     base_dir : path, optional
         Folder that relative paths in a dict are relative to (default: the current
         directory). Ignored for a file: its paths are relative to its own folder.
     check_files : bool
-        Also check that every file exists and that image and transform dimensions agree
-        (reads image headers and transform files, never voxel data of images). False checks
-        the structure only (used when editing a manifest).
+        Also check that every file exists and that image and transform dimensions agree,
+        files and objects alike (reads image headers and transform files, never voxel data
+        of images). False checks the structure only (used when editing a manifest).
 
     Returns
     -------
@@ -181,8 +221,9 @@ def load_manifest(
     ------
     InputError
         One message, ``"<manifest>: N problems: a; b; c"``, listing every problem found:
-        unreadable YAML, unknown keys, missing files, wrong counts, dimensions that differ,
-        a ``reference_index`` out of range, an unknown ``common_frame``.
+        unreadable YAML, unknown keys, missing files, objects of a kind not accepted, wrong
+        counts, dimensions that differ, a ``reference_index`` out of range, an unknown
+        ``common_frame``.
     """
     if isinstance(source, Manifest):
         return source
@@ -194,6 +235,8 @@ def load_manifest(
     else:
         src_path = Path(source).absolute()
         label = str(source)
+        if src_path.is_dir():
+            raise InputError(f"{label}: is a folder, expected a manifest file")
         if not src_path.is_file():
             raise InputError(f"{label}: manifest file not found")
         try:
@@ -201,6 +244,10 @@ def load_manifest(
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             msg = " ".join(str(exc).split())
             raise InputError(f"{label}: not valid YAML/JSON ({msg[:200]})") from None
+        if data is None:
+            raise InputError(
+                f"{label}: the manifest is empty (expected 'images' and 'registrations')"
+            )
         if not isinstance(data, Mapping):
             raise InputError(f"{label}: expected a mapping with 'images' and 'registrations'")
         base = src_path.parent
@@ -231,21 +278,43 @@ def _path(value, base: Path, what: str, problems: list[str]) -> Path | None:
     return None
 
 
-def _path_list(value, base: Path, what: str, problems: list[str]) -> tuple[Path, ...] | None:
+def _image_item(value, base: Path, what: str, problems: list[str]):
+    """A path, or an image object kept as an InMemoryImage named `what`."""
+    if isinstance(value, InMemoryImage):
+        return value
+    if value is None or isinstance(value, (str, bytes, os.PathLike, int, float)):
+        return _path(value, base, what, problems)
+    try:
+        return InMemoryImage.from_object(value, name=what)
+    except InputError as exc:
+        problems.append(str(exc))
+        return None
+
+
+def _path_list(value, base: Path, what: str, problems: list[str]) -> tuple | None:
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
-        problems.append(f"{what}: expected a list of file paths, got {type(value).__name__}")
+        problems.append(
+            f"{what}: expected a list of file paths or images, got {type(value).__name__}"
+        )
         return None
     if len(value) == 0:
         problems.append(f"{what}: the list is empty")
         return None
-    out = [_path(v, base, f"{what}[{i}]", problems) for i, v in enumerate(value)]
+    out = [_image_item(v, base, f"{what}[{i}]", problems) for i, v in enumerate(value)]
     return None if any(p is None for p in out) else tuple(out)
 
 
 def _transform_item(value, base: Path, what: str, problems: list[str]):
-    if isinstance(value, sitk.Transform):
+    """A path, or a transform / field object kept as an InMemoryTransform named `what`."""
+    if isinstance(value, InMemoryTransform):
         return value
-    return _path(value, base, what, problems)
+    if value is None or isinstance(value, (str, bytes, os.PathLike, int, float)):
+        return _path(value, base, what, problems)
+    try:
+        return InMemoryTransform.from_object(value, name=what)
+    except InputError as exc:
+        problems.append(str(exc))
+        return None
 
 
 def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
@@ -262,7 +331,9 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         labels = _path_list(data["labels"], base, "labels", problems)
         if labels is not None and images is not None and len(labels) != len(images):
             problems.append(f"labels: {len(labels)} label maps for {len(images)} images")
-    mask = _path(data["mask"], base, "mask", problems) if data.get("mask") is not None else None
+    mask = (
+        _image_item(data["mask"], base, "mask", problems) if data.get("mask") is not None else None
+    )
     n = None if images is None else len(images)
 
     regs: dict[str, Registration] = {}
@@ -304,7 +375,7 @@ def _parse_registration(
         problems.append(f"{where}: missing 'reference' (the image whose grid is its frame)")
         ok = False
     else:
-        reference = _path(entry["reference"], base, f"{where}.reference", problems)
+        reference = _image_item(entry["reference"], base, f"{where}.reference", problems)
         ok &= reference is not None
     chains: list[tuple] = []
     raw = entry.get("transforms")
@@ -378,9 +449,7 @@ def transform_file_dimension(path: Path) -> int:
     if suffix in FIELD_SUFFIXES:
         dim, comps = _image_info(path)
         if comps != dim:
-            raise ValueError(
-                f"a displacement field needs {dim} vector components per voxel, has {comps}"
-            )
+            raise ValueError(field_components_problem(dim, comps))
         return dim
     if suffix in (".txt", ".tfm"):
         with open(path, errors="replace") as fh:
@@ -393,9 +462,14 @@ def transform_file_dimension(path: Path) -> int:
 
 
 def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
-    if isinstance(item, sitk.Transform):
-        d = item.GetDimension()
+    field = None  # how to name a displacement field given as an image (a file or an object)
+    if isinstance(item, InMemoryTransform):
+        d = item.dimension
+        field = f"the in-memory {item.source}" if isinstance(item.value, sitk.Image) else None
     else:
+        if item.is_dir():
+            problems.append(f"{what}: {item} is a folder, expected a transform file")
+            return
         if not item.is_file():
             problems.append(f"{what}: file not found: {item}")
             return
@@ -412,23 +486,35 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
             reason = next((ln for ln in str(exc).splitlines() if ln.strip()), "unreadable")
             problems.append(f"{what}: cannot read transform {item.name} ({reason.strip()[:120]})")
             return
+        field = item.name if suffix in FIELD_SUFFIXES else None
     if dim is not None and d != dim:
-        problems.append(f"{what}: {d}D transform for {dim}D images")
+        if field is not None:  # an image: named, as images are
+            problems.append(f"{what}: {field} is a {d}D displacement field, the images are {dim}D")
+        else:
+            problems.append(f"{what}: {d}D transform for {dim}D images")
 
 
-def _check_image(path: Path, what: str, dim: int | None, problems: list[str]) -> int | None:
-    if not path.is_file():
-        problems.append(f"{what}: file not found: {path}")
-        return None
-    try:
-        d, comps = _image_info(path)
-    except RuntimeError:
-        problems.append(f"{what}: cannot read image {path}")
-        return None
+def _check_image(item, what: str, dim: int | None, problems: list[str]) -> int | None:
+    if isinstance(item, InMemoryImage):
+        d, comps = item.image.GetDimension(), item.image.GetNumberOfComponentsPerPixel()
+        shown = item.label
+    else:
+        if item.is_dir():
+            problems.append(f"{what}: {item} is a folder, expected an image file")
+            return None
+        if not item.is_file():
+            problems.append(f"{what}: file not found: {item}")
+            return None
+        try:
+            d, comps = _image_info(item)
+        except RuntimeError:
+            problems.append(f"{what}: cannot read image {item}")
+            return None
+        shown = item.name
     if comps != 1:
-        problems.append(f"{what}: {path.name} has {comps} components, expected a scalar image")
+        problems.append(f"{what}: {shown} has {comps} components, expected a scalar image")
     if dim is not None and d != dim:
-        problems.append(f"{what}: {path.name} is {d}D, the images are {dim}D")
+        problems.append(f"{what}: {shown} is {d}D, the images are {dim}D")
     return d
 
 
@@ -456,9 +542,10 @@ def _check_files(m: Manifest, problems: list[str]) -> None:
 
 
 def _rel(path, folder: Path | None) -> str:
-    if isinstance(path, sitk.Transform):
+    if isinstance(path, _IN_MEMORY):
         raise InputError(
-            "manifest: an in-memory transform cannot be written; write it to a file first"
+            f"manifest: {path.name} is an in-memory {path.source} and cannot be written to a "
+            "manifest file; write it to a file first"
         )
     p = Path(path)
     if folder is None or not p.is_absolute():
@@ -562,7 +649,12 @@ def add_registration(
     cwd = Path.cwd()
 
     def absolute(p):
-        return p if isinstance(p, sitk.Transform) else (cwd / Path(p))
+        if not isinstance(p, (str, os.PathLike)):
+            raise InputError(
+                f"{manifest_path}: a manifest file lists files; write the in-memory "
+                f"{type(p).__name__} to a file first"
+            )
+        return cwd / Path(p)
 
     if manifest_path.exists():
         old = load_manifest(manifest_path, check_files=False)

@@ -189,8 +189,7 @@ def deformation_plausibility(
     * ``inverse_consistency_mm = mean_p |T^-1(T(p)) - p|``, with the composite
       ``T^-1 o T`` sampled as a displacement field on the grid. For linear transforms this
       is rounding error; for a displacement field it is the error of the numerical inverse,
-      which grows where the field folds (a folded map has no inverse) or leaves the grid
-      (the inverse is zero at its field's border).
+      which grows where the field folds (a folded map has no inverse).
 
     The sums run over the evaluated voxels (the mask), all at once on grids of at most
     `max_slab_voxels` voxels and otherwise slab by slab, each slab with one row of halo so

@@ -5,6 +5,10 @@ overlap (inverse-volume, and inverse-volume & complexity weighting) and the spec
 its standard error, each with its rank and quantitative relative rank. Every file is written
 under a temporary name and renamed when complete; figures are written first and the
 ``results.*`` files last, so an interrupted run leaves no partial ``results.*``.
+
+:meth:`EvaluationResult.write <itk_nrreval.evaluation.EvaluationResult.write>` calls
+:func:`write_reports`; the functions here take the result without importing its class
+(that import would be a cycle).
 """
 
 from __future__ import annotations
@@ -19,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from ._output import atomic_path, write_text
-from .evaluation import EvaluationResult
 
 __all__ = ["summary_table", "results_csv", "write_reports", "format_number", "format_percent"]
 
@@ -48,7 +51,7 @@ def _ci(s, measure: str) -> str:
     return f"[{format_number(iv.lo)}, {format_number(iv.hi)}]"
 
 
-def summary_table(result: EvaluationResult) -> str:
+def summary_table(result) -> str:
     """The verdict in words, then a Markdown table like the paper's Table 3.
 
     Columns: for each overlap weighting present among inverse volume and inverse volume &
@@ -128,7 +131,7 @@ def summary_table(result: EvaluationResult) -> str:
     return "\n".join(lines + notes) + "\n"
 
 
-def results_csv(result: EvaluationResult) -> str:
+def results_csv(result) -> str:
     """One row per registration: scores, standard errors, ranks, relative ranks, frame."""
     fields = ["registration", "specificity", "specificity_stderr"]
     fields += ["specificity_ci95_lo", "specificity_ci95_hi"]
@@ -193,7 +196,7 @@ def _middle_slice(img: np.ndarray) -> np.ndarray:
     return img if img.ndim == 2 else img[img.shape[0] // 2]
 
 
-def _figures(result: EvaluationResult, out: Path) -> list[Path]:
+def _figures(result, out: Path) -> list[Path]:
     # Figure objects without pyplot: no process-wide backend is chosen or changed
     from matplotlib.figure import Figure
 
@@ -262,9 +265,7 @@ def _figures(result: EvaluationResult, out: Path) -> list[Path]:
     return written
 
 
-def write_reports(
-    result: EvaluationResult, out: str | os.PathLike, *, figures: bool = True
-) -> list[Path]:
+def write_reports(result, out: str | os.PathLike, *, figures: bool = True) -> list[Path]:
     """Write figures, then ``results.json``, ``results.csv`` and ``summary.md`` into `out`.
 
     Returns

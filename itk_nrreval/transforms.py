@@ -14,25 +14,53 @@ Conventions
   components in ITK (x, y[, z]) order; ``sitk.GetArrayFromImage`` gives them as numpy
   arrays of shape ``(*spatial_zyx, dim)``. ANTs ``*1Warp.nii.gz`` files are 5D NIfTI
   ``(X, Y, Z, 1, 3)``; SimpleITK reads them as 3D images of 3-vectors (float32), which are
-  cast to float64 here.
+  cast to float64 here. A displacement field is always interpolated linearly.
+
+In-memory transforms
+--------------------
+Wherever a transform file is accepted, a transform object is too (:func:`to_sitk_transform`):
+a ``sitk.Transform`` of any kind (composites included), an ITK Python transform (converted
+through a temporary HDF5 file, ITK's own transform IO, so every type ITK can write comes
+over with its exact parameters), or a displacement field given as an image (SimpleITK, ITK,
+or an array with its grid, see :mod:`itk_nrreval._images`). A manifest keeps such an object
+as an :class:`InMemoryTransform`: a private copy, the manifest item's name for messages
+(``registrations.fluid.transforms[3]``), and a digest of its content
+(:func:`transform_digest`: each piece's type, parameters and fixed parameters, a field's
+values and grid) that the result cache uses as its key -- the same key as a file holding
+the same transform.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
-from collections.abc import Sequence
+import pickle
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
 from ._errors import InputError
-from ._images import Geometry
+from ._images import (
+    Geometry,
+    image_digest,
+    is_finite,
+    itk_kind,
+    read_image,
+    source_kind,
+    to_sitk_image,
+)
 from ._output import atomic_path
 
 __all__ = [
     "TRANSFORM_SUFFIXES",
     "FIELD_SUFFIXES",
+    "InMemoryTransform",
+    "to_sitk_transform",
+    "transform_digest",
     "read_transform",
     "file_suffix",
     "leaves",
@@ -51,7 +79,7 @@ TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
 #: File suffixes read as displacement-field images.
 FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 
-TransformLike = "sitk.Transform | str | os.PathLike"
+TransformLike = "sitk.Transform | itk.Transform | InMemoryTransform | str | os.PathLike"
 
 
 def file_suffix(path: Path) -> str:
@@ -90,16 +118,227 @@ def field_transform(field: sitk.Image) -> sitk.DisplacementFieldTransform:
     return sitk.DisplacementFieldTransform(copy)
 
 
-def read_transform(item: sitk.Transform | str | os.PathLike) -> sitk.Transform:
+# ----------------------------------------------------------------------------- in memory
+
+
+def to_sitk_transform(value, *, name: str = "transform") -> sitk.Transform:
+    """A SimpleITK transform from a SimpleITK or ITK Python transform, or a displacement field.
+
+    Parameters
+    ----------
+    value : sitk.Transform, itk.Transform, or an image
+        Any SimpleITK transform (composites included); any ITK Python transform that ITK's
+        HDF5 transform IO writes (composites included; float transforms become double); a
+        displacement field as a vector image (``sitk.Image``, ``itk.Image``, or the array
+        form of :func:`itk_nrreval._images.to_sitk_image`, components last), mm, ITK
+        (x, y[, z]) order. Every transform maps reference points to image points.
+    name : str
+        What to call `value` in messages.
+
+    Returns
+    -------
+    sitk.Transform
+        A private copy in a canonical form: nested composites flattened, every displacement
+        field a float64 ``DisplacementFieldTransform`` interpolated linearly (what a field
+        read from a file becomes); the same mapping.
+
+    Raises
+    ------
+    InputError
+        An unsupported object, an ITK transform that cannot be converted, or a field image
+        without one vector component per dimension.
+    """
+    if isinstance(value, sitk.Transform):
+        return _canonical(value, name)
+    kind = itk_kind(value)
+    if kind == "transform":
+        return _canonical(_from_itk(value, name), name)
+    if kind == "image" or isinstance(value, (sitk.Image, Mapping)):
+        return field_transform(_field_image(value, name))
+    raise InputError(
+        f"{name}: expected a file path, a transform (sitk.Transform, itk.Transform) or a "
+        f"displacement field image, got {type(value).__name__}"
+    )
+
+
+def _field_image(value, name: str) -> sitk.Image:
+    """A displacement field given as an image, as a SimpleITK vector image (not copied)."""
+    image = to_sitk_image(value, name=name)
+    dim, comps = image.GetDimension(), image.GetNumberOfComponentsPerPixel()
+    if comps != dim:
+        raise InputError(
+            f"{name}: cannot read transform the in-memory {source_kind(value)} "
+            f"({field_components_problem(dim, comps)})"
+        )
+    return image
+
+
+def field_components_problem(dim: int, comps: int) -> str:
+    """The words for a displacement field without one vector component per dimension."""
+    return f"a displacement field needs {dim} vector components per voxel, has {comps}"
+
+
+def _canonical(transform: sitk.Transform, name: str) -> sitk.Transform:
+    parts = [
+        field_transform(t.GetDisplacementField())
+        if isinstance(t, sitk.DisplacementFieldTransform)
+        else t
+        for t in leaves(transform)
+    ]
+    if not parts:
+        raise InputError(f"{name}: an empty composite transform")
+    return parts[0] if len(parts) == 1 else sitk.CompositeTransform(parts)
+
+
+def _from_itk(value, name: str) -> sitk.Transform:
+    """An ITK Python transform through ITK's HDF5 writer and SimpleITK's reader (exact)."""
+    import itk
+
+    with tempfile.TemporaryDirectory(prefix="nrreval-itk-") as tmp:
+        path = os.path.join(tmp, "transform.h5")
+        try:
+            itk.transformwrite([value], path)
+            return sitk.ReadTransform(path)
+        except (RuntimeError, TypeError, ValueError) as exc:
+            raise InputError(
+                f"{name}: cannot convert the ITK transform {type(value).__name__} ({_reason(exc)})"
+            ) from None
+
+
+def transform_digest(transform: sitk.Transform) -> str:
+    """BLAKE2b (128-bit) hex digest of what a transform is: its pieces' types and parameters.
+
+    A composite is digested as the list of its pieces (:func:`leaves`; nesting does not
+    matter), each by its class name, dimension, fixed parameters and parameters (and a
+    B-spline's order); a displacement field by its float64 values and grid, exactly as
+    :func:`itk_nrreval._images.image_digest` digests the vector image it came from. So a
+    transform file and the transform read from it, or the same transform from ITK, give the
+    same digest; a single piece gives the digest of that piece.
+    """
+    digests = [_piece_digest(t) for t in leaves(transform)]
+    if len(digests) == 1:
+        return digests[0]
+    h = hashlib.blake2b(digest_size=16)
+    h.update(("composite:" + ",".join(digests)).encode())
+    return h.hexdigest()
+
+
+def _piece_digest(t: sitk.Transform) -> str:
+    if isinstance(t, sitk.DisplacementFieldTransform):
+        field = t.GetDisplacementField()
+        if field.GetNumberOfPixels() > 0:
+            return image_digest(field)
+    h = hashlib.blake2b(digest_size=16)
+    h.update(f"{t.GetName()}:{t.GetDimension()}:".encode())
+    if isinstance(t, sitk.BSplineTransform):
+        h.update(f"order {t.GetOrder()}:".encode())
+    h.update(np.asarray(t.GetFixedParameters(), np.float64).tobytes())
+    h.update(b":")
+    h.update(np.asarray(t.GetParameters(), np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _finite(transform: sitk.Transform) -> bool:
+    """Whether every parameter (every field value) of every piece is finite."""
+    for t in leaves(transform):
+        if isinstance(t, sitk.DisplacementFieldTransform):
+            values = sitk.GetArrayViewFromImage(t.GetDisplacementField())
+        else:
+            values = np.asarray(t.GetFixedParameters() + t.GetParameters(), np.float64)
+        if not np.isfinite(values).all():
+            return False
+    return True
+
+
+@dataclass(frozen=True, eq=False)
+class InMemoryTransform:
+    """A transform of a manifest handed in as an object rather than a file.
+
+    Attributes
+    ----------
+    value : sitk.Transform or sitk.Image
+        A private copy: a transform in canonical form (:func:`to_sitk_transform`), or a
+        displacement field given as an image, kept as that image (SimpleITK copies on
+        write, so a field the caller holds is not duplicated in memory); :attr:`transform`
+        makes the transform of it when it is read, as for a field file.
+    name : str
+        The manifest item it was given as (``registrations.fluid.transforms[3]``), for
+        messages; also ``str()`` of the object.
+    source : str
+        What it was given as (``"sitk.Transform"``, ``"itk.Transform"``, ``"sitk.Image"``...).
+    content_digest : str
+        :func:`transform_digest` of :attr:`transform` (for a field image, the equal
+        :func:`itk_nrreval._images.image_digest`): the result cache's key for it.
+    finite : bool
+        Whether every parameter (field value) is finite; reading it (:func:`read_transform`)
+        refuses it if not, as it refuses such a file.
+
+    Pickles with its transform, so it travels to Dask workers: as in-band bytes, because
+    SimpleITK's own pickling of a displacement field (or B-spline) transform hands pickle
+    protocol 5 (Dask's) an out-of-band buffer of a temporary image, which is freed before the
+    buffer is sent -- the worker would read freed memory.
+    """
+
+    value: sitk.Transform | sitk.Image = field(repr=False)
+    name: str
+    source: str
+    content_digest: str
+    finite: bool
+
+    def __reduce__(self):
+        state = (self.name, self.source, self.content_digest, self.finite)
+        return _restore_transform, (pickle.dumps(self.value, protocol=4), *state)
+
+    @classmethod
+    def from_object(cls, value, *, name: str) -> InMemoryTransform:
+        """Wrap a transform or a displacement field image; InputError naming `name`."""
+        if itk_kind(value) == "image" or isinstance(value, (sitk.Image, Mapping)):
+            image = _field_image(value, name)
+            return cls(image, name, source_kind(value), image_digest(image), is_finite(image))
+        t = to_sitk_transform(value, name=name)
+        return cls(t, name, source_kind(value), transform_digest(t), _finite(t))
+
+    def __str__(self) -> str:
+        return self.name
+
+    @property
+    def transform(self) -> sitk.Transform:
+        """The transform: reference points -> image points (mm, LPS)."""
+        if isinstance(self.value, sitk.Image):
+            return field_transform(self.value)
+        return self.value
+
+    @property
+    def dimension(self) -> int:
+        return int(self.value.GetDimension())
+
+    def describe(self) -> str:
+        """A one-line description for reports (its name, type and content digest)."""
+        if isinstance(self.value, sitk.Image):
+            kinds = "DisplacementFieldTransform"
+        else:
+            kinds = "+".join(t.GetName() for t in leaves(self.value))
+        return f"<in-memory {self.source} {self.name}: {kinds}, content {self.content_digest[:12]}>"
+
+
+def _restore_transform(data: bytes, *state) -> InMemoryTransform:
+    return InMemoryTransform(pickle.loads(data), *state)
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike) -> sitk.Transform:
     """Read one transform: a transform file, a displacement-field image, or pass one through.
 
     Parameters
     ----------
-    item : sitk.Transform or path
+    item : sitk.Transform, InMemoryTransform or path
         ``.tfm`` / ``.txt`` / ``.h5`` / ``.hdf5`` / ``.mat`` (incl. ANTs
         ``*0GenericAffine.mat``) are read with ``sitk.ReadTransform``; ``.nii.gz`` / ``.nii``
         / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
-        fields. An in-memory transform is returned as is.
+        fields. An in-memory transform is returned as is; a manifest's transform object
+        (:class:`InMemoryTransform`) gives its transform.
 
     Returns
     -------
@@ -109,21 +348,38 @@ def read_transform(item: sitk.Transform | str | os.PathLike) -> sitk.Transform:
     Raises
     ------
     InputError
-        Missing or unreadable file, unknown suffix (message names the file).
+        Missing or unreadable file, unknown suffix, a NaN or infinite parameter or field
+        value in a file or manifest object (the message names the file or the item).
     """
     if isinstance(item, sitk.Transform):
         return item.Downcast()
+    if isinstance(item, InMemoryTransform):
+        if not item.finite:
+            if isinstance(item.value, sitk.Image):  # worded as for a field file
+                raise InputError(
+                    f"{item.name}: displacement field contains NaN or infinite voxel values"
+                )
+            raise InputError(f"{item.name}: transform contains NaN or infinite values")
+        return item.transform.Downcast()
     if not isinstance(item, (str, os.PathLike)):
         raise InputError(f"transform: expected a path or sitk.Transform, got {type(item).__name__}")
     path = Path(item)
     if not path.is_file():
         raise InputError(f"{path}: transform file not found")
     suffix = file_suffix(path)
+    if suffix in FIELD_SUFFIXES:
+        # read as images are: unreadable, truncated (NIfTI) or non-finite fields are refused
+        image = read_image(path, what="displacement field")
+        try:
+            return field_transform(image)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
     try:
-        if suffix in FIELD_SUFFIXES:
-            return field_transform(sitk.ReadImage(str(path)))
         if suffix in TRANSFORM_SUFFIXES:
-            return sitk.ReadTransform(str(path)).Downcast()
+            t = sitk.ReadTransform(str(path)).Downcast()
+            if not _finite(t):
+                raise InputError("transform contains NaN or infinite values")
+            return t
     except RuntimeError as exc:
         raise InputError(f"{path}: cannot read transform ({_reason(exc)})") from None
     except InputError as exc:
@@ -158,7 +414,7 @@ def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sit
     >>> chain_transform([shift, scale]).TransformPoint((1.0, 1.0))  # scale(shift(p))
     (4.0, 2.0)
     """
-    if isinstance(items, (sitk.Transform, str, os.PathLike)):
+    if isinstance(items, (sitk.Transform, InMemoryTransform, str, os.PathLike)):
         return read_transform(items)
     transforms = [read_transform(t) for t in items]
     if not transforms:

@@ -175,3 +175,166 @@ def test_cli_warnings_are_one_readable_line(tmp_path, capsys):
         ln.startswith("nrreval evaluate: warning: ") for ln in warning_lines
     )
     assert "warnings.warn" not in err and ".py:" not in err
+
+
+# ----------------------------------------------------------------------------- a table of cases
+
+
+def _edit_manifest(tmp_path, edit) -> str:
+    import yaml
+
+    data = make_case(tmp_path)
+    edit(data)
+    (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return str(tmp_path / "manifest.yaml")
+
+
+def _evaluate(manifest) -> list[str]:
+    return ["evaluate", str(manifest), "--samples", "500", "--quiet", "--no-figures"]
+
+
+def _case_missing_manifest(tmp_path):
+    return _evaluate(tmp_path / "nowhere.yaml"), ["nowhere.yaml", "not found"]
+
+
+def _case_manifest_is_a_folder(tmp_path):
+    (tmp_path / "m.yaml").mkdir()
+    return _evaluate(tmp_path / "m.yaml"), ["m.yaml", "folder"]
+
+
+def _case_manifest_is_binary(tmp_path):
+    (tmp_path / "m.yaml").write_bytes(bytes(range(256)) * 4)
+    return _evaluate(tmp_path / "m.yaml"), ["m.yaml"]
+
+
+def _case_manifest_is_empty(tmp_path):
+    (tmp_path / "m.yaml").write_text("")
+    return _evaluate(tmp_path / "m.yaml"), ["m.yaml", "empty"]
+
+
+def _case_manifest_is_a_list(tmp_path):
+    (tmp_path / "m.yaml").write_text("- a.nii.gz\n- b.nii.gz\n")
+    return _evaluate(tmp_path / "m.yaml"), ["m.yaml", "mapping"]
+
+
+def _case_no_images(tmp_path):
+    return _evaluate(_edit_manifest(tmp_path, lambda d: d.update(images=[]))), ["images"]
+
+
+def _case_image_is_a_folder(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    (tmp_path / "img2.nii.gz").unlink()
+    (tmp_path / "img2.nii.gz").mkdir()
+    return _evaluate(m), ["img2.nii.gz", "folder"]
+
+
+def _case_image_is_text(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    (tmp_path / "img1.nii.gz").write_text("this is not an image\n")
+    return _evaluate(m), ["img1.nii.gz"]
+
+
+def _case_image_is_a_vector_image(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    field = sitk.ReadImage(str(tmp_path / "pert0.mha"))  # 2 components per voxel
+    sitk.WriteImage(field, str(tmp_path / "img4.nii.gz"))
+    return _evaluate(m), ["img4.nii.gz", "component"]
+
+
+def _case_transform_is_garbage(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    (tmp_path / "id3_0GenericAffine.mat").write_bytes(b"\x00garbage\xff" * 10)
+    return _evaluate(m), ["id3_0GenericAffine.mat"]
+
+
+def _case_transform_text_is_nonsense(tmp_path):
+    def edit(d):
+        d["registrations"]["identity"]["transforms"][2] = "odd.tfm"
+
+    m = _edit_manifest(tmp_path, edit)
+    (tmp_path / "odd.tfm").write_text("#Insight Transform File V1.0\nTransform: Nonsense\n")
+    return _evaluate(m), ["odd.tfm"]
+
+
+def _case_field_of_wrong_dimension(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    field = sitk.Image([8, 8, 8], sitk.sitkVectorFloat64, 3)
+    sitk.WriteImage(field, str(tmp_path / "pert1.mha"))
+    return _evaluate(m), ["pert1.mha", "3D"]
+
+
+def _case_reference_missing(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    (tmp_path / "template.nii.gz").unlink()
+    return _evaluate(m), ["template.nii.gz", "not found"]
+
+
+def _case_label_map_3d(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    sitk.WriteImage(sitk.Image([40, 40, 3], sitk.sitkUInt8), str(tmp_path / "lab0.nii.gz"))
+    return _evaluate(m), ["lab0.nii.gz", "3D"]
+
+
+def _case_mask_on_another_grid(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: d.update(mask="mask.nii.gz"))
+    sitk.WriteImage(sitk.Image([17, 23], sitk.sitkUInt8) + 1, str(tmp_path / "mask.nii.gz"))
+    return _evaluate(m), ["mask.nii.gz", "grid"]
+
+
+def _case_registration_not_a_mapping(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: d["registrations"].update(truth="fields/*.nii.gz"))
+    return _evaluate(m), ["registrations.truth"]
+
+
+def _case_distance_unknown(tmp_path):
+    m = _edit_manifest(tmp_path, lambda d: None)
+    return _evaluate(m) + ["--distance", "l3"], ["--distance", "l3"]
+
+
+def _case_specificity_too_few_images(tmp_path):
+    make_case(tmp_path)
+    args = ["specificity", str(tmp_path / "img0.nii.gz"), str(tmp_path / "img1.nii.gz")]
+    return args + ["--samples", "200"], ["at least 3"]
+
+
+def _case_specificity_exponent_zero(tmp_path):
+    make_case(tmp_path)
+    paths = [str(tmp_path / f"img{i}.nii.gz") for i in range(4)]
+    return ["specificity", *paths, "--exponent", "0"], ["--exponent"]
+
+
+def _case_specificity_images_on_different_grids(tmp_path):
+    make_case(tmp_path)
+    paths = [str(tmp_path / f"img{i}.nii.gz") for i in range(4)]
+    sitk.WriteImage(sitk.Image([31, 40], sitk.sitkFloat32), paths[2])
+    return ["specificity", *paths, "--samples", "200"], ["img2.nii.gz"]
+
+
+def _case_overlap_missing_label_map(tmp_path):
+    make_case(tmp_path)
+    paths = [str(tmp_path / f"lab{i}.nii.gz") for i in range(3)] + [str(tmp_path / "gone.nii.gz")]
+    return ["overlap", *paths], ["gone.nii.gz", "not found"]
+
+
+def _case_diagnose_missing_manifest(tmp_path):
+    args = ["diagnose", str(tmp_path / "nowhere.yaml"), "--registration", "truth"]
+    return args, ["nowhere.yaml", "not found"]
+
+
+CASES = {
+    name[len("_case_") :]: fn for name, fn in list(globals().items()) if name.startswith("_case_")
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_bad_input_is_one_line_exit_2_nothing_written(tmp_path, capsys, case):
+    args, fragments = CASES[case](tmp_path)
+    out = tmp_path / "out"
+    args = [*args, "--out", str(out)] if args[0] in ("evaluate", "diagnose") else args
+    if args[0] in ("specificity", "overlap"):
+        args = [*args, "--json", str(out / "numbers.json")]
+    before = {p for p in tmp_path.rglob("*")}
+    code, err = run_cli(args, capsys)
+    assert code == 2, err
+    assert_one_line(err, *fragments)
+    assert {p for p in tmp_path.rglob("*")} == before  # nothing written, nothing left behind

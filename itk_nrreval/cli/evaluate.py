@@ -122,41 +122,27 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
-    from .._output import check_output_folder, staged_folder
+    from .._output import check_output_folder
+    from ..evaluation import evaluate
     from ..manifest import load_manifest
-    from ..reports import summary_table, write_reports
+    from ..plausibility import Thresholds
+    from ..reports import summary_table
 
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
     out = check_output_folder(args.out)
     manifest = load_manifest(args.manifest)  # every problem, before DIR is created
     cache = Path(args.cache) if args.cache is not None else out / "cache"
-    with staged_folder(out) as stage:  # `out` holds one complete result or the previous one
-        result = _evaluate(args, manifest, cache, stage)
-        write_reports(result, stage, figures=not args.no_figures)
-    print(summary_table(result), end="")
-    r = result.run
-    where = f"on {r['workers']} Dask workers" if r["scheduler"] else "in this process"
-    print(
-        f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
-        f"{r['cache_computed']} computed"
-    )
-    print(f"results written to {out}/")
-    return 0
-
-
-def _evaluate(args: argparse.Namespace, manifest, cache: Path, stage: Path):
-    from ..evaluation import evaluate
-    from ..plausibility import Thresholds
-
-    return evaluate(
+    result = evaluate(  # writes into a staged copy of `out`, swapped in when complete
         manifest,
+        out=out,
+        figures=not args.no_figures,
+        save_resampled=bool(args.save_resampled),
         n_samples=args.samples,
         seed=args.seed,
         distance=args.distance,
         interpolation=args.interpolation,
         progress=not args.quiet,
-        save_resampled=stage / "resampled" if args.save_resampled else None,
         scheduler=args.scheduler,
         workers=args.workers,
         cache=cache,
@@ -172,3 +158,12 @@ def _evaluate(args: argparse.Namespace, manifest, cache: Path, stage: Path):
             frame_spread_fraction=args.flag_frame_spread,
         ),
     )
+    print(summary_table(result), end="")
+    r = result.run
+    where = f"on {r['workers']} Dask workers" if r["scheduler"] else "in this process"
+    print(
+        f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
+        f"{r['cache_computed']} computed"
+    )
+    print(f"results written to {out}/")
+    return 0
