@@ -4,6 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 TORCH_STAMP := $(VENV)/.installed-torch
+ANTS_STAMP := $(VENV)/.installed-ants
 
 .PHONY: install test demo bench lint clean
 
@@ -24,7 +25,14 @@ $(TORCH_STAMP): $(STAMP)
 	$(PY) -m pip install 'torch==2.13.0'
 	touch $(TORCH_STAMP)
 
-test: install $(TORCH_STAMP)
+# antspyx (the `ants` extra: ANTs SyN as the fluid engine) is only for the tests, which check
+# ANTs' transform lists against known motions: 0.4 GB, and it pins numpy < 2.4 and scipy < 1.16
+# in this environment. `make demo` does not need it.
+$(ANTS_STAMP): $(STAMP)
+	$(PY) -m pip install -e '.[ants]'
+	touch $(ANTS_STAMP)
+
+test: install $(TORCH_STAMP) $(ANTS_STAMP)
 	$(PY) -m pytest -q
 
 demo: install

@@ -16,6 +16,7 @@ from .._images import read_image
 
 __all__ = [
     "EngineError",
+    "engine_seed",
     "with_options",
     "load_images",
     "resample",
@@ -24,6 +25,17 @@ __all__ = [
 ]
 
 S = TypeVar("S")
+
+
+def engine_seed(seed: int) -> int:
+    """The seed handed to SimpleITK / ITK / ANTs for the toolkit's `seed`: never 0.
+
+    SimpleITK's ``SetMetricSamplingPercentage`` reads a seed of 0 as ``sitkWallClock`` (seed
+    from the clock), and ANTs' ``--random-seed`` wants "any nonzero int value" (its help);
+    so the engines get ``seed + 1`` (seeds 0 .. 2**32 - 2 map one to one onto 1 .. 2**32 - 1,
+    the range of SimpleITK's unsigned 32-bit seed).
+    """
+    return int(seed) % (2**32 - 1) + 1
 
 
 def with_options(defaults: S, options: Mapping[str, Any] | None, *, what: str) -> S:

@@ -15,7 +15,7 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
-from ._common import EngineError, resample
+from ._common import EngineError, engine_seed, resample
 
 __all__ = ["AffineOptions", "affine_register", "affine_to_reference", "choose_reference"]
 
@@ -106,7 +106,7 @@ def affine_register(
     reg = sitk.ImageRegistrationMethod()
     _set_metric(reg, options.metric)
     reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(float(options.sampling), int(seed))
+    reg.SetMetricSamplingPercentage(float(options.sampling), engine_seed(seed))
     reg.SetInterpolator(sitk.sitkLinear)
     reg.SetOptimizerAsRegularStepGradientDescent(
         learningRate=1.0,

@@ -20,7 +20,7 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
-from ._common import EngineError, mesh_size, resample
+from ._common import EngineError, engine_seed, mesh_size, resample
 
 __all__ = ["BSplineOptions", "sitk_bspline", "bspline_to_reference"]
 
@@ -90,7 +90,7 @@ def sitk_bspline(
     reg = sitk.ImageRegistrationMethod()
     reg.SetMetricAsMeanSquares()
     reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(float(sampling), int(seed))
+    reg.SetMetricSamplingPercentage(float(sampling), engine_seed(seed))
     reg.SetInterpolator(sitk.sitkLinear)
     if levels == 1:
         # One mesh: L-BFGS-B is robust and fast (it fails on a refined mesh).

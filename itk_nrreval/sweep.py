@@ -1,0 +1,659 @@
+"""Tune a registration's parameters without ground truth: one registration per setting.
+
+The paper's stated purpose is to "select the best method and tune any parameters" without
+ground truth. :func:`sweep` registers the same images once per setting of a grid over one
+method's options (for instance the demons smoothing, or the B-spline grid spacing), writes
+every registration into one manifest with its setting recorded, evaluates them side by side
+(:func:`itk_nrreval.evaluate`, same seed: common random numbers) and names the setting
+specificity prefers, with the settings it cannot separate from it (subject-level
+intervals). When the true transforms are known (generated data), the true correspondence
+error and its best setting are reported beside it, so one can see whether specificity
+chose well.
+
+Work is reused: the affine stage is computed once for all settings (and kept on disk), a
+setting whose registration is already in the output folder with the same options is not
+registered again, and the evaluation's per-image cache lives in ``out/cache``, so
+extending a sweep by one value registers and evaluates only that value. (The earlier
+settings' scores can still move a little then: the scores of all the registrations compared
+are taken on the voxels every image covers under every one of them, and a new setting may
+cover less; see :class:`itk_nrreval.pipeline.Coverage`.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import itertools
+import json
+import math
+import numbers
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import SimpleITK as sitk
+
+from ._errors import InputError
+from ._output import json_number, write_json, write_text
+from .evaluation import EvaluationResult, evaluate
+from .manifest import add_registration, load_manifest, write_manifest
+from .reports import write_reports
+
+__all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter"]
+
+_TRUTH_MEASURE = "true_correspondence_error_mm"
+
+
+@dataclass(frozen=True)
+class SweepSetting:
+    """One point of the grid: a registration name and the option values it was run with.
+
+    Attributes
+    ----------
+    name : str
+        The registration's name in the manifest (``method`` and the values, e.g.
+        ``fluid_smoothing_mm-2``).
+    values : dict of str to value
+        The swept options and their values for this registration.
+    reused : bool
+        Found already registered in the output folder with the same options.
+    """
+
+    name: str
+    values: dict[str, Any]
+    reused: bool = False
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """A parameter sweep and its evaluation.
+
+    Attributes
+    ----------
+    method : str
+        The registration method swept.
+    parameters : dict of str to tuple
+        Each swept option and its values, in the order given.
+    settings : tuple of SweepSetting
+        One per registration, in grid order (the last parameter varies fastest).
+    manifest : Path
+        The manifest with every setting's registration.
+    evaluation : EvaluationResult
+        The side-by-side evaluation (``evaluation.verdict`` holds the ranking).
+    recommended : str
+        The setting specificity prefers (the verdict's best: the lowest specificity among
+        registrations that are not flagged as implausible).
+    not_separable : tuple of str
+        The settings whose specificity cannot be told from the recommended one's
+        (subject-level 95% interval of the difference includes 0), the recommended first.
+    truth_error_mm : dict of str to float or None
+        The true mean correspondence error per setting (mm; lower is better), when the
+        true transforms were given.
+    best_by : dict of str to str
+        The best setting by each measure: ``specificity``, ``overlap.<weighting>`` (when
+        labels exist) and ``true_correspondence_error_mm`` (when known).
+    spearman : dict of str to float
+        Spearman rank correlation over the settings between specificity and each other
+        measure (overlap counted so that 1 means agreement: lower specificity with higher
+        overlap); NaN when a measure is constant.
+    """
+
+    method: str
+    parameters: dict[str, tuple]
+    settings: tuple[SweepSetting, ...]
+    manifest: Path
+    evaluation: EvaluationResult = field(repr=False)
+    recommended: str
+    not_separable: tuple[str, ...]
+    truth_error_mm: dict[str, float] | None
+    best_by: dict[str, str]
+    spearman: dict[str, float]
+
+    def rows(self) -> list[dict[str, Any]]:
+        """One flat row per setting: its values, every score, its interval and flags."""
+        out = []
+        for s in self.settings:
+            sc = self.evaluation.scores[s.name]
+            row: dict[str, Any] = {"registration": s.name, **s.values}
+            for measure, value in sc.measures().items():
+                row[measure] = json_number(value)
+                iv = sc.intervals.get(measure)
+                row[f"{measure}.ci95"] = iv.to_list() if iv is not None else None
+            if self.truth_error_mm is not None:
+                row[_TRUTH_MEASURE] = json_number(self.truth_error_mm[s.name])
+            row["flags"] = list(sc.flags)
+            row["reused"] = s.reused
+            out.append(row)
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "method": self.method,
+            "parameters": {k: list(v) for k, v in self.parameters.items()},
+            "manifest": str(self.manifest),
+            "recommended": self.recommended,
+            "not_separable": list(self.not_separable),
+            "best_by": dict(self.best_by),
+            "spearman_vs_specificity": {k: json_number(v) for k, v in self.spearman.items()},
+            "settings": self.rows(),
+        }
+
+
+def parse_parameter(text: str) -> tuple[str, tuple]:
+    """``"NAME=v1,v2,..."`` -> ``(NAME, (v1, v2, ...))``.
+
+    Values are numbers, ``true``/``false``, or words; a value with ``:`` is a tuple
+    (``iterations=100:60:40,50:30:20`` gives two values, each a tuple of three levels).
+
+    Raises
+    ------
+    InputError
+        No ``=``, an empty name, or no value.
+    """
+    name, sep, values = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise InputError(f"--param {text!r}: expected NAME=VALUE[,VALUE...]")
+    items = [v.strip() for v in values.split(",") if v.strip()]
+    if not items:
+        raise InputError(f"--param {text!r}: no value for {name}")
+    parsed = []
+    for item in items:
+        if ":" in item:
+            parsed.append(tuple(_scalar(v) for v in item.split(":")))
+        else:
+            parsed.append(_scalar(item))
+    return name, tuple(parsed)
+
+
+def _scalar(text: str):
+    low = text.strip().lower()
+    if low in ("true", "false"):
+        return low == "true"
+    try:
+        return int(low)
+    except ValueError:
+        pass
+    try:
+        return float(low)
+    except ValueError:
+        return text.strip()
+
+
+def _setting_name(method: str, values: Mapping[str, Any]) -> str:
+    def word(v) -> str:
+        if isinstance(v, (tuple, list)):
+            return ":".join(word(x) for x in v)
+        return f"{v:g}" if isinstance(v, float) else str(v)
+
+    return "_".join([method, *(f"{k}-{word(v)}" for k, v in values.items())])
+
+
+def _grid(parameters: Mapping[str, Sequence]) -> list[dict[str, Any]]:
+    names = list(parameters)
+    return [
+        dict(zip(names, combo, strict=True)) for combo in itertools.product(*parameters.values())
+    ]
+
+
+def _coerce(default, value, name: str):
+    """`value` as the type of the option's default (ints stay ints, numbers become floats)."""
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise InputError(f"--param {name}: expected true or false, got {value!r}")
+        return value
+    if isinstance(default, numbers.Integral) and isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(default, numbers.Real) and isinstance(value, numbers.Real):
+        if isinstance(value, bool):
+            raise InputError(f"--param {name}: expected a number, got {value!r}")
+        return float(value)
+    return value
+
+
+def _checked(method: str, parameters: Mapping[str, Sequence]) -> dict[str, tuple]:
+    """The swept values as the option types want them; every setting checked, before any work.
+
+    Raises
+    ------
+    InputError
+        A name that is not an option of `method`, a value of the wrong kind, a setting the
+        method's options refuse, or a value given twice.
+    """
+    defaults = _defaults(method)
+    fields = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
+    out = {}
+    for name, values in parameters.items():
+        if name not in fields:
+            raise InputError(
+                f"--param {name}: not an option of method {method!r} (options: {', '.join(fields)})"
+            )
+        coerced = tuple(_coerce(fields[name], v, name) for v in values)
+        if len(set(map(repr, coerced))) != len(coerced):
+            raise InputError(f"--param {name}: a value is given twice ({list(values)})")
+        out[name] = coerced
+    for setting in _grid(out):
+        try:
+            dataclasses.replace(defaults, **setting).check()
+        except InputError as exc:
+            shown = ", ".join(f"{k}={v}" for k, v in setting.items())
+            raise InputError(f"--param {shown}: {exc}") from None
+    return out
+
+
+def _previous(folder: Path, settings: dict) -> dict | None:
+    """The registration log in `folder` when it was made with these settings, else None."""
+    log = folder / "registration.json"
+    try:
+        found = json.loads(log.read_text())
+    except (OSError, ValueError):
+        return None
+    keys = ("method", "engine", "seed", "images", "options", "reference_choice")
+    if any(found.get(k) != settings.get(k) for k in keys):
+        return None
+    if not all((folder / t).is_file() for t in found.get("transforms", [])):
+        return None
+    return found
+
+
+def sweep(
+    images: Sequence[str | os.PathLike],
+    *,
+    method: str,
+    parameters: Mapping[str, Sequence],
+    out: str | os.PathLike,
+    labels: Sequence[str | os.PathLike] | None = None,
+    mask: str | os.PathLike | None = None,
+    engine: str | None = None,
+    reference_choice: str = "near-mean",
+    truth: Sequence[sitk.Transform] | None = None,
+    truth_reference: str | os.PathLike | None = None,
+    n_samples: int = 20_000,
+    seed: int = 0,
+    progress: bool = True,
+) -> SweepResult:
+    """Register `images` once per setting of a grid over `method`'s options; evaluate all.
+
+    Parameters
+    ----------
+    images : sequence of path, length n_images >= 4
+        The images (files: the manifest refers to them).
+    method : {"fluid", "pairwise", "groupwise", "affine"}
+    parameters : mapping of str to sequence
+        Option name -> values (fields of :class:`~itk_nrreval.registration.FluidOptions`,
+        :class:`~itk_nrreval.registration.BSplineOptions`,
+        :class:`~itk_nrreval.registration.GroupwiseOptions` or
+        :class:`~itk_nrreval.registration.AffineOptions`). Every combination is run.
+    out : path
+        Folder: ``registrations/<setting>/`` (transforms, reference, log), ``manifest.yaml``
+        (every setting), ``cache/`` (the evaluation's per-image cache), ``evaluation/``
+        (the evaluation's reports) and ``sweep.json`` / ``sweep.csv`` / ``sweep.png``.
+    labels : sequence of path, optional
+        Label maps of the images: the overlap is reported beside specificity.
+    mask : path, optional
+        Evaluate inside this mask (on the grid of the first setting's reference).
+    engine : str, optional
+        The registration engine (default: the method's first, see
+        :func:`~itk_nrreval.registration.register`).
+    reference_choice : {"near-mean", "far-from-mean"}
+        The reference of affine / fluid / pairwise, the same for every setting.
+    truth : sequence of sitk.Transform, optional
+        The true transforms, `truth_reference` points -> image points (e.g. a generated
+        population's ``truth`` registration): the true correspondence error of each setting
+        is reported beside its scores.
+    truth_reference : path, optional
+        The reference image of `truth` (where its non-linear pieces are sampled to invert
+        them).
+    n_samples, seed
+        As :func:`itk_nrreval.evaluate` (the seed also seeds the registrations).
+    progress : bool
+        Progress bars on stderr.
+
+    Returns
+    -------
+    SweepResult
+
+    Raises
+    ------
+    InputError
+        An unknown option name, a value the method refuses, fewer than 4 images, before
+        any registration runs.
+    """
+    from .registration import ENGINES, register
+
+    if method not in ENGINES:
+        raise InputError(f"--method {method!r}: not one of {', '.join(ENGINES)}")
+    if not parameters:
+        raise InputError("--param: give at least one option to sweep (NAME=v1,v2,...)")
+    images = [str(p) for p in images]
+    if len(images) < 4:
+        raise InputError(f"--images: a sweep needs at least 4 images, got {len(images)}")
+    parameters = _checked(method, parameters)
+    grid = _grid(parameters)
+    engine = ENGINES[method][0] if engine is None else engine
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stems = [_stem(p) for p in images]
+
+    method_defaults = _defaults(method)
+    choice = reference_choice if method != "groupwise" else "group mean (near-mean frame)"
+    todo, found = [], {}
+    for values in grid:
+        name = _setting_name(method, values)
+        opts = dataclasses.replace(method_defaults, **values)
+        expected = _json(
+            {
+                "method": method,
+                "engine": engine,
+                "seed": seed,
+                "images": images,
+                "options": dataclasses.asdict(opts),
+                "reference_choice": choice,
+            }
+        )
+        log = _previous(out / "registrations" / name, expected)
+        if log is None:
+            todo.append((name, values))
+        else:
+            found[name] = log
+
+    if todo:
+        from .registration._elastix_worker import ElastixWorker
+
+        affine = _affine_stage(
+            images, out / "registrations" / "_affine", reference_choice, seed, progress
+        )
+        uses_elastix = engine.startswith("elastix")
+        with ElastixWorker() if uses_elastix else contextlib.nullcontext() as worker:
+            for name, values in todo:
+                folder = out / "registrations" / name
+                result = register(
+                    images,
+                    method=method,
+                    engine=engine,
+                    options=values,
+                    affine=affine,
+                    seed=seed,
+                    progress=progress,
+                    elastix_worker=worker,
+                )
+                result.write(folder, names=stems)
+                found[name] = json.loads((folder / "registration.json").read_text())
+
+    manifest = out / "manifest.yaml"
+    with contextlib.suppress(FileNotFoundError):
+        manifest.unlink()  # rewritten from this grid's registrations only
+    identity = out / "identity.tfm"
+    dim = sitk.ReadImage(images[0]).GetDimension()
+    sitk.WriteTransform(sitk.TranslationTransform(dim), str(identity))
+    settings = []
+    for i, values in enumerate(grid):
+        name = _setting_name(method, values)
+        log = found[name]
+        folder = out / "registrations" / name
+        # Every setting but groupwise registers to the same reference image: F is the identity.
+        same_frame = i > 0 and method != "groupwise"
+        add_registration(
+            manifest,
+            name,
+            reference=folder / log["reference"],
+            transforms=[folder / t for t in log["transforms"]],
+            reference_index=log["reference_index"],
+            frame_transform=identity if same_frame else None,
+            images=images,
+            labels=list(labels) if labels is not None else None,
+        )
+        settings.append(SweepSetting(name, values, reused=name not in dict(todo)))
+    if mask is not None:
+        m = load_manifest(manifest)
+        write_manifest(dataclasses.replace(m, mask=Path(mask).absolute()), manifest)
+
+    evaluation = evaluate(
+        manifest, n_samples=n_samples, seed=seed, cache=out / "cache", progress=progress
+    )
+    truth_error = None
+    if truth is not None:
+        truth_error = _truth_error(evaluation, manifest, truth, truth_reference)
+    result = _summarise(method, parameters, tuple(settings), manifest, evaluation, truth_error)
+    write_reports(evaluation, out / "evaluation")
+    _write(result, out)
+    return result
+
+
+def _defaults(method: str):
+    from .registration import AffineOptions, BSplineOptions, FluidOptions, GroupwiseOptions
+
+    return {
+        "affine": AffineOptions(),
+        "fluid": FluidOptions(),
+        "pairwise": BSplineOptions(),
+        "groupwise": GroupwiseOptions(),
+    }[method]
+
+
+def _json(value):
+    """`value` as it reads back from JSON (tuples become lists), for comparing with logs."""
+    return json.loads(json.dumps(value))
+
+
+def _affine_stage(images, folder: Path, reference_choice: str, seed: int, progress: bool):
+    """The affine stage shared by every setting, kept in `folder` and always read from there.
+
+    Reading it back even when just computed makes a setting registered today and one added
+    to the sweep later start from the same bytes.
+    """
+    from .registration import RegistrationResult, register
+    from .transforms import read_transform
+
+    expected = _json(
+        {
+            "method": "affine",
+            "engine": "simpleitk",
+            "seed": seed,
+            "images": images,
+            "options": dataclasses.asdict(_defaults("affine")),
+            "reference_choice": reference_choice,
+        }
+    )
+    log = _previous(folder, expected)
+    if log is None:
+        result = register(
+            images,
+            method="affine",
+            reference_choice=reference_choice,
+            seed=seed,
+            progress=progress,
+        )
+        result.write(folder, names=[_stem(p) for p in images])
+        log = json.loads((folder / "registration.json").read_text())
+    transforms = tuple(read_transform(folder / t) for t in log["transforms"])
+    return RegistrationResult(
+        method="affine",
+        engine="simpleitk",
+        transforms=tuple(sitk.AffineTransform(t) for t in transforms),
+        reference=sitk.ReadImage(str(folder / log["reference"]), sitk.sitkFloat32),
+        reference_index=log["reference_index"],
+        resampled=(),
+        settings=log,
+    )
+
+
+def _truth_error(evaluation, manifest, truth, truth_reference) -> dict[str, float]:
+    from ._images import Geometry, mask_array, read_image
+    from .demo import correspondence_error
+    from .transforms import invert
+
+    grid = None
+    if truth_reference is not None:
+        grid = Geometry.from_image(read_image(truth_reference, what="truth reference"))
+    subject_to_template = [invert(t, grid=grid) for t in truth]
+    m = load_manifest(manifest)
+    mask = None
+    if m.mask is not None:
+        ref = read_image(m.registrations[m.common_frame].reference, what="reference image")
+        g = Geometry.from_image(ref)
+        mask = mask_array(m.mask, shape=g.shape, geometry=g)
+    return correspondence_error(evaluation, m, subject_to_template, mask=mask)
+
+
+def _spearman(a: Sequence[float], b: Sequence[float]) -> float:
+    from scipy.stats import spearmanr
+
+    if len(set(a)) < 2 or len(set(b)) < 2:
+        return math.nan
+    return float(spearmanr(a, b).statistic)
+
+
+def _summarise(method, parameters, settings, manifest, evaluation, truth_error) -> SweepResult:
+    names = [s.name for s in settings]
+    values = {n: evaluation.scores[n].measures() for n in names}
+    spec = [values[n]["specificity"] for n in names]
+    best_by = {"specificity": min(names, key=lambda n: values[n]["specificity"])}
+    spearman = {}
+    for measure in values[names[0]]:
+        if measure.startswith("overlap."):
+            ov = [values[n][measure] for n in names]
+            best_by[measure] = max(names, key=lambda n: values[n][measure])
+            spearman[measure] = _spearman(spec, [-v for v in ov])
+    if truth_error is not None:
+        best_by[_TRUTH_MEASURE] = min(names, key=lambda n: truth_error[n])
+        spearman[_TRUTH_MEASURE] = _spearman(spec, [truth_error[n] for n in names])
+    verdict = evaluation.verdict
+    return SweepResult(
+        method=method,
+        parameters=dict(parameters),
+        settings=settings,
+        manifest=manifest,
+        evaluation=evaluation,
+        recommended=verdict.best[0],
+        not_separable=tuple(verdict.best),
+        truth_error_mm=truth_error,
+        best_by=best_by,
+        spearman=spearman,
+    )
+
+
+def _csv(result: SweepResult) -> str:
+    import csv
+    import io
+
+    rows = result.rows()
+    columns = list(rows[0])
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow([_cell(row.get(c)) for c in columns])
+    return buf.getvalue()
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, (list, tuple)):
+        return ";".join(_cell(x) for x in v)
+    return f"{v:.6g}" if isinstance(v, float) else str(v)
+
+
+def _write(result: SweepResult, out: Path) -> None:
+    write_json(out / "sweep.json", result.to_dict())
+    write_text(out / "sweep.csv", _csv(result))
+    _figure(result, out / "sweep.png")
+
+
+def _figure(result: SweepResult, path: Path) -> None:
+    """One panel per measure against the first swept option; other options as lines.
+
+    Subject-level 95% intervals as error bars (when computed), flagged settings as red
+    crosses, each measure's best setting ringed, specificity's recommendation starred.
+    """
+    from matplotlib.figure import Figure
+
+    from ._output import atomic_path
+
+    first, *others = list(result.parameters)
+    xs = list(result.parameters[first])
+    numeric = all(isinstance(x, numbers.Real) and not isinstance(x, bool) for x in xs)
+    position = {repr(x): (float(x) if numeric else k) for k, x in enumerate(xs)}
+    found = list(result.evaluation.scores[result.settings[0].name].measures())
+    overlaps = [m for m in found if m.startswith("overlap.")]
+    # one overlap weighting is enough to read: inverse volume (every label counts alike)
+    overlap = "overlap.inverse_volume" if "overlap.inverse_volume" in overlaps else overlaps[:1]
+    measures = ["specificity", *([overlap] if isinstance(overlap, str) else overlap)]
+    if result.truth_error_mm is not None:
+        measures.append(_TRUTH_MEASURE)
+    fig = Figure(figsize=(4.2 * len(measures), 3.6), layout="constrained")
+    axes = fig.subplots(1, len(measures), squeeze=False)[0]
+    lines: dict[tuple, list[SweepSetting]] = {}
+    for s in result.settings:
+        lines.setdefault(tuple(repr(s.values[o]) for o in others), []).append(s)
+    for ax, measure in zip(axes, measures, strict=True):
+        for key, group in lines.items():
+            x = [position[repr(s.values[first])] for s in group]
+            y, err = [], [[], []]
+            for s in group:
+                v, iv = _value(result, s.name, measure)
+                y.append(v)
+                err[0].append(v - iv[0] if iv else 0.0)
+                err[1].append(iv[1] - v if iv else 0.0)
+            label = ", ".join(f"{o}={s}" for o, s in zip(others, key, strict=True)) or None
+            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=3, label=label)
+            for s, xv, yv in zip(group, x, y, strict=True):
+                if result.evaluation.scores[s.name].flags:
+                    ax.plot(xv, yv, "x", color="red", ms=10, mew=2)
+                if result.best_by.get(measure) == s.name:
+                    ax.plot(xv, yv, "o", mfc="none", mec="black", ms=13, mew=1.5)
+                if measure == "specificity" and s.name == result.recommended:
+                    ax.plot(xv, yv, "*", color="gold", mec="black", ms=15)
+        ax.set_xlabel(first)
+        if numeric and min(xs) > 0 and max(xs) / min(xs) >= 8:
+            ax.set_xscale("log")
+            ax.minorticks_off()
+        if numeric:
+            ax.set_xticks([float(x) for x in xs], [f"{x:g}" for x in xs])
+        else:
+            ax.set_xticks(range(len(xs)), [str(x) for x in xs])
+        ax.set_title(_TITLES.get(measure.split(".")[0], measure) + _unit(measure), fontsize=9)
+        if len(lines) > 1 and ax is axes[0]:
+            ax.legend(fontsize=7)
+    fig.suptitle(
+        f"{result.method} sweep: ringed = best by each measure, star = specificity's choice, "
+        "red x = flagged implausible; bars = subject-level 95% intervals",
+        fontsize=8,
+    )
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
+_TITLES = {
+    "specificity": "specificity (lower is better)",
+    "overlap": "overlap (higher is better)",
+    _TRUTH_MEASURE: "true correspondence error (lower is better)",
+}
+
+
+def _unit(measure: str) -> str:
+    if measure == _TRUTH_MEASURE:
+        return ", mm"
+    if measure.startswith("overlap."):
+        return f", {measure.split('.', 1)[1]}"
+    return ", intensity units"
+
+
+def _value(result: SweepResult, name: str, measure: str):
+    if measure == _TRUTH_MEASURE:
+        return result.truth_error_mm[name], None
+    sc = result.evaluation.scores[name]
+    iv = sc.intervals.get(measure)
+    ok = iv is not None and math.isfinite(iv.lo) and math.isfinite(iv.hi)
+    return sc.measures()[measure], ((iv.lo, iv.hi) if ok else None)
+
+
+def _stem(path: str) -> str:
+    name = Path(path).name
+    for suffix in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd", ".nhdr"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return Path(name).stem

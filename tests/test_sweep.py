@@ -1,0 +1,113 @@
+"""Parameter sweeps: one registration per setting, cached, checked before any work."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+from test_bad_inputs import assert_one_line
+
+import itk_nrreval as nr
+from itk_nrreval.cli import main
+from itk_nrreval.sweep import parse_parameter
+
+
+@pytest.fixture(scope="module")
+def population(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sweep") / "data"
+    assert main(["synth", "--n", "5", "--out", str(folder), "--seed", "2"]) == 0
+    return folder / "manifest.yaml"
+
+
+def sweep_args(population, out, values: str) -> list[str]:
+    return [
+        "sweep",
+        "--from",
+        str(population),
+        "--truth",
+        "truth",
+        "--method",
+        "fluid",
+        "--param",
+        f"smoothing_mm={values}",
+        "--param",
+        "iterations=20:10:5",
+        "--out",
+        str(out),
+        "--samples",
+        "1000",
+        "--quiet",
+    ]
+
+
+def test_sweep_writes_one_registration_per_setting_and_reuses_them(population, tmp_path, capsys):
+    out = tmp_path / "sweep"
+    assert main(sweep_args(population, out, "2,6")) == 0
+    first = json.loads((out / "sweep.json").read_text())
+    names = [row["registration"] for row in first["settings"]]
+    assert names == [
+        "fluid_smoothing_mm-2_iterations-20:10:5",
+        "fluid_smoothing_mm-6_iterations-20:10:5",
+    ]
+    assert [row["smoothing_mm"] for row in first["settings"]] == [2.0, 6.0]
+    manifest = yaml.safe_load((out / "manifest.yaml").read_text())
+    assert list(manifest["registrations"]) == names
+    assert manifest["labels"] and manifest["images"]
+    # every setting is scored, with the truth beside it, and the figure is written
+    for row in first["settings"]:
+        assert row["specificity"] > 0 and 0 < row["overlap.inverse_volume"] <= 1
+        assert row["true_correspondence_error_mm"] > 0
+    assert first["recommended"] in names and first["not_separable"][0] == first["recommended"]
+    assert (out / "sweep.png").stat().st_size > 0
+    logs = {n: (out / "registrations" / n / "registration.json").stat().st_mtime_ns for n in names}
+
+    # one more value: the two earlier registrations are reused, not run again
+    capsys.readouterr()
+    assert main(sweep_args(population, out, "2,6,12")) == 0
+    second = json.loads((out / "sweep.json").read_text())
+    assert [row["reused"] for row in second["settings"]] == [True, True, False]
+    for n, mtime in logs.items():
+        assert (out / "registrations" / n / "registration.json").stat().st_mtime_ns == mtime
+    assert "3 settings (2 already registered)" in capsys.readouterr().out
+    # Earlier settings' scores may move with the new one: the scores are taken where every
+    # image covers the grid under every registration compared. The same sweep again gives
+    # the same numbers, from the registrations and the evaluation's cache alone.
+    assert main(sweep_args(population, out, "2,6,12")) == 0
+    third = json.loads((out / "sweep.json").read_text())
+    assert all(row["reused"] for row in third["settings"])
+    assert third["settings"] == [dict(row, reused=True) for row in second["settings"]]
+    run = json.loads((out / "evaluation" / "results.json").read_text())["run"]
+    assert run["cache_computed"] == 0 and run["cache_reused"] > 0
+
+
+@pytest.mark.parametrize(
+    "param, message",
+    [
+        ("smoothing=1,2", "--param smoothing: not an option of method 'fluid'"),
+        ("smoothing_mm=-1,2", "smoothing_mm must be finite numbers > 0"),
+        ("smoothing_mm=2,2", "--param smoothing_mm: a value is given twice"),
+        ("smoothing_mm", "--param: expected NAME=VALUE"),
+        ("iterations=10:5", "shrink_factors and iterations need the same number of levels"),
+    ],
+)
+def test_bad_parameter_is_one_line_before_any_registration(
+    population, tmp_path, capsys, param, message
+):
+    out = tmp_path / "sweep"
+    args = ["sweep", "--from", str(population), "--method", "fluid", "--param", param]
+    code = main([*args, "--out", str(out), "--quiet"])
+    assert code == 2
+    assert_one_line(capsys.readouterr().err, message)
+    assert not (out / "registrations").exists()
+
+
+def test_parse_parameter():
+    assert parse_parameter("grid_spacing=8,16.5") == ("grid_spacing", (8, 16.5))
+    assert parse_parameter("iterations=100:60:40, 50:30:20") == (
+        "iterations",
+        ((100, 60, 40), (50, 30, 20)),
+    )
+    assert parse_parameter("metric=mattes,correlation") == ("metric", ("mattes", "correlation"))
+    with pytest.raises(nr.InputError, match="no value"):
+        parse_parameter("levels=")
