@@ -6,6 +6,11 @@ files (nilearn itself is never imported, so its heavy dependencies are not neede
 to the target voxel size and resampled onto an identity-direction LPS grid centred on the
 brain. Labels are the voxel-wise argmax of the resampled memberships
 (background, grey matter, white matter, CSF/other inside the brain mask).
+
+The ``"t1"`` contrast is the template itself; ``"t2"`` is T2-like, painted from the same
+resampled memberships with one intensity per tissue class (CSF bright, grey matter
+intermediate, white matter dark: :data:`T2_INTENSITIES`), so both contrasts show the same
+anatomy with the same partial volumes.
 """
 
 from __future__ import annotations
@@ -20,13 +25,18 @@ from types import MappingProxyType
 import numpy as np
 import SimpleITK as sitk
 
-from .phantom import Phantom
+from .phantom import Phantom, check_contrast
 
-__all__ = ["MNI_LABELS", "make_mni", "mni_data_dir"]
+__all__ = ["MNI_LABELS", "T2_INTENSITIES", "make_mni", "mni_data_dir"]
 
 #: Tissue labels of the MNI kind (value -> name).
 MNI_LABELS: Mapping[int, str] = MappingProxyType(
     {1: "grey_matter", 2: "white_matter", 3: "csf_other"}
+)
+
+#: T2-like intensity of each tissue class of the ``"t2"`` contrast (background 0).
+T2_INTENSITIES: Mapping[str, float] = MappingProxyType(
+    {"grey_matter": 0.55, "white_matter": 0.32, "csf_other": 1.0}
 )
 
 # Physical centre (mm, LPS) of the grids: the middle of the brain's bounding box.
@@ -72,8 +82,9 @@ def make_mni(
     spacing: float | None = None,
     size: int | tuple[int, ...] | None = None,
     z_mm: float = 8.0,
+    contrast: str = "t1",
 ) -> Phantom:
-    """The MNI152 2009a T1 template and its tissue labels on a grid.
+    """The MNI152 2009a T1 template (or a T2-like image of it) and its tissue labels on a grid.
 
     Parameters
     ----------
@@ -87,15 +98,20 @@ def make_mni(
         here covering the whole brain); in 3D enough to cover 180 x 216 x 180 mm.
     z_mm : float
         Height of the 2D slice (MNI z, the same in LPS); ignored in 3D.
+    contrast : {"t1", "t2"}
+        ``"t1"``: the template's intensities; ``"t2"``: the tissue memberships weighted by
+        :data:`T2_INTENSITIES`. The labels do not depend on it.
 
     Returns
     -------
     Phantom
-        ``image`` (float32, T1 scaled to [0, 1]), ``labels`` (uint8, :data:`MNI_LABELS`) and
+        ``image`` (float32, T1 scaled to [0, 1], or T2-like in [0, 1]), ``labels`` (uint8,
+        :data:`MNI_LABELS`) and
         ``label_names``. The grid has identity direction (LPS) and is centred on the brain.
     """
     if dim not in (2, 3) or isinstance(dim, bool):
         raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    contrast = check_contrast(contrast)
     spacing = _DEFAULT_SPACING[dim] if spacing is None else float(spacing)
     if not (math.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
@@ -140,7 +156,12 @@ def make_mni(
     memberships = np.stack([1.0 - maska, gma, wma, csf])
     labels = np.argmax(memberships, axis=0).astype(np.uint8)
     grid_origin = ref3.GetOrigin()[:dim]
-    image = sitk.GetImageFromArray(np.clip(t1a, 0, None).astype(np.float32))
+    if contrast == "t1":
+        values = t1a
+    else:
+        t2 = T2_INTENSITIES
+        values = t2["grey_matter"] * gma + t2["white_matter"] * wma + t2["csf_other"] * csf
+    image = sitk.GetImageFromArray(np.clip(values, 0, None).astype(np.float32))
     lab = sitk.GetImageFromArray(labels)
     for im in (image, lab):
         im.SetSpacing([spacing] * dim)

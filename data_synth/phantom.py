@@ -10,6 +10,11 @@ intensity image has one-voxel soft edges while the label map takes each voxel's 
 The 2D phantom is the axial plane ``z = z_mm`` (default 5 mm, through the lateral
 ventricles, thalami and basal ganglia) of the same 3D phantom, the analogue of the paper's
 mid-brain slices (Twining et al., Section IV-A).
+
+Two contrasts paint the same shapes (hence the same anatomy, edges and labels) with
+different intensities per tissue: ``"t1"`` (white matter bright, CSF dark) and ``"t2"``
+(CSF bright, white matter dark, the iron-rich pallidum darker than the other deep nuclei,
+fat in the scalp intermediate), for two-modality populations with known correspondence.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from types import MappingProxyType
 import numpy as np
 import SimpleITK as sitk
 
-__all__ = ["PHANTOM_LABELS", "Phantom", "make_phantom", "phantom_grid"]
+__all__ = ["CONTRASTS", "PHANTOM_LABELS", "Phantom", "make_phantom", "phantom_grid"]
 
 #: Every label the 3D phantom uses (value -> name). Left is the patient's left (+x, LPS).
 PHANTOM_LABELS: Mapping[int, str] = MappingProxyType(
@@ -56,8 +61,58 @@ PHANTOM_LABELS: Mapping[int, str] = MappingProxyType(
     }
 )
 
-# T1-like intensities in [0, 1].
-_SCALP, _SKULL, _CSF, _GM, _WM = 0.85, 0.12, 0.15, 0.50, 0.80
+#: The contrasts the generators can paint.
+CONTRASTS = ("t1", "t2")
+
+# Intensities in [0, 1] per tissue, for each contrast (T1 first: the original phantom).
+_INTENSITIES: Mapping[str, Mapping[str, float]] = MappingProxyType(
+    {
+        "t1": MappingProxyType(
+            {
+                "scalp": 0.85,
+                "skull": 0.12,
+                "csf": 0.15,
+                "grey_matter": 0.50,
+                "white_matter": 0.80,
+                "cerebellum_white_matter": 0.78,
+                "brain_stem": 0.72,
+                "hippocampus": 0.50,
+                "amygdala": 0.52,
+                "putamen": 0.58,
+                "pallidum": 0.68,
+                "caudate": 0.55,
+                "thalamus": 0.62,
+                "lateral_ventricle": 0.12,
+            }
+        ),
+        "t2": MappingProxyType(
+            {
+                "scalp": 0.60,
+                "skull": 0.06,
+                "csf": 1.00,
+                "grey_matter": 0.55,
+                "white_matter": 0.32,
+                "cerebellum_white_matter": 0.34,
+                "brain_stem": 0.40,
+                "hippocampus": 0.60,
+                "amygdala": 0.58,
+                "putamen": 0.45,
+                "pallidum": 0.28,
+                "caudate": 0.52,
+                "thalamus": 0.44,
+                "lateral_ventricle": 1.00,
+            }
+        ),
+    }
+)
+
+
+def check_contrast(contrast) -> str:
+    """`contrast` if it is one of :data:`CONTRASTS`, else ValueError naming the choices."""
+    if contrast not in CONTRASTS:
+        raise ValueError(f"contrast must be one of {CONTRASTS}, got {contrast!r}")
+    return str(contrast)
+
 
 # Field of view (mm, x y z) of the default grids: the head plus room for a pose change.
 _FOV_MM = (200.0, 236.0, 190.0)
@@ -80,7 +135,8 @@ class Phantom:
     Attributes
     ----------
     image : sitk.Image
-        ``sitkFloat32`` T1-like intensities in [0, 1] with partial-volume edges.
+        ``sitkFloat32`` intensities of one contrast (T1-like unless asked otherwise) in
+        [0, 1], with partial-volume edges.
     labels : sitk.Image
         ``sitkUInt8`` label map on the same grid, values from `label_names` (0 = background,
         scalp and skull).
@@ -140,6 +196,7 @@ def make_phantom(
     spacing: float | None = None,
     size: int | tuple[int, ...] | None = None,
     z_mm: float = 5.0,
+    contrast: str = "t1",
 ) -> Phantom:
     """Render the brain-like phantom on a grid.
 
@@ -151,6 +208,8 @@ def make_phantom(
         Grid, as in :func:`phantom_grid`.
     z_mm : float
         Height (mm, LPS +z superior) of the 2D slice; ignored in 3D.
+    contrast : {"t1", "t2"}
+        The tissue intensities (module docstring); the labels do not depend on it.
 
     Returns
     -------
@@ -166,9 +225,10 @@ def make_phantom(
     volumes span from about 0.1% (third and fourth ventricles) to over 40% (cortex) of the
     labelled volume; in the 2D slice from about 0.1% to 40%.
     """
+    contrast = check_contrast(contrast)
     grid = phantom_grid(dim=dim, spacing=spacing, size=size)
     points = _grid_points(grid, z_mm=z_mm)
-    image, labels = render_phantom(points, spacing=grid.GetSpacing())
+    image, labels = render_phantom(points, spacing=grid.GetSpacing(), contrast=contrast)
     img = sitk.GetImageFromArray(image.astype(np.float32))
     img.CopyInformation(grid)
     lab = sitk.GetImageFromArray(labels.astype(np.uint8))
@@ -230,7 +290,9 @@ def _signed_distance(f: np.ndarray, spacing_np: tuple[float, ...]) -> np.ndarray
     return f / np.maximum(norm, 1e-6)
 
 
-def render_phantom(points: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarray]:
+def render_phantom(
+    points: np.ndarray, *, spacing, contrast: str = "t1"
+) -> tuple[np.ndarray, np.ndarray]:
     """Paint the phantom at grid points.
 
     Parameters
@@ -240,12 +302,15 @@ def render_phantom(points: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarr
         axis order ``(z, y, x)`` (or ``(y, x)`` for a plane).
     spacing : sequence of float
         Voxel size in mm, ITK order (x, y[, z]).
+    contrast : {"t1", "t2"}
+        The tissue intensities.
 
     Returns
     -------
     image : ndarray of float64, shape numpy_shape
     labels : ndarray of uint8, shape numpy_shape
     """
+    v = _INTENSITIES[check_contrast(contrast)]
     spacing_np = tuple(float(s) for s in reversed(tuple(spacing)))
     h = float(np.mean(spacing_np))
     shape = points.shape[1:]
@@ -270,16 +335,16 @@ def render_phantom(points: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarr
     # Head: scalp and skull follow the cerebrum and cerebellum at fixed offsets.
     head_c = (0.0, 6.0, -2.0)
     head_s = (84.0, 104.0, 82.0)
-    paint(member(_ellipsoid(points, head_c, head_s)), _SCALP, 0)
-    paint(member(_ellipsoid(points, head_c, tuple(s - 6 for s in head_s))), _SKULL, 0)
-    paint(member(_ellipsoid(points, head_c, tuple(s - 13 for s in head_s))), _CSF, 16)
+    paint(member(_ellipsoid(points, head_c, head_s)), v["scalp"], 0)
+    paint(member(_ellipsoid(points, head_c, tuple(s - 6 for s in head_s))), v["skull"], 0)
+    paint(member(_ellipsoid(points, head_c, tuple(s - 13 for s in head_s))), v["csf"], 16)
 
     rho = _ellipsoid(points, cc, cs) + 1.0
     folds = _folds(points)
     f_brain = rho - 1.0
-    paint(member(f_brain), _GM, (3, 4))
+    paint(member(f_brain), v["grey_matter"], (3, 4))
     f_wm = rho - (0.80 + 0.08 * folds)
-    paint(member(f_wm), _WM, (1, 2))
+    paint(member(f_wm), v["white_matter"], (1, 2))
     # Sulci: CSF where the fold pattern is low, from the surface down to near the white matter.
     d_sulcus = np.maximum.reduce(
         [
@@ -288,37 +353,37 @@ def render_phantom(points: np.ndarray, *, spacing) -> tuple[np.ndarray, np.ndarr
             _signed_distance(f_brain, spacing_np),
         ]
     )
-    paint(np.clip(0.5 - d_sulcus / h, 0, 1), _CSF, 16)
+    paint(np.clip(0.5 - d_sulcus / h, 0, 1), v["csf"], 16)
     # Interhemispheric fissure, above the corpus callosum and at the frontal / occipital poles.
     fissure = np.maximum(np.abs(points[0]) - 1.5, f_brain * 50)
     fissure = np.maximum(fissure, np.minimum(26.0 - points[2], 40.0 - np.abs(points[1])))
-    paint(np.clip(0.5 - fissure / h, 0, 1), _CSF, 16)
+    paint(np.clip(0.5 - fissure / h, 0, 1), v["csf"], 16)
 
     for sign, (wm, gm) in ((1, (21, 23)), (-1, (22, 24))):
         c = (sign * 24.0, 58.0, -38.0)
         rho_cb = _ellipsoid(points, c, (26.0, 24.0, 17.0)) + 1.0
-        paint(member(rho_cb - 1.0), _GM, gm)
-        paint(member(rho_cb - (0.55 + 0.12 * folds)), 0.78, wm)
+        paint(member(rho_cb - 1.0), v["grey_matter"], gm)
+        paint(member(rho_cb - (0.55 + 0.12 * folds)), v["cerebellum_white_matter"], wm)
     shapes: list[tuple[Callable[[], np.ndarray], float, int | tuple[int, int]]] = [
-        (lambda: _ellipsoid(points, (0, 24, -36), (11, 13, 28)), 0.72, 25),  # brain stem
-        (lambda: _ellipsoid(points, (0, 40, -38), (5, 3, 6)), _CSF, 26),  # fourth ventricle
+        (lambda: _ellipsoid(points, (0, 24, -36), (11, 13, 28)), v["brain_stem"], 25),
+        (lambda: _ellipsoid(points, (0, 40, -38), (5, 3, 6)), v["csf"], 26),  # 4th ventricle
     ]
     for f, value, label in shapes:
         paint(member(f()), value, label)
 
     paired = [
         # right-side centre (x < 0; mirrored for the left), semi-axes, bend, intensity, labels
-        ((-27, 14, -17), (5, 17, 5), 0.0, 0.50, (17, 18)),  # hippocampus
-        ((-23, -6, -21), (6, 6, 6), 0.0, 0.52, (19, 20)),  # amygdala
-        ((-25, -2, 3), (5, 16, 11), 0.0, 0.58, (11, 12)),  # putamen
-        ((-18, 1, 1), (3.5, 8, 6), 0.0, 0.68, (13, 14)),  # pallidum
-        ((-14, -12, 11), (5, 12, 9), 0.0, 0.55, (9, 10)),  # caudate
-        ((-10, 16, 5), (8, 12, 8), 0.0, 0.62, (7, 8)),  # thalamus
-        ((-9, -2, 12), (4.5, 30, 9), 0.003, 0.12, (5, 6)),  # lateral ventricle
+        ((-27, 14, -17), (5, 17, 5), 0.0, v["hippocampus"], (17, 18)),
+        ((-23, -6, -21), (6, 6, 6), 0.0, v["amygdala"], (19, 20)),
+        ((-25, -2, 3), (5, 16, 11), 0.0, v["putamen"], (11, 12)),
+        ((-18, 1, 1), (3.5, 8, 6), 0.0, v["pallidum"], (13, 14)),
+        ((-14, -12, 11), (5, 12, 9), 0.0, v["caudate"], (9, 10)),
+        ((-10, 16, 5), (8, 12, 8), 0.0, v["thalamus"], (7, 8)),
+        ((-9, -2, 12), (4.5, 30, 9), 0.003, v["lateral_ventricle"], (5, 6)),
     ]
     for (cx, cy, cz), semi, bend, value, (lab_l, lab_r) in paired:
         for sign, lab in ((1, lab_l), (-1, lab_r)):
             f = _ellipsoid(points, (-sign * cx, cy, cz), semi, bend=sign * bend)
             paint(member(f), value, lab)
-    paint(member(_ellipsoid(points, (0, 14, 2), (1.6, 10, 8))), _CSF, 15)  # third ventricle
+    paint(member(_ellipsoid(points, (0, 14, 2), (1.6, 10, 8))), v["csf"], 15)  # 3rd ventricle
     return image, labels

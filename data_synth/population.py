@@ -11,6 +11,15 @@ Each subject is the template moved by a known transform and given its own intens
   centre);
 * intensity changes: a global scale, a smooth multiplicative bias field and Rician noise.
 
+With several ``contrasts`` (``("t1", "t2")``: :data:`data_synth.phantom.CONTRASTS`) every
+subject is imaged in each: the same anatomy, warp and pose (one true transform for all its
+images), each contrast painted from its own template of the same anatomy and given its own
+global scale, bias field and noise, as separate acquisitions would be. The geometry and the
+T1 intensities are drawn from the subject's stream exactly as for a T1-only population (so
+adding a contrast changes no T1 image); contrast c's intensities come from the child stream
+``SeedSequence(entropy, spawn_key=(*subject_key, c))``, c its index in ``CONTRASTS``, so a
+subject's image in one contrast does not depend on which other contrasts are made.
+
 Transform convention (ITK): a transform maps reference points to image points. The subject's
 ``template_to_subject`` transform ``T = A o phi`` maps a template point ``p`` to the
 corresponding subject point, so that ``subject(T(p)) = template(p)``; resampling the subject
@@ -34,7 +43,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .mni import make_mni
-from .phantom import Phantom, make_phantom
+from .phantom import CONTRASTS, Phantom, make_phantom
 
 __all__ = [
     "Subject",
@@ -56,7 +65,8 @@ class Subject:
     ----------
     image : sitk.Image
         ``sitkFloat32`` intensities on the subject's grid (same size, spacing and origin as the
-        template grid; the pose moves the anatomy within it).
+        template grid; the pose moves the anatomy within it), in the population's first
+        contrast (``images[contrasts[0]]``).
     labels : sitk.Image
         ``sitkUInt8`` label map on the same grid (values of :attr:`Population.label_names`).
     template_to_subject : sitk.CompositeTransform
@@ -64,12 +74,16 @@ class Subject:
         it onto the template grid to bring it into the template frame.
     subject_to_template : sitk.CompositeTransform
         ``phi^-1 o A^-1``: maps subject points to template points.
+    images : Mapping[str, sitk.Image]
+        Contrast -> the subject's image in it, for every contrast of the population; all on
+        the same grid, of the same anatomy, related to the template by the same transforms.
     """
 
     image: sitk.Image
     labels: sitk.Image
     template_to_subject: sitk.CompositeTransform
     subject_to_template: sitk.CompositeTransform
+    images: Mapping[str, sitk.Image]
 
 
 @dataclass(frozen=True)
@@ -80,7 +94,8 @@ class Population:
     ----------
     kind : {"phantom", "mni"}
     template : sitk.Image
-        ``sitkFloat32`` template image (the common frame of the true correspondence).
+        ``sitkFloat32`` template image (the common frame of the true correspondence), in the
+        first contrast.
     template_labels : sitk.Image
         ``sitkUInt8`` template label map.
     label_names : Mapping[int, str]
@@ -89,6 +104,10 @@ class Population:
     seed : int
     parameters : Mapping[str, float]
         The generation parameters (``warp_mm``, ``smoothness_mm``, ...) for the record.
+    contrasts : tuple of str
+        The contrasts every subject is imaged in (``("t1",)`` by default).
+    templates : Mapping[str, sitk.Image]
+        Contrast -> the template in that contrast (one anatomy, one grid).
     """
 
     kind: str
@@ -98,6 +117,8 @@ class Population:
     subjects: tuple[Subject, ...]
     seed: int
     parameters: Mapping[str, float]
+    contrasts: tuple[str, ...]
+    templates: Mapping[str, sitk.Image]
 
     def __len__(self) -> int:
         return len(self.subjects)
@@ -135,6 +156,7 @@ def make_population(
     intensity_sd: float = 0.1,
     bias_sd: float = 0.1,
     noise: float = 0.02,
+    contrasts: tuple[str, ...] | list[str] = ("t1",),
 ) -> Population:
     """Make a template and `n` subjects with known true transforms.
 
@@ -165,7 +187,11 @@ def make_population(
     intensity_sd, bias_sd : float
         Standard deviations of the log global intensity scale and of the log bias field.
     noise : float
-        Rician noise level as a fraction of the template's 99th-percentile intensity.
+        Rician noise level as a fraction of the template's 99th-percentile intensity (each
+        contrast's own template).
+    contrasts : sequence of {"t1", "t2"}
+        The contrasts to image every subject in (module docstring); the first is
+        ``Subject.image`` and ``Population.template``.
 
     Returns
     -------
@@ -174,8 +200,9 @@ def make_population(
     Raises
     ------
     ValueError
-        An unknown `kind`, a `dim` other than 2 or 3, ``n < 1``, or a negative / non-finite
-        amplitude; the message names the argument and the accepted values.
+        An unknown `kind`, a `dim` other than 2 or 3, ``n < 1``, a negative / non-finite
+        amplitude, or `contrasts` empty, repeated or unknown; the message names the argument
+        and the accepted values.
     FileNotFoundError
         ``kind="mni"`` without nilearn's data files.
     """
@@ -204,37 +231,70 @@ def make_population(
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     if smoothness_mm <= 0:
         raise ValueError(f"smoothness_mm must be > 0, got {smoothness_mm!r}")
+    contrasts = _check_contrasts(contrasts)
 
     maker = make_phantom if kind == "phantom" else make_mni
-    tmpl: Phantom = maker(dim=dim, spacing=spacing, size=size)
-    template = tmpl.image
-    ref_value = float(np.percentile(sitk.GetArrayViewFromImage(template), 99))
+    tmpls: dict[str, Phantom] = {
+        c: maker(dim=dim, spacing=spacing, size=size, contrast=c) for c in contrasts
+    }
+    ref_values = {
+        c: float(np.percentile(sitk.GetArrayViewFromImage(t.image), 99)) for c, t in tmpls.items()
+    }
+    first = tmpls[contrasts[0]]
     streams = np.random.SeedSequence(int(seed)).spawn(int(n))
     subjects = tuple(
-        _make_subject(tmpl, np.random.default_rng(s), ref_value=ref_value, **params)
+        _make_subject(
+            {c: t.image for c, t in tmpls.items()},
+            first.labels,
+            s,
+            ref_values=ref_values,
+            **params,
+        )
         for s in streams
     )
     return Population(
         kind=kind,
-        template=template,
-        template_labels=tmpl.labels,
-        label_names=tmpl.label_names,
+        template=first.image,
+        template_labels=first.labels,
+        label_names=first.label_names,
         subjects=subjects,
         seed=int(seed),
         parameters=MappingProxyType({k: float(v) for k, v in params.items()}),
+        contrasts=contrasts,
+        templates=MappingProxyType({c: t.image for c, t in tmpls.items()}),
     )
 
 
-def perfect_registration(population: Population) -> PerfectRegistration:
+def _check_contrasts(contrasts) -> tuple[str, ...]:
+    if isinstance(contrasts, str):
+        contrasts = (contrasts,)
+    out = tuple(contrasts)
+    if not out or len(set(out)) != len(out) or not set(out) <= set(CONTRASTS):
+        raise ValueError(
+            f"contrasts must be distinct names from {CONTRASTS}, at least one, got {contrasts!r}"
+        )
+    return tuple(str(c) for c in out)
+
+
+def perfect_registration(
+    population: Population, *, contrast: str | None = None
+) -> PerfectRegistration:
     """Resample every subject into the template frame through its true transform.
 
     Images are resampled linearly, labels by nearest neighbour, both onto the template grid
     with ``subject.template_to_subject`` (the paper's starting point for Section IV).
+    `contrast` picks the subjects' images (default: the population's first contrast).
     """
+    if contrast is not None and contrast not in population.contrasts:
+        raise ValueError(
+            f"contrast must be one of the population's {population.contrasts}, got {contrast!r}"
+        )
+    contrast = population.contrasts[0] if contrast is None else contrast
     ref = population.template
     images, labels = [], []
     for s in population.subjects:
-        images.append(sitk.Resample(s.image, ref, s.template_to_subject, sitk.sitkLinear, 0.0))
+        moving = s.images[contrast]
+        images.append(sitk.Resample(moving, ref, s.template_to_subject, sitk.sitkLinear, 0.0))
         labels.append(
             sitk.Resample(
                 s.labels, ref, s.template_to_subject, sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8
@@ -483,10 +543,11 @@ def _displacement_transform(u: np.ndarray, grid: sitk.Image) -> sitk.Displacemen
 
 
 def _make_subject(
-    tmpl: Phantom,
-    rng: np.random.Generator,
+    templates: Mapping[str, sitk.Image],
+    template_labels: sitk.Image,
+    stream: np.random.SeedSequence,
     *,
-    ref_value: float,
+    ref_values: Mapping[str, float],
     warp_mm: float,
     smoothness_mm: float,
     rotation_deg: float,
@@ -496,17 +557,23 @@ def _make_subject(
     bias_sd: float,
     noise: float,
 ) -> Subject:
-    grid = tmpl.image
+    rng = np.random.default_rng(stream)
+    grid = next(iter(templates.values()))
     dim = grid.GetDimension()
     field_grid = _field_grid(grid, smoothness_mm=smoothness_mm)
-    # Draw everything first, in a fixed order, so the stream does not depend on the options.
+    # Draw everything first, in a fixed order, so the stream does not depend on the options:
+    # the geometry, then the T1 intensity changes (drawn even when T1 is not asked for).
     vel_noise = _smooth_noise(rng, field_grid, n_components=dim, sigma_mm=smoothness_mm)
     pose = _random_pose(
         rng, grid, rotation_deg=rotation_deg, scale_sd=scale_sd, translation_mm=translation_mm
     )
-    gain = float(np.exp(rng.normal(0.0, intensity_sd)))
-    bias = _smooth_noise(rng, grid, n_components=1, sigma_mm=60.0)[..., 0]
-    noise_seed = rng.integers(2**32)
+    draws = {}
+    for c, name in enumerate(CONTRASTS):
+        crng = rng if c == 0 else _contrast_rng(stream, c)
+        if c == 0 or name in templates:
+            gain = float(np.exp(crng.normal(0.0, intensity_sd)))
+            bias = _smooth_noise(crng, grid, n_components=1, sigma_mm=60.0)[..., 0]
+            draws[name] = (gain, bias, crng.integers(2**32))
 
     window = _taper(field_grid)
     velocity = vel_noise * window[..., None]
@@ -520,19 +587,30 @@ def _make_subject(
         [_displacement_transform(inverse, field_grid), pose.GetInverse()]
     )
 
-    moved = sitk.Resample(tmpl.image, grid, s_to_t, sitk.sitkLinear, 0.0, sitk.sitkFloat32)
-    arr = np.clip(sitk.GetArrayFromImage(moved).astype(np.float64), 0.0, None)
-    arr *= gain * np.exp(bias_sd * bias)
-    nrng = np.random.default_rng(noise_seed)
-    sd = noise * ref_value
-    arr = np.sqrt(
-        (arr + sd * nrng.standard_normal(arr.shape)) ** 2
-        + (sd * nrng.standard_normal(arr.shape)) ** 2
-    )
-    image = sitk.GetImageFromArray(arr.astype(np.float32))
-    image.CopyInformation(grid)
-    labels = _warp_labels(tmpl.labels, s_to_t)
-    return Subject(image, labels, t_to_s, s_to_t)
+    images = {}
+    for name, template in templates.items():
+        gain, bias, noise_seed = draws[name]
+        moved = sitk.Resample(template, grid, s_to_t, sitk.sitkLinear, 0.0, sitk.sitkFloat32)
+        arr = np.clip(sitk.GetArrayFromImage(moved).astype(np.float64), 0.0, None)
+        arr *= gain * np.exp(bias_sd * bias)
+        nrng = np.random.default_rng(noise_seed)
+        sd = noise * ref_values[name]
+        arr = np.sqrt(
+            (arr + sd * nrng.standard_normal(arr.shape)) ** 2
+            + (sd * nrng.standard_normal(arr.shape)) ** 2
+        )
+        image = sitk.GetImageFromArray(arr.astype(np.float32))
+        image.CopyInformation(grid)
+        images[name] = image
+    labels = _warp_labels(template_labels, s_to_t)
+    first = next(iter(images.values()))
+    return Subject(first, labels, t_to_s, s_to_t, MappingProxyType(images))
+
+
+def _contrast_rng(stream: np.random.SeedSequence, index: int) -> np.random.Generator:
+    """The intensity stream of contrast number `index` (>= 1) of a subject: a child stream."""
+    child = np.random.SeedSequence(stream.entropy, spawn_key=(*stream.spawn_key, index))
+    return np.random.default_rng(child)
 
 
 def _warp_labels(labels: sitk.Image, transform: sitk.Transform) -> sitk.Image:

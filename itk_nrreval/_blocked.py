@@ -16,6 +16,10 @@ numbers) and compared with the training set in one sweep:
 * torch (optional): the same blocks on a torch device, float64 (argmin, then exact recompute);
   equal to the CPU paths to rounding.
 
+A Gaussian mixture (``groups``) runs through the same searchers: chunk by chunk of its span
+table, each chunk's samples drawn from its group's component (:func:`draw_mixture_block`, the
+same sums as :func:`._sampling.draw_mixture`, so again the same bits as the per-sample path).
+
 Chunks of samples are :data:`._sampling.CHUNK` long as in the per-sample path, and each chunk
 gives its (mean, M2) and gen minima in the same form, so :func:`._sampling.combine_moments`
 and everything after it are shared. Memory per block is O(S (n_modes + n_images)).
@@ -32,9 +36,13 @@ from ._sampling import chunk_moments, fill_normals, finish_distances
 
 __all__ = [
     "draw_block",
+    "draw_mixture_block",
     "run_single_blocked",
     "run_paired_blocked",
     "run_single_torch",
+    "run_mixture_blocked",
+    "run_mixture_paired_blocked",
+    "run_mixture_torch",
 ]
 
 L1_BLOCK = 32  # samples per parallel task of the L1 kernel
@@ -46,6 +54,10 @@ L2_BLOCK_ELEMENTS = 1 << 22
 L2_BLOCK_RANGE = (256, 1024)
 L2_TILE_IMAGES = 512  # columns per tile of the column (generalization) pass
 TORCH_BLOCK = 256  # samples per torch block
+# Mixture samples built together, each basis row loaded once for all: 16 rows of y are 128 kB
+# at K = 1000 (L2 cache). The draw of the GEMM path stays serial (see below): measured, a
+# parallel draw lost more to the hand-over than it gained, at N = 150 to 1000.
+MIXTURE_TILE = 16
 _U = 2.0**-53
 
 
@@ -63,6 +75,48 @@ def draw_block(sd, key, start, stop, out):
             y[k] *= sd[k]
 
 
+@numba.njit(cache=True)
+def _draw_mixture_tile(centre, basis, key, start, m, z, out):
+    """Samples ``start .. start + m - 1`` of one mixture component into ``out[:m]``.
+
+    The same sums as :func:`._sampling.draw_mixture` (centre, then the modes in turn, for
+    every coordinate), so the same bits; but each basis row is loaded once for all m
+    samples, not once per sample (the basis, K_g x K, outgrows the caches at large N).
+    z (>= m, n_group_modes) is scratch.
+    """
+    n_modes = out.shape[1]
+    n_basis = basis.shape[0]
+    for s in range(m):
+        fill_normals(key, start + s, z[s])
+        for k in range(n_modes):
+            out[s, k] = centre[k]
+    j = 0
+    while j + 3 < n_basis:  # four modes per pass over y: the additions stay in order
+        r0, r1, r2, r3 = basis[j], basis[j + 1], basis[j + 2], basis[j + 3]
+        for s in range(m):
+            z0, z1, z2, z3 = z[s, j], z[s, j + 1], z[s, j + 2], z[s, j + 3]
+            y = out[s]
+            for k in range(n_modes):
+                y[k] = (((y[k] + z0 * r0[k]) + z1 * r1[k]) + z2 * r2[k]) + z3 * r3[k]
+        j += 4
+    for jj in range(j, n_basis):
+        row = basis[jj]
+        for s in range(m):
+            zj = z[s, jj]
+            y = out[s]
+            for k in range(n_modes):
+                y[k] += zj * row[k]
+
+
+@numba.njit(cache=True)
+def draw_mixture_block(centre, basis, key, start, stop, out):
+    """Samples ``start:stop`` of one mixture component into ``out[: stop - start]``."""
+    z = np.empty((MIXTURE_TILE, basis.shape[0]))
+    for s0 in range(start, stop, MIXTURE_TILE):
+        s1 = min(stop, s0 + MIXTURE_TILE)
+        _draw_mixture_tile(centre, basis, key, s0, s1 - s0, z, out[s0 - start :])
+
+
 # ---------------------------------------------------------------------------------------- L1
 
 
@@ -74,13 +128,28 @@ def _l1_task(train_t, sd, key, start, stop, y, acc, values, nearest, gen_row):
     L1 nearest distance and index; gen_row (n_images,) is lowered to each image's nearest
     sample distance. y (block, n_modes) and acc (block, L1_TILE_IMAGES) are scratch.
     """
-    n_modes, n_images = train_t.shape
-    m = stop - start
-    for j in range(m):
+    n_modes = train_t.shape[0]
+    for j in range(stop - start):
         row = y[j]
         fill_normals(key, start + j, row)
         for k in range(n_modes):
             row[k] *= sd[k]
+    _l1_search(train_t, y, stop - start, acc, values, nearest, gen_row)
+
+
+@numba.njit(cache=True)
+def _l1_task_mixture(train_t, centre, basis, key, start, stop, y, acc, values, nearest, gen_row):
+    """As :func:`_l1_task` for samples start:stop of one mixture component."""
+    z = np.empty((stop - start, basis.shape[0]))
+    _draw_mixture_tile(centre, basis, key, start, stop - start, z, y)
+    _l1_search(train_t, y, stop - start, acc, values, nearest, gen_row)
+
+
+@numba.njit(cache=True)
+def _l1_search(train_t, y, m, acc, values, nearest, gen_row):
+    """The samples y[:m] against all training images (train_t, n_modes x n_images), by tiles."""
+    n_modes, n_images = train_t.shape
+    for j in range(m):
         values[j] = np.inf
         nearest[j] = 0
     for i0 in range(0, n_images, L1_TILE_IMAGES):
@@ -138,6 +207,36 @@ def _l1_chunk(train_t, sd, key, start, stop, values, nearest, gen):
         _l1_task(
             train_t,
             sd,
+            key,
+            s0,
+            s1,
+            y,
+            acc,
+            values[s0 - start : s1 - start],
+            nearest[s0 - start : s1 - start],
+            gen_tasks[task],
+        )
+    for task in range(n_tasks):
+        for i in range(n_images):
+            if gen_tasks[task, i] < gen[i]:
+                gen[i] = gen_tasks[task, i]
+
+
+@numba.njit(parallel=True, cache=True)
+def _l1_chunk_mixture(train_t, centre, basis, key, start, stop, values, nearest, gen):
+    """As :func:`_l1_chunk` for samples start:stop of one mixture component."""
+    n_modes, n_images = train_t.shape
+    n_tasks = (stop - start + L1_BLOCK - 1) // L1_BLOCK
+    gen_tasks = np.full((n_tasks, n_images), np.inf)
+    for task in numba.prange(n_tasks):
+        s0 = start + task * L1_BLOCK
+        s1 = min(stop, s0 + L1_BLOCK)
+        y = np.empty((L1_BLOCK, n_modes))
+        acc = np.empty((L1_BLOCK, L1_TILE_IMAGES))
+        _l1_task_mixture(
+            train_t,
+            centre,
+            basis,
             key,
             s0,
             s1,
@@ -239,14 +338,17 @@ def _l2_block(n_images: int, n_modes: int) -> int:
     return int(min(hi, max(lo, L2_BLOCK_ELEMENTS // max(n_images, n_modes, 1))))
 
 
-def _l2_chunk(train, sq_train, norm_max, sd, key, start, stop, values, nearest, gen, work):
-    """Samples start:stop in GEMM blocks of len(work[0]); gen (n_images,) lowered in place."""
+def _l2_chunk(train, sq_train, norm_max, draw, start, stop, values, nearest, gen, work):
+    """Samples start:stop in GEMM blocks of len(work[0]); gen (n_images,) lowered in place.
+
+    ``draw(s0, s1, out)`` writes samples s0:s1 into the rows of `out`.
+    """
     y, gram = work
     block = y.shape[0]
     for s0 in range(start, stop, block):
         s1 = min(stop, s0 + block)
         m = s1 - s0
-        draw_block(sd, key, s0, s1, y)
+        draw(s0, s1, y)
         np.matmul(y[:m], train.T, out=gram[:m])
         _l2_select(
             y[:m],
@@ -264,11 +366,16 @@ def _l2_chunk(train, sq_train, norm_max, sd, key, start, stop, values, nearest, 
 
 
 class _Searcher:
-    """One model's blocked nearest search, chunk by chunk (CPU)."""
+    """One model's blocked nearest search, chunk by chunk (CPU).
 
-    def __init__(self, train: np.ndarray, sd: np.ndarray, l2: bool):
+    Samples are ``sd * z`` (a single Gaussian, `sd` its mode standard deviations) or, when
+    :meth:`chunk` is given a mixture component ``(centre, basis)``, ``centre + z @ basis``
+    (:func:`._sampling.draw_mixture`; `sd` is then unused and may be None).
+    """
+
+    def __init__(self, train: np.ndarray, sd: np.ndarray | None, l2: bool):
         self.l2 = l2
-        self.sd = np.ascontiguousarray(sd, dtype=np.float64)
+        self.sd = None if sd is None else np.ascontiguousarray(sd, dtype=np.float64)
         n_images, n_modes = train.shape
         self.n_images = n_images
         if l2:
@@ -280,19 +387,32 @@ class _Searcher:
         else:
             self.train_t = np.ascontiguousarray(np.asarray(train, dtype=np.float64).T)
 
-    def chunk(self, key, start: int, stop: int):
-        """Raw nearest distances (m,), indices (m,) and gen minima (n_images,) of a chunk."""
+    def chunk(self, key, start: int, stop: int, component=None):
+        """Raw nearest distances (m,), indices (m,) and gen minima (n_images,) of a chunk.
+
+        `component` is None (samples ``sd * z``) or a mixture component ``(centre, basis)``.
+        """
         m = stop - start
         values = np.empty(m)
         nearest = np.empty(m, dtype=np.int64)
         gen = np.full(self.n_images, np.inf)
         if self.l2:
+            if component is None:
+                sd = self.sd
+
+                def draw(s0, s1, out):
+                    draw_block(sd, key, s0, s1, out)
+            else:
+                centre, basis = component
+
+                def draw(s0, s1, out):
+                    draw_mixture_block(centre, basis, key, s0, s1, out)
+
             _l2_chunk(
                 self.train,
                 self.sq_train,
                 self.norm_max,
-                self.sd,
-                key,
+                draw,
                 start,
                 stop,
                 values,
@@ -300,22 +420,36 @@ class _Searcher:
                 gen,
                 self.work,
             )
-        else:
+        elif component is None:
             _l1_chunk(self.train_t, self.sd, key, start, stop, values, nearest, gen)
+        else:
+            centre, basis = component
+            _l1_chunk_mixture(self.train_t, centre, basis, key, start, stop, values, nearest, gen)
         return values, nearest, gen
 
 
-def _run(searcher, key, n_samples: int, l2: bool, exponent: float, chunk: int, wrap=None):
-    n_chunks = (n_samples + chunk - 1) // chunk
+def _single_spans(n_samples: int, chunk: int) -> np.ndarray:
+    """Chunks ``(start, stop, 0)`` of samples 0 .. n_samples - 1 (one Gaussian)."""
+    starts = np.arange(0, n_samples, chunk, dtype=np.int64)
+    stops = np.minimum(starts + chunk, n_samples)
+    return np.stack([starts, stops, np.zeros_like(starts)], axis=1)
+
+
+def _run(searcher, key, spans, l2: bool, exponent: float, wrap=None, components=None):
+    """Per-chunk (mean, M2), counts and gen minima; chunk c is ``spans[c] = (start, stop, g)``.
+
+    `components` is None (one Gaussian) or per group g its ``(centre, basis)``.
+    """
+    n_chunks = spans.shape[0]
     n_images = searcher.n_images
     means = np.empty(n_chunks)
     m2s = np.empty(n_chunks)
     counts = np.zeros((n_chunks, n_images), dtype=np.int64)
     gen = np.empty((n_chunks, n_images))
     for c in range(n_chunks) if wrap is None else wrap(range(n_chunks)):
-        start = c * chunk
-        stop = min(n_samples, start + chunk)
-        values, nearest, gen[c] = searcher.chunk(key, start, stop)
+        start, stop, g = (int(v) for v in spans[c])
+        component = None if components is None else components[g]
+        values, nearest, gen[c] = searcher.chunk(key, start, stop, component)
         finish_distances(values, stop - start, l2, exponent)
         means[c], m2s[c] = chunk_moments(values, stop - start)
         counts[c] = np.bincount(nearest, minlength=n_images)
@@ -346,25 +480,63 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk, wrap=None
         Raw (L1 sum or squared L2) nearest-sample distance of each image, per chunk.
     """
     searcher = _Searcher(train, sd, l2)
-    return _run(searcher, key, int(n_samples), l2, float(exponent), int(chunk), wrap)
+    spans = _single_spans(int(n_samples), int(chunk))
+    return _run(searcher, key, spans, l2, float(exponent), wrap)
+
+
+def run_mixture_blocked(train, components, spans, key, l2, exponent, wrap=None):
+    """As :func:`._sampling.run_mixture`, by blocks of samples; the same numbers.
+
+    Parameters
+    ----------
+    train : ndarray of shape (n_images, n_modes)
+        The joint training parameters (rows: images).
+    components : sequence of (centre, basis)
+        Per group, its centre (n_modes,) and basis (n_group_modes, n_modes), joint parameters.
+    spans : ndarray of int64, shape (n_chunks, 3)
+        Chunks ``(start, stop, group)`` (:func:`._sampling.mixture_spans`).
+    key, l2, exponent, wrap
+        As :func:`run_single_blocked`.
+
+    Returns
+    -------
+    means, m2s, counts, gen
+        Per chunk, as :func:`run_single_blocked`.
+    """
+    searcher = _Searcher(train, None, l2)
+    return _run(searcher, key, spans, l2, float(exponent), wrap, components)
 
 
 def run_paired_blocked(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk):
     """As :func:`._sampling.run_paired` (same outputs), by blocks; ``train_*`` not transposed."""
-    n_samples = int(n_samples)
+    spans = _single_spans(int(n_samples), int(chunk))
     sa, sb = _Searcher(train_a, sd_a, l2), _Searcher(train_b, sd_b, l2)
-    n_chunks = (n_samples + chunk - 1) // chunk
+    return _run_paired(sa, sb, None, None, spans, key, l2, exponent)
+
+
+def run_mixture_paired_blocked(
+    train_a, components_a, train_b, components_b, spans, key, l2, exponent
+):
+    """As :func:`._sampling.run_mixture_paired` (same outputs), by blocks; ``train_*`` not
+    transposed, components as :func:`run_mixture_blocked`."""
+    sa, sb = _Searcher(train_a, None, l2), _Searcher(train_b, None, l2)
+    return _run_paired(sa, sb, components_a, components_b, spans, key, l2, exponent)
+
+
+def _run_paired(sa, sb, components_a, components_b, spans, key, l2, exponent):
+    n_chunks = spans.shape[0]
     moments = np.empty((3, n_chunks, 2))
     counts_a = np.zeros((n_chunks, sa.n_images), dtype=np.int64)
     counts_b = np.zeros((n_chunks, sb.n_images), dtype=np.int64)
     gen_a = np.empty((n_chunks, sa.n_images))
     gen_b = np.empty((n_chunks, sb.n_images))
     for c in range(n_chunks):
-        start = c * chunk
-        stop = min(n_samples, start + chunk)
+        start, stop, g = (int(v) for v in spans[c])
         m = stop - start
-        va, na, gen_a[c] = sa.chunk(key, start, stop)
-        vb, nb, gen_b[c] = sb.chunk(key, start, stop)
+        comp_a = None if components_a is None else components_a[g]
+        comp_b = None if components_b is None else components_b[g]
+        va, na, gen_a[c] = sa.chunk(key, start, stop, comp_a)
+        vb, nb, gen_b[c] = sb.chunk(key, start, stop, comp_b)
         finish_distances(va, m, l2, float(exponent))
         finish_distances(vb, m, l2, float(exponent))
         moments[0, c] = chunk_moments(va, m)
@@ -381,13 +553,13 @@ def run_paired_blocked(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponen
 class _TorchSearcher:
     """The blocked search with distances on a torch device (float64); normals from the CPU."""
 
-    def __init__(self, train: np.ndarray, sd: np.ndarray, l2: bool, device):
+    def __init__(self, train: np.ndarray, sd: np.ndarray | None, l2: bool, device):
         import torch
 
         self.torch = torch
         self.l2 = l2
         self.device = device
-        self.sd = np.ascontiguousarray(sd, dtype=np.float64)
+        self.sd = None if sd is None else np.ascontiguousarray(sd, dtype=np.float64)
         self.n_images, n_modes = train.shape
         self.train = torch.as_tensor(np.asarray(train, dtype=np.float64), device=device)
         self.sq_train = (self.train * self.train).sum(dim=1)
@@ -396,7 +568,7 @@ class _TorchSearcher:
     def _exact(self, a, b):
         return ((a - b) ** 2).sum(dim=1)
 
-    def chunk(self, key, start: int, stop: int):
+    def chunk(self, key, start: int, stop: int, component=None):
         torch = self.torch
         values = np.empty(stop - start)
         nearest = np.empty(stop - start, dtype=np.int64)
@@ -404,7 +576,10 @@ class _TorchSearcher:
         for s0 in range(start, stop, TORCH_BLOCK):
             s1 = min(stop, s0 + TORCH_BLOCK)
             m = s1 - s0
-            draw_block(self.sd, key, s0, s1, self.y)
+            if component is None:
+                draw_block(self.sd, key, s0, s1, self.y)
+            else:
+                draw_mixture_block(component[0], component[1], key, s0, s1, self.y)
             y = torch.as_tensor(self.y[:m], device=self.device)
             if self.l2:
                 d = (y * y).sum(dim=1)[:, None] - 2.0 * (y @ self.train.T) + self.sq_train
@@ -430,4 +605,11 @@ class _TorchSearcher:
 def run_single_torch(train, sd, key, n_samples, l2, exponent, chunk, device, wrap=None):
     """As :func:`run_single_blocked`, with the distances computed by torch on `device`."""
     searcher = _TorchSearcher(train, sd, l2, device)
-    return _run(searcher, key, int(n_samples), l2, float(exponent), int(chunk), wrap)
+    spans = _single_spans(int(n_samples), int(chunk))
+    return _run(searcher, key, spans, l2, float(exponent), wrap)
+
+
+def run_mixture_torch(train, components, spans, key, l2, exponent, device, wrap=None):
+    """As :func:`run_mixture_blocked`, with the distances computed by torch on `device`."""
+    searcher = _TorchSearcher(train, None, l2, device)
+    return _run(searcher, key, spans, l2, float(exponent), wrap, components)

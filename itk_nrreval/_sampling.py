@@ -11,6 +11,12 @@ splitmix64 stream at a position fixed by ``(mu, k)``, turned normal by the ziggu
 
 Distances to the N training points are accumulated mode by mode across all N at once, which
 vectorizes; the per-sample nearest distance (L1 sum, or squared L2) and its index come out.
+
+A Gaussian mixture (:class:`itk_nrreval.model.MixtureModel`) is sampled group by group: its
+samples are numbered ``0 .. M - 1`` with group g owning one contiguous range (a *span* table,
+:func:`mixture_spans`), and sample ``mu`` of group g is ``centre_g + z(seed, mu, :K_g) @ basis_g``
+(:func:`draw_mixture`), in the joint parameter space where the training points live. The same
+three properties hold: a sample depends only on the seed, its number and its group.
 """
 
 from __future__ import annotations
@@ -26,6 +32,10 @@ __all__ = [
     "standard_normals",
     "run_single",
     "run_paired",
+    "draw_mixture",
+    "mixture_spans",
+    "run_mixture",
+    "run_mixture_paired",
     "nearest_of_samples",
     "combine_moments",
     "CHUNK",
@@ -327,6 +337,133 @@ def run_paired(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk
             nb,
             gen_b[c],
         )
+        finish_distances(va, m, l2, exponent)
+        finish_distances(vb, m, l2, exponent)
+        moments[0, c, 0], moments[0, c, 1] = chunk_moments(va, m)
+        moments[1, c, 0], moments[1, c, 1] = chunk_moments(vb, m)
+        for j in range(m):
+            va[j] -= vb[j]
+            counts_a[c, na[j]] += 1
+            counts_b[c, nb[j]] += 1
+        moments[2, c, 0], moments[2, c, 1] = chunk_moments(va, m)
+    return moments, counts_a, counts_b, gen_a, gen_b
+
+
+@numba.njit(cache=True)
+def draw_mixture(centre, basis, key, mu, z, y):
+    """Sample `mu` of one mixture component into y: ``centre + z @ basis``.
+
+    ``centre`` (n_modes,) and ``basis`` (n_group_modes, n_modes, rows: unit modes times their
+    standard deviations) are in joint parameters; ``z`` (n_group_modes,) receives the
+    standard normals ``z(key, mu, k)``. The sum is taken in a fixed order (the centre, then
+    the modes in turn), so every path that draws through here gets the same bits.
+    """
+    fill_normals(key, mu, z)
+    n_modes = y.shape[0]
+    n_basis = z.shape[0]
+    for k in range(n_modes):
+        y[k] = centre[k]
+    j = 0
+    while j + 3 < n_basis:  # four modes per pass over y: the additions stay in order
+        z0, z1, z2, z3 = z[j], z[j + 1], z[j + 2], z[j + 3]
+        r0, r1, r2, r3 = basis[j], basis[j + 1], basis[j + 2], basis[j + 3]
+        for k in range(n_modes):
+            y[k] = (((y[k] + z0 * r0[k]) + z1 * r1[k]) + z2 * r2[k]) + z3 * r3[k]
+        j += 4
+    for jj in range(j, n_basis):
+        zj = z[jj]
+        row = basis[jj]
+        for k in range(n_modes):
+            y[k] += zj * row[k]
+
+
+def mixture_spans(group_samples, chunk: int) -> np.ndarray:
+    """The chunks of a mixture's samples: rows ``(start, stop, group)``, int64.
+
+    Group g owns samples ``offset_g .. offset_g + M_g - 1`` (``offset_g = sum_{h<g} M_h``),
+    cut into chunks of at most `chunk` samples; no chunk mixes groups.
+    """
+    rows = []
+    offset = 0
+    for g, m in enumerate(int(v) for v in group_samples):
+        for start in range(offset, offset + m, chunk):
+            rows.append((start, min(offset + m, start + chunk), g))
+        offset += m
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+
+
+@numba.njit(cache=True)
+def _chunk_mixture(train_t, centre, basis, key, start, stop, l2, values, nearest, gen_min):
+    """Samples start:stop of one mixture component: nearest training point per sample."""
+    z = np.empty(basis.shape[0])
+    y = np.empty(train_t.shape[0])
+    dist = np.empty(train_t.shape[1])
+    for mu in range(start, stop):
+        draw_mixture(centre, basis, key, mu, z, y)
+        values[mu - start], nearest[mu - start] = _nearest_one(train_t, y, l2, dist, gen_min)
+
+
+@numba.njit(parallel=True, cache=True)
+def run_mixture(train_t, centres, basis_rows, basis_start, spans, key, l2, exponent, first, last):
+    """As :func:`run_single` for a mixture, chunk c being ``spans[c] = (start, stop, group)``.
+
+    Group g's basis is ``basis_rows[basis_start[g]:basis_start[g + 1]]`` and its centre
+    ``centres[g]``. Runs chunks ``first .. last - 1``; returns per chunk (mean, M2) of the
+    finished nearest distances, the nearest counts per training image and the gen minima.
+    """
+    n_images = train_t.shape[1]
+    n_chunks = last - first
+    means = np.empty(n_chunks)
+    m2s = np.empty(n_chunks)
+    counts = np.zeros((n_chunks, n_images), dtype=np.int64)
+    gen = np.full((n_chunks, n_images), np.inf)
+    for c in numba.prange(n_chunks):
+        start, stop, g = spans[first + c, 0], spans[first + c, 1], spans[first + c, 2]
+        m = stop - start
+        values = np.empty(m)
+        nearest = np.empty(m, dtype=np.int64)
+        basis = basis_rows[basis_start[g] : basis_start[g + 1]]
+        _chunk_mixture(train_t, centres[g], basis, key, start, stop, l2, values, nearest, gen[c])
+        finish_distances(values, m, l2, exponent)
+        means[c], m2s[c] = chunk_moments(values, m)
+        for j in range(m):
+            counts[c, nearest[j]] += 1
+    return means, m2s, counts, gen
+
+
+@numba.njit(parallel=True, cache=True)
+def run_mixture_paired(
+    train_a,
+    centres_a,
+    rows_a,
+    start_a,
+    train_b,
+    centres_b,
+    rows_b,
+    start_b,
+    spans,
+    key,
+    l2,
+    exponent,
+):
+    """As :func:`run_paired` for two mixtures on the same spans and standard normals."""
+    n_chunks = spans.shape[0]
+    moments = np.empty((3, n_chunks, 2))
+    counts_a = np.zeros((n_chunks, train_a.shape[1]), dtype=np.int64)
+    counts_b = np.zeros((n_chunks, train_b.shape[1]), dtype=np.int64)
+    gen_a = np.full((n_chunks, train_a.shape[1]), np.inf)
+    gen_b = np.full((n_chunks, train_b.shape[1]), np.inf)
+    for c in numba.prange(n_chunks):
+        start, stop, g = spans[c, 0], spans[c, 1], spans[c, 2]
+        m = stop - start
+        va = np.empty(m)
+        vb = np.empty(m)
+        na = np.empty(m, dtype=np.int64)
+        nb = np.empty(m, dtype=np.int64)
+        basis_a = rows_a[start_a[g] : start_a[g + 1]]
+        basis_b = rows_b[start_b[g] : start_b[g + 1]]
+        _chunk_mixture(train_a, centres_a[g], basis_a, key, start, stop, l2, va, na, gen_a[c])
+        _chunk_mixture(train_b, centres_b[g], basis_b, key, start, stop, l2, vb, nb, gen_b[c])
         finish_distances(va, m, l2, exponent)
         finish_distances(vb, m, l2, exponent)
         moments[0, c, 0], moments[0, c, 1] = chunk_moments(va, m)

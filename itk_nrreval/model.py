@@ -10,6 +10,8 @@ images are preserved exactly; the specificity is then computed in R^(N-1), not R
 
 from __future__ import annotations
 
+import math
+from collections.abc import Hashable
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,9 +19,29 @@ import numpy as np
 from ._errors import InputError
 from ._images import Geometry, image_stack, mask_array
 
-__all__ = ["TextureModel"]
+__all__ = ["TextureModel", "MixtureModel"]
 
 _CHUNK_VOXELS = 1 << 16
+
+
+def _principal_axes(gram: np.ndarray, *, floor: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Non-zero eigenvalues (decreasing) and unit eigenvectors (columns) of a Gram matrix.
+
+    Eigenvalues below round-off of the largest (``n * 1e-12`` relative), or not above
+    `floor`, count as zero and are dropped (none may remain). Each eigenvector is signed so
+    that its largest-magnitude component is positive, so that results are reproducible
+    across LAPACK builds.
+    """
+    n = gram.shape[0]
+    eigenvalues, eigenvectors = np.linalg.eigh(gram)
+    order = np.argsort(eigenvalues)[::-1]
+    eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
+    # Centred data has rank <= N - 1; eigenvalues below round-off of the largest are zero.
+    tol = max(max(eigenvalues[0], 0.0) * n * 1e-12, floor)
+    keep = eigenvalues > tol
+    eigenvalues, eigenvectors = eigenvalues[keep], eigenvectors[:, keep]
+    signs = np.sign(eigenvectors[np.argmax(np.abs(eigenvectors), axis=0), np.arange(keep.sum())])
+    return eigenvalues, eigenvectors * signs
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,21 +153,9 @@ class TextureModel:
             raise ValueError(f"gram: expected a square matrix, got shape {gram.shape}")
         if n < 3:
             raise InputError(f"need at least 3 images to build a texture model, got {n}")
-        eigenvalues, eigenvectors = np.linalg.eigh(gram)
-        order = np.argsort(eigenvalues)[::-1]
-        eigenvalues, eigenvectors = eigenvalues[order], eigenvectors[:, order]
-        # Centred data has rank <= N - 1; eigenvalues below round-off of the largest are zero.
-        tol = max(eigenvalues[0], 0.0) * n * 1e-12
-        keep = eigenvalues > tol
-        if not keep.any():
+        eigenvalues, eigenvectors = _principal_axes(gram)
+        if eigenvalues.size == 0:
             raise InputError("all images are identical: the texture model has no mode of variation")
-        eigenvalues, eigenvectors = eigenvalues[keep], eigenvectors[:, keep]
-        # Fix each eigenvector's sign (largest |component| positive) so results are reproducible
-        # across LAPACK builds.
-        signs = np.sign(
-            eigenvectors[np.argmax(np.abs(eigenvectors), axis=0), np.arange(keep.sum())]
-        )
-        eigenvectors = eigenvectors * signs
         params = eigenvectors * np.sqrt(eigenvalues)
         return cls(
             training_params=params,
@@ -154,3 +164,161 @@ class TextureModel:
             mask=mask,
             geometry=geometry,
         )
+
+
+@dataclass(frozen=True, eq=False)
+class MixtureModel:
+    """A Gaussian mixture of texture models: one Gaussian per group of images (issue 19).
+
+    For a group of registered images split between groups (e.g. modalities, the paper's
+    closing discussion), each group g of N_g images has its own Gaussian: the group's mean
+    and its PCA with every non-zero mode (N_g - 1 for generic data, unbiased variances
+    divided by N_g - 1), weighted ``N_g / N`` in the mixture. Everything is expressed in the
+    parameter space of the :class:`TextureModel` of all N images (the *joint* PCA space):
+    every group's mean and modes lie in the span of the N centred images, so a group sample
+    ``mean_g + sum_k z_k sqrt(var_gk) u_gk`` is a point there, its L2 distance to a training
+    image equals their image-space distance, and L1 distances are sums along the joint modes,
+    as for a single group. Build it with :meth:`from_model`.
+
+    Attributes
+    ----------
+    joint : TextureModel
+        The model of all N images; its ``training_params`` (n_images, n_modes) are the
+        training points every sample is compared with.
+    groups : tuple of hashable
+        The group labels, in order of first appearance in the image order.
+    image_groups : ndarray of int, shape (n_images,)
+        Each training image's group, an index into `groups`.
+    centres : ndarray of shape (n_groups, n_modes)
+        Each group's mean image, in joint parameters.
+    bases : tuple of ndarray, one per group, of shape (n_group_modes, n_modes)
+        Row k is the group's k-th unit mode (in joint parameters) times its standard
+        deviation ``sqrt(mode_variances[g][k])``, so a sample of group g is
+        ``centres[g] + z @ bases[g]`` for standard normals z. Each mode is signed so that the
+        group image with the largest-magnitude coordinate along it has a positive coordinate.
+    mode_variances : tuple of ndarray, one per group, of shape (n_group_modes,)
+        The group's mode variances (unbiased, divided by N_g - 1), in decreasing order.
+    """
+
+    joint: TextureModel
+    groups: tuple[Hashable, ...]
+    image_groups: np.ndarray
+    centres: np.ndarray
+    bases: tuple[np.ndarray, ...]
+    mode_variances: tuple[np.ndarray, ...]
+
+    @property
+    def n_images(self) -> int:
+        return self.joint.n_images
+
+    @property
+    def n_modes(self) -> int:
+        """Modes of the joint parameter space, where distances are taken."""
+        return self.joint.n_modes
+
+    @property
+    def n_groups(self) -> int:
+        return len(self.groups)
+
+    @property
+    def group_sizes(self) -> np.ndarray:
+        """N_g, shape (n_groups,)."""
+        return np.bincount(self.image_groups, minlength=self.n_groups)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """The mixture weights ``N_g / N``, shape (n_groups,)."""
+        return self.group_sizes / self.n_images
+
+    @classmethod
+    def from_model(cls, model: TextureModel, groups) -> MixtureModel:
+        """The mixture of `model`'s training images split by `groups`.
+
+        `model` may come from images (:meth:`TextureModel.from_images`) or from a Gram matrix
+        alone (:meth:`TextureModel.from_gram`): only its training parameters are used, so the
+        mixture too is computable from the N x N Gram matrix of the centred images.
+
+        Parameters
+        ----------
+        model : TextureModel
+            The model of all N images.
+        groups : sequence of hashable, length n_images
+            Each image's group label (e.g. ``"t1"``, ``"t2"``), in image order.
+
+        Raises
+        ------
+        InputError
+            `groups` is not a sequence of N hashable labels, a group has fewer than 2
+            images, or a group's images are all identical (no mode of variation).
+        """
+        names, image_groups = _group_labels(groups, model.n_images)
+        params = model.training_params
+        # The joint parameters carry round-off of the joint scale: a group's eigenvalue below
+        # the joint model's zero threshold is no variation (e.g. a group of identical images).
+        floor = float(model.mode_variances[0]) * (model.n_images - 1) * model.n_images * 1e-12
+        centres = np.empty((len(names), model.n_modes))
+        bases, variances = [], []
+        for g, name in enumerate(names):
+            members = np.flatnonzero(image_groups == g)
+            n_g = members.size
+            if n_g < 2:
+                raise InputError(
+                    f"groups: group {name!r} has only 1 image (image {members[0]}); "
+                    "every group needs at least 2 images"
+                )
+            centres[g] = params[members].mean(axis=0)
+            centred = params[members] - centres[g]
+            eigenvalues, eigenvectors = _principal_axes(centred @ centred.T, floor=floor)
+            if eigenvalues.size == 0:
+                raise InputError(
+                    f"groups: the {n_g} images of group {name!r} are identical: "
+                    "the group has no mode of variation"
+                )
+            # Unit mode k is centred.T @ e_k / sqrt(lambda_k); times sqrt(lambda_k / (N_g - 1)).
+            bases.append(np.ascontiguousarray(eigenvectors.T @ centred) / math.sqrt(n_g - 1))
+            variances.append(eigenvalues / (n_g - 1))
+        return cls(
+            joint=model,
+            groups=names,
+            image_groups=image_groups,
+            centres=centres,
+            bases=tuple(bases),
+            mode_variances=tuple(variances),
+        )
+
+
+def _group_labels(groups, n_images: int) -> tuple[tuple[Hashable, ...], np.ndarray]:
+    """Check per-image group labels: (names in order of first appearance, index per image).
+
+    Raises
+    ------
+    InputError
+        Not a sequence of `n_images` hashable labels (a string is refused: pass a list).
+    """
+    if isinstance(groups, (str, bytes)):
+        raise InputError(
+            f"groups: expected one label per image (a list of {n_images}), got a string"
+        )
+    try:
+        labels = list(groups)
+    except TypeError:
+        raise InputError(
+            f"groups: expected one label per image (a list of {n_images}), "
+            f"got {type(groups).__name__}"
+        ) from None
+    if len(labels) != n_images:
+        raise InputError(
+            f"groups: {len(labels)} labels for {n_images} images (one label per image)"
+        )
+    index: dict[Hashable, int] = {}
+    image_groups = np.empty(n_images, dtype=np.int64)
+    for i, label in enumerate(labels):
+        if isinstance(label, np.generic):
+            label = label.item()
+        try:
+            image_groups[i] = index.setdefault(label, len(index))
+        except TypeError:
+            raise InputError(
+                f"groups[{i}]: a group label must be hashable, got {type(label).__name__}"
+            ) from None
+    return tuple(index), image_groups

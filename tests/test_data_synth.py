@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from data_synth.mni import make_mni
 from data_synth.phantom import PHANTOM_LABELS, make_phantom
 from data_synth.population import make_population, perfect_registration
 
@@ -289,3 +290,113 @@ def test_synth_command_refuses_a_file_as_output(tmp_path, capsys):
     target.write_text("x")
     assert main(["synth", "--out", str(target), "--n", "1"]) == 2
     assert re.search(r"exists and is not a folder", capsys.readouterr().err)
+
+
+# ------------------------------------------------------------------------------ two contrasts
+
+# Label values of each tissue class, per kind: (CSF, grey matter, white matter).
+TISSUES = {"phantom": ((15, 16), (3, 4), (1, 2)), "mni": ((3,), (1,), (2,))}
+
+
+@pytest.mark.parametrize("kind", ["phantom", "mni"])
+def test_t2_contrast_is_the_same_anatomy_with_t2_like_tissue_order(kind):
+    pop = make_population(kind, dim=2, n=2, seed=4, contrasts=("t1", "t2"))
+    assert pop.contrasts == ("t1", "t2")
+    labels = arr(pop.template_labels)
+    means = {}
+    for c in pop.contrasts:
+        image = arr(pop.templates[c])
+        means[c] = [np.mean(image[np.isin(labels, values)]) for values in TISSUES[kind]]
+    csf, gm, wm = means["t1"]
+    assert csf < gm < wm  # T1: CSF dark, white matter bright
+    csf, gm, wm = means["t2"]
+    assert csf > gm > wm  # T2: CSF bright, white matter dark
+    # One anatomy: the labels do not depend on the contrast, and both templates' tissue
+    # borders sit in the same place (their edge maps agree far better than chance).
+    maker = make_phantom if kind == "phantom" else make_mni
+    np.testing.assert_array_equal(arr(maker(dim=2, contrast="t2").labels), labels)
+    edges = [np.hypot(*np.gradient(arr(pop.templates[c]).astype(float))) for c in pop.contrasts]
+    assert np.corrcoef(edges[0].ravel(), edges[1].ravel())[0, 1] > 0.5
+    assert np.corrcoef(edges[0].ravel(), np.roll(edges[1], 5, axis=1).ravel())[0, 1] < 0.3
+
+
+def test_each_contrast_follows_the_one_true_transform():
+    pop = make_population("phantom", dim=2, n=3, seed=6, contrasts=("t1", "t2"))
+    for c in pop.contrasts:
+        reg = perfect_registration(pop, contrast=c)
+        template = arr(pop.templates[c]).ravel()
+        for subject, image in zip(pop.subjects, reg.images, strict=True):
+            aligned = np.corrcoef(arr(image).ravel(), template)[0, 1]
+            unaligned = np.corrcoef(arr(subject.images[c]).ravel(), template)[0, 1]
+            assert aligned > 0.9 and aligned > unaligned + 0.05, (c, aligned, unaligned)
+        # Inside the brain, a registered image follows its own contrast's template and is
+        # anti-correlated with the other's (the tissue order is reversed).
+        brain = arr(pop.template_labels) > 0
+        own = arr(pop.templates[c])[brain]
+        other = arr(pop.templates["t2" if c == "t1" else "t1"])[brain]
+        assert np.corrcoef(arr(reg.images[0])[brain], own)[0, 1] > 0.9
+        assert np.corrcoef(arr(reg.images[0])[brain], other)[0, 1] < -0.8
+    with pytest.raises(ValueError, match=r"contrast must be one of the population's"):
+        perfect_registration(make_population("phantom", n=1), contrast="t2")
+
+
+def test_adding_a_contrast_changes_no_image_of_another():
+    t1 = make_population("phantom", dim=2, n=2, seed=8)
+    both = make_population("phantom", dim=2, n=2, seed=8, contrasts=("t1", "t2"))
+    t2 = make_population("phantom", dim=2, n=2, seed=8, contrasts=("t2",))
+    for a, b, c in zip(t1.subjects, both.subjects, t2.subjects, strict=True):
+        np.testing.assert_array_equal(arr(a.image), arr(b.images["t1"]))
+        np.testing.assert_array_equal(arr(b.images["t2"]), arr(c.image))
+        np.testing.assert_array_equal(arr(a.labels), arr(c.labels))
+        pa = np.asarray(a.template_to_subject.TransformPoint([3.0, -2.0]))
+        pc = np.asarray(c.template_to_subject.TransformPoint([3.0, -2.0]))
+        np.testing.assert_array_equal(pa, pc)
+        assert a.image is not None and b.image is b.images["t1"] and c.image is c.images["t2"]
+    # Separate acquisitions: the T2 image's noise is not the T1 image's.
+    s = both.subjects[0]
+    resid = [arr(s.images[c])[:20, :20].ravel() for c in ("t1", "t2")]  # background: noise
+    assert abs(np.corrcoef(*resid)[0, 1]) < 0.3
+
+
+@pytest.mark.parametrize("contrasts", [(), ("t1", "t1"), ("t3",)])
+def test_bad_contrasts_name_the_argument(contrasts):
+    with pytest.raises(ValueError, match=r"contrasts must be distinct names from"):
+        make_population("phantom", n=1, contrasts=contrasts)
+
+
+def test_synth_command_two_contrasts_writes_groups(tmp_path, capsys):
+    import yaml
+
+    from itk_nrreval.cli import main
+
+    out = tmp_path / "pop"
+    argv = ["synth", "--n", "2", "--contrasts", "t1,t2", "--out", str(out)]
+    assert main(argv) == 0
+    assert "t1+t2" in capsys.readouterr().out
+    manifest = yaml.safe_load((out / "manifest.yaml").read_text())
+    subjects = ["s00", "s01"]
+    assert manifest["images"] == [f"img/{s}_{c}.nii.gz" for c in ("t1", "t2") for s in subjects]
+    assert manifest["groups"] == ["t1", "t1", "t2", "t2"]
+    assert manifest["labels"] == [f"lab/{s}.nii.gz" for s in subjects] * 2
+    truth = manifest["registrations"]["truth"]
+    assert truth["transforms"] == [f"truth/{s}.h5" for s in subjects] * 2
+    assert truth["reference"] == "truth/template_t1.nii.gz"
+    assert (out / "truth/template_t2.nii.gz").is_file()
+    # The files hold what their names say: T2 images are bright in CSF, dark in white matter.
+    for rel, group in zip(manifest["images"], manifest["groups"], strict=True):
+        image = arr(sitk.ReadImage(str(out / rel)))
+        labels = arr(sitk.ReadImage(str(out / manifest["labels"][manifest["images"].index(rel)])))
+        csf, wm = (np.mean(image[np.isin(labels, v)]) for v in ((16,), (1, 2)))
+        assert (csf > wm) == (group == "t2"), rel
+
+
+@pytest.mark.parametrize("value", ["t3", "t1,t1", "t1,,t2"])
+def test_synth_command_bad_contrasts_one_line_exit_2(tmp_path, capsys, value):
+    from itk_nrreval.cli import main
+
+    out = tmp_path / "pop"
+    assert main(["synth", "--out", str(out), "--n", "1", "--contrasts", value]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert "--contrasts must be distinct names from t1, t2" in err
+    assert not out.exists()

@@ -31,8 +31,23 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--exponent", type=positive, default=1.0, metavar="L", help="the paper's lambda")
     p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--groups",
+        type=_group_list,
+        metavar="G1,G2,...",
+        help="each image's group (e.g. modality), comma-separated in image order: the model "
+        "becomes a Gaussian mixture with one Gaussian per group (at least 2 images each)",
+    )
     p.add_argument("--json", metavar="OUT", help="also write the numbers to this JSON file")
     p.set_defaults(func=run)
+
+
+def _group_list(text: str) -> list[str]:
+    """``"t1,t1,t2"`` -> ``["t1", "t1", "t2"]``; empty labels are refused."""
+    labels = [part.strip() for part in text.split(",")]
+    if not all(labels):
+        raise argparse.ArgumentTypeError(f"expected comma-separated group labels, got {text!r}")
+    return labels
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,21 +61,29 @@ def run(args: argparse.Namespace) -> int:
         exponent=args.exponent,
         seed=args.seed,
         mask=args.mask,
+        groups=args.groups,
     )
     print(
         f"specificity = {spec.value:.6g} ± {spec.stderr:.2g} "
         f"({spec.n_samples} samples, {spec.n_images} images)"
     )
+    mix = spec.mixture
+    if mix is not None:
+        names = [str(g) for g in mix.groups]
+        for g, name in enumerate(names):
+            nearest = ", ".join(
+                f"{h}: {int(c)}" for h, c in zip(names, mix.nearest_counts[g], strict=True)
+            )
+            print(
+                f"  group {name}: {mix.values[g]:.6g} ± {mix.stderrs[g]:.2g} "
+                f"({mix.sizes[g]} images, {mix.n_samples[g]} samples; nearest {nearest})"
+            )
     print(f"generalization = {gen.value:.6g} ± {gen.stderr:.2g}")
     if args.json:
-        write_json(
-            args.json,
-            {
-                "version": __version__,
-                "images": list(args.images),
-                "mask": args.mask,
-                "specificity": spec.to_dict(),
-                "generalization": gen.to_dict(),
-            },
-        )
+        record = {"version": __version__, "images": list(args.images), "mask": args.mask}
+        if args.groups is not None:
+            record["groups"] = args.groups
+        record["specificity"] = spec.to_dict()
+        record["generalization"] = gen.to_dict()
+        write_json(args.json, record)
     return 0

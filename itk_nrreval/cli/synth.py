@@ -43,10 +43,19 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--smoothness", type=float, default=20.0, metavar="MM", help="warp smoothness (default 20)"
     )
+    p.add_argument(
+        "--contrasts",
+        default="t1",
+        metavar="C1,C2",
+        help="contrasts to image every subject in, comma-separated, from t1 and t2 (default t1): "
+        "with more than one, the files are named after the contrast and the manifest records "
+        "each image's contrast under `groups`",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from data_synth.phantom import CONTRASTS
     from data_synth.population import make_population
     from data_synth.writing import write_population
 
@@ -60,6 +69,12 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--n must be at least 1, got {args.n}")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
+    contrasts = tuple(c.strip() for c in args.contrasts.split(","))
+    if not all(c in CONTRASTS for c in contrasts) or len(set(contrasts)) != len(contrasts):
+        raise InputError(
+            f"--contrasts must be distinct names from {', '.join(CONTRASTS)}, "
+            f"comma-separated, got {args.contrasts!r}"
+        )
     try:
         pop = make_population(
             args.kind,
@@ -69,9 +84,13 @@ def run(args: argparse.Namespace) -> int:
             spacing=args.spacing,
             warp_mm=args.warp,
             smoothness_mm=args.smoothness,
+            contrasts=contrasts,
         )
     except (ValueError, FileNotFoundError) as exc:
         raise InputError(str(exc).splitlines()[0]) from None
     manifest = write_population(pop, out)
-    print(f"wrote {len(pop)} subjects ({args.kind}, {args.dim}D) and {manifest}")
+    what = f"{args.kind}, {args.dim}D" + (
+        "" if contrasts == ("t1",) else f", {'+'.join(contrasts)}"
+    )
+    print(f"wrote {len(pop)} subjects ({what}) and {manifest}")
     return 0
