@@ -3,10 +3,20 @@
 Start from N registered images with labels on one grid. For every mean displacement ``d``
 and every repeat, each image (and its labels, as one-hot memberships) is perturbed by its own
 independent random clamped-plate-spline warp of exactly that mean displacement
-(:mod:`itk_nrreval.warps`); the specificity of the perturbed set's texture model and the
-generalized Tanimoto overlap of its labels are recorded. Specificity should rise as overlap
-falls: the paper finds a straight line for ``d >= 0.375`` pixels (Fig. 2) and a dip below the
-unperturbed value at sub-pixel ``d`` (interpolation smoothing).
+(:mod:`itk_nrreval.warps`: biharmonic in 2D as in the paper, triharmonic in 3D; the ball in
+mm); the specificity of the perturbed set's texture model and the generalized Tanimoto
+overlap of its labels are recorded. Specificity should rise as overlap falls: the paper finds
+a straight line for ``d >= 0.375`` pixels (Fig. 2) and a dip below the unperturbed value at
+sub-pixel ``d`` (interpolation smoothing).
+
+The paper worked on 2D mid-brain slices of registered 3D images "at an equivalent level
+across the set"; ``section="z"`` (``nrreval validate --slice z``) does the same with a slice
+of the common frame, and without it the experiment runs in full 3D.
+
+Full 3D reaches smaller ``d`` than 2D before warps fold: the ball covers a smaller part of
+the grid (52 % of a cube against 79 % of a square) and a 3D bump folds sooner (see
+:func:`~itk_nrreval.warps.random_cps`); an unreachable ``d`` is refused with the largest
+one that is reachable.
 """
 
 from __future__ import annotations
@@ -14,33 +24,59 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
+from ._output import atomic_path, json_number, write_json, write_text
 from ._progress import progress as _progress
 from .overlap import WEIGHTINGS, overlap_table
 from .specificity import specificity
-from .warps import random_cps, warp_stack
+from .warps import MEMBERSHIP_TOLERANCE, FoldingError, random_cps, warp_stack
 
 __all__ = [
     "DEFAULT_DISPLACEMENTS",
     "FIT_FROM",
+    "OUTPUT_FILES",
     "ValidationRow",
     "ValidationSummary",
     "ValidationResult",
     "validate",
+    "summarize",
     "synthetic_set",
     "manifest_set",
+    "validate_manifest",
+    "parse_section",
+    "take_section",
+    "plot_fig2",
+    "plot_vs_d",
 ]
 
 #: The mean displacements (pixels) of the default run: 12 values from 0 to the paper's 3.0.
 DEFAULT_DISPLACEMENTS = (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
 #: The straight-line fit and the correlations use ``d >= FIT_FROM`` (the paper's 0.375).
 FIT_FROM = 0.375
+#: The files :meth:`ValidationResult.write` writes, in order.
+OUTPUT_FILES = ("validation.csv", "validation.json", "validation_fig2.png", "validation_vs_d.png")
 _KINDS = ("phantom", "mni")
+_AXES = ("x", "y", "z")
+_Z975 = 1.959963984540054  # standard normal 97.5 % quantile
+
+
+def _clean(value):
+    """JSON-ready: NaN / inf -> None, numpy scalars -> Python, recursively."""
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return json_number(value)
 
 
 @dataclass(frozen=True)
@@ -50,14 +86,17 @@ class ValidationRow:
     Attributes
     ----------
     displacement : float
-        ``d``, the exact mean pixel displacement of every image's warp.
+        ``d``, the exact mean pixel displacement of every image's warp (pixel index units).
     repeat : int
     specificity, specificity_stderr : float
         Of the perturbed set's texture model (intensity units).
     overlap : dict of str to float
         Generalized Tanimoto overlap of the perturbed memberships, per weighting.
     min_jacobian : float
-        The smallest Jacobian determinant over the N warps (at pixel centres).
+        The smallest Jacobian determinant over the N warps (at the fold check's points).
+    displacement_mm : float or None
+        The mean over the N warps of their mean displacement in mm (``d`` times the voxel
+        size for isotropic voxels; 1 mm voxels when the grid had none).
     """
 
     displacement: float
@@ -66,8 +105,10 @@ class ValidationRow:
     specificity_stderr: float
     overlap: dict[str, float]
     min_jacobian: float
+    displacement_mm: float | None = None
 
     def to_dict(self) -> dict:
+        """Plain Python, JSON-ready (an undefined value is None, never NaN)."""
         d = {
             "displacement": self.displacement,
             "repeat": self.repeat,
@@ -76,7 +117,8 @@ class ValidationRow:
         }
         d.update({f"overlap_{w}": v for w, v in self.overlap.items()})
         d["min_jacobian"] = self.min_jacobian
-        return d
+        d["displacement_mm"] = self.displacement_mm
+        return _clean(d)
 
 
 @dataclass(frozen=True)
@@ -99,6 +141,19 @@ class ValidationSummary:
         Whether the mean specificity rises strictly with ``d``.
     unperturbed : float or None
         Mean specificity at ``d = 0`` (None when 0 was not run).
+    pearson_ci : dict of str to (float, float)
+        Per weighting, the 95 % confidence interval of Pearson r (Fisher's z,
+        ``tanh(atanh r -+ 1.96 / sqrt(n - 3))``; NaN with fewer than 4 instances).
+    fit : dict of str to (float, float)
+        Per weighting, the least-squares line ``specificity = a * overlap + b`` as
+        ``(a, b)``: Fig. 2's grey line.
+    slope_mm, sensitivity_mm : float
+        As `slope` and `sensitivity`, per mm of ``d`` (``d`` in mm per instance).
+    n_fit : int
+        Instances with ``d >= FIT_FROM``.
+
+    NaN marks a figure that is undefined (fewer than two values of ``d >= FIT_FROM``, no
+    spread); :meth:`to_dict` gives None for it.
     """
 
     pearson_r: dict[str, float]
@@ -107,14 +162,29 @@ class ValidationSummary:
     sensitivity: float
     monotonic: bool
     unperturbed: float | None
+    pearson_ci: dict[str, tuple[float, float]] = field(default_factory=dict)
+    fit: dict[str, tuple[float, float]] = field(default_factory=dict)
+    slope_mm: float = math.nan
+    sensitivity_mm: float = math.nan
+    n_fit: int = 0
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """Plain Python, JSON-ready (an undefined value is None, never NaN)."""
+        return _clean({k: getattr(self, k) for k in self.__dataclass_fields__})
 
 
 @dataclass(frozen=True)
 class ValidationResult:
-    """The table of a validation run: one row per (d, repeat), plus its summary."""
+    """The table of a validation run: one row per (d, repeat), plus its summary.
+
+    Attributes
+    ----------
+    spacing : tuple of float or None
+        Voxel size (mm, ITK order) of the grid the warps and overlaps were computed on.
+    parameters : dict
+        ``repeats``, ``displacements`` (pixels), ``fit_from``, and ``section`` (the slice,
+        e.g. ``{"axis": "z", "index": 47}``, or None for the full grid).
+    """
 
     rows: tuple[ValidationRow, ...]
     summary: ValidationSummary
@@ -126,17 +196,27 @@ class ValidationResult:
     seed: int
     source: str
     parameters: dict = field(default_factory=dict)
+    spacing: tuple[float, ...] | None = None
 
     def column(self, name: str) -> np.ndarray:
-        """A column as an array: ``"displacement"``, ``"specificity"``, ``"overlap_<w>"``..."""
-        return np.array([r.to_dict()[name] for r in self.rows], dtype=float)
+        """A column as an array: ``"displacement"``, ``"specificity"``, ``"overlap_<w>"``...
+
+        Undefined values are NaN.
+        """
+        values = [r.to_dict()[name] for r in self.rows]
+        return np.array([math.nan if v is None else v for v in values], dtype=float)
 
     def means(self) -> dict[str, np.ndarray]:
         """Per distinct ``d``: mean and standard deviation over repeats of each measure."""
         d = self.column("displacement")
         levels = np.unique(d)
         out = {"displacement": levels}
-        names = ["specificity", "specificity_stderr", *(f"overlap_{w}" for w in self.weightings)]
+        names = [
+            "specificity",
+            "specificity_stderr",
+            "displacement_mm",
+            *(f"overlap_{w}" for w in self.weightings),
+        ]
         for name in names:
             col = self.column(name)
             out[name] = np.array([col[d == v].mean() for v in levels])
@@ -144,41 +224,174 @@ class ValidationResult:
         return out
 
     def to_dict(self) -> dict:
-        return {
-            "source": self.source,
-            "n_images": self.n_images,
-            "shape": list(self.shape),
-            "n_samples": self.n_samples,
-            "n_knots": self.n_knots,
-            "seed": self.seed,
-            "weightings": list(self.weightings),
-            "parameters": dict(self.parameters),
-            "summary": self.summary.to_dict(),
-            "rows": [r.to_dict() for r in self.rows],
-        }
+        """Plain Python, JSON-ready (an undefined value is None, never NaN)."""
+        return _clean(
+            {
+                "source": self.source,
+                "n_images": self.n_images,
+                "shape": list(self.shape),
+                "spacing": None if self.spacing is None else list(self.spacing),
+                "n_samples": self.n_samples,
+                "n_knots": self.n_knots,
+                "seed": self.seed,
+                "weightings": list(self.weightings),
+                "parameters": dict(self.parameters),
+                "summary": self.summary.to_dict(),
+                "rows": [r.to_dict() for r in self.rows],
+            }
+        )
 
     def to_csv(self) -> str:
-        """The rows as CSV text (header line first)."""
+        """The rows as CSV text (header line first); an undefined value is an empty field."""
         dicts = [r.to_dict() for r in self.rows]
         header = list(dicts[0]) if dicts else []
+
+        def cell(k, v):
+            if v is None:
+                return ""
+            return str(v) if k == "repeat" else repr(float(v))
+
         lines = [",".join(header)]
-        lines += [
-            ",".join(repr(float(d[k])) if k != "repeat" else str(d[k]) for k in header)
-            for d in dicts
-        ]
+        lines += [",".join(cell(k, d[k]) for k in header) for d in dicts]
         return "\n".join(lines) + "\n"
 
+    def write(self, out_dir) -> list[Path]:
+        """Write :data:`OUTPUT_FILES` into `out_dir` (created if needed).
 
-def synthetic_set(kind: str = "phantom", *, n_images: int = 10, seed: int = 0):
-    """Generated brain-like images and crisp labels in one frame (perfect registration).
+        ``validation.csv`` (:meth:`to_csv`), ``validation.json`` (the package version and
+        :meth:`to_dict`), ``validation_fig2.png`` (:func:`plot_fig2`) and
+        ``validation_vs_d.png`` (:func:`plot_vs_d`). Each file is written under a temporary
+        name and renamed into place, so a file is complete or absent; other files in
+        `out_dir` are left alone.
 
-    Uses :func:`data_synth.make_population` (2D, 141 x 141) and resamples every subject into
-    the template frame through its true transform.
+        Returns
+        -------
+        list of Path
+            The files written, in :data:`OUTPUT_FILES` order.
+        """
+        from ._version import __version__
+
+        out = Path(out_dir)
+        paths = [out / name for name in OUTPUT_FILES]
+        write_text(paths[0], self.to_csv())
+        write_json(paths[1], {"version": __version__, **self.to_dict()})
+        with atomic_path(paths[2]) as tmp:
+            plot_fig2(self, tmp)
+        with atomic_path(paths[3]) as tmp:
+            plot_vs_d(self, tmp)
+        return paths
+
+
+# ----------------------------------------------------------------------------------------
+# Inputs
+# ----------------------------------------------------------------------------------------
+
+
+def parse_section(section) -> tuple[str, int | None] | None:
+    """``"z"``, ``"z:47"``, ``("z", 47)`` or None -> ``(axis, index or None)`` or None.
+
+    The axis names the common grid's ITK axis (``x``, ``y`` or ``z``; ``z`` is the first
+    numpy axis); no index means the middle slice.
+
+    Raises
+    ------
+    InputError
+        Anything else (the message quotes it).
+    """
+    if section is None:
+        return None
+    if isinstance(section, str):
+        axis, _, index = section.strip().partition(":")
+    else:
+        try:
+            axis, index = section
+        except (TypeError, ValueError):
+            raise InputError(
+                f"slice: expected AXIS[:INDEX] such as z or z:40, got {section!r}"
+            ) from None
+    axis = str(axis).strip().lower()
+    if axis not in _AXES:
+        raise InputError(f"slice: axis must be x, y or z, got {section!r}")
+    if index is None or (isinstance(index, str) and not index.strip()):
+        return axis, None
+    try:
+        value = int(str(index).strip())
+    except ValueError:
+        raise InputError(f"slice: index must be an integer >= 0, got {section!r}") from None
+    if value < 0:
+        raise InputError(f"slice: index must be an integer >= 0, got {section!r}")
+    return axis, value
+
+
+def _section_index(section, size_itk: Sequence[int]) -> tuple[int, int]:
+    """(ITK axis, index) of a parsed section on a grid of ITK size `size_itk` (3D)."""
+    axis, index = section
+    a = _AXES.index(axis)
+    n = int(size_itk[a])
+    index = n // 2 if index is None else index
+    if index >= n:
+        raise InputError(
+            f"slice {axis}:{index}: out of range, the grid has {n} slices along {axis}"
+        )
+    return a, index
+
+
+def take_section(images, labels, spacing, section, *, mask=None):
+    """The 2D slice of 3D arrays at one level of their common grid.
+
+    Parameters
+    ----------
+    images : ndarray of shape (n_images, nz, ny, nx)
+    labels : ndarray of shape (n_images, nz, ny, nx) or (n_images, n_labels, nz, ny, nx)
+    spacing : sequence of 3 float or None
+        mm, ITK order.
+    section : str or (str, int)
+        ``AXIS[:INDEX]`` (:func:`parse_section`); default index the middle slice.
+    mask : ndarray of shape (nz, ny, nx), optional
 
     Returns
     -------
-    images : ndarray of shape (n_images, 141, 141), float64
-    labels : ndarray of int of shape (n_images, 141, 141)
+    images, labels, spacing, mask, (axis, index)
+        The slices (2D spatial axes, numpy order), the 2D spacing (ITK order of the two
+        remaining axes), and the slice taken.
+    """
+    section = parse_section(section)
+    images = np.asarray(images)
+    if images.ndim != 4:
+        raise InputError(f"slice: needs 3D images, got spatial shape {images.shape[1:]}")
+    size_itk = images.shape[1:][::-1]
+    a, index = _section_index(section, size_itk)
+    np_axis = 2 - a  # spatial numpy axis
+    images = np.take(images, index, axis=1 + np_axis)
+    labels = np.asarray(labels)
+    lab_axis = labels.ndim - 3 + np_axis
+    labels = np.take(labels, index, axis=lab_axis)
+    if mask is not None:
+        mask = np.take(np.asarray(mask), index, axis=np_axis)
+    if spacing is not None:
+        spacing = tuple(float(s) for k, s in enumerate(spacing) if k != a)
+    return images, labels, spacing, mask, (_AXES[a], index)
+
+
+def synthetic_set(
+    kind: str = "phantom",
+    *,
+    n_images: int = 10,
+    seed: int = 0,
+    dim: int = 2,
+    with_spacing: bool = False,
+):
+    """Generated brain-like images and crisp labels in one frame (perfect registration).
+
+    Uses :func:`data_synth.make_population` (2D 141 x 141, or 3D at 2 mm) and resamples
+    every subject into the template frame through its true transform.
+
+    Returns
+    -------
+    images : ndarray of shape (n_images, *spatial), float64
+    labels : ndarray of int of shape (n_images, *spatial)
+    spacing : tuple of float
+        Only with `with_spacing`: the voxel size, mm, ITK order.
     """
     if kind not in _KINDS:
         raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
@@ -186,30 +399,49 @@ def synthetic_set(kind: str = "phantom", *, n_images: int = 10, seed: int = 0):
 
     from data_synth import make_population, perfect_registration
 
-    reg = perfect_registration(make_population(kind, dim=2, n=n_images, seed=seed))
+    pop = make_population(kind, dim=dim, n=n_images, seed=seed)
+    reg = perfect_registration(pop)
     images = np.stack([sitk.GetArrayFromImage(i) for i in reg.images]).astype(np.float64)
     labels = np.stack([sitk.GetArrayFromImage(i) for i in reg.labels]).astype(np.int64)
+    if with_spacing:
+        return images, labels, tuple(float(s) for s in pop.template.GetSpacing())
     return images, labels
 
 
-def manifest_set(manifest):
+def manifest_set(manifest, *, section=None, show_progress: bool = True):
     """The images and label memberships of a manifest, resampled into its common frame.
 
     Uses the common-frame registration's transforms (the registered set the paper perturbs).
 
+    Parameters
+    ----------
+    manifest : path, mapping or Manifest
+    section : str or (str, int), optional
+        ``AXIS[:INDEX]`` (:func:`parse_section`): resample only that slice of the common
+        grid (default index: the middle slice), the paper's "2D slices at an equivalent
+        level across the set". The grid must be 3D.
+    show_progress : bool
+
     Returns
     -------
     images : ndarray of shape (n_images, *spatial), float64
-    memberships : ndarray of shape (n_images, n_labels, *spatial), float64
-        Component 0 is the background.
+    memberships : ndarray of shape (n_images, n_labels, *spatial), float32
+        Component 0 is the background (label value 0); components 1.. are the nonzero label
+        values present in the (sliced) maps, ascending.
     geometry : Geometry
-        The common grid.
+        The grid resampled onto (a one-voxel-thick 3D grid for a section).
 
     Raises
     ------
     InputError
-        A bad manifest, or one without labels.
+        A bad manifest, one without labels, or a section of a 2D grid / out of range.
     """
+    images, members, grid, _ = _manifest_arrays(manifest, section, show_progress)
+    return images, members, grid
+
+
+def _manifest_arrays(manifest, section, show_progress: bool):
+    """:func:`manifest_set` plus the section taken, ``(axis, index)`` or None."""
     from ._images import Geometry
     from .frame import (
         common_reference,
@@ -221,16 +453,76 @@ def manifest_set(manifest):
     from .manifest import load_manifest
 
     m = load_manifest(manifest)
+    name = str(m.source) if m.source is not None else "manifest"
     if m.labels is None:
-        raise InputError(
-            f"{m.source or 'manifest'}: validation needs label maps ('labels:' in the manifest)"
-        )
+        raise InputError(f"{name}: validation needs label maps ('labels:' in the manifest)")
     grid = Geometry.from_image(common_reference(m))
+    taken = None
+    if section is not None:
+        if grid.dimension != 3:
+            raise InputError(f"{name}: a slice needs a 3D common frame, got a 2D one")
+        a, index = _section_index(parse_section(section), grid.size)
+        taken = (_AXES[a], index)
+        direction = np.array(grid.direction).reshape(3, 3)
+        offset = np.zeros(3)
+        offset[a] = index * grid.spacing[a]
+        size = list(grid.size)
+        size[a] = 1
+        grid = Geometry(
+            tuple(size),
+            grid.spacing,
+            tuple(float(v) for v in np.array(grid.origin) + direction @ offset),
+            grid.direction,
+        )
     chains = read_chains(m, m.common_frame)
-    images = resample_images(m.images, chains, grid, desc="resampling images")
+    images = resample_images(
+        m.images, chains, grid, desc="resampling images", show_progress=show_progress
+    )
     found = [int(v) for v in label_values(m.labels) if v != 0]
-    members = resample_memberships(m.labels, chains, grid, values=[0, *found])
-    return images, members.astype(np.float64), grid
+    values = np.array([0, *found], dtype=np.int64)
+    members = resample_memberships(
+        m.labels, chains, grid, values=values, show_progress=show_progress
+    )
+    members = _drop_absent(members)
+    if taken is not None:  # drop the one-voxel axis: 2D arrays
+        np_axis = 2 - _AXES.index(taken[0])
+        images = np.take(images, 0, axis=1 + np_axis)
+        members = np.take(members, 0, axis=2 + np_axis)
+    return images, members, grid, taken
+
+
+def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
+    """:func:`validate` on a manifest's registered set (its common frame, with labels).
+
+    Parameters
+    ----------
+    manifest : path, mapping or Manifest
+    section : str or (str, int), optional
+        ``AXIS[:INDEX]``: only that slice of the common grid is resampled and validated
+        (default index the middle slice); None: the full grid.
+    **options
+        Keyword options of :func:`validate` (not `spacing`, `section` or `mask`).
+
+    Returns
+    -------
+    ValidationResult
+        ``source`` the manifest; ``parameters["section"]`` the slice taken.
+    """
+    for key in ("spacing", "section", "mask"):
+        if key in options:
+            raise TypeError(f"validate_manifest() got an unexpected keyword argument {key!r}")
+    images, members, grid, taken = _manifest_arrays(
+        manifest, section, options.get("progress", True)
+    )
+    spacing = grid.spacing
+    if taken is not None:
+        spacing = tuple(s for k, s in enumerate(spacing) if k != _AXES.index(taken[0]))
+    options.setdefault("source", str(manifest))
+    result = validate(images, members, spacing=spacing, **options)
+    if taken is None:
+        return result
+    parameters = {**result.parameters, "section": {"axis": taken[0], "index": int(taken[1])}}
+    return replace(result, parameters=parameters)
 
 
 def _check(displacements, repeats, n_samples, weightings, n_knots):
@@ -252,6 +544,11 @@ def _check(displacements, repeats, n_samples, weightings, n_knots):
     return sorted(set(float(v) for v in d)), weightings
 
 
+# ----------------------------------------------------------------------------------------
+# The experiment
+# ----------------------------------------------------------------------------------------
+
+
 def validate(
     images,
     labels,
@@ -263,6 +560,8 @@ def validate(
     n_knots: int = 25,
     seed: int = 0,
     mask=None,
+    spacing: Sequence[float] | None = None,
+    section=None,
     max_tries: int = 100,
     n_jobs: int = 2,
     progress: bool = True,
@@ -275,8 +574,11 @@ def validate(
     images : ndarray of shape (n_images, *spatial), or sequence of sitk.Image or paths
         N >= 3 registered images on one 2D or 3D grid (numpy order).
     labels : ndarray or sequence of sitk.Image or paths
-        Their label maps on the same grid: integers (n_images, *spatial), or floating
-        memberships (n_images, n_labels, *spatial) with component 0 the background.
+        Their label maps on the same grid: non-negative integers (n_images, *spatial) of
+        any values (FreeSurfer's up to 14175: one channel per value present, plus the
+        background 0; an image may lack labels others have), or floating memberships
+        (n_images, n_labels, *spatial) in [0, 1] with component 0 the background (rounding
+        up to ``1e-6`` outside is clipped).
     displacements : sequence of float
         Mean pixel displacements ``d`` (run in ascending order; duplicates dropped).
     repeats : int
@@ -296,8 +598,14 @@ def validate(
         numbers across instances).
     mask : ndarray of bool, sitk.Image, path or None
         Restrict the texture model (specificity) to these voxels.
+    spacing : sequence of float, optional
+        Voxel size in mm, ITK order, for bare arrays (images bring their own; default 1 mm).
+        The warps' ball is round in mm; overlap complexities are in mm.
+    section : str or (str, int), optional
+        ``AXIS[:INDEX]``: run on that 2D slice of 3D inputs (:func:`take_section`; default
+        index the middle slice), as the paper's slices. None: the full grid.
     max_tries : int
-        Redraws of a folding warp before :class:`~itk_nrreval.warps.FoldingError`.
+        Redraws of a folding warp before giving up.
     n_jobs : int
         Threads warping the N images of an instance in parallel (results do not depend on it).
     progress : bool
@@ -309,6 +617,13 @@ def validate(
     -------
     ValidationResult
         One row per (d, repeat), in that order, and a :class:`ValidationSummary`.
+
+    Raises
+    ------
+    InputError
+        Bad images or labels, or a ``d`` that no warp reaches without folding (checked for
+        the largest ``d`` before any other work; the message gives the largest safe ``d``
+        in pixels and mm).
 
     Notes
     -----
@@ -324,36 +639,83 @@ def validate(
         raise InputError(f"validation needs at least 3 images, got {n}")
     if len(spatial) not in (2, 3):
         raise InputError(f"images must be 2D or 3D, got spatial shape {spatial}")
+    if stack.geometry is not None:
+        if spacing is not None:
+            raise ValueError("spacing: the images bring their own; give it for bare arrays only")
+        spacing = stack.geometry.spacing
+    elif spacing is not None:
+        spacing = tuple(float(s) for s in spacing)
+        if len(spacing) != len(spatial) or not all(math.isfinite(s) and s > 0 for s in spacing):
+            raise InputError(f"spacing: expected {len(spatial)} positive mm, got {spacing!r}")
     lab = _labels(labels, n, spatial)
     mask_arr = mask_array(mask, shape=spatial, geometry=stack.geometry)
-    spacing = None if stack.geometry is None else stack.geometry.spacing
+    taken = None
+    if section is not None:
+        data, lab, spacing, mask_arr, taken = take_section(
+            data, lab, spacing, section, mask=mask_arr
+        )
+        spatial = data.shape[1:]
+        if mask_arr is not None and not mask_arr.any():
+            raise InputError(f"mask: empty on slice {taken[0]}:{taken[1]}")
+    if min(spatial) < 3:
+        raise InputError(f"images must have at least 3 voxels per axis, got {spatial}")
+    fuzzy = np.issubdtype(lab.dtype, np.floating)
+    if fuzzy:
+        lab = _drop_absent(lab)
+        n_labels = lab.shape[1]
+    else:
+        lab, n_labels = _compact(lab)
+
+    def draw(d: float, r: int, i: int):
+        try:
+            return random_cps(
+                spatial,
+                d,
+                spacing=spacing,
+                n_knots=n_knots,
+                seed=np.random.default_rng([seed, round(d * 1e6), r, i]),
+                max_tries=max_tries,
+            )
+        except FoldingError as exc:
+            raise _unreachable(d, exc, spatial, max_tries) from None
 
     def perturb(d: float, r: int, i: int):
-        warp = random_cps(
-            spatial,
-            d,
-            n_knots=n_knots,
-            seed=np.random.default_rng([seed, round(d * 1e6), r, i]),
-            max_tries=max_tries,
-        )
-        img, mem = warp_stack(data[i : i + 1], [warp], labels=lab[i : i + 1])
-        return img[0], mem[0], warp.min_jacobian
+        warp = draw(d, r, i)
+        try:
+            img, mem = warp_stack(
+                data[i : i + 1], [warp], labels=lab[i : i + 1], n_labels=None if fuzzy else n_labels
+            )
+        except FoldingError as exc:
+            raise _unreachable(d, exc, spatial, max_tries) from None
+        return img[0], mem[0], warp.min_jacobian, warp.mean_displacement_mm
 
+    if ds[-1] > 0:  # the largest d first: an unreachable request fails before any work
+        draw(ds[-1], 0, 0)
+    # memberships are stored as float32 (N x labels x voxels: the largest array here);
+    # their overlap sums accumulate in float64
+    m_dtype = np.float32
     rows = []
     todo = [(d, r) for d in ds for r in range(repeats)]
     pool = ThreadPoolExecutor(n_jobs) if n_jobs > 1 else None
     try:
         for d, r in _progress(todo, desc="validate", total=len(todo), enabled=progress):
             if d == 0.0:  # the identity: no resampling at all
-                warped, members, min_jac = data, _onehot(lab), 1.0
+                warped, members, min_jac, d_mm = data, _onehot(lab, n_labels), 1.0, 0.0
             else:
                 jobs = [(d, r, i) for i in range(n)]
-                done = list(
-                    pool.map(lambda a: perturb(*a), jobs) if pool else (perturb(*a) for a in jobs)
+                done = (
+                    pool.map(lambda a: perturb(*a), jobs)
+                    if pool
+                    else map(lambda a: perturb(*a), jobs)
                 )
-                warped = np.stack([x[0] for x in done])
-                members = np.stack([x[1] for x in done])
-                min_jac = min(x[2] for x in done)
+                warped = np.empty(data.shape)
+                members = np.empty((n, n_labels, *spatial), dtype=m_dtype)
+                jacs, mms = [], []
+                for i, (img, mem, jac, mm) in enumerate(done):
+                    warped[i], members[i] = img, mem
+                    jacs.append(jac)
+                    mms.append(mm)
+                min_jac, d_mm = min(jacs), float(np.mean(mms))
             spec = specificity(warped, n_samples=n_samples, seed=seed, mask=mask_arr)
             table = overlap_table(members, spacing=spacing)
             rows.append(
@@ -364,11 +726,12 @@ def validate(
                     specificity_stderr=spec.stderr,
                     overlap={w: table.generalized(w) for w in weightings},
                     min_jacobian=min_jac,
+                    displacement_mm=d_mm,
                 )
             )
     finally:
         if pool is not None:
-            pool.shutdown()
+            pool.shutdown(cancel_futures=True)
     return ValidationResult(
         rows=tuple(rows),
         summary=summarize(rows, weightings),
@@ -379,37 +742,121 @@ def validate(
         n_knots=int(n_knots),
         seed=int(seed),
         source=source,
-        parameters={"repeats": int(repeats), "displacements": ds, "fit_from": FIT_FROM},
+        parameters={
+            "repeats": int(repeats),
+            "displacements": ds,
+            "fit_from": FIT_FROM,
+            "section": None if taken is None else {"axis": taken[0], "index": int(taken[1])},
+        },
+        spacing=None if spacing is None else tuple(float(s) for s in spacing),
+    )
+
+
+def _unreachable(d: float, exc: FoldingError, spatial, max_tries: int) -> InputError:
+    """The one-line message for a displacement that no warp reaches without folding."""
+    grid = "x".join(map(str, spatial[::-1]))
+    safe, safe_mm = exc.largest_safe, exc.largest_safe_mm
+    per_px = safe_mm / safe if safe > 0 and math.isfinite(safe_mm) else math.nan
+    if math.isfinite(safe):
+        hint = (
+            f"the largest safe d seen is {safe:.3g} px ({safe_mm:.3g} mm); "
+            "lower the largest displacement"
+        )
+    else:
+        hint = "lower the largest displacement"
+    mm = f" ({d * per_px:.3g} mm)" if math.isfinite(per_px) else ""
+    return InputError(
+        f"displacements: d = {d:g} px{mm} cannot be reached without folding on the "
+        f"{grid} grid ({max_tries} random CPS warps tried); {hint}"
     )
 
 
 def _labels(labels, n: int, spatial: tuple[int, ...]) -> np.ndarray:
+    """Integer label maps (n, *spatial) as int64, or memberships (n, L, *spatial) clipped
+    to [0, 1] (float32 kept as float32)."""
     if isinstance(labels, np.ndarray) and np.issubdtype(labels.dtype, np.floating):
         if labels.ndim == len(spatial) + 2:
             if labels.shape[0] != n or labels.shape[2:] != spatial:
                 raise InputError(
                     f"memberships shape {labels.shape} does not match {n} images of {spatial}"
                 )
-            return labels.astype(np.float64)
+            if not np.all(np.isfinite(labels)):
+                raise InputError("memberships hold NaN or infinite values")
+            lo, hi = float(labels.min()), float(labels.max())
+            if lo < -MEMBERSHIP_TOLERANCE or hi > 1.0 + MEMBERSHIP_TOLERANCE:
+                raise InputError(
+                    f"memberships must lie in [0, 1] (up to {MEMBERSHIP_TOLERANCE:g} of "
+                    f"rounding), got values from {lo:.9g} to {hi:.9g}"
+                )
+            out = labels if labels.dtype in (np.float32, np.float64) else labels.astype(float)
+            return np.clip(out, 0.0, 1.0) if lo < 0.0 or hi > 1.0 else out
     arr = image_stack(labels, what="label map", dtype=None).data
     if arr.shape != (n, *spatial):
         raise InputError(f"label maps shape {arr.shape} does not match the images' {(n, *spatial)}")
-    if not np.all(arr == np.round(arr)) or arr.min() < 0:
+    if arr.dtype.kind not in "iub":
+        if not np.all(np.isfinite(arr)) or not np.all(arr == np.round(arr)):
+            raise InputError("label maps must hold non-negative integer values")
+    if arr.size and arr.min() < 0:
         raise InputError("label maps must hold non-negative integer values")
     return arr.astype(np.int64)
 
 
-def _onehot(lab: np.ndarray) -> np.ndarray:
+def _compact(lab: np.ndarray) -> tuple[np.ndarray, int]:
+    """Integer label maps -> channel codes: 0 for the background value 0 (present or not),
+    then one code per nonzero value present in any map, ascending. Codes as int32."""
+    values = np.unique(lab)
+    values = np.concatenate([[0], values[values != 0]])
+    codes = np.searchsorted(values, lab).astype(np.int32)  # values sorted: 0 first
+    return codes, len(values)
+
+
+def _drop_absent(members: np.ndarray) -> np.ndarray:
+    """Memberships without the components (other than 0) that are zero in every image."""
+    n, n_comp = members.shape[:2]
+    keep = np.ones(n_comp, dtype=bool)
+    keep[1:] = members[:, 1:].reshape(n, n_comp - 1, -1).any(axis=(0, 2))
+    return members if keep.all() else members[:, keep]
+
+
+def _onehot(lab: np.ndarray, n_labels: int) -> np.ndarray:
     if np.issubdtype(lab.dtype, np.floating):
         return lab
-    n_labels = int(lab.max()) + 1
-    return np.stack([(lab == v) for v in range(n_labels)], axis=1).astype(np.float64)
+    out = np.empty((lab.shape[0], n_labels, *lab.shape[1:]), dtype=np.float32)
+    for k in range(n_labels):
+        out[:, k] = lab == k
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# Summary
+# ----------------------------------------------------------------------------------------
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
     a, b = a - a.mean(), b - b.mean()
     den = math.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b) / den if den > 0 else math.nan
+
+
+def _fisher_ci(r: float, n: int) -> tuple[float, float]:
+    """95 % confidence interval of a Pearson r from n pairs (Fisher's z)."""
+    if not math.isfinite(r) or n < 4:
+        return math.nan, math.nan
+    z = math.atanh(min(max(r, -1.0 + 1e-15), 1.0 - 1e-15))
+    h = _Z975 / math.sqrt(n - 3)
+    return math.tanh(z - h), math.tanh(z + h)
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares ``y = a x + b`` (NaN when x has no spread)."""
+    if x.size < 2 or not np.all(np.isfinite(x)) or not np.all(np.isfinite(y)):
+        return math.nan, math.nan
+    xc = x - x.mean()
+    sxx = float(xc @ xc)
+    if not sxx > 0:
+        return math.nan, math.nan
+    a = float(xc @ (y - y.mean())) / sxx
+    return a, float(y.mean()) - a * float(x.mean())
 
 
 def _ranks(x: np.ndarray) -> np.ndarray:
@@ -423,26 +870,144 @@ def _ranks(x: np.ndarray) -> np.ndarray:
 
 
 def summarize(rows: Sequence[ValidationRow], weightings: Sequence[str]) -> ValidationSummary:
-    """Pearson r, Spearman, slope and sensitivity of a table (rows with ``d >= FIT_FROM``)."""
-    d = np.array([r.displacement for r in rows])
-    s = np.array([r.specificity for r in rows])
-    se = np.array([r.specificity_stderr for r in rows])
+    """Pearson r (with its CI), Spearman, fits and sensitivities of a table (``d >= FIT_FROM``)."""
+    d = np.array([r.displacement for r in rows], dtype=float)
+    s = np.array([r.specificity for r in rows], dtype=float)
+    se = np.array([r.specificity_stderr for r in rows], dtype=float)
+    d_mm = np.array(
+        [math.nan if r.displacement_mm is None else r.displacement_mm for r in rows], dtype=float
+    )
     fit = d >= FIT_FROM
     zero = d == 0
     unperturbed = float(s[zero].mean()) if zero.any() else None
     levels = np.unique(d[fit])
+    n_fit = int(fit.sum())
+    nan = math.nan
     if levels.size < 2:
-        nan = math.nan
-        return ValidationSummary({w: nan for w in weightings}, nan, nan, nan, False, unperturbed)
-    pearson = {w: _pearson(s[fit], np.array([r.overlap[w] for r in rows])[fit]) for w in weightings}
+        return ValidationSummary(
+            {w: nan for w in weightings},
+            nan,
+            nan,
+            nan,
+            False,
+            unperturbed,
+            pearson_ci={w: (nan, nan) for w in weightings},
+            fit={w: (nan, nan) for w in weightings},
+            n_fit=n_fit,
+        )
+    overlaps = {w: np.array([r.overlap[w] for r in rows], dtype=float)[fit] for w in weightings}
+    pearson = {w: _pearson(s[fit], overlaps[w]) for w in weightings}
     mean_s = np.array([s[d == v].mean() for v in levels])
     spearman = _pearson(_ranks(levels), _ranks(mean_s))
-    slope = float(np.polyfit(d[fit], s[fit], 1)[0])
+    slope = _line(d[fit], s[fit])[0]
+    slope_mm = _line(d_mm[fit], s[fit])[0]
+    mean_se = float(se[fit].mean())
     return ValidationSummary(
         pearson_r=pearson,
         spearman=spearman,
         slope=slope,
-        sensitivity=slope / float(se[fit].mean()),
+        sensitivity=slope / mean_se if mean_se > 0 else nan,
         monotonic=bool(np.all(np.diff(mean_s) > 0)),
         unperturbed=unperturbed,
+        pearson_ci={w: _fisher_ci(pearson[w], n_fit) for w in weightings},
+        fit={w: _line(overlaps[w], s[fit]) for w in weightings},
+        slope_mm=slope_mm,
+        sensitivity_mm=slope_mm / mean_se if mean_se > 0 else nan,
+        n_fit=n_fit,
     )
+
+
+# ----------------------------------------------------------------------------------------
+# Figures
+# ----------------------------------------------------------------------------------------
+
+
+def _d_label(result) -> str:
+    sp = result.spacing
+    if sp is not None and np.allclose(sp, sp[0]) and sp[0] != 1.0:
+        return f"mean displacement d (pixels; 1 px = {sp[0]:g} mm)"
+    return "mean displacement d (pixels)"
+
+
+def plot_fig2(result: ValidationResult, path, *, weighting: str | None = None) -> None:
+    """The paper's Fig. 2: specificity against overlap, coloured by d.
+
+    The grey line is the least-squares fit over ``d >= 0.375`` (with Pearson r and its 95 %
+    interval); the dashed line is the unperturbed specificity (d = 0). Written to `path`
+    (PNG). 2D and 3D runs alike.
+    """
+    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
+
+    w = weighting or result.weightings[0]
+    d = result.column("displacement")
+    s = result.column("specificity")
+    se = result.column("specificity_stderr")
+    o = result.column(f"overlap_{w}")
+    fig = Figure(figsize=(6.4, 4.8), dpi=120)
+    ax = fig.subplots()
+    levels = np.unique(d)
+    cmap = matplotlib.colormaps["viridis"].resampled(max(len(levels), 1))
+    for k, v in enumerate(levels):
+        sel = d == v
+        ax.errorbar(o[sel], s[sel], yerr=se[sel], fmt="o", ms=5, color=cmap(k), label=f"{v:g}")
+    fit = d >= FIT_FROM
+    a, b = (
+        result.summary.fit.get(w, (math.nan, math.nan))
+        if result.summary.fit
+        else (
+            math.nan,
+            math.nan,
+        )
+    )
+    if math.isfinite(a) and math.isfinite(b) and fit.any():
+        xs = np.linspace(np.nanmin(o[fit]), np.nanmax(o[fit]), 2)
+        r = result.summary.pearson_r[w]
+        lo, hi = result.summary.pearson_ci.get(w, (math.nan, math.nan))
+        ci = f", 95% CI {lo:.3f} to {hi:.3f}" if math.isfinite(lo) else ""
+        ax.plot(
+            xs,
+            a * xs + b,
+            color="0.5",
+            lw=2,
+            zorder=0,
+            label=f"fit d>={FIT_FROM:g} (r={r:.3f}{ci})",
+        )
+    if result.summary.unperturbed is not None:
+        ax.axhline(result.summary.unperturbed, ls="--", color="k", lw=1, label="d = 0")
+    ax.set_xlabel(f"generalized Tanimoto overlap ({w.replace('_', '-')} weighted)")
+    ax.set_ylabel(f"specificity (M = {result.n_samples:,})")
+    grid = " x ".join(map(str, result.shape[::-1]))
+    ax.set_title(f"N = {result.n_images} images of {grid}, {len(result.rows)} perturbed sets")
+    ax.legend(title="d (pixels)", fontsize=7, title_fontsize=8, ncol=2, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, format="png")
+
+
+def plot_vs_d(result: ValidationResult, path) -> None:
+    """Specificity and overlap against d: mean over repeats, error bars one SD (PNG)."""
+    from matplotlib.figure import Figure
+
+    m = result.means()
+    fig = Figure(figsize=(10, 4), dpi=120)
+    a1, a2 = fig.subplots(1, 2)
+    a1.errorbar(m["displacement"], m["specificity"], yerr=m["specificity_sd"], fmt="o-", capsize=3)
+    a1.set_xlabel(_d_label(result))
+    a1.set_ylabel("specificity")
+    sens = result.summary.sensitivity_mm
+    extra = f"; {sens:.3g} SE per mm of d" if math.isfinite(sens) else ""
+    a1.set_title(f"specificity (error bars: SD over repeats{extra})", fontsize=9)
+    for w in result.weightings:
+        a2.errorbar(
+            m["displacement"],
+            m[f"overlap_{w}"],
+            yerr=m[f"overlap_{w}_sd"],
+            fmt="o-",
+            capsize=3,
+            label=w,
+        )
+    a2.set_xlabel(_d_label(result))
+    a2.set_ylabel("generalized Tanimoto overlap")
+    a2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, format="png")

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+import math
 
 from .._errors import InputError
-from .._output import atomic_path, write_json, write_text
 from ._options import seed
 
 
@@ -32,8 +31,10 @@ def add_parser(sub) -> None:
         description="The validation experiment of the paper (Section IV): every image of a "
         "registered, labelled set is perturbed by its own random clamped-plate-spline warp of "
         "mean displacement d pixels; the specificity and generalized overlap of each perturbed "
-        "set are recorded. Writes validation.csv/.json, validation_fig2.png (specificity vs "
-        "overlap) and validation_vs_d.png into --out.",
+        "set are recorded. 2D warps are biharmonic (the paper's), 3D warps triharmonic; the "
+        "ball is round in mm. Writes validation.csv/.json, validation_fig2.png (specificity "
+        "vs overlap) and validation_vs_d.png into --out. A d that no warp reaches without "
+        "folding is refused, naming the largest that is reachable.",
     )
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument(
@@ -48,11 +49,26 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--n-images", type=int, default=10, metavar="N", help="synthetic N (default 10)")
     p.add_argument(
+        "--dim",
+        type=int,
+        choices=(2, 3),
+        default=None,
+        help="synthetic data in 2D (141 x 141, the default) or 3D (2 mm voxels)",
+    )
+    p.add_argument(
+        "--slice",
+        type=_section,
+        default=None,
+        metavar="AXIS[:INDEX]",
+        help="validate on the 2D slice of the 3D common frame at INDEX along AXIS (x, y or z; "
+        "default the middle slice), as the paper's slices; without it, full 3D",
+    )
+    p.add_argument(
         "--displacements",
         type=_floats,
         default=list(DEFAULT_DISPLACEMENTS),
         metavar="D,D,...",
-        help="mean pixel displacements (default "
+        help="mean displacements in pixels (default "
         + ",".join(f"{d:g}" for d in DEFAULT_DISPLACEMENTS)
         + ")",
     )
@@ -83,24 +99,33 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _section(text: str):
+    from .._errors import InputError
+    from ..validation import parse_section
+
+    try:
+        return parse_section(text)
+    except InputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("slice: ")) from None
+
+
 def run(args: argparse.Namespace) -> int:
-    from .._version import __version__
-    from ..validation import manifest_set, synthetic_set, validate
+    from .._output import check_output_folder
+    from ..validation import FIT_FROM, synthetic_set, validate, validate_manifest
 
     if args.n_images < 3:
         raise InputError(f"--n-images must be at least 3, got {args.n_images}")
     if args.repeats < 1 or args.samples < 2 or args.knots < 1:
         raise InputError("--repeats and --knots must be >= 1 and --samples >= 2")
+    if args.jobs < 1:
+        raise InputError(f"--jobs must be at least 1, got {args.jobs}")
+    if args.synthetic and args.slice and args.dim != 3:
+        raise InputError("--slice needs 3D data: add --dim 3 to --synthetic")
+    if args.manifest and args.dim is not None:
+        raise InputError("--dim applies to --synthetic only (a manifest has its own)")
+    out = check_output_folder(args.out)
     weightings = tuple(args.weighting) if args.weighting else ("complexity", "inverse_volume")
-    if args.synthetic:
-        images, labels = synthetic_set(args.synthetic, n_images=args.n_images, seed=args.seed)
-        source = f"synthetic:{args.synthetic}"
-    else:
-        images, labels, _ = manifest_set(args.manifest)
-        source = str(args.manifest)
-    result = validate(
-        images,
-        labels,
+    options = dict(
         displacements=args.displacements,
         repeats=args.repeats,
         n_samples=args.samples,
@@ -109,93 +134,56 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         n_jobs=args.jobs,
         progress=not args.no_progress,
-        source=source,
     )
-    out = Path(args.out)
-    write_text(out / "validation.csv", result.to_csv())
-    write_json(out / "validation.json", {"version": __version__, **result.to_dict()})
-    with atomic_path(out / "validation_fig2.png") as tmp:
-        plot_fig2(result, tmp)
-    with atomic_path(out / "validation_vs_d.png") as tmp:
-        plot_vs_d(result, tmp)
+    if args.synthetic:
+        images, labels, spacing = synthetic_set(
+            args.synthetic, n_images=args.n_images, seed=args.seed, dim=args.dim or 2,
+            with_spacing=True,
+        )  # fmt: skip
+        source = f"synthetic:{args.synthetic}" + (":3d" if args.dim == 3 else "")
+        result = validate(
+            images, labels, spacing=spacing, section=args.slice, source=source, **options
+        )
+    else:
+        source = str(args.manifest)
+        result = validate_manifest(args.manifest, section=args.slice, source=source, **options)
+    paths = result.write(out)
     s = result.summary
-    w0 = weightings[0]
-    print(f"{len(result.rows)} perturbed sets of {result.n_images} images ({source})")
-    print(f"Pearson r (specificity vs {w0} overlap, d >= 0.375) = {s.pearson_r[w0]:.4f}")
-    for w in weightings[1:]:
-        print(f"Pearson r (specificity vs {w} overlap, d >= 0.375) = {s.pearson_r[w]:.4f}")
-    print(f"Spearman (mean specificity vs d, d >= 0.375) = {s.spearman:.4f}")
-    print(f"sensitivity = {s.sensitivity:.3g} standard errors per pixel of d")
+    taken = result.parameters.get("section")
+    where = f", slice {taken['axis']}:{taken['index']}" if taken else ""
+    grid = " x ".join(map(str, result.shape[::-1]))
     print(
-        f"wrote {out / 'validation.csv'}, validation.json, validation_fig2.png, validation_vs_d.png"
+        f"{len(result.rows)} perturbed sets of {result.n_images} images of {grid} ({source}{where})"
     )
+    for w in weightings:
+        lo, hi = s.pearson_ci[w]
+        print(
+            f"Pearson r (specificity vs {w} overlap, d >= {FIT_FROM:g}) = {_num(s.pearson_r[w])} "
+            f"(95% CI {_num(lo)} to {_num(hi)}, n = {s.n_fit})"
+        )
+    print(f"Spearman (mean specificity vs d, d >= {FIT_FROM:g}) = {_num(s.spearman)}")
+    print(
+        f"sensitivity = {_num(s.sensitivity, '.3g')} standard errors per pixel of d, "
+        f"{_num(s.sensitivity_mm, '.3g')} per mm"
+    )
+    print("wrote " + ", ".join([str(paths[0]), *(p.name for p in paths[1:])]))
     return 0
 
 
+def _num(value, spec: str = ".4f") -> str:
+    """A summary figure for the terminal: 'undefined' for NaN."""
+    return "undefined" if value is None or not math.isfinite(value) else format(value, spec)
+
+
 def plot_fig2(result, path, *, weighting: str | None = None) -> None:
-    """The paper's Fig. 2: specificity against overlap, coloured by d.
+    """:func:`itk_nrreval.validation.plot_fig2` (the figures now live with the result)."""
+    from ..validation import plot_fig2 as draw
 
-    The grey line is the least-squares fit over ``d >= 0.375``; the dashed line is the
-    unperturbed specificity (d = 0). Written to `path` (PNG).
-    """
-    import matplotlib
-    import numpy as np
-    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
-
-    from ..validation import FIT_FROM
-
-    w = weighting or result.weightings[0]
-    d = result.column("displacement")
-    s = result.column("specificity")
-    se = result.column("specificity_stderr")
-    o = result.column(f"overlap_{w}")
-    fig = Figure(figsize=(6.4, 4.8), dpi=120)
-    ax = fig.subplots()
-    levels = np.unique(d)
-    cmap = matplotlib.colormaps["viridis"].resampled(len(levels))
-    for k, v in enumerate(levels):
-        sel = d == v
-        ax.errorbar(o[sel], s[sel], yerr=se[sel], fmt="o", ms=5, color=cmap(k), label=f"{v:g}")
-    fit = d >= FIT_FROM
-    if np.unique(d[fit]).size >= 2:
-        a, b = np.polyfit(o[fit], s[fit], 1)
-        xs = np.linspace(o[fit].min(), o[fit].max(), 2)
-        r = result.summary.pearson_r[w]
-        ax.plot(
-            xs, a * xs + b, color="0.5", lw=2, zorder=0, label=f"fit d>={FIT_FROM:g} (r={r:.3f})"
-        )
-    if result.summary.unperturbed is not None:
-        ax.axhline(result.summary.unperturbed, ls="--", color="k", lw=1, label="d = 0")
-    ax.set_xlabel(f"generalized Tanimoto overlap ({w.replace('_', '-')} weighted)")
-    ax.set_ylabel(f"specificity (M = {result.n_samples:,})")
-    ax.set_title(f"N = {result.n_images} images, {len(result.rows)} perturbed sets")
-    ax.legend(title="d (pixels)", fontsize=7, title_fontsize=8, ncol=2, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, format="png")
+    draw(result, path, weighting=weighting)
 
 
 def plot_vs_d(result, path) -> None:
-    """Specificity and overlap against d: mean over repeats, error bars one SD (PNG)."""
-    from matplotlib.figure import Figure
+    """:func:`itk_nrreval.validation.plot_vs_d` (the figures now live with the result)."""
+    from ..validation import plot_vs_d as draw
 
-    m = result.means()
-    fig = Figure(figsize=(10, 4), dpi=120)
-    a1, a2 = fig.subplots(1, 2)
-    a1.errorbar(m["displacement"], m["specificity"], yerr=m["specificity_sd"], fmt="o-", capsize=3)
-    a1.set_xlabel("mean displacement d (pixels)")
-    a1.set_ylabel("specificity")
-    a1.set_title("specificity (error bars: SD over repeats)")
-    for w in result.weightings:
-        a2.errorbar(
-            m["displacement"],
-            m[f"overlap_{w}"],
-            yerr=m[f"overlap_{w}_sd"],
-            fmt="o-",
-            capsize=3,
-            label=w,
-        )
-    a2.set_xlabel("mean displacement d (pixels)")
-    a2.set_ylabel("generalized Tanimoto overlap")
-    a2.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, format="png")
+    draw(result, path)
