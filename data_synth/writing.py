@@ -31,9 +31,8 @@ import os
 from pathlib import Path
 
 import SimpleITK as sitk
-import yaml
 
-from itk_nrreval._output import atomic_path, write_json, write_text
+from itk_nrreval._output import atomic_path, write_json
 from itk_nrreval._progress import progress
 from itk_nrreval.manifest import write_manifest
 from itk_nrreval.transforms import write_transform
@@ -95,6 +94,7 @@ def write_population(
     manifest = {
         "images": [str(p) for c in contrasts for p in images[c]],
         "labels": [str(p) for _ in contrasts for p in labels],
+        **({"groups": [c for c in contrasts for _ in names]} if len(contrasts) > 1 else {}),
         "registrations": {
             "truth": {
                 "reference": str(templates[contrasts[0]]),
@@ -102,20 +102,4 @@ def write_population(
             }
         },
     }
-    path = write_manifest(manifest, out / "manifest.yaml")
-    if len(contrasts) > 1:
-        _add_groups(path, [c for c in contrasts for _ in names])
-    return path
-
-
-def _add_groups(path: Path, groups: list[str]) -> None:
-    """Record each image's group (its contrast) in the written manifest, after ``labels``."""
-    data = yaml.safe_load(path.read_text())
-    ordered = {}
-    for key, value in data.items():
-        if key != "groups":
-            ordered[key] = value
-        if key == "labels":
-            ordered["groups"] = groups
-    text = yaml.safe_dump(ordered, sort_keys=False, default_flow_style=None, width=100)
-    write_text(path, text)
+    return write_manifest(manifest, out / "manifest.yaml")

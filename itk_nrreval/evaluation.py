@@ -133,6 +133,11 @@ class RegistrationScores:
                 "stderr": self.specificity.stderr,
                 "stderr_subjects": se("specificity"),
                 "ci95": ci("specificity"),
+                **(
+                    {"mixture": self.specificity.mixture.to_dict()}
+                    if self.specificity.mixture is not None
+                    else {}
+                ),
             },
             "generalization": {
                 "value": self.generalization.value,
@@ -639,6 +644,17 @@ def evaluate(
         intervals: dict[str, dict] = {name: {} for name in regs}
         best_p: dict[str, dict] = {name: {} for name in regs}
         comparisons: list[Comparison] = []
+        if confidence and m.groups is not None:
+            # Leaving out images is not leaving out subjects when a subject has one image per
+            # group (modality), and it can leave a group with fewer than 2 images.
+            warnings.warn(
+                "subject-level intervals are not computed for a manifest with groups (the "
+                "jackknife would leave out images, not subjects); the specificity's standard "
+                "error is Monte-Carlo error only",
+                UserWarning,
+                stacklevel=2,
+            )
+            confidence = False
         if confidence and m.n_images >= 4:
             reps = _replicates(
                 run, weightings, resamples, confidence_samples, distance, seed, progress

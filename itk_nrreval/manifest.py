@@ -4,12 +4,14 @@ A manifest is a YAML (or JSON) file::
 
     images: [img/s00.nii.gz, img/s01.nii.gz]        # N training images, each in its own space
     labels: [lab/s00.nii.gz, lab/s01.nii.gz]        # optional integer label maps, same spaces
+    groups: [t1, t1, t2, t2]                         # optional: each image's group (modality)
     mask: mask.nii.gz                                # optional, on the common frame's grid
     common_frame: fluid                              # optional; default the first registration
     registrations:
       fluid:
         reference: fluid/template.nii.gz            # grid of this registration's frame
         transforms: [fluid/s00.h5, fluid/s01.h5]    # one entry per image: a path or a chain
+        parameters: {smoothing_mm: 5}               # optional record of its settings
       pair1:
         reference: img/s01.nii.gz
         reference_index: 1                          # the reference is training image 1
@@ -52,6 +54,7 @@ when needed.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from collections.abc import Mapping, Sequence
@@ -84,8 +87,8 @@ __all__ = [
 ]
 
 
-_TOP_KEYS = ("images", "labels", "mask", "common_frame", "registrations")
-_REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform")
+_TOP_KEYS = ("images", "labels", "groups", "mask", "common_frame", "registrations")
+_REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform", "parameters")
 
 ImageItem = "Path | InMemoryImage"
 TransformItem = "Path | InMemoryTransform"
@@ -109,12 +112,16 @@ class Registration:
         registration to image k), or None.
     frame_transform : Path or InMemoryTransform or None
         A transform from the common frame into this registration's frame, or None.
+    parameters : dict of str to value, or None
+        The settings the registration was made with (e.g. a sweep's), recorded as given
+        (JSON-ready: numbers, strings, booleans, lists of them); not used in the scoring.
     """
 
     reference: Any
     transforms: tuple[tuple[Any, ...], ...]
     reference_index: int | None = None
     frame_transform: Any = None
+    parameters: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -125,6 +132,10 @@ class Manifest:
     ----------
     images : tuple of (Path or InMemoryImage), length n_images
     labels : tuple of (Path or InMemoryImage), or None
+    groups : tuple of str, or None
+        Each image's group (e.g. its modality), in image order: specificity is then that of
+        a mixture with one Gaussian per group (:func:`itk_nrreval.specificity`). Every group
+        has at least 2 images.
     mask : Path or InMemoryImage or None
     common_frame : str
         Name of the registration whose reference frame is the common frame.
@@ -140,6 +151,7 @@ class Manifest:
     common_frame: str
     registrations: Mapping[str, Registration] = field(default_factory=dict)
     source: Path | None = None
+    groups: tuple[str, ...] | None = None
 
     @property
     def n_images(self) -> int:
@@ -166,6 +178,7 @@ class Manifest:
             "n_images": self.n_images,
             "images": [_describe_item(p) for p in self.images],
             "labels": None if self.labels is None else [_describe_item(p) for p in self.labels],
+            "groups": None if self.groups is None else list(self.groups),
             "mask": _describe_item(self.mask),
             "common_frame": self.common_frame,
             "registrations": {
@@ -174,6 +187,7 @@ class Manifest:
                     "reference_index": r.reference_index,
                     "frame_transform": _describe_item(r.frame_transform),
                     "transforms": [[_describe_item(t) for t in chain] for chain in r.transforms],
+                    "parameters": None if r.parameters is None else dict(r.parameters),
                 }
                 for name, r in self.registrations.items()
             },
@@ -335,6 +349,7 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         _image_item(data["mask"], base, "mask", problems) if data.get("mask") is not None else None
     )
     n = None if images is None else len(images)
+    groups = _groups(data["groups"], n, problems) if data.get("groups") is not None else None
 
     regs: dict[str, Registration] = {}
     raw = data.get("registrations")
@@ -356,7 +371,39 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         )
     if images is None:
         return None
-    return Manifest(images, labels, mask, str(common), regs)
+    return Manifest(images, labels, mask, str(common), regs, groups=groups)
+
+
+def _groups(value, n: int | None, problems: list[str]) -> tuple[str, ...] | None:
+    """Each image's group label (numbers and strings both become strings)."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        problems.append("groups: expected a list with one group label per image")
+        return None
+    bad = [v for v in value if isinstance(v, bool) or not isinstance(v, (str, int))]
+    if bad:
+        problems.append(f"groups: labels must be strings or integers, got {bad[0]!r}")
+        return None
+    labels = tuple(str(v) for v in value)
+    if n is not None and len(labels) != n:
+        problems.append(f"groups: {len(labels)} labels for {n} images")
+        return None
+    small = [g for g in dict.fromkeys(labels) if labels.count(g) < 2]
+    if small:
+        problems.append(f"groups: group {small[0]!r} has {labels.count(small[0])} image (needs 2)")
+        return None
+    return labels
+
+
+def _parameters(value, where: str, problems: list[str]) -> dict | None:
+    """A registration's recorded settings: a mapping of name to JSON-ready values."""
+    if not isinstance(value, Mapping):
+        problems.append(f"{where}.parameters: expected a mapping of setting name to value")
+        return None
+    try:
+        return json.loads(json.dumps(dict(value)))
+    except (TypeError, ValueError):
+        problems.append(f"{where}.parameters: values must be numbers, strings, booleans or lists")
+        return None
 
 
 def _parse_registration(
@@ -415,9 +462,13 @@ def _parse_registration(
     if frame is not None:
         frame = _transform_item(frame, base, f"{where}.frame_transform", problems)
         ok &= frame is not None
+    parameters = entry.get("parameters")
+    if parameters is not None:
+        parameters = _parameters(parameters, where, problems)
+        ok &= parameters is not None
     if not ok:
         return None
-    return Registration(reference, tuple(chains), ref_index, frame)
+    return Registration(reference, tuple(chains), ref_index, frame, parameters)
 
 
 # ----------------------------------------------------------------------------- file checks
@@ -560,6 +611,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
     out: dict[str, Any] = {"images": [_rel(p, folder) for p in m.images]}
     if m.labels is not None:
         out["labels"] = [_rel(p, folder) for p in m.labels]
+    if m.groups is not None:
+        out["groups"] = list(m.groups)
     if m.mask is not None:
         out["mask"] = _rel(m.mask, folder)
     out["common_frame"] = m.common_frame
@@ -574,6 +627,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
             _rel(c[0], folder) if len(c) == 1 else [_rel(t, folder) for t in c]
             for c in r.transforms
         ]
+        if r.parameters is not None:
+            e["parameters"] = dict(r.parameters)
         regs[name] = e
     out["registrations"] = regs
     return out
@@ -613,6 +668,7 @@ def add_registration(
     frame_transform: str | os.PathLike | None = None,
     images: Sequence[str | os.PathLike] | None = None,
     labels: Sequence[str | os.PathLike] | None = None,
+    parameters: Mapping[str, Any] | None = None,
 ) -> Path:
     """Add (or replace) registration `name` in a manifest file, creating the file if needed.
 
@@ -631,6 +687,8 @@ def add_registration(
     images, labels : sequence of path, optional
         Set the manifest's images / labels (a new manifest needs `images`; for an existing
         one, given images must be the same files).
+    parameters : mapping, optional
+        The settings the registration was made with, recorded in the manifest.
 
     Paths given here that are relative are relative to the current directory (they are
     rewritten relative to the manifest's folder).
@@ -682,6 +740,8 @@ def add_registration(
         [str(absolute(t)) for t in item] if isinstance(item, (list, tuple)) else str(absolute(item))
         for item in transforms
     ]
+    if parameters is not None:
+        entry["parameters"] = dict(parameters)
     regs = dict(data.get("registrations") or {})
     regs[str(name)] = entry
     data["registrations"] = regs

@@ -648,6 +648,7 @@ def run_pipeline(
                 values,
                 region,
                 coverage[name],
+                groups=m.groups,
                 n_samples=n_samples,
                 seed=seed,
                 distance=distance,
@@ -667,6 +668,7 @@ def _reduce(
     mask,
     coverage,
     *,
+    groups,
     n_samples,
     seed,
     distance,
@@ -707,6 +709,7 @@ def _reduce(
     )
     spec, gen = texture_measures(
         model,
+        groups=groups,  # a mixture, one Gaussian per group, when the manifest has groups
         n_samples=n_samples,
         distance=distance,
         seed=seed,

@@ -404,6 +404,7 @@ def sweep(
             frame_transform=identity if same_frame else None,
             images=images,
             labels=list(labels) if labels is not None else None,
+            parameters=values,
         )
         settings.append(SweepSetting(name, values, reused=name not in dict(todo)))
     if mask is not None:

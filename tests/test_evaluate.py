@@ -288,7 +288,7 @@ BAD = [
     (
         "unknown key",
         lambda tp: lambda d: d.update(lables=[]),
-        r"bad\.yaml: unknown key 'lables' \(expected images, labels, mask, common_frame, "
+        r"bad\.yaml: unknown key 'lables' \(expected images, labels, groups, mask, common_frame, "
         r"registrations\)$",
     ),
     (
