@@ -242,3 +242,22 @@ def test_images_stored_with_finer_anisotropic_voxels_score_the_same(tmp_path):
             # measured: up to 0.008 (the label maps really differ)
             assert sb.overlap[w] == pytest.approx(va, abs=0.02), (name, w)
     assert a.verdict.ranking == b.verdict.ranking
+
+
+def test_validate_does_not_depend_on_the_physical_frame(tmp_path):
+    """The validation experiment on a manifest, before and after the rigid motion."""
+    from itk_nrreval.validation import validate_manifest
+
+    (tmp_path / "plain").mkdir()
+    make_case(tmp_path / "plain")
+    moved_copy(tmp_path / "plain", tmp_path / "moved")
+    kw = dict(displacements=(0.0, 0.5, 1.0), repeats=1, n_samples=1000, seed=2, progress=False)
+    a = validate_manifest(tmp_path / "plain" / "manifest.yaml", **kw)
+    b = validate_manifest(tmp_path / "moved" / "manifest.yaml", **kw)
+    assert len(a.rows) == len(b.rows) == 3
+    for ra, rb in zip(a.rows, b.rows, strict=True):
+        assert rb.displacement == ra.displacement
+        assert rb.specificity == pytest.approx(ra.specificity, rel=1e-6)
+        for w, v in ra.overlap.items():
+            assert rb.overlap[w] == pytest.approx(v, abs=1e-6)
+    assert a.rows[0].specificity < a.rows[-1].specificity  # the perturbation does something
