@@ -212,6 +212,11 @@ class EvaluationResult:
     comparisons : tuple of Comparison
         Every pairwise difference per measure with its subject-level interval.
     verdict : Verdict or None
+    thumbnails : dict of str to dict of str to ndarray
+        Per registration, the small arrays the HTML report draws (middle slices of two
+        subjects, of subject 0's labels and det J, the log det J histogram over all
+        subjects; :attr:`itk_nrreval.pipeline.RegistrationRun.thumbnails`). Not in
+        ``results.json``.
     """
 
     scores: Mapping[str, RegistrationScores]
@@ -225,6 +230,7 @@ class EvaluationResult:
     run: Mapping[str, Any] = field(default_factory=dict)
     comparisons: tuple[Comparison, ...] = ()
     verdict: Verdict | None = None
+    thumbnails: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict, repr=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -240,8 +246,11 @@ class EvaluationResult:
 
         ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict and
         the paper's Table 3 layout) and, with `figures`, ``specificity.png``,
-        ``specificity_vs_overlap.png`` and ``mean_images.png``
-        (:func:`itk_nrreval.reports.write_reports`). Each file is written under a temporary
+        ``specificity_vs_overlap.png``, ``mean_images.png`` and ``report.html`` (one
+        self-contained page to read: the verdict, the scores with their legend, per
+        registration its images, deformation and frame, the inputs and options; it embeds
+        the same figures; :func:`itk_nrreval.html_report.report_html`), through
+        :func:`itk_nrreval.reports.write_reports`. Each file is written under a temporary
         name and renamed when complete; files of other names in `out_dir` are left alone
         (``evaluate(..., out=DIR)`` swaps a whole folder in instead).
 
@@ -250,9 +259,13 @@ class EvaluationResult:
         list of Path
             The files written.
         """
-        from .reports import write_reports
+        from .html_report import report_html
+        from .reports import figure_pngs, write_reports
 
-        return write_reports(self, out_dir, figures=figures)
+        if not figures:
+            return write_reports(self, out_dir, figures=False)
+        pngs = figure_pngs(self)
+        return write_reports(self, out_dir, figures=pngs, html=report_html(self, figures=pngs))
 
     def to_dict(self) -> dict:
         """The content of ``results.json``."""
@@ -558,7 +571,8 @@ def evaluate(
         replaces `out` only when complete (the cache carried over), so `out` holds one
         complete result or the previous one, never a mix.
     figures : bool
-        With `out`: also write the PNG figures.
+        With `out`: also write the PNG figures and ``report.html``, the self-contained HTML
+        report that embeds them (:meth:`EvaluationResult.write`).
 
     Returns
     -------
@@ -686,6 +700,7 @@ def evaluate(
             )
         _warn_if_flagged(scores)
         means = {name: r.mean_image for name, r in regs.items()}
+        thumbnails = {name: r.thumbnails for name, r in regs.items()}
         options = {
             "confidence": bool(confidence and m.n_images >= 4),
             "confidence_samples": int(confidence_samples),
@@ -706,6 +721,7 @@ def evaluate(
             run=run_info,
             comparisons=comparisons,
             extra_options=options,
+            thumbnails=thumbnails,
         )
         if stage is not None:
             result.write(stage, figures=figures)
@@ -763,6 +779,7 @@ def _result(
     run,
     comparisons=(),
     extra_options=None,
+    thumbnails=None,
 ) -> EvaluationResult:
     """Ranks and relative ranks of every measure, and the result object."""
     from ._version import __version__
@@ -799,4 +816,5 @@ def _result(
         run=dict(run),
         comparisons=tuple(comparisons),
         verdict=verdict(scores, comparisons, has_labels=m.labels is not None),
+        thumbnails=dict(thumbnails or {}),
     )

@@ -64,7 +64,12 @@ from .manifest import Manifest
 from .memberships import SparseMemberships, resample_label_memberships
 from .model import TextureModel
 from .overlap import OverlapTable
-from .plausibility import Plausibility, deformation_plausibility
+from .plausibility import (
+    LOG_JACOBIAN_BINS,
+    LOG_JACOBIAN_RANGE,
+    Plausibility,
+    deformation_measures,
+)
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
 from .transforms import chain_transform, field_transform, invert
 
@@ -77,7 +82,7 @@ __all__ = [
     "run_pipeline",
 ]
 
-_FORMAT = 5  # bump when what a cache entry holds changes
+_FORMAT = 6  # bump when what a cache entry holds changes
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
 
 
@@ -194,7 +199,10 @@ def _resample_task(
     fraction of the mask (or grid) the image covers, and the deformation's plausibility
     measures on the registration's reference grid `reg_grid` (inside the mask mapped there,
     `reg_mask_key`). `own_values` are the label map's own nonzero values (found once by the
-    driver).
+    driver). For the report, the entry also holds ``detj_middle`` (float32: det J on the
+    middle slice of `reg_grid`, NaN outside its mask) and the metadata
+    ``log_jacobian_histogram`` (fixed-bin counts of log det J over the same voxels; both
+    from :func:`itk_nrreval.plausibility.deformation_measures`).
     """
     cache = ctx.cache()
     g = ctx.grid
@@ -231,11 +239,13 @@ def _resample_task(
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
-    plaus = deformation_plausibility(
+    plaus, jac = deformation_measures(
         t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency
     )
+    arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
     meta: dict = {
         "plausibility": plaus.to_dict(),
+        "log_jacobian_histogram": jac.histogram(),
         "label_like": _label_like(raw),
         "coverage": float(inside.mean()) if inside.size else 0.0,
     }
@@ -458,6 +468,10 @@ class RegistrationRun:
         The per-image sums the overlap table was built from (``labels``, ``volume``,
         ``target_sums``, ``gradient_sums``, ``pair_min``, ``pair_max``; see
         :meth:`OverlapTable.from_sums`); None without labels.
+    thumbnails : dict of str to ndarray
+        Small arrays for the HTML report, whatever N (:func:`_thumbnails`): middle slices of
+        two subjects' resampled images, of the first subject's labels and of its det J, and
+        the log det J histogram over all subjects.
     """
 
     name: str
@@ -470,6 +484,7 @@ class RegistrationRun:
     mean_image: np.ndarray = field(repr=False)
     gram: np.ndarray = field(repr=False)
     overlap_sums: Mapping[str, np.ndarray] | None = field(repr=False)
+    thumbnails: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
 @dataclass(frozen=True)
@@ -578,6 +593,7 @@ def run_pipeline(
             values = [0, *sorted(found)]  # index 0: background
 
         resampled: dict[str, tuple] = {}
+        thumbnails: dict[str, dict[str, np.ndarray]] = {}
         warned: set[int] = set()
         for name, reg in m.registrations.items():
             reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
@@ -618,6 +634,7 @@ def run_pipeline(
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
             resampled[name] = (keys, metas, frame)
+            thumbnails[name] = _thumbnails(disk, grid, reg_grid, keys, metas)
 
         region, coverage = _region(disk, grid, mask, m, resampled)
         region_ctx = ctx
@@ -654,6 +671,7 @@ def run_pipeline(
                 distance=distance,
                 show=show_progress,
             )
+            runs[name] = dataclasses.replace(runs[name], thumbnails=thumbnails[name])
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
 
 
@@ -867,3 +885,72 @@ def _save_resampled(
         grid.apply_to(vec)
         with atomic_path(folder / f"memberships_{i:03d}.nii.gz") as tmp:
             sitk.WriteImage(vec, str(tmp), True)
+
+
+def _thumbnails(
+    disk: DiskCache,
+    grid: Geometry,
+    reg_grid: Geometry,
+    keys: Sequence[str],
+    metas: Sequence[dict],
+) -> dict[str, np.ndarray]:
+    """The report's small arrays for one registration, read back from its cache entries.
+
+    A constant number of 2D slices whatever N (the middle slice, numpy index
+    ``shape[0] // 2``, of a 3D grid; the whole grid in 2D), each read from the memory-mapped
+    entry without loading a volume:
+
+    * ``image_0``, ``image_1`` (float32): subjects 0 and 1 resampled into the common frame,
+      NaN outside their fields of view (``image_1`` only when N >= 2);
+    * ``labels_0`` (int32, with labels): subject 0's label value of largest resampled
+      membership, 0 where the background's (one minus the labels') is at least as large;
+    * ``detj_0`` (float32): det J of subject 0's transform on the middle slice of the
+      registration's reference grid, NaN outside its mask;
+    * ``log_jacobian_counts`` (int64, ``LOG_JACOBIAN_BINS``), ``log_jacobian_edges`` and
+      ``log_jacobian_outside`` (int64: below, above the bins, folded): the histogram of
+      log det J summed over all N subjects;
+    * ``common_spacing``, ``reference_spacing`` (mm, numpy order (row, column)): the pixel
+      size of the common-grid and reference-grid slices.
+    """
+    per = int(np.prod(grid.shape[1:])) if grid.dimension == 3 else int(np.prod(grid.shape))
+    start = per * (grid.shape[0] // 2) if grid.dimension == 3 else 0
+    shape = grid.shape[1:] if grid.dimension == 3 else grid.shape
+    out: dict[str, np.ndarray] = {}
+    for i in range(min(2, len(keys))):
+        entry = disk.open("resampled", keys[i])
+        img = np.array(entry.array("image", mmap=True)[start : start + per], np.float32)
+        bits = entry.array("covered", mmap=True)[start // 8 : (start + per + 7) // 8]
+        covered = np.unpackbits(np.asarray(bits))[start % 8 : start % 8 + per].astype(bool)
+        img[~covered] = np.nan
+        out[f"image_{i}"] = img.reshape(shape)
+    entry = disk.open("resampled", keys[0])
+    if "labels" in metas[0]:
+        ptr = entry.array("lab_ptr")
+        idx, val = entry.array("lab_idx", mmap=True), entry.array("lab_val", mmap=True)
+        best = np.zeros(per, np.float32)
+        total = np.zeros(per, np.float32)
+        lab = np.zeros(per, np.int32)
+        for j, v in enumerate(metas[0]["labels"]):
+            own = idx[ptr[j] : ptr[j + 1]]
+            lo, hi = np.searchsorted(own, [start, start + per])
+            at = np.asarray(own[lo:hi]) - start
+            w = np.asarray(val[ptr[j] + lo : ptr[j] + hi])
+            total[at] += w
+            better = w > best[at]
+            best[at[better]] = w[better]
+            lab[at[better]] = v
+        lab[best <= 1.0 - total] = 0
+        out["labels_0"] = lab.reshape(shape)
+    out["detj_0"] = np.array(entry.array("detj_middle"), np.float32)
+    counts = np.zeros(LOG_JACOBIAN_BINS, np.int64)
+    outside = np.zeros(3, np.int64)
+    for meta in metas:
+        h = meta["log_jacobian_histogram"]
+        counts += np.asarray(h["counts"], np.int64)
+        outside += np.array([h["below"], h["above"], h["folded"]], np.int64)
+    out["log_jacobian_counts"] = counts
+    out["log_jacobian_edges"] = np.linspace(*LOG_JACOBIAN_RANGE, LOG_JACOBIAN_BINS + 1)
+    out["log_jacobian_outside"] = outside
+    out["common_spacing"] = np.array([grid.spacing[1], grid.spacing[0]])
+    out["reference_spacing"] = np.array([reg_grid.spacing[1], reg_grid.spacing[0]])
+    return out

@@ -34,7 +34,9 @@ from .transforms import chain_transform, displacement_field, invert, jacobian_de
 __all__ = [
     "Plausibility",
     "Thresholds",
+    "JacobianSummary",
     "deformation_plausibility",
+    "deformation_measures",
     "combine",
     "flags",
     "smallest_extent_mm",
@@ -43,6 +45,12 @@ __all__ = [
 #: Voxels per slab (with its halo) above which the grid is processed in slabs along its last
 #: ITK axis (z in 3D): the Jacobian of one slab takes about 200 bytes per voxel.
 SLAB_VOXELS = 1 << 20
+
+#: Bins of the log det J histogram of :class:`JacobianSummary`: fixed, so that histograms of
+#: different images (and processes) add up. [-2, 2] spans volume changes by a factor e^2 = 7.4
+#: either way; values beyond are counted apart (``below``, ``above``).
+LOG_JACOBIAN_BINS = 64
+LOG_JACOBIAN_RANGE = (-2.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -96,6 +104,54 @@ class Plausibility:
         )
 
 
+@dataclass(frozen=True)
+class JacobianSummary:
+    """The distribution of ``log det J`` of one transform, and ``det J`` on one slice.
+
+    Attributes
+    ----------
+    counts : ndarray of int64, shape (LOG_JACOBIAN_BINS,)
+        Histogram of ``log det J`` over the evaluated voxels that do not fold, on the fixed
+        bins :attr:`edges` (``LOG_JACOBIAN_BINS`` equal bins over ``LOG_JACOBIAN_RANGE``;
+        the last bin is closed on the right, as in ``np.histogram``).
+    below, above : int
+        Evaluated voxels with ``0 < det J`` and ``log det J`` below / above that range.
+    folded : int
+        Evaluated voxels with ``det J <= 0`` (no logarithm).
+    middle : ndarray of float32
+        ``det J`` on the middle slice of the grid (numpy index ``shape[0] // 2`` of a 3D
+        grid, shape ``grid.shape[1:]``; the whole grid in 2D), NaN outside the mask.
+        Unclipped: negative where the map folds.
+
+    Notes
+    -----
+    ``counts.sum() + below + above + folded`` is the number of evaluated voxels with a
+    finite ``det J``. Histograms of several transforms on the same bins add up
+    (:meth:`add`).
+    """
+
+    counts: np.ndarray
+    below: int
+    above: int
+    folded: int
+    middle: np.ndarray
+
+    @property
+    def edges(self) -> np.ndarray:
+        """The bin edges of :attr:`counts`, shape (LOG_JACOBIAN_BINS + 1,)."""
+        return np.linspace(*LOG_JACOBIAN_RANGE, LOG_JACOBIAN_BINS + 1)
+
+    def histogram(self) -> dict:
+        """The histogram alone, JSON-ready: ``counts`` (list), ``below``, ``above``,
+        ``folded``."""
+        return {
+            "counts": [int(c) for c in self.counts],
+            "below": int(self.below),
+            "above": int(self.above),
+            "folded": int(self.folded),
+        }
+
+
 def _geometry(grid: Geometry | sitk.Image) -> Geometry:
     if isinstance(grid, Geometry):
         return grid
@@ -147,6 +203,37 @@ def deformation_plausibility(
 ) -> Plausibility:
     """Folding, SDlogJ, Jacobian range and inverse consistency of a transform on a grid.
 
+    :func:`deformation_measures` without its :class:`JacobianSummary`; the parameters,
+    exceptions and notes are its.
+
+    Returns
+    -------
+    Plausibility
+        ``folded_max`` equals ``folded_fraction`` (one image).
+    """
+    return deformation_measures(
+        transform,
+        grid,
+        mask=mask,
+        inverse_consistency=inverse_consistency,
+        max_slab_voxels=max_slab_voxels,
+    )[0]
+
+
+def deformation_measures(
+    transform: sitk.Transform,
+    grid: Geometry | sitk.Image,
+    *,
+    mask: np.ndarray | None = None,
+    inverse_consistency: bool = True,
+    max_slab_voxels: int = SLAB_VOXELS,
+) -> tuple[Plausibility, JacobianSummary]:
+    """Plausibility of a transform on a grid, and its Jacobian's histogram and middle slice.
+
+    One pass over the grid gives both: folding, SDlogJ, Jacobian range and inverse
+    consistency (:class:`Plausibility`), and the histogram of ``log det J`` on fixed bins
+    with ``det J`` on the middle slice (:class:`JacobianSummary`, for reports).
+
     Parameters
     ----------
     transform : sitk.Transform (or a path / chain in ANTs order)
@@ -169,6 +256,8 @@ def deformation_plausibility(
     -------
     Plausibility
         ``folded_max`` equals ``folded_fraction`` (one image).
+    JacobianSummary
+        Over the same evaluated voxels.
 
     Raises
     ------
@@ -221,6 +310,10 @@ def deformation_plausibility(
     n_log, mean_log, m2_log = 0, 0.0, 0.0
     jmin, jmax = math.inf, -math.inf
     err_sum = 0.0
+    hist = np.zeros(LOG_JACOBIAN_BINS, np.int64)
+    below = above = 0
+    mid = g.shape[0] // 2  # the middle slice of a 3D grid (numpy axis 0: the slab axis)
+    middle = np.full(g.shape[1:] if g.dimension == 3 else g.shape, np.nan, np.float32)
     for rows, halo_grid, slab_grid, inner in _slabs(g, max(int(max_slab_voxels), 1)):
         field = displacement_field(t, halo_grid)
         det = jacobian_determinant(
@@ -228,6 +321,11 @@ def deformation_plausibility(
         )[inner]
         del field
         sel = None if mask is None else mask[rows]
+        if g.dimension != 3:
+            middle[rows] = np.where(sel, det, np.nan) if sel is not None else det
+        elif rows.start <= mid < rows.stop:
+            row = det[mid - rows.start]
+            middle[:] = np.where(sel[mid - rows.start], row, np.nan) if sel is not None else row
         if sel is not None:
             if not sel.any():
                 continue
@@ -238,6 +336,9 @@ def deformation_plausibility(
         jmin = min(jmin, float(det.min()))
         jmax = max(jmax, float(det.max()))
         logs = np.log(det[det > 0])
+        hist += np.histogram(logs, bins=LOG_JACOBIAN_BINS, range=LOG_JACOBIAN_RANGE)[0]
+        below += int(np.count_nonzero(logs < LOG_JACOBIAN_RANGE[0]))
+        above += int(np.count_nonzero(logs > LOG_JACOBIAN_RANGE[1]))
         if logs.size:  # Chan et al.: merge (n, mean, M2) of this slab into the running ones
             m = float(logs.mean())
             m2 = float(np.sum((logs - m) ** 2))
@@ -255,7 +356,7 @@ def deformation_plausibility(
     if round_trip is not None and math.isfinite(err_sum):
         consistency = err_sum / count
     fraction = folded / count
-    return Plausibility(
+    plausibility = Plausibility(
         folded_fraction=fraction,
         folded_max=fraction,
         sdlogj=math.sqrt(m2_log / n_log) if n_log else math.nan,
@@ -263,6 +364,7 @@ def deformation_plausibility(
         jacobian_max=jmax,
         inverse_consistency_mm=consistency,
     )
+    return plausibility, JacobianSummary(hist, below, above, folded, middle)
 
 
 def combine(per_image: Sequence[Plausibility]) -> Plausibility:

@@ -3,8 +3,16 @@
 ``summary.md`` is laid out like the paper's Table 3: per registration, the generalized
 overlap (inverse-volume, and inverse-volume & complexity weighting) and the specificity with
 its standard error, each with its rank and quantitative relative rank. Every file is written
-under a temporary name and renamed when complete; figures are written first and the
-``results.*`` files last, so an interrupted run leaves no partial ``results.*``.
+under a temporary name and renamed when complete; figures are written first, then
+``report.html`` (:mod:`itk_nrreval.html_report`, given as text), and the ``results.*`` files
+last, so an interrupted run leaves no partial ``results.*``.
+
+Every figure is rendered once to PNG bytes (:func:`figure_pngs`, :func:`png_bytes`): the same
+bytes are written as files and embedded in the HTML report. The figures say what they show:
+units, M, the distance, what the error bars are (subject-level 95% intervals when computed;
+otherwise Monte-Carlo intervals, with a note when they are smaller than the markers), and a
+colour legend for label contours. The drawing helpers the HTML report shares
+(:func:`thumbnail`, :func:`middle_slice`, :func:`draw_label_contours`) live here.
 
 :meth:`EvaluationResult.write <itk_nrreval.evaluation.EvaluationResult.write>` calls
 :func:`write_reports`; the functions here take the result without importing its class
@@ -18,13 +26,26 @@ import io
 import json
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from ._output import atomic_path, write_text
 
-__all__ = ["summary_table", "results_csv", "write_reports", "format_number", "format_percent"]
+__all__ = [
+    "summary_table",
+    "results_csv",
+    "write_reports",
+    "figure_pngs",
+    "format_number",
+    "format_percent",
+    "png_bytes",
+    "middle_slice",
+    "thumbnail",
+    "draw_label_contours",
+    "specificity_units",
+]
 
 _TABLE_OVERLAPS = (
     ("overlap.inverse_volume", "Overlap (inverse volume)"),
@@ -187,86 +208,358 @@ def _json_default(o):
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
-def _save_figure(fig, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight")
+def png_bytes(fig, *, dpi: int = 120) -> bytes:
+    """Render a ``matplotlib.figure.Figure`` to compact PNG bytes (tight bounding box).
+
+    Every figure is rendered once: the bytes are written to a file and embedded in the HTML
+    report alike. The PNG is stored with a palette when that loses nothing visible: exactly
+    when the picture has at most 256 colours, else with an adaptive palette of 256 colours
+    only if no channel of any pixel moves by more than 2 of 255 (grey images over a few
+    coloured contours); otherwise as true colour. About 3-5 times smaller than matplotlib's
+    RGBA output for the report's figures.
+    """
+    from PIL import Image
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    buf.seek(0)
+    with Image.open(buf) as im:
+        rgb = im.convert("RGB")
+    arr = np.asarray(rgb)
+    packed = (arr[..., 0].astype(np.uint32) << 16) | (arr[..., 1].astype(np.uint32) << 8)
+    packed |= arr[..., 2]
+    colours, index = np.unique(packed, return_inverse=True)
+    if colours.size <= 256:
+        out = Image.fromarray(index.reshape(packed.shape).astype(np.uint8))
+        palette = np.stack([colours >> 16, (colours >> 8) & 255, colours & 255], axis=1)
+        out.putpalette(palette.astype(np.uint8).ravel().tolist())
+    else:
+        out = rgb.quantize(256, method=Image.Quantize.MAXCOVERAGE, dither=Image.Dither.NONE)
+        error = np.abs(np.asarray(out.convert("RGB"), np.int16) - arr).max()
+        if error > 2:
+            out = rgb
+    res = io.BytesIO()
+    out.save(res, format="PNG", optimize=True)
+    return res.getvalue()
 
 
-def _middle_slice(img: np.ndarray) -> np.ndarray:
+def middle_slice(img: np.ndarray) -> np.ndarray:
+    """The middle slice (numpy index ``shape[0] // 2``) of a 3D array; a 2D array as is."""
     return img if img.ndim == 2 else img[img.shape[0] // 2]
 
 
-def _figures(result, out: Path) -> list[Path]:
-    # Figure objects without pyplot: no process-wide backend is chosen or changed
+def thumbnail(a: np.ndarray, *, max_size: int = 256, mode: str = "mean") -> np.ndarray:
+    """A 2D array shrunk by a whole factor until no side exceeds `max_size` pixels.
+
+    Parameters
+    ----------
+    a : ndarray, 2D
+    max_size : int
+    mode : {"mean", "nearest", "any"}
+        ``"mean"``: the mean of each block of pixels, NaN ignored (NaN where a block is all
+        NaN); ``"nearest"``: the centre pixel of each block (for label maps); ``"any"``:
+        whether any pixel of the block is true (for masks: a folded voxel stays visible).
+
+    Returns
+    -------
+    ndarray
+        `a` itself when it already fits; else of shape ``(rows // f, columns // f)`` in
+        every mode (the last rows and columns short of a whole block are dropped), so that
+        thumbnails of the same slice overlay pixel for pixel.
+    """
+    a = np.asarray(a)
+    f = math.ceil(max(a.shape) / max_size)
+    if f <= 1:
+        return a
+    h, w = a.shape[0] // f * f, a.shape[1] // f * f  # every mode drops the same remainder
+    if mode == "nearest":
+        return a[f // 2 : h : f, f // 2 : w : f]
+    blocks = a[:h, :w].reshape(h // f, f, w // f, f)
+    if mode == "any":
+        return blocks.any(axis=(1, 3))
+    if mode != "mean":
+        raise ValueError(f"mode: {mode!r} is not one of ('mean', 'nearest', 'any')")
+    valid = ~np.isnan(blocks)
+    count = valid.sum(axis=(1, 3))
+    total = np.where(valid, blocks, 0.0).sum(axis=(1, 3))
+    return np.divide(total, count, out=np.full(count.shape, np.nan), where=count > 0)
+
+
+#: Label maps with at most this many label values get one colour and a legend entry each
+#: (tab20's colours without its two greys, which would vanish on a grey image).
+LEGEND_LABELS = 18
+
+
+def draw_label_contours(
+    ax, labels: np.ndarray, *, aspect: float = 1.0, fontsize: int = 6, legend: bool = True
+) -> tuple[list, str]:
+    """Draw the boundaries of every nonzero label of `labels` over an image in `ax`.
+
+    Boundary pixels (a nonzero label with a 4-neighbour of another value) are drawn in the
+    label's colour, with a legend naming the label values; with more than
+    :data:`LEGEND_LABELS` values, all in one colour and one legend entry that says so.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+        Already showing the image (``origin="lower"``), on the same pixel grid.
+    labels : ndarray of int, 2D
+    aspect : float
+        Pixel aspect (row spacing / column spacing), as the image's.
+    fontsize : int
+        Legend font size.
+    legend : bool
+        Draw the legend beside `ax`; False leaves it to the caller (e.g. one legend for a
+        row of panels).
+
+    Returns
+    -------
+    handles : list of matplotlib Patch
+        The legend's entries (empty without labels).
+    title : str
+        The legend's title.
+    """
+    from matplotlib import colormaps
+    from matplotlib.patches import Patch
+
+    lab = np.asarray(labels)
+    edge = np.zeros(lab.shape, bool)
+    edge[1:, :] |= lab[1:, :] != lab[:-1, :]
+    edge[:-1, :] |= lab[:-1, :] != lab[1:, :]
+    edge[:, 1:] |= lab[:, 1:] != lab[:, :-1]
+    edge[:, :-1] |= lab[:, :-1] != lab[:, 1:]
+    edge &= lab != 0
+    values = [int(v) for v in np.unique(lab) if v != 0]
+    overlay = np.zeros((*lab.shape, 4))
+    if len(values) <= LEGEND_LABELS:
+        if len(values) <= 9:  # tab10 without its grey
+            colors = [c for i, c in enumerate(colormaps["tab10"].colors) if i != 7]
+        else:
+            colors = [c for i, c in enumerate(colormaps["tab20"].colors) if i not in (14, 15)]
+        handles = []
+        for k, v in enumerate(values):
+            color = (*colors[k], 1.0)
+            overlay[edge & (lab == v)] = color
+            handles.append(Patch(color=color, label=str(v)))
+        title = "label value"
+    else:
+        overlay[edge] = (1.0, 0.85, 0.0, 1.0)
+        handles = [Patch(color=(1.0, 0.85, 0.0), label=f"{len(values)} labels")]
+        title = f"labels {values[0]}..{values[-1]}"
+    ax.imshow(overlay, origin="lower", aspect=aspect, interpolation="nearest")
+    if handles and legend:
+        ax.legend(
+            handles=handles,
+            title=title,
+            fontsize=fontsize,
+            title_fontsize=fontsize,
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),
+            borderaxespad=0.0,
+            handlelength=1.0,
+            ncol=1 if len(handles) <= 10 else 2,
+        )
+    return handles, title
+
+
+def specificity_units(result) -> str:
+    """The unit of specificity and generalization, e.g. ``"L1 distance, intensity units"``."""
+    o = result.options
+    exponent = next(iter(result.scores.values())).specificity.exponent
+    unit = "intensity units" if exponent == 1 else f"(intensity units)^{exponent:g}"
+    return f"{o['distance'].upper()} distance, {unit}"
+
+
+def _intervals(result, names, measure) -> list | None:
+    """Per registration the (lo, hi) of `measure`'s subject-level 95% interval, or None."""
+    ivs = [result.scores[n].intervals.get(measure) for n in names]
+    if all(iv is not None and math.isfinite(iv.lo) and math.isfinite(iv.hi) for iv in ivs):
+        return [(iv.lo, iv.hi) for iv in ivs]
+    return None
+
+
+def _specificity_figure(result, names):
     from matplotlib.figure import Figure
 
-    written = []
-    names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
     spec = [result.scores[n].specificity for n in names]
     values = np.array([s.value for s in spec])
-    ivs = [result.scores[n].intervals.get("specificity") for n in names]
-    has_ci = all(iv is not None and math.isfinite(iv.lo) for iv in ivs)
-    fig = Figure(figsize=(max(4.5, 1.3 * len(names)), 3.8))
+    mc = np.array([s.stderr for s in spec])
+    ci = _intervals(result, names, "specificity")
+    fig = Figure(figsize=(max(4.8, 1.3 * len(names)), 4.0))
     ax = fig.subplots()
     colors = ["tab:red" if result.scores[n].flags else "tab:blue" for n in names]
-    if has_ci:
-        err = np.array([[v - iv.lo, iv.hi - v] for v, iv in zip(values, ivs, strict=True)]).T
+    if ci is not None:
+        err = np.array([[v - lo, hi - v] for v, (lo, hi) in zip(values, ci, strict=True)]).T
     else:
-        err = np.array([[s.stderr for s in spec]] * 2)
+        err = np.array([1.96 * mc] * 2)
     for x, (v, c) in enumerate(zip(values, colors, strict=True)):
-        ax.errorbar(x, v, yerr=err[:, x : x + 1], fmt="o", capsize=5, color=c)
+        ax.errorbar(x, v, yerr=err[:, x : x + 1], fmt="o", markersize=6, capsize=5, color=c)
     labels = [f"{n}\n(flagged)" if result.scores[n].flags else n for n in names]
     ax.set_xticks(range(len(names)), labels, rotation=30, ha="right")
+    ax.set_xlim(-0.6, len(names) - 0.4)
     o = result.options
-    ax.set_ylabel(f"specificity ({o['distance'].upper()}; lower is better)")
-    mc = max(s.stderr for s in spec)
-    what = (
-        "bars: 95% subject-level interval (jackknife over subjects)"
-        if has_ci
-        else "bars: Monte-Carlo standard error"
-    )
+    ax.set_ylabel(f"specificity ({specificity_units(result)})\nlower is better")
+    lo, hi = ax.get_ylim()
+    # a 6 pt marker on a 4 in figure covers about 2% of the axis height
+    hidden = 1.96 * float(mc.max()) < 0.01 * (hi - lo)
+    n_images = spec[0].n_images
+    if ci is not None:
+        what = f"bars: subject-level 95% interval (jackknife over the N = {n_images} subjects)"
+        mc_note = f"Monte-Carlo s.e. at most {mc.max():.2g}" + (
+            " (too small to draw)" if hidden else ""
+        )
+    else:
+        what = "bars: 95% Monte-Carlo interval (±1.96 s.e.; model sampling only)"
+        mc_note = (
+            "the Monte-Carlo error bars are smaller than the markers; no subject-level "
+            "interval (confidence off or N < 4)"
+            if hidden
+            else "no subject-level interval (confidence off or N < 4)"
+        )
     ax.set_title(
-        f"Specificity, M = {o['n_samples']:,} samples; {what}\n"
-        f"Monte-Carlo s.e. at most {mc:.2g}"
-        + (" (too small to draw)" if has_ci else "")
-        + "; red: flagged as implausible",
+        f"Specificity, M = {o['n_samples']:,} model samples, {o['distance'].upper()} distance\n"
+        f"{what}\n{mc_note}"
+        + ("; red: flagged as implausible" if any(result.scores[n].flags for n in names) else ""),
         fontsize=8,
     )
-    _save_figure(fig, out / "specificity.png")
-    written.append(out / "specificity.png")
+    return fig
 
+
+def _overlap_figure(result, names, overlap: str):
+    from matplotlib.figure import Figure
+
+    spec = [result.scores[n].specificity for n in names]
+    ys = np.array([s.value for s in spec])
+    xs = np.array([result.scores[n].measures()[overlap] for n in names])
+    ci_y = _intervals(result, names, "specificity")
+    ci_x = _intervals(result, names, overlap)
+    fig = Figure(figsize=(5.0, 4.0))
+    ax = fig.subplots()
+    if ci_y is not None:
+        yerr = np.array([[y - lo, hi - y] for y, (lo, hi) in zip(ys, ci_y, strict=True)]).T
+    else:
+        yerr = 1.96 * np.array([s.stderr for s in spec])
+    xerr = None
+    if ci_x is not None:
+        xerr = np.array([[x - lo, hi - x] for x, (lo, hi) in zip(xs, ci_x, strict=True)]).T
+    colors = ["tab:red" if result.scores[n].flags else "tab:blue" for n in names]
+    for i in range(len(names)):
+        ax.errorbar(
+            xs[i],
+            ys[i],
+            yerr=yerr[:, i : i + 1] if yerr.ndim == 2 else yerr[i],
+            xerr=xerr[:, i : i + 1] if xerr is not None else None,
+            fmt="o",
+            capsize=3,
+            color=colors[i],
+        )
+    for x, y, n in zip(xs, ys, names, strict=True):
+        ax.annotate(n, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    weighting = overlap.split(".", 1)[1].replace("_", " ")
+    ax.set_xlabel(f"generalized overlap (Tanimoto, {weighting} weighting, 0..1)\nhigher is better")
+    ax.set_ylabel(f"specificity ({specificity_units(result)})\nlower is better")
+    if ci_y is not None:
+        what = "bars: subject-level 95% intervals of both scores (jackknife over subjects)"
+    else:
+        what = (
+            "bars: 95% Monte-Carlo interval of specificity only (no subject-level "
+            "intervals computed)"
+        )
+    o = result.options
+    ax.set_title(
+        f"Specificity against overlap; M = {o['n_samples']:,}, {o['distance'].upper()}\n{what}",
+        fontsize=8,
+    )
+    return fig
+
+
+def _mean_images_figure(result, names):
+    from matplotlib.figure import Figure
+
+    slices = {n: middle_slice(result.mean_images[n]) for n in names}
+    lo = min(float(np.nanmin(slices[n])) for n in names)
+    hi = max(float(np.nanmax(slices[n])) for n in names)
+    thumbs = getattr(result, "thumbnails", {}) or {}
+    contours = any("labels_0" in thumbs.get(n, {}) for n in names)
+    fig = Figure(
+        figsize=(max(2.6 * len(names), 5.2), 3.4 if contours else 3.0), layout="constrained"
+    )
+    axes = fig.subplots(1, len(names), squeeze=False)
+    handles, legend_title = [], ""
+    for ax, n in zip(axes[0], names, strict=True):
+        t = thumbs.get(n, {})
+        sp = t.get("common_spacing")
+        aspect = float(sp[0] / sp[1]) if sp is not None else 1.0
+        ax.imshow(
+            thumbnail(slices[n]), cmap="gray", vmin=lo, vmax=hi, origin="lower", aspect=aspect
+        )
+        if "labels_0" in t:
+            found, legend_title = draw_label_contours(
+                ax, thumbnail(t["labels_0"], mode="nearest"), aspect=aspect, legend=False
+            )
+            handles = handles or found
+        ax.set_title(n, fontsize=9)
+        ax.axis("off")
+    dim = next(iter(result.mean_images.values())).ndim
+    where = "middle slice, " if dim == 3 else ""
+    title = (
+        f"Mean of the N images in the common frame ({where}grey scale shared: "
+        f"{format_number(lo, 3)} to {format_number(hi, 3)} intensity units)"
+    )
+    if contours:
+        title += "\ncontours: the labels of subject 0 resampled into the same frame"
+    if handles:
+        fig.legend(
+            handles=handles,
+            title=legend_title,
+            loc="outside lower center",
+            ncol=min(len(handles), 10),
+            fontsize=7,
+            title_fontsize=7,
+        )
+    fig.suptitle(title, fontsize=9)
+    return fig
+
+
+def figure_pngs(result) -> dict[str, bytes]:
+    """The summary figures, each rendered once to PNG bytes, by file name.
+
+    ``specificity.png`` (scores with their subject-level 95% intervals, or Monte-Carlo
+    error bars and a note when those are all there is), ``specificity_vs_overlap.png``
+    (with labels) and ``mean_images.png`` (middle slice of each registration's mean image,
+    with the label contours of subject 0 and their legend when labels were given).
+    """
+    names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
+    out = {"specificity.png": png_bytes(_specificity_figure(result, names))}
     overlap = next((m for m, _ in _TABLE_OVERLAPS if m in result.ranks), None)
     overlap = overlap or next((m for m in result.measures if m.startswith("overlap.")), None)
     if overlap is not None:
-        fig = Figure(figsize=(4.5, 3.5))
-        ax = fig.subplots()
-        xs = [result.scores[n].measures()[overlap] for n in names]
-        ax.errorbar(xs, [s.value for s in spec], yerr=[s.stderr for s in spec], fmt="o", capsize=3)
-        for x, s, n in zip(xs, spec, names, strict=True):
-            ax.annotate(n, (x, s.value), textcoords="offset points", xytext=(4, 4), fontsize=8)
-        ax.set_xlabel(f"generalized overlap ({overlap.split('.', 1)[1]}), higher is better")
-        ax.set_ylabel("specificity, lower is better")
-        _save_figure(fig, out / "specificity_vs_overlap.png")
-        written.append(out / "specificity_vs_overlap.png")
-
-    fig = Figure(figsize=(2.6 * len(names), 2.8))
-    axes = fig.subplots(1, len(names), squeeze=False)
-    lo = min(float(np.min(result.mean_images[n])) for n in names)
-    hi = max(float(np.max(result.mean_images[n])) for n in names)
-    for ax, n in zip(axes[0], names, strict=True):
-        ax.imshow(
-            _middle_slice(result.mean_images[n]), cmap="gray", vmin=lo, vmax=hi, origin="lower"
-        )
-        ax.set_title(n, fontsize=9)
-        ax.axis("off")
-    fig.suptitle("Mean image in the common frame")
-    _save_figure(fig, out / "mean_images.png")
-    written.append(out / "mean_images.png")
-    return written
+        out["specificity_vs_overlap.png"] = png_bytes(_overlap_figure(result, names, overlap))
+    out["mean_images.png"] = png_bytes(_mean_images_figure(result, names))
+    return out
 
 
-def write_reports(result, out: str | os.PathLike, *, figures: bool = True) -> list[Path]:
-    """Write figures, then ``results.json``, ``results.csv`` and ``summary.md`` into `out`.
+def write_reports(
+    result,
+    out: str | os.PathLike,
+    *,
+    figures: bool | Mapping[str, bytes] = True,
+    html: str | None = None,
+) -> list[Path]:
+    """Write figures, then ``report.html``, then ``results.json``, ``results.csv`` and
+    ``summary.md`` into `out`.
+
+    Parameters
+    ----------
+    result : EvaluationResult
+    out : path
+        Created if needed.
+    figures : bool or mapping of str to bytes
+        True: render and write the PNG figures (:func:`figure_pngs`); a mapping: write these
+        already rendered figures (file name to PNG bytes); False: no figures.
+    html : str, optional
+        The text of ``report.html`` (:func:`itk_nrreval.html_report.report_html`), written
+        after the figures and before the ``results.*`` files.
 
     Returns
     -------
@@ -275,7 +568,16 @@ def write_reports(result, out: str | os.PathLike, *, figures: bool = True) -> li
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    written = _figures(result, out) if figures else []
+    if figures is True:
+        figures = figure_pngs(result)
+    written = []
+    for fname, data in (figures or {}).items():
+        with atomic_path(out / fname) as tmp:
+            tmp.write_bytes(data)
+        written.append(out / fname)
+    if html is not None:
+        write_text(out / "report.html", html)
+        written.append(out / "report.html")
     # build everything before writing any results.* file
     texts = {
         "results.json": json.dumps(result.to_dict(), indent=2, default=_json_default) + "\n",
