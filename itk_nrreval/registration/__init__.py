@@ -42,16 +42,15 @@ import json
 import os
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._output import atomic_path, write_json
-from ..transforms import flatten, write_transform
+from ..transforms import flatten
 from ._common import EngineError, load_images, resample, with_options
+from ._elastix_worker import ElastixWorker
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
 from .fluid import FluidOptions, fluid_to_reference, import_ants
@@ -61,12 +60,18 @@ from .groupwise import (
     groupwise_register_elastix,
     groupwise_register_elastix_stack,
 )
+from .multimodal import STRATEGIES, MultimodalResult, register_multimodal
+from .result import RegistrationResult
 
 __all__ = [
     "METHODS",
     "ENGINES",
     "register",
     "RegistrationResult",
+    "register_multimodal",
+    "MultimodalResult",
+    "STRATEGIES",
+    "ElastixWorker",
     "EngineError",
     "AffineOptions",
     "FluidOptions",
@@ -90,95 +95,6 @@ _OPTIONS = {
     "groupwise": GroupwiseOptions(),
 }
 REFERENCE_CHOICES = ("near-mean", "far-from-mean")
-
-
-@dataclass(frozen=True)
-class RegistrationResult:
-    """The registration of N images to one reference frame.
-
-    Attributes
-    ----------
-    method : str
-        ``"affine"``, ``"fluid"``, ``"pairwise"`` or ``"groupwise"``.
-    engine : str
-        The engine that produced the non-affine part (``"simpleitk"``, ``"elastix"``, ...).
-    transforms : tuple of sitk.Transform, length n_images
-        Image ``i``'s transform, reference points -> image ``i`` points (mm, LPS). Affine:
-        ``AffineTransform``; fluid: ``CompositeTransform([A_i, field_i])``; pairwise
-        (elastix): one ``DisplacementFieldTransform`` on the reference grid (affine
-        included); pairwise (SimpleITK) and groupwise: ``CompositeTransform`` of the affine
-        and the B-spline(s) (elastix-stack: ``[A_i, B_i]``).
-    reference : sitk.Image
-        The reference image; its grid is the registration's frame.
-    reference_index : int or None
-        Index of the training image used as reference, or None (groupwise mean, or an image
-        that is not one of the inputs).
-    resampled : tuple of sitk.Image, length n_images
-        Each image on the reference grid as the engine itself resampled it (elastix: its
-        own result image; SimpleITK: ``sitk.Resample`` through ``transforms[i]``), linear
-        interpolation, 0 outside. elastix-stack: elastix's registered slice ``i``, i.e. the
-        image resampled through ``A_i`` and then through ``B_i`` (two interpolations).
-    settings : dict
-        Method, engine, seed, reference choice, affine and method options (JSON-ready).
-    seconds : float
-        Wall time of the registration.
-    """
-
-    method: str
-    engine: str
-    transforms: tuple[sitk.Transform, ...]
-    reference: sitk.Image
-    reference_index: int | None
-    resampled: tuple[sitk.Image, ...]
-    settings: dict[str, Any] = field(default_factory=dict)
-    seconds: float = 0.0
-
-    @property
-    def n_images(self) -> int:
-        return len(self.transforms)
-
-    def write(
-        self, out: str | os.PathLike, *, names: Sequence[str] | None = None
-    ) -> dict[str, Any]:
-        """Write the transforms (``.h5``), the reference image and ``registration.json``.
-
-        Parameters
-        ----------
-        out : path
-            Folder, created if needed.
-        names : sequence of str, optional
-            A stem per image for the transform files (default ``image000`` ...).
-
-        Returns
-        -------
-        dict
-            ``{"reference": Path, "transforms": [Path, ...], "log": Path}``.
-        """
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        if names is None:
-            names = [f"image{i:03d}" for i in range(self.n_images)]
-        if len(names) != self.n_images:
-            raise InputError(f"names: {len(names)} given for {self.n_images} transforms")
-        paths = []
-        for i, (t, stem) in enumerate(zip(self.transforms, names, strict=True)):
-            paths.append(write_transform(t, out / f"{i:03d}_{stem}.h5"))
-        reference = out / "reference.nii.gz"
-        with atomic_path(reference) as tmp:
-            sitk.WriteImage(self.reference, str(tmp))
-        log = out / "registration.json"
-        write_json(
-            log,
-            {
-                **self.settings,
-                "reference_index": self.reference_index,
-                "seconds": round(self.seconds, 3),
-                "reference": reference.name,
-                "transforms": [p.name for p in paths],
-                "convention": "each transform maps reference points to image points (mm, LPS)",
-            },
-        )
-        return {"reference": reference, "transforms": paths, "log": log}
 
 
 def _check_choice(name: str, value, accepted) -> None:
@@ -340,16 +256,12 @@ def register(
             worker=elastix_worker,
         )
     elif engine == "elastix-stack":
-        from ._elastix_worker import ElastixWorker  # noqa: PLC0415
-
         with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
             transforms, ref_image, engine_resampled = groupwise_register_elastix_stack(
                 imgs, ref_image, affines, options=opts, seed=seed, worker=w
             )
         ref_index = None
     elif engine == "elastix":
-        from ._elastix_worker import ElastixWorker  # noqa: PLC0415
-
         with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
             transforms, ref_image = groupwise_register_elastix(
                 imgs, ref_image, affines, options=opts, seed=seed, worker=w, show_progress=progress

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,7 +23,13 @@ __all__ = [
     "resample",
     "group_mean",
     "mesh_size",
+    "METRICS",
+    "set_metric",
+    "reproducible_threads",
 ]
+
+#: The similarity metrics of the SimpleITK stages (affine and B-spline).
+METRICS = ("mean_squares", "correlation", "mattes")
 
 S = TypeVar("S")
 
@@ -117,6 +124,45 @@ def group_mean(
     mean = sitk.GetImageFromArray((acc / len(images)).astype(np.float32))
     mean.CopyInformation(reference)
     return mean
+
+
+def set_metric(reg: sitk.ImageRegistrationMethod, metric: str) -> None:
+    """Give `reg` the similarity `metric` (one of :data:`METRICS`).
+
+    ``"mean_squares"``: mean squared intensity difference (same contrast); ``"correlation"``:
+    normalised correlation (intensities related linearly); ``"mattes"``: Mattes mutual
+    information with 50 histogram bins (any intensity relation, e.g. T1 against T2).
+    """
+    if metric == "mean_squares":
+        reg.SetMetricAsMeanSquares()
+    elif metric == "correlation":
+        reg.SetMetricAsCorrelation()
+    elif metric == "mattes":
+        reg.SetMetricAsMattesMutualInformation(numberOfHistogramBins=50)
+    else:
+        raise InputError(f"metric must be one of {METRICS}, got {metric!r}")
+
+
+@contextlib.contextmanager
+def reproducible_threads(metric: str) -> Iterator[None]:
+    """Run SimpleITK single-threaded inside the block when `metric` is ``"mattes"``.
+
+    ITK's Mattes mutual information sums its per-thread joint histograms in an order that
+    varies from run to run, so a multi-threaded registration is not reproducible: the same
+    seed gave affine parameters differing by up to 0.004 (matrix) and 0.03 mm (translation)
+    on a 141 x 141 T1 / T2 pair with 2 threads, and identical ones with 1 (at about 1.4x
+    the time). The other metrics are reproducible threaded and are left alone. The global
+    default is restored afterwards.
+    """
+    if metric != "mattes":
+        yield
+        return
+    before = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(before)
 
 
 def mesh_size(reference: sitk.Image, grid_spacing: float) -> list[int]:

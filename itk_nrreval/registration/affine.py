@@ -15,11 +15,16 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
-from ._common import EngineError, engine_seed, resample
+from ._common import (
+    METRICS,
+    EngineError,
+    engine_seed,
+    reproducible_threads,
+    resample,
+    set_metric,
+)
 
 __all__ = ["AffineOptions", "affine_register", "affine_to_reference", "choose_reference"]
-
-METRICS = ("mean_squares", "correlation", "mattes")
 
 
 @dataclass(frozen=True)
@@ -61,15 +66,6 @@ class AffineOptions:
             )
 
 
-def _set_metric(reg: sitk.ImageRegistrationMethod, metric: str) -> None:
-    if metric == "mean_squares":
-        reg.SetMetricAsMeanSquares()
-    elif metric == "correlation":
-        reg.SetMetricAsCorrelation()
-    else:
-        reg.SetMetricAsMattesMutualInformation(numberOfHistogramBins=50)
-
-
 def affine_register(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -104,7 +100,7 @@ def affine_register(
             sitk.CenteredTransformInitializerFilter.MOMENTS,
         )
     reg = sitk.ImageRegistrationMethod()
-    _set_metric(reg, options.metric)
+    set_metric(reg, options.metric)
     reg.SetMetricSamplingStrategy(reg.RANDOM)
     reg.SetMetricSamplingPercentage(float(options.sampling), engine_seed(seed))
     reg.SetInterpolator(sitk.sitkLinear)
@@ -124,7 +120,8 @@ def affine_register(
     start.SetParameters(initial.GetParameters())
     reg.SetInitialTransform(start, inPlace=True)
     try:
-        reg.Execute(fixed, moving)
+        with reproducible_threads(options.metric):
+            reg.Execute(fixed, moving)
     except RuntimeError as exc:
         raise EngineError(
             f"SimpleITK affine registration failed: {str(exc).strip()[-200:]}"
@@ -157,20 +154,28 @@ def affine_to_reference(
     reference_index: int | None = None,
     initial: Sequence[sitk.Transform | None] | None = None,
     show_progress: bool = True,
+    numbers: Sequence[int] | None = None,
+    desc: str = "affine",
 ) -> list[sitk.AffineTransform]:
     """Affine of every image to `reference` (reference -> image); identity for the reference itself.
 
-    Image ``i`` uses the metric sampling seed ``seed + i``.
+    Image ``i`` uses the metric sampling seed ``seed + numbers[i]`` (`numbers`: the images'
+    numbers in a larger group, default ``0 .. n-1``); `reference_index` indexes `images`.
     """
+    numbers = range(len(images)) if numbers is None else numbers
     out = []
     for i, img in progress(
-        list(enumerate(images)), desc="affine", total=len(images), enabled=show_progress
+        list(enumerate(images)), desc=desc, total=len(images), enabled=show_progress
     ):
         if i == reference_index:
             out.append(sitk.AffineTransform(img.GetDimension()))
             continue
         start = None if initial is None else initial[i]
-        out.append(affine_register(reference, img, options=options, seed=seed + i, initial=start))
+        out.append(
+            affine_register(
+                reference, img, options=options, seed=seed + int(numbers[i]), initial=start
+            )
+        )
     return out
 
 

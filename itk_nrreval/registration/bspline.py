@@ -1,14 +1,16 @@
 """Pairwise cubic B-spline free-form deformation, coarse to fine, to one reference.
 
 Engine ``"elastix"`` (itk-elastix, in a worker process): elastix's default B-spline map for
-``levels`` resolutions and the final control-point spacing ``grid_spacing`` (mm), mean
-squares metric, started from the SimpleITK affine (given to elastix as its initial
-transform). elastix composes that as ``B(A(p))``: the result is ``CompositeTransform([B, A])``
-with elastix's B-spline rebuilt as a SimpleITK ``BSplineTransform``.
+``levels`` resolutions and the final control-point spacing ``grid_spacing`` (mm), the metric
+of ``metric`` (mean squares by default; ``"mattes"``: elastix's
+``AdvancedMattesMutualInformation``, for images of different contrasts), started from the
+SimpleITK affine (given to elastix as its initial transform). elastix composes that as
+``B(A(p))``: the result is ``CompositeTransform([B, A])`` with elastix's B-spline rebuilt as
+a SimpleITK ``BSplineTransform``.
 
 Engine ``"simpleitk"``: SimpleITK's B-spline with the affine as moving initial transform
-(result ``[A, B]``: ``A(B(p))``), the mesh refined by 2 per level; optimised by gradient
-descent with line search (LBFGSB fails with a refined mesh).
+(result ``[A, B]``: ``A(B(p))``), the mesh refined by 2 per level, the same ``metric``;
+optimised by gradient descent with line search (LBFGSB fails with a refined mesh).
 """
 
 from __future__ import annotations
@@ -20,9 +22,24 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._progress import progress
-from ._common import EngineError, engine_seed, mesh_size, resample
+from ._common import (
+    METRICS,
+    EngineError,
+    engine_seed,
+    mesh_size,
+    reproducible_threads,
+    resample,
+    set_metric,
+)
 
-__all__ = ["BSplineOptions", "sitk_bspline", "bspline_to_reference"]
+__all__ = ["BSplineOptions", "sitk_bspline", "bspline_to_reference", "ELASTIX_METRICS"]
+
+#: elastix's metric for each of :data:`METRICS`.
+ELASTIX_METRICS = {
+    "mean_squares": "AdvancedMeanSquares",
+    "correlation": "AdvancedNormalizedCorrelation",
+    "mattes": "AdvancedMattesMutualInformation",
+}
 
 
 @dataclass(frozen=True)
@@ -43,7 +60,13 @@ class BSplineOptions:
     sampling : float
         SimpleITK: fraction of voxels sampled by the metric, in (0, 1].
     elastix_parameters : dict
-        elastix parameters overriding the default map (``{"Metric": "AdvancedMeanSquares"}``).
+        elastix parameters overriding the default map (``{"Metric": "AdvancedMeanSquares"}``);
+        they win over `metric`.
+    metric : {"mean_squares", "correlation", "mattes"}
+        Similarity: mean squared difference (same contrast), normalised correlation, or
+        Mattes mutual information (images of different contrasts, e.g. T1 against T2);
+        elastix: ``AdvancedMeanSquares``, ``AdvancedNormalizedCorrelation``,
+        ``AdvancedMattesMutualInformation``; SimpleITK: 50 histogram bins.
     """
 
     grid_spacing: float = 16.0
@@ -52,6 +75,7 @@ class BSplineOptions:
     samples: int = 2048
     sampling: float = 0.25
     elastix_parameters: Mapping[str, object] = field(default_factory=dict)
+    metric: str = "mean_squares"
 
     def check(self) -> None:
         if self.levels < 1 or self.iterations < 1 or self.grid_spacing <= 0:
@@ -61,6 +85,10 @@ class BSplineOptions:
             )
         if not 0 < self.sampling <= 1:
             raise InputError(f"pairwise options: sampling must be in (0, 1], got {self.sampling}")
+        if self.metric not in METRICS:
+            raise InputError(
+                f"pairwise options: metric must be one of {METRICS}, got {self.metric!r}"
+            )
 
 
 def sitk_bspline(
@@ -75,12 +103,14 @@ def sitk_bspline(
     sampling: float,
     seed: int,
     max_step: float = 1.0,
+    metric: str = "mean_squares",
 ) -> sitk.BSplineTransform:
     """SimpleITK B-spline ``B`` such that ``initial(B(p))`` maps `fixed` points to `moving` points.
 
     The mesh starts at ``grid_spacing * 2**(levels-1)`` mm and is refined by 2 per level;
     images are shrunk by ``shrink_factors`` (default ``2**(levels-1-k)``) and smoothed by
-    half the shrink factor (voxels).
+    half the shrink factor (voxels). `metric` is one of :data:`METRICS` (``"mattes"``:
+    Mattes mutual information, for images of different contrasts).
     """
     dim = fixed.GetDimension()
     coarse = mesh_size(fixed, grid_spacing * 2 ** (levels - 1))
@@ -88,7 +118,7 @@ def sitk_bspline(
     if shrink_factors is None:
         shrink_factors = [2 ** (levels - 1 - k) for k in range(levels)]
     reg = sitk.ImageRegistrationMethod()
-    reg.SetMetricAsMeanSquares()
+    set_metric(reg, metric)
     reg.SetMetricSamplingStrategy(reg.RANDOM)
     reg.SetMetricSamplingPercentage(float(sampling), engine_seed(seed))
     reg.SetInterpolator(sitk.sitkLinear)
@@ -122,7 +152,8 @@ def sitk_bspline(
     reg.SetMovingInitialTransform(initial)
     reg.SetInitialTransformAsBSpline(tx, inPlace=True, scaleFactors=[2**k for k in range(levels)])
     try:
-        out = reg.Execute(fixed, moving)
+        with reproducible_threads(metric):
+            out = reg.Execute(fixed, moving)
     except RuntimeError as exc:
         raise EngineError(
             f"SimpleITK B-spline registration failed: {str(exc).strip()[-200:]}"
@@ -137,7 +168,7 @@ def sitk_bspline(
 def elastix_parameters(options: BSplineOptions, *, seed: int) -> dict[str, list[str]]:
     """The overrides of elastix's default B-spline map used here."""
     params = {
-        "Metric": ["AdvancedMeanSquares"],
+        "Metric": [ELASTIX_METRICS[options.metric]],
         "MaximumNumberOfIterations": [str(options.iterations)],
         "NumberOfSpatialSamples": [str(options.samples)],
         "FinalBSplineInterpolationOrder": ["1"],
@@ -163,14 +194,20 @@ def bspline_to_reference(
     reference_index: int | None = None,
     show_progress: bool = True,
     worker=None,
+    numbers: Sequence[int] | None = None,
+    desc: str = "pairwise",
 ) -> tuple[list[sitk.Transform], list[sitk.Image] | None]:
     """Per image the B-spline transform reference -> image (affine included).
 
     Returns the transforms and, for elastix, elastix's own resampled images (else None).
-    The reference image itself (`reference_index`) keeps its identity affine.
+    The reference image itself (`reference_index`, an index into `images`) keeps its
+    identity affine. Image ``i`` uses the seed ``seed + numbers[i]`` and is called
+    ``image numbers[i]`` in messages (`numbers`: the images' numbers in a larger group,
+    default ``0 .. n-1``).
     """
+    numbers = list(range(len(images))) if numbers is None else [int(k) for k in numbers]
     items = list(enumerate(zip(images, affines, strict=True)))
-    bar = progress(items, desc=f"pairwise ({engine})", total=len(items), enabled=show_progress)
+    bar = progress(items, desc=f"{desc} ({engine})", total=len(items), enabled=show_progress)
     if engine == "simpleitk":
         out = []
         for i, (img, aff) in bar:
@@ -185,7 +222,8 @@ def bspline_to_reference(
                 levels=options.levels,
                 iterations=options.iterations,
                 sampling=options.sampling,
-                seed=seed + i,
+                seed=seed + numbers[i],
+                metric=options.metric,
             )
             out.append(sitk.CompositeTransform([aff, b]))
         return out, None
@@ -207,8 +245,8 @@ def bspline_to_reference(
                 initial=aff,
                 levels=options.levels,
                 grid_spacing=options.grid_spacing,
-                parameters=elastix_parameters(options, seed=seed + i),
-                what=f"image {i}",
+                parameters=elastix_parameters(options, seed=seed + numbers[i]),
+                what=f"image {numbers[i]}",
             )
             transforms.append(transform)
             resampled.append(result)
