@@ -1,9 +1,10 @@
 """Does specificity pick the right setting? Parameter sweeps on generated populations.
 
 For each generated population (phantom and MNI-based 2D, one 3D phantom) and each sweep
-(demons smoothing, B-spline grid spacing), :func:`itk_nrreval.sweep.sweep` registers the
-population once per setting and evaluates every setting; the population's true transforms
-give each setting's true mean correspondence error. Reported per sweep: the setting chosen
+(demons smoothing of the field and of the update, B-spline grid spacing),
+:func:`itk_nrreval.sweep.sweep` registers the population once per setting and evaluates
+every setting; the population's true transforms give each setting's true mean
+correspondence error. Reported per sweep: the setting chosen
 by specificity (the verdict's best: lowest specificity among unflagged settings), the
 settings it cannot separate from that one, the setting chosen by the truth and by the
 inverse-volume overlap, Spearman correlations over the settings, and which settings the
@@ -31,6 +32,7 @@ DOCS = HERE.parent / "docs"
 
 SMOOTHING = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)  # demons field smoothing, mm at full resolution
 GRID = (4.0, 8.0, 16.0, 32.0, 64.0)  # B-spline control-point spacing, mm
+UPDATE = (0.0, 1.0, 2.0, 4.0, 8.0)  # demons update-field smoothing, mm at full resolution
 
 CASES = [
     # (case, kind, dim, n, spacing, method, engine, parameter, values)
@@ -38,6 +40,17 @@ CASES = [
     ("mni2d_fluid", "mni", 2, 24, None, "fluid", None, "smoothing_mm", SMOOTHING),
     ("phantom2d_pairwise", "phantom", 2, 24, None, "pairwise", None, "grid_spacing", GRID),
     ("mni2d_pairwise", "mni", 2, 24, None, "pairwise", None, "grid_spacing", GRID),
+    (
+        "phantom2d_fluid_update",
+        "phantom",
+        2,
+        24,
+        None,
+        "fluid",
+        None,
+        "update_smoothing_mm",
+        UPDATE,
+    ),
     ("phantom3d_fluid", "phantom", 3, 10, 2.0, "fluid", None, "smoothing_mm", (1.0, 4.0, 16.0)),
 ]
 

@@ -381,6 +381,10 @@ def test_missing_ants_is_a_clear_input_error(population, monkeypatch):
             r"smoothing_mm gives 2 values for 3 levels",
         ),
         (
+            {"method": "fluid", "options": {"update_smoothing_mm": -1.0}},
+            r"update_smoothing_mm must be a finite number >= 0 \(mm\), got -1.0",
+        ),
+        (
             {"method": "fluid", "options": {"smoothing_mm": float("nan")}},
             r"smoothing_mm must be finite numbers > 0 \(mm\), got nan",
         ),
@@ -501,6 +505,20 @@ def test_demons_smoothing_is_the_stated_mm_on_every_axis(spacing, size):
     # 3 mm is 12 pixels at 0.25 mm: a kernel wider than ITK's default 30 coefficients a side.
     field = demons_register(*_impulse_pair(spacing, size), options=_one_iteration(smoothing_mm=3.0))
     np.testing.assert_allclose(_kernel_widths_mm(field), [3.0, 3.0], rtol=0.02)
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0), (1.0, 2.0)])
+def test_demons_update_smoothing_adds_in_quadrature_in_mm(spacing):
+    # One iteration from a zero field: the impulse's update is smoothed by the update kernel,
+    # then the field by the field kernel; two Gaussians compose into sqrt(u^2 + s^2).
+    pair = _impulse_pair(spacing, (64, 64))
+    field = demons_register(
+        *pair, options=_one_iteration(smoothing_mm=3.0, update_smoothing_mm=2.0)
+    )
+    np.testing.assert_allclose(_kernel_widths_mm(field), [np.hypot(3.0, 2.0)] * 2, rtol=0.03)
+    # 0 (the default) leaves the update alone: the field kernel alone.
+    unsmoothed = demons_register(*pair, options=_one_iteration(smoothing_mm=3.0))
+    np.testing.assert_allclose(_kernel_widths_mm(unsmoothed), [3.0, 3.0], rtol=0.02)
 
 
 def test_demons_default_smoothing_is_isotropic_in_mm_on_anisotropic_voxels():

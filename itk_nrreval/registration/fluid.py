@@ -85,6 +85,11 @@ class FluidOptions:
         it, of the widths tried (1-8 mm, scaled or the same at every level) on generated
         2D phantom (1.6 mm and 1.6 x 3.2 mm voxels), 2D MNI (1.4 mm) and 3D phantom (3 mm)
         populations (``benchmarks/bench_demons_smoothing.py``).
+    update_smoothing_mm : float
+        Standard deviation, in mm, of the Gaussian that smooths each iteration's *update*
+        field before it is composed in (the "fluid" regularisation of demons), scaled per
+        level like a number given as `smoothing_mm`. 0, the default, does not smooth the
+        update (ITK's default too), so the field smoothing alone regularises.
     max_step : float
         Largest update per iteration, in voxels of the level's smallest voxel dimension
         (``max_step * min(spacing)`` mm). ITK's ``MaximumUpdateStepLength`` is in units of
@@ -97,6 +102,7 @@ class FluidOptions:
     shrink_factors: tuple[int, ...] = (4, 2, 1)
     iterations: tuple[int, ...] = (100, 60, 40)
     smoothing_mm: float | tuple[float, ...] = 5.0
+    update_smoothing_mm: float = 0.0
     max_step: float = 1.0
     histogram_levels: int = 256
 
@@ -105,6 +111,10 @@ class FluidOptions:
         if isinstance(self.smoothing_mm, (tuple, list)):
             return tuple(float(s) for s in self.smoothing_mm)
         return tuple(float(f) * float(self.smoothing_mm) for f in self.shrink_factors)
+
+    def update_smoothing_per_level(self) -> tuple[float, ...]:
+        """The update-field smoothing standard deviation (mm) of each level (0: none)."""
+        return tuple(float(f) * float(self.update_smoothing_mm) for f in self.shrink_factors)
 
     def check(self) -> None:
         """Raise InputError naming the first inconsistent or out-of-range option."""
@@ -134,6 +144,11 @@ class FluidOptions:
             raise InputError(
                 f"fluid options: smoothing_mm must be finite numbers > 0 (mm), got "
                 f"{self.smoothing_mm!r}"
+            )
+        u = self.update_smoothing_mm
+        if isinstance(u, bool) or not isinstance(u, (int, float)) or not (0 <= u < math.inf):
+            raise InputError(
+                f"fluid options: update_smoothing_mm must be a finite number >= 0 (mm), got {u!r}"
             )
         if not _positive(self.max_step):
             raise InputError(f"fluid options: max_step must be > 0 voxels, got {self.max_step!r}")
@@ -227,9 +242,13 @@ def demons_register(
     options.check()
     field = None
     levels = zip(
-        options.shrink_factors, options.iterations, options.smoothing_per_level(), strict=True
+        options.shrink_factors,
+        options.iterations,
+        options.smoothing_per_level(),
+        options.update_smoothing_per_level(),
+        strict=True,
     )
-    for factor, iterations, sigma_mm in levels:
+    for factor, iterations, sigma_mm, update_mm in levels:
         f, m = _shrink(fixed, factor), _shrink(moving, factor)
         if field is None:
             field = sitk.Image(f.GetSize(), sitk.sitkVectorFloat64, f.GetDimension())
@@ -241,9 +260,15 @@ def demons_register(
         demons.SetNumberOfIterations(int(iterations))
         demons.SetSmoothDisplacementField(True)
         demons.SetStandardDeviations(sigmas)  # pixels of this level, per axis (see module doc)
+        widest = max(sigmas)
+        if update_mm > 0:
+            update_sigmas = demons_pixel_sigmas(update_mm, f.GetSpacing())
+            demons.SetSmoothUpdateField(True)
+            demons.SetUpdateFieldStandardDeviations(update_sigmas)
+            widest = max(widest, max(update_sigmas))
         demons.SetMaximumError(KERNEL_MAXIMUM_ERROR)
         # Room for the whole kernel (ITK silently truncates it at 30 coefficients a side).
-        demons.SetMaximumKernelWidth(max(30, int(math.ceil(4.0 * max(sigmas))) + 2))
+        demons.SetMaximumKernelWidth(max(30, int(math.ceil(4.0 * widest)) + 2))
         spacing = f.GetSpacing()
         rms = math.sqrt(sum(v * v for v in spacing) / len(spacing))
         demons.SetMaximumUpdateStepLength(float(options.max_step) * min(spacing) / rms)
