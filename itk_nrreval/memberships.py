@@ -55,7 +55,12 @@ import SimpleITK as sitk
 from ._errors import InputError
 from ._images import Geometry
 
-__all__ = ["SparseMemberships", "resample_label_memberships"]
+__all__ = ["LABEL_INTERPOLATIONS", "SparseMemberships", "resample_label_memberships"]
+
+#: The ways label maps can be resampled into memberships (:func:`resample_label_memberships`).
+LABEL_INTERPOLATIONS = ("linear", "nearest", "gaussian")
+#: Smoothed memberships below this are not stored (Gaussian tails, recursive-filter noise).
+_GAUSSIAN_FLOOR = 1e-6
 
 #: Grid voxels mapped per slab: bounds the float64 (slab, dim) point array (~24 MB in 3D).
 _SLAB_VOXELS = 1 << 20
@@ -147,13 +152,15 @@ def resample_label_memberships(
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
+    method: str = "linear",
+    sigma_mm: float | None = None,
 ) -> SparseMemberships:
-    """Resample a label map onto `grid` as linearly interpolated one-hot memberships, sparsely.
+    """Resample a label map onto `grid` as fuzzy (or crisp) memberships, sparsely.
 
-    Equal (to float32 rounding) to ``sitk.Resample`` of the float32 one-hot vector image of
-    `label_map` (one channel per value of `values`) through `transform` onto `grid` with
-    ``sitk.sitkLinear`` and default value 0, border behaviour included (module docstring),
-    without ever building the one-hot image.
+    With ``method="linear"`` (the default): equal (to float32 rounding) to ``sitk.Resample``
+    of the float32 one-hot vector image of `label_map` (one channel per value of `values`)
+    through `transform` onto `grid` with ``sitk.sitkLinear`` and default value 0, border
+    behaviour included (module docstring), without ever building the one-hot image.
 
     Parameters
     ----------
@@ -171,6 +178,18 @@ def resample_label_memberships(
         values present in `label_map`. A requested value absent from the map gets an empty
         channel; a value present but not requested contributes to no channel, so the
         memberships of the requested labels then sum to less than 1 near it.
+    method : {"linear", "nearest", "gaussian"}
+        How memberships are interpolated. ``"linear"``: the one-hot channels linearly
+        interpolated (partial memberships within a voxel of every boundary). ``"nearest"``:
+        crisp memberships of the label map resampled with ``sitk.sitkNearestNeighbor``
+        (0 or 1; a boundary moves by up to half a voxel). ``"gaussian"``: each one-hot
+        channel smoothed by a Gaussian of standard deviation `sigma_mm` (mm, the same on
+        every axis, in the label map's space) and then linearly interpolated (memberships
+        below 1e-6 are not stored, so they sum to 1 within about 1e-5); costs one
+        resampling of the grid per label.
+    sigma_mm : float, optional
+        The Gaussian's standard deviation in mm; only with, and required by,
+        ``method="gaussian"``.
 
     Returns
     -------
@@ -186,12 +205,13 @@ def resample_label_memberships(
 
     Notes
     -----
-    The grid is processed in slabs of whole planes along its slowest numpy axis (z in 3D),
-    about a million voxels each, so that the mapped points are never held for the whole grid
-    at once. The result takes 12 bytes per stored entry (about 1.1 entries per voxel for a
-    brain parcellation at its own resolution); while it is built, up to 8 more per entry
-    and about 60 MB of per-slab buffers, plus one byte per grid voxel when ITK is asked
-    about the border.
+    For ``"linear"``, the grid is processed in slabs of whole planes along its slowest numpy
+    axis (z in 3D), about a million voxels each, so that the mapped points are never held
+    for the whole grid at once. The result takes 12 bytes per stored entry (about 1.1
+    entries per voxel for a brain parcellation at its own resolution); while it is built,
+    up to 8 more per entry and about 60 MB of per-slab buffers, plus one byte per grid voxel
+    when ITK is asked about the border. ``"nearest"`` and ``"gaussian"`` resample whole
+    grids with ITK (4 bytes per grid voxel at a time).
     """
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
     dim = g.dimension
@@ -217,8 +237,25 @@ def resample_label_memberships(
         raise InputError(
             f"label map: expected an integer pixel type, got {label_map.GetPixelIDTypeAsString()}"
         )
+    if method not in LABEL_INTERPOLATIONS:
+        raise InputError(f"label interpolation: {method!r} is not one of {LABEL_INTERPOLATIONS}")
+    if method == "gaussian":
+        if isinstance(sigma_mm, bool) or not isinstance(sigma_mm, (int, float)):
+            raise InputError(f"label smoothing: expected a number of mm, got {sigma_mm!r}")
+        if not 0 < sigma_mm < np.inf:
+            raise InputError(f"label smoothing: expected a finite sigma > 0 mm, got {sigma_mm!r}")
+    elif sigma_mm is not None:
+        raise InputError(f"label smoothing: sigma_mm is only for method 'gaussian', not {method!r}")
     labels3 = labels.reshape((1,) * (3 - dim) + labels.shape)  # 2D as one plane of 3D
     labels3, vmin, lut, values = _label_table(labels3, values)
+    if method != "linear":
+        # Channel numbers + 1 as an image (0: no channel), so that ITK resamples channels.
+        codes = _channel_codes(labels3, vmin, lut).reshape(labels.shape)
+        code_image = sitk.GetImageFromArray(codes)
+        code_image.CopyInformation(label_map)
+        if method == "nearest":
+            return _nearest_memberships(code_image, transform, g, values)
+        return _gaussian_memberships(code_image, transform, g, values, float(sigma_mm))
 
     # Grid voxel -> physical point: origin + D diag(spacing) index; label-map point ->
     # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
@@ -580,3 +617,78 @@ def _assemble(values: np.ndarray, shape: tuple[int, ...], pieces) -> SparseMembe
     for a in (values, ptr, index, weight):
         a.setflags(write=False)
     return SparseMemberships(values, tuple(int(s) for s in shape), ptr, index, weight)
+
+
+def _channel_codes(labels3: np.ndarray, vmin: int, lut: np.ndarray) -> np.ndarray:
+    """Channel number + 1 of every voxel (0 where its value has no channel), int32."""
+    flat = labels3.astype(np.int64, copy=False).ravel()
+    codes = lut[flat - vmin].astype(np.int32) + 1
+    return codes.reshape(labels3.shape)
+
+
+def _resample_onto(image: sitk.Image, transform, g: Geometry, interpolator, pixel) -> np.ndarray:
+    """`image` resampled through `transform` onto `g` (default 0): flat C-order array."""
+    out = sitk.Resample(
+        image,
+        list(g.size),
+        transform,
+        interpolator,
+        list(g.origin),
+        list(g.spacing),
+        list(g.direction),
+        0,
+        pixel,
+    )
+    return sitk.GetArrayFromImage(out).ravel()
+
+
+def _csr(values: np.ndarray, shape, per_label) -> SparseMemberships:
+    """SparseMemberships from per-label (ascending flat index, float32 weight) pairs."""
+    ptr = np.zeros(len(values) + 1, np.int64)
+    np.cumsum([len(i) for i, _ in per_label], out=ptr[1:])
+    index = np.concatenate([i for i, _ in per_label] or [np.empty(0, np.int64)])
+    weight = np.concatenate([w for _, w in per_label] or [np.empty(0, np.float32)])
+    index, weight = index.astype(np.int64), weight.astype(np.float32)
+    for a in (values, ptr, index, weight):
+        a.setflags(write=False)
+    return SparseMemberships(values, tuple(int(s) for s in shape), ptr, index, weight)
+
+
+def _nearest_memberships(codes: sitk.Image, transform, g: Geometry, values) -> SparseMemberships:
+    """Crisp memberships: the channel codes resampled with ITK's nearest neighbour."""
+    resampled = _resample_onto(codes, transform, g, sitk.sitkNearestNeighbor, sitk.sitkInt32)
+    order = np.argsort(resampled, kind="stable")  # ascending voxels within each code
+    bounds = np.searchsorted(resampled[order], np.arange(1, len(values) + 2))
+    per_label = []
+    for k in range(len(values)):
+        idx = order[bounds[k] : bounds[k + 1]]
+        per_label.append((idx, np.ones(idx.size, np.float32)))
+    return _csr(values, g.shape, per_label)
+
+
+def _gaussian_memberships(
+    codes: sitk.Image, transform, g: Geometry, values, sigma_mm: float
+) -> SparseMemberships:
+    """Each one-hot channel smoothed in the label map's space, then linearly resampled."""
+    array = sitk.GetArrayViewFromImage(codes)
+    dim = codes.GetDimension()
+    # Beyond 4 sigma a Gaussian is below 3.4e-4 of its peak: crop each channel there.
+    pad = [int(np.ceil(4.0 * sigma_mm / s)) + 1 for s in codes.GetSpacing()]  # ITK order
+    per_label = []
+    for k in range(len(values)):
+        where = np.nonzero(array == k + 1)
+        if where[0].size == 0:
+            per_label.append((np.empty(0, np.int64), np.empty(0, np.float32)))
+            continue
+        lo = [max(0, int(w.min()) - p) for w, p in zip(where[::-1], pad, strict=True)]
+        hi = [
+            min(n, int(w.max()) + p + 1)
+            for w, p, n in zip(where[::-1], pad, codes.GetSize(), strict=True)
+        ]
+        box = sitk.RegionOfInterest(codes, [b - a for a, b in zip(lo, hi, strict=True)], lo)
+        channel = sitk.Cast(box == k + 1, sitk.sitkFloat32)
+        smooth = sitk.SmoothingRecursiveGaussian(channel, [sigma_mm] * dim)
+        w = _resample_onto(smooth, transform, g, sitk.sitkLinear, sitk.sitkFloat32)
+        idx = np.flatnonzero(w > _GAUSSIAN_FLOOR)
+        per_label.append((idx, np.minimum(w[idx], 1.0).astype(np.float32)))
+    return _csr(values, g.shape, per_label)

@@ -188,6 +188,7 @@ def _resample_task(
     interpolation: str,
     reg_mask_key: str | None,
     own_values: Sequence[int] | None,
+    label_resampling: tuple[str, float | None] = ("linear", None),
 ) -> tuple[str, bool, dict]:
     """Resample one image (and its label memberships) into the common frame; cache it.
 
@@ -199,8 +200,10 @@ def _resample_task(
     fraction of the mask (or grid) the image covers, and the deformation's plausibility
     measures on the registration's reference grid `reg_grid` (inside the mask mapped there,
     `reg_mask_key`). `own_values` are the label map's own nonzero values (found once by the
-    driver). For the report, the entry also holds ``detj_middle`` (float32: det J on the
-    middle slice of `reg_grid`, NaN outside its mask) and the metadata
+    driver); `label_resampling` is ``(method, sigma_mm)`` of
+    :func:`~itk_nrreval.memberships.resample_label_memberships`. For the report, the entry
+    also holds ``detj_middle`` (float32: det J on the middle slice of `reg_grid`, NaN
+    outside its mask) and the metadata
     ``log_jacobian_histogram`` (fixed-bin counts of log det J over the same voxels; both
     from :func:`itk_nrreval.plausibility.deformation_measures`).
     """
@@ -220,6 +223,7 @@ def _resample_task(
             interpolation,
             reg_mask_key,
             ctx.inverse_consistency,
+            list(label_resampling),
         ]
     )
     entry = cache.get("resampled", key)
@@ -252,7 +256,10 @@ def _resample_task(
     if labels is not None:
         lab = read_image(labels, what="label map")
         own = [int(v) for v in own_values]
-        memb = resample_label_memberships(lab, full, g, values=own)
+        method, sigma_mm = label_resampling
+        memb = resample_label_memberships(
+            lab, full, g, values=own, method=method, sigma_mm=sigma_mm
+        )
         arrays.update(lab_ptr=memb.ptr, lab_idx=memb.index, lab_val=memb.weight)
         meta.update(labels=own)
     cache.put("resampled", key, arrays, meta)
@@ -541,6 +548,8 @@ def run_pipeline(
     show_progress: bool,
     save_resampled: str | os.PathLike | None = None,
     inverse_consistency: bool = True,
+    label_interpolation: str = "linear",
+    label_sigma_mm: float | None = None,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -560,6 +569,8 @@ def run_pipeline(
         Write each registration's resampled images and label memberships (NIfTI) here.
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
+    label_interpolation, label_sigma_mm
+        How label maps become memberships (:func:`itk_nrreval.evaluate`).
 
     Returns
     -------
@@ -613,6 +624,7 @@ def run_pipeline(
                     interpolation,
                     reg_mask_key,
                     own_values[i],
+                    (label_interpolation, label_sigma_mm),
                 )
                 for i in range(m.n_images)
             ]

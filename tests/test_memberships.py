@@ -402,3 +402,104 @@ def test_bad_input():
         resample_label_memberships(label_map, ident, grid, values=[0.5, 3])
     with pytest.raises(InputError, match="dimension"):
         resample_label_memberships(label_map, sitk.Transform(3, sitk.sitkIdentity), grid)
+
+
+# ------------------------------------------------------------------ nearest and gaussian
+
+
+def dense_nearest_reference(label_map, transform, grid: Geometry, values) -> np.ndarray:
+    """The label map itself through ``sitk.Resample`` with nearest neighbour, then one-hot.
+
+    The default value is one no channel has, so points outside read as no label."""
+    outside = int(max(values)) + 1
+    out = sitk.Resample(
+        label_map,
+        list(grid.size),
+        transform,
+        sitk.sitkNearestNeighbor,
+        list(grid.origin),
+        list(grid.spacing),
+        list(grid.direction),
+        outside,
+        sitk.sitkInt64,
+    )
+    arr = sitk.GetArrayFromImage(out)
+    return np.stack([arr == v for v in values]).astype(np.float32)
+
+
+def dense_gaussian_reference(label_map, transform, grid: Geometry, values, sigma) -> np.ndarray:
+    """Each whole one-hot channel smoothed (ITK, mm), then resampled linearly (default 0)."""
+    arr = sitk.GetArrayViewFromImage(label_map)
+    out = []
+    for v in values:
+        channel = sitk.GetImageFromArray((arr == v).astype(np.float32))
+        channel.CopyInformation(label_map)
+        smooth = sitk.SmoothingRecursiveGaussian(channel, [sigma] * label_map.GetDimension())
+        res = sitk.Resample(
+            smooth,
+            list(grid.size),
+            transform,
+            sitk.sitkLinear,
+            list(grid.origin),
+            list(grid.spacing),
+            list(grid.direction),
+            0.0,
+            sitk.sitkFloat32,
+        )
+        out.append(sitk.GetArrayFromImage(res))
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kind", ["identity", "affine", "composite", "bspline"])
+def test_nearest_equals_itk_nearest_neighbour_resampling(dim, kind):
+    rng = np.random.default_rng(31 + dim)
+    label_map = oblique_label_map(dim, rng)
+    grid = common_grid(dim)
+    transform = make_transform(kind, grid, rng)
+    sm = resample_label_memberships(label_map, transform, grid, method="nearest")
+    check_structure(sm, grid.shape)
+    np.testing.assert_array_equal(sm.values, np.asarray(LARGE_VALUES, np.int64))
+    ref = dense_nearest_reference(label_map, transform, grid, LARGE_VALUES)
+    np.testing.assert_array_equal(sm.dense(), ref)
+    # crisp: every stored membership is 1, every inside point has exactly one label
+    assert np.all(sm.weight == 1)
+    inside = itk_inside(label_map, transform, grid)
+    total = sm.dense().sum(axis=0)
+    assert np.all(total[inside] == 1) and np.all(total[~inside] == 0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("sigma", [0.8, 2.5])
+def test_gaussian_equals_smoothing_whole_channels_then_linear_resampling(dim, sigma):
+    rng = np.random.default_rng(41 + dim)
+    label_map = oblique_label_map(dim, rng)
+    grid = common_grid(dim)
+    transform = make_transform("composite", grid, rng)
+    sm = resample_label_memberships(label_map, transform, grid, method="gaussian", sigma_mm=sigma)
+    check_structure(sm, grid.shape)
+    ref = dense_gaussian_reference(label_map, transform, grid, LARGE_VALUES, sigma)
+    # Differences: channels cropped 4 sigma beyond each label, values below 1e-6 not stored.
+    np.testing.assert_allclose(sm.dense(), np.clip(ref, 0, 1), rtol=0, atol=1e-3)
+    total = sm.dense(dtype=np.float64).sum(axis=0)
+    inside = itk_inside(label_map, transform, grid)
+    np.testing.assert_allclose(total[inside], 1.0, atol=2e-3)
+    # smoothing makes memberships fuzzier than linear interpolation alone
+    linear = resample_label_memberships(label_map, transform, grid)
+    fuzzy = lambda m: int(((m.dense() > 0.01) & (m.dense() < 0.99)).sum())  # noqa: E731
+    assert fuzzy(sm) > fuzzy(linear)
+
+
+def test_label_interpolation_options_are_checked():
+    rng = np.random.default_rng(3)
+    label_map = oblique_label_map(2, rng)
+    grid = common_grid(2)
+    t = sitk.Transform(2, sitk.sitkIdentity)
+    with pytest.raises(InputError, match="label interpolation: 'cubic' is not one of"):
+        resample_label_memberships(label_map, t, grid, method="cubic")
+    with pytest.raises(InputError, match="expected a finite sigma > 0 mm, got 0"):
+        resample_label_memberships(label_map, t, grid, method="gaussian", sigma_mm=0)
+    with pytest.raises(InputError, match="expected a number of mm, got None"):
+        resample_label_memberships(label_map, t, grid, method="gaussian")
+    with pytest.raises(InputError, match="only for method 'gaussian'"):
+        resample_label_memberships(label_map, t, grid, method="nearest", sigma_mm=1.0)

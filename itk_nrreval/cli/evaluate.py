@@ -29,7 +29,20 @@ def add_parser(sub) -> None:
         "--interpolation",
         choices=("linear", "bspline"),
         default="linear",
-        help="intensity interpolation (labels: linear memberships)",
+        help="intensity interpolation (labels: see --label-interpolation)",
+    )
+    p.add_argument(
+        "--label-interpolation",
+        choices=("linear", "nearest", "gaussian"),
+        default="linear",
+        help="label memberships in the common frame: one-hot resampled linearly (default), "
+        "crisp nearest-neighbour labels, or one-hot smoothed by --label-sigma mm then linear",
+    )
+    p.add_argument(
+        "--label-sigma",
+        type=positive,
+        metavar="MM",
+        help="with --label-interpolation gaussian: the Gaussian's standard deviation (mm)",
     )
     p.add_argument(
         "--save-resampled",
@@ -128,6 +141,10 @@ def run(args: argparse.Namespace) -> int:
     from ..plausibility import Thresholds
     from ..reports import summary_table
 
+    if (args.label_interpolation == "gaussian") != (args.label_sigma is not None):
+        raise InputError(
+            "--label-sigma MM goes with --label-interpolation gaussian, and only with it"
+        )
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
     out = check_output_folder(args.out)
@@ -142,6 +159,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         distance=args.distance,
         interpolation=args.interpolation,
+        label_interpolation=args.label_interpolation,
+        label_sigma_mm=args.label_sigma,
         progress=not args.quiet,
         scheduler=args.scheduler,
         workers=args.workers,
