@@ -3,7 +3,7 @@
 Usage::
 
     python examples/appearance_diagnostics.py [MANIFEST --registration NAME ...]
-        [--samples M] [--out DIR] [--docs]
+        [--samples M] [--out DIR]
 
 Without a manifest, a 2D phantom population of 12 subjects is generated (``nrreval synth``,
 with its true transforms as registration ``truth``) and registered with ``nrreval register``:
@@ -11,22 +11,21 @@ with its true transforms as registration ``truth``) and registered with ``nrreva
 and far-from-mean (``pair2``) subjects -- about 5 minutes on 2 cores. Each registration's
 full appearance model is sampled M times (default 1,000 as in the paper) and the samples are
 assigned to the nearest raw and projected training image
-(:func:`itk_nrreval.appearance_diagnostics`); the tables and the figure go to ``DIR``
-(``--docs`` also copies ``appearance_table1.md`` and ``appearance_cells.png`` into ``docs/``).
+(:func:`itk_nrreval.appearance_diagnostics`); the tables and the figure
+(``appearance_table1.md``, ``appearance_cells.png``, the README's) go to ``DIR``.
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
-import tempfile
 from pathlib import Path
+
+from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
 from itk_nrreval.cli import main as nrreval
 from itk_nrreval.cli.diagnose import table1_markdown, write_reports
 
-DOCS = Path(__file__).resolve().parent.parent / "docs"
 #: name -> extra ``nrreval register`` arguments (the paper's five methods and the truth)
 REGISTRATIONS = {
     "affine": ["--method", "affine"],
@@ -60,11 +59,13 @@ def main() -> None:
     parser.add_argument("--registration", action="append", metavar="NAME")
     parser.add_argument("--samples", type=int, default=1000, metavar="M")
     parser.add_argument("--seed", type=int, default=0, metavar="S")
-    parser.add_argument("--out", metavar="DIR", help="output folder (default: a temporary one)")
-    parser.add_argument("--docs", action="store_true", help="copy the table and figure to docs/")
+    add_out_option(parser)
     args = parser.parse_args()
+    with output_folder(args.out, prefix="nrreval-appearance-") as out:
+        run(args, out)
 
-    out = Path(args.out or tempfile.mkdtemp(prefix="nrreval-appearance-"))
+
+def run(args: argparse.Namespace, out: Path) -> None:
     source = Path(args.manifest) if args.manifest else make_demo(out / "data")
     manifest = nr.load_manifest(source)
     names = args.registration or list(manifest.names)
@@ -77,10 +78,6 @@ def main() -> None:
     paths = write_reports(results, out, images=[str(p) for p in manifest.images])
     print(table1_markdown(results))
     print("written:", ", ".join(str(p) for p in paths))
-    if args.docs:
-        for name in ("appearance_table1.md", "appearance_cells.png"):
-            shutil.copyfile(out / name, DOCS / name)
-        print(f"copied the table and figure into {DOCS}/")
 
 
 if __name__ == "__main__":

@@ -4,21 +4,23 @@ Draws a warp of mean displacement d = 3 pixels on a 141 x 141 generated slice, c
 is a diffeomorphism, warps the image and its labels the paper's way (I~(psi(p)) = I(p)), and
 does the same with SimpleITK's resampler to show the two agree. Saves a figure.
 
-    python examples/cps_perturbation.py [OUT.png]
+    python examples/cps_perturbation.py [--out DIR]   # DIR/cps_perturbation.png
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
 from itk_nrreval.validation import synthetic_set
 
 
-def main(out: str = "cps_perturbation.png") -> None:
+def draw(out: Path) -> None:
     images, labels = synthetic_set("phantom", n_images=1, seed=0)
     image, label = images[0], labels[0]
 
@@ -67,5 +69,13 @@ def main(out: str = "cps_perturbation.png") -> None:
     print(f"wrote {out}")
 
 
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_out_option(parser)
+    args = parser.parse_args()
+    with output_folder(args.out, prefix="nrreval-cps-") as folder:
+        draw(folder / "cps_perturbation.png")
+
+
 if __name__ == "__main__":
-    main(*sys.argv[1:2])
+    main()

@@ -14,10 +14,10 @@ that import this file.
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 
+from _output import add_out_option, output_folder
 from evaluate_registrations import make_demo
 
 import itk_nrreval as nr
@@ -28,8 +28,13 @@ def main() -> None:
     parser.add_argument("manifest", nargs="?", help="manifest to evaluate (default: a demo)")
     parser.add_argument("--scheduler", default="local", help="'local' or a scheduler address")
     parser.add_argument("--workers", type=int, default=2)
+    add_out_option(parser)
     args = parser.parse_args()
-    folder = Path(tempfile.mkdtemp(prefix="nrreval-dask-"))
+    with output_folder(args.out, prefix="nrreval-dask-") as folder:
+        run(args, folder)
+
+
+def run(args: argparse.Namespace, folder: Path) -> None:
     manifest = args.manifest or make_demo(folder)
     kw = dict(n_samples=20_000, seed=0, progress=False)
     for attempt in ("first run", "rerun"):

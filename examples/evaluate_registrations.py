@@ -16,14 +16,14 @@ Table-3-like summary is printed.
 from __future__ import annotations
 
 import argparse
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
-from itk_nrreval.reports import summary_table, write_reports
+from itk_nrreval.reports import summary_table
 
 SIZE = 48
 
@@ -97,16 +97,14 @@ def make_demo(folder: Path, n_images: int = 8) -> Path:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("manifest", nargs="?", help="manifest to evaluate (default: a demo)")
-    parser.add_argument("--out", default=None, help="write results and figures here")
     parser.add_argument("--samples", type=int, default=20_000)
+    add_out_option(parser)
     args = parser.parse_args()
-    manifest = args.manifest or make_demo(Path(tempfile.mkdtemp(prefix="nrreval-demo-")))
-    print(f"manifest: {manifest}")
-    result = nr.evaluate(manifest, n_samples=args.samples, seed=0)
-    print(summary_table(result))
-    if args.out:
-        write_reports(result, args.out)
-        print(f"results written to {args.out}")
+    with output_folder(args.out, prefix="nrreval-demo-") as out:
+        manifest = args.manifest or make_demo(out / "data")
+        print(f"manifest: {manifest}")
+        result = nr.evaluate(manifest, n_samples=args.samples, seed=0, out=out / "results")
+        print(summary_table(result))
 
 
 if __name__ == "__main__":

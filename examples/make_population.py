@@ -2,27 +2,26 @@
 
 Run from the repository root::
 
-    .venv/bin/python examples/make_population.py [OUT_DIR]
+    .venv/bin/python examples/make_population.py [--out DIR]
 
 It builds 36 phantom subjects (2D, 141 x 141) and 36 MNI152 subjects, checks that the true
-transforms bring every subject's labels back onto the template's, writes montages to
-``docs/synth_phantom_2d.png`` and ``docs/synth_mni_2d.png``, and (with OUT_DIR) writes the
-phantom population as ``nrreval evaluate`` input, like ``nrreval synth`` does.
+transforms bring every subject's labels back onto the template's, and writes to DIR the
+montages ``synth_phantom_2d.png`` and ``synth_mni_2d.png`` (the README's) and the phantom
+population as ``nrreval evaluate`` input (``DIR/phantom``), like ``nrreval synth`` does.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from _output import add_out_option, output_folder
 
 from data_synth.montage import save_montage
 from data_synth.population import make_population, perfect_registration
-
-DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 
 def mean_dice(a: np.ndarray, b: np.ndarray, values) -> float:
@@ -33,7 +32,7 @@ def mean_dice(a: np.ndarray, b: np.ndarray, values) -> float:
     )
 
 
-def main(out_dir: str | None = None) -> None:
+def build(out: Path) -> None:
     for kind in ("phantom", "mni"):
         t0 = time.perf_counter()
         pop = make_population(kind, dim=2, n=36, seed=0)
@@ -51,18 +50,26 @@ def main(out_dir: str | None = None) -> None:
         save_montage(
             [s.image for s in pop.subjects],
             [s.labels for s in pop.subjects],
-            path=DOCS / f"synth_{kind}_2d.png",
+            path=out / f"synth_{kind}_2d.png",
             titles=[f"s{i:02d}" for i in range(len(pop))],
             max_images=12,
             ncols=6,
             panel_inches=1.8,
             dpi=90,
         )
-        if out_dir is not None and kind == "phantom":
+        if kind == "phantom":
             from data_synth import write_population
 
-            print("manifest:", write_population(pop, out_dir))
+            print("manifest:", write_population(pop, out / "phantom"))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_out_option(parser)
+    args = parser.parse_args()
+    with output_folder(args.out, prefix="nrreval-population-") as out:
+        build(out)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else None)
+    main()

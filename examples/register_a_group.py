@@ -1,18 +1,20 @@
 """Register a small synthetic group with the paper's five algorithms and write a manifest.
 
-Run: ``python examples/register_a_group.py [OUT]`` (default ``register-example/``). Each
-registration goes to ``OUT/<name>/`` (per-image ``.h5`` transforms reference -> image, the
-reference image, ``registration.json``) and is added to ``OUT/manifest.yaml``, ready for
-``nrreval evaluate``. One elastix worker serves both pairwise registrations.
+Run: ``python examples/register_a_group.py [--out DIR]`` (default: a temporary folder,
+removed). Each registration goes to ``DIR/<name>/`` (per-image ``.h5`` transforms
+reference -> image, the reference image, ``registration.json``) and is added to
+``DIR/manifest.yaml``, ready for ``nrreval evaluate``. One elastix worker serves both
+pairwise registrations.
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from _output import add_out_option, output_folder
 
 from itk_nrreval import register
 from itk_nrreval.manifest import add_registration
@@ -65,4 +67,7 @@ def main(out: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1] if len(sys.argv) > 1 else "register-example"))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_out_option(parser)
+    with output_folder(parser.parse_args().out, prefix="nrreval-register-") as folder:
+        main(folder)

@@ -159,11 +159,13 @@ def main(argv: list[str] | None = None) -> nr.EvaluationResult:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=20_000, metavar="M")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    # not examples/_output.py: in Slicer this file is exec'd without its folder on sys.path
+    parser.add_argument("--out", metavar="DIR", help="keep the reports in DIR (default: removed)")
     args = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="nrreval-console-") as tmp:
         manifest = scene_from_slicer(tmp) if IN_SLICER else generated_scene()
-        out = OUT or os.path.join(tmp, "reports")
+        out = args.out or OUT or os.path.join(tmp, "reports")
         result = nr.evaluate(manifest, n_samples=args.samples, progress=not args.quiet, out=out)
         lines = [*result.verdict.text, ""]
         lines += [
@@ -174,7 +176,8 @@ def main(argv: list[str] | None = None) -> nr.EvaluationResult:
         ]
         text = "\n".join(lines)
         print(text)
-        print(f"reports: {out}" + ("" if OUT else " (temporary: set OUT to keep them)"))
+        kept = args.out or OUT
+        print(f"reports: {out}" + ("" if kept else " (temporary: --out DIR or OUT keeps them)"))
         if IN_SLICER:
             show_in_slicer(text)
     return result
