@@ -14,9 +14,8 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import yaml
 from test_bad_inputs import run_cli
-from test_coverage import reference_resampled
+from test_coverage import cropped_case, reference_resampled
 from test_evaluate import make_case
 
 import itk_nrreval as nr
@@ -53,17 +52,7 @@ def reference_memberships(tmp_path, data, name, method, sigma=None) -> np.ndarra
     ("method", "sigma", "rel"), [("nearest", None, 1e-9), ("gaussian", 1.5, 2e-3)]
 )
 def test_overlap_matches_simpleitk_resampling_of_the_label_maps(tmp_path, method, sigma, rel):
-    data = make_case(tmp_path)
-    # two registrations in the template's frame, given as such (no frame estimate)
-    sitk.WriteTransform(sitk.AffineTransform(2), str(tmp_path / "frame_identity.tfm"))
-    data["registrations"] = {
-        "truth": data["registrations"]["truth"],
-        "perturbed": {
-            **data["registrations"]["perturbed"],
-            "frame_transform": "frame_identity.tfm",
-        },
-    }
-    (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    data = cropped_case(tmp_path, crop=0)  # truth and perturbed, in the template's frame
     # the voxels every image covers under every registration
     stacks = reference_resampled(tmp_path, data)
     region = np.all([~np.isnan(st).any(axis=0) for st in stacks.values()], axis=0)

@@ -407,22 +407,18 @@ def test_bad_input():
 # ------------------------------------------------------------------ nearest and gaussian
 
 
+def grid_image(grid: Geometry) -> sitk.Image:
+    """An image on `grid`, for ``sitk.Resample``'s reference-image form."""
+    return grid.apply_to(sitk.Image(list(grid.size), sitk.sitkUInt8))
+
+
 def dense_nearest_reference(label_map, transform, grid: Geometry, values) -> np.ndarray:
     """The label map itself through ``sitk.Resample`` with nearest neighbour, then one-hot.
 
     The default value is one no channel has, so points outside read as no label."""
     outside = int(max(values)) + 1
-    out = sitk.Resample(
-        label_map,
-        list(grid.size),
-        transform,
-        sitk.sitkNearestNeighbor,
-        list(grid.origin),
-        list(grid.spacing),
-        list(grid.direction),
-        outside,
-        sitk.sitkInt64,
-    )
+    labels = sitk.Cast(label_map, sitk.sitkInt64)
+    out = sitk.Resample(labels, grid_image(grid), transform, sitk.sitkNearestNeighbor, outside)
     arr = sitk.GetArrayFromImage(out)
     return np.stack([arr == v for v in values]).astype(np.float32)
 
@@ -435,17 +431,7 @@ def dense_gaussian_reference(label_map, transform, grid: Geometry, values, sigma
         channel = sitk.GetImageFromArray((arr == v).astype(np.float32))
         channel.CopyInformation(label_map)
         smooth = sitk.SmoothingRecursiveGaussian(channel, [sigma] * label_map.GetDimension())
-        res = sitk.Resample(
-            smooth,
-            list(grid.size),
-            transform,
-            sitk.sitkLinear,
-            list(grid.origin),
-            list(grid.spacing),
-            list(grid.direction),
-            0.0,
-            sitk.sitkFloat32,
-        )
+        res = sitk.Resample(smooth, grid_image(grid), transform, sitk.sitkLinear, 0.0)
         out.append(sitk.GetArrayFromImage(res))
     return np.stack(out)
 
