@@ -28,7 +28,6 @@ from ._output import atomic_path, write_json, write_text
 from .evaluation import EvaluationResult, evaluate, ranks, relative_ranks
 from .frame import read_chains, resampling_transform
 from .manifest import add_registration, load_manifest, write_manifest
-from .reports import write_reports
 from .transforms import displacement_field
 
 __all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo", "correspondence_error"]
@@ -185,8 +184,8 @@ def run_demo(
         reference, settings log), ``manifest.yaml`` (the five registrations, fluid first, so
         the fluid frame is common), ``brain_mask.nii.gz`` (the fluid reference's brain,
         dilated by 3 voxels: specificity and the correspondence error are measured inside
-        it), ``evaluation/`` (``results.json``, ``results.csv``, ``summary.md``, figures),
-        ``demo_table.md`` and ``demo.json``.
+        it), ``evaluation/`` (``results.json``, ``results.csv``, ``summary.md``, figures and
+        ``report.html``), ``demo_table.md`` and ``demo.json``.
     kind : {"phantom", "mni"}
         The population's source (:func:`data_synth.make_population`).
     dim : {2, 3}
@@ -278,7 +277,7 @@ def run_demo(
     say(f"[demo] evaluating in the fluid frame (M = {n_samples:,} samples, L1)")
     t = time.perf_counter()
     evaluation = evaluate(manifest, n_samples=n_samples, seed=seed, progress=progress)
-    write_reports(evaluation, out / "evaluation")
+    evaluation.write(out / "evaluation")  # figures, report.html, results.*
     seconds["evaluate"] = time.perf_counter() - t
 
     t = time.perf_counter()

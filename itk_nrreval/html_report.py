@@ -19,6 +19,12 @@ with N.
 :meth:`EvaluationResult.write <itk_nrreval.evaluation.EvaluationResult.write>` writes it
 through :func:`itk_nrreval.reports.write_reports`; this module takes the result without
 importing its class (that import would be a cycle).
+
+``validate`` and ``sweep`` write a page of the same build beside their JSON
+(:func:`validation_report_html`, :func:`sweep_report_html`, from
+:meth:`ValidationResult.write <itk_nrreval.validation.ValidationResult.write>` and
+:func:`itk_nrreval.sweep.sweep`): the same banner, contents, sections, tables, legends and
+embedded figures (``_page``, ``_section``, ``_table``, ``_legend_list``, ``_figure``).
 """
 
 from __future__ import annotations
@@ -43,9 +49,12 @@ from .reports import (
     thumbnail,
 )
 
-__all__ = ["report_html"]
+__all__ = ["report_html", "validation_report_html", "sweep_report_html"]
 
-_DPI = 90  # pixels per inch of the per-registration figures
+#: The overlap weightings the tables show (every one further down): each label counts the same.
+_TABLE_OVERLAPS = ("overlap.inverse_volume", "overlap.inverse_volume_complexity")
+_DPI = 100  # pixels per inch of the per-registration figures
+_OUTSIDE = (0.72, 0.83, 1.0)  # pale blue: no value there (outside the field of view)
 
 _WEIGHTING_WORDS = {
     "volume": "label weight 1: every voxel counts the same, so large labels dominate",
@@ -71,7 +80,7 @@ header{background:#2c3e50;color:#fff;padding:18px 24px}
 header h1{margin:0;font-size:1.6em}header p{margin:4px 0 0;color:#d5dde5}
 h2{border-bottom:2px solid #2c3e50;padding-bottom:4px;margin-top:36px}
 h3{margin-bottom:4px}
-nav ol{columns:2;margin:0}nav a,a.top{color:#1f5f99;text-decoration:none}
+nav ol{columns:2;margin:0}a{color:#1f5f99}nav a,a.top{color:#1f5f99;text-decoration:none}
 nav a:hover{text-decoration:underline}
 a.top{font-size:.85em;float:right;font-weight:normal}
 .verdict{background:#eaf4ea;border-left:6px solid #2e7d32;padding:10px 16px;font-size:1.1em}
@@ -80,7 +89,7 @@ table{border-collapse:collapse;margin:8px 0 12px;font-size:.9em;background:#fff}
 th,td{border:1px solid #ccd;padding:3px 7px;text-align:right;vertical-align:top}
 th{background:#e8edf2}td:first-child,th:first-child{text-align:left}
 td{white-space:nowrap}td.text{text-align:left;max-width:420px;white-space:normal}
-tr.flagged td{background:#fff4ec}
+tr.flagged td{background:#fff4ec}tr.best td{background:#eaf4ea}
 dl.legend{font-size:.88em;background:#fff;border:1px solid #dde;padding:8px 14px;
 columns:2;column-gap:28px}
 dl.legend dt,dl.legend dd{break-inside:avoid}dl.legend dt{break-after:avoid}
@@ -88,7 +97,7 @@ dl.legend dt{font-weight:bold;margin-top:6px}dl.legend dd{margin-left:18px}
 figure{margin:12px 12px 12px 0;background:#fff;border:1px solid #dde;padding:8px;
 display:inline-table;vertical-align:top}
 figure img{max-width:100%;height:auto;display:block}
-figure.half img{max-width:520px}
+figure.half img{max-width:560px}
 figcaption{font-size:.86em;color:#444;display:table-caption;caption-side:bottom;
 background:#fff;border:1px solid #dde;border-top:0;padding:4px 8px 8px}
 .flag{color:#b34700;font-weight:bold}
@@ -114,12 +123,119 @@ def _figure(png: bytes, alt: str, caption: str, *, css: str = "") -> str:
     return f"<figure{cls}>{_img(png, alt)}<figcaption>{caption}</figcaption></figure>"
 
 
-def _slugs(names: Sequence[str]) -> dict[str, str]:
-    """An id per registration: ``reg-`` and its name's letters, digits, ``-`` and ``_``."""
+def _table(
+    head: Sequence[str],
+    rows: Sequence[Sequence[str]],
+    *,
+    text: Sequence[int] = (0,),
+    classes: Sequence[str] | None = None,
+    ids: Sequence[str] | None = None,
+    wide: bool = False,
+) -> str:
+    """An HTML table of cells already in HTML.
+
+    Parameters
+    ----------
+    head : sequence of str
+        Column headings (HTML); empty for a table of rows headed by their first cell.
+    rows : sequence of sequence of str
+        The cells (HTML), one sequence per row.
+    text : sequence of int
+        Columns of words, left-aligned and wrapped (negative counts from the end); the
+        others are numbers, right-aligned.
+    classes, ids : sequence of str, optional
+        Per row, a CSS class (e.g. ``"flagged"``) and an id (a link target); "" for none.
+    wide : bool
+        Scroll sideways rather than overflow the page (many columns).
+    """
+    out = []
+    if head:
+        out.append("<thead><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr></thead>")
+    out.append("<tbody>")
+    for k, cells in enumerate(rows):
+        words = {i % len(cells) for i in text}
+        cls = classes[k] if classes else ""
+        rid = ids[k] if ids else ""
+        attrs = (f' class="{cls}"' if cls else "") + (f' id="{rid}"' if rid else "")
+        tds = "".join(
+            f'<td class="text">{c}</td>' if i in words else f"<td>{c}</td>"
+            for i, c in enumerate(cells)
+        )
+        out.append(f"<tr{attrs}>{tds}</tr>")
+    out.append("</tbody>")
+    table = "<table>" + "".join(out) + "</table>"
+    return f'<div class="wide">{table}</div>' if wide else table
+
+
+def _key_value_table(rows: Sequence[tuple[str, str]]) -> str:
+    """A two-column table of (name, HTML value), names as row headings."""
+    body = "".join(f'<tr><th>{_e(k)}</th><td class="text">{v}</td></tr>' for k, v in rows)
+    return f"<table><tbody>{body}</tbody></table>"
+
+
+def _legend_list(items: Sequence[tuple[str, str]]) -> str:
+    """A legend of terms: (term, HTML definition) pairs, in two columns."""
+    body = "".join(f"<dt>{_e(k)}</dt><dd>{v}</dd>" for k, v in items)
+    return f'<dl class="legend">{body}</dl>'
+
+
+def _section(sid: str, title: str, *parts: str) -> str:
+    """A section the contents link to, headed by `title` and a link back to the contents."""
+    return (
+        f'<section id="{sid}"><h2>{_e(title)} <a class="top" href="#contents">contents '
+        "&uarr;</a></h2>\n" + "\n".join(p for p in parts if p) + "\n</section>"
+    )
+
+
+def _page(
+    *,
+    title: str,
+    heading: str,
+    subtitle: str,
+    sections: Sequence[tuple[str, str, str]],
+    footer: str,
+) -> str:
+    """The whole page: header, contents, the sections in order, footer.
+
+    Parameters
+    ----------
+    title : str
+        The browser tab's title (plain text).
+    heading, subtitle : str
+        The banner's title (plain text) and the line under it (HTML).
+    sections : sequence of (str, str, str)
+        ``(id, heading, body HTML)``; the contents list them in this order.
+    footer : str
+        HTML.
+    """
+    nav = "".join(f'<li><a href="#{sid}">{_e(t)}</a></li>' for sid, t, _ in sections)
+    body = [
+        f"<header><h1>{_e(heading)}</h1><p>{subtitle}</p></header>",
+        "<main>",
+        f'<nav id="contents"><h2>Contents</h2><ol>{nav}</ol></nav>',
+        *[_section(sid, t, html_) for sid, t, html_ in sections],
+        f"<footer>{footer}</footer>",
+        "</main>",
+    ]
+    return (
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
+        '<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"<title>{_e(title)}</title>"
+        f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n"
+    )
+
+
+_SELF_CONTAINED = (
+    "Written by itk-nrreval: one self-contained file (figures embedded, no script, no network)."
+)
+
+
+def _slugs(names: Sequence[str], prefix: str = "reg-") -> dict[str, str]:
+    """An id per name: `prefix` and the name's letters, digits, ``-`` and ``_``."""
     out: dict[str, str] = {}
     used: set[str] = set()
     for name in names:
-        base = "reg-" + (re.sub(r"[^A-Za-z0-9_-]+", "-", name).strip("-") or "x")
+        base = prefix + (re.sub(r"[^A-Za-z0-9_-]+", "-", name).strip("-") or "x")
         slug, k = base, 2
         while slug in used:
             slug, k = f"{base}-{k}", k + 1
@@ -171,8 +287,25 @@ def _checkerboard(a: np.ndarray, b: np.ndarray, tiles: int = 8) -> np.ndarray:
     return np.where((r // size + c // size) % 2 == 0, a, b)
 
 
-def _images_figure(result, name: str) -> bytes:
-    """Mean image, checkerboard of subjects 0 and 1, subject 0 with its label contours."""
+def _label_values(result) -> list[int]:
+    """Every nonzero label value of subject 0's thumbnails, over all registrations: one
+    colour per value in every figure of the report."""
+    values: set[int] = set()
+    for t in result.thumbnails.values():
+        if "labels_0" in t:
+            values |= {int(v) for v in np.unique(thumbnail(t["labels_0"], mode="nearest"))}
+    values.discard(0)
+    return sorted(values)
+
+
+def _images_figure(result, name: str):
+    """Mean image, checkerboard of subjects 0 and 1, subject 0 with its label contours.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib import colormaps
     from matplotlib.figure import Figure
 
     t = result.thumbnails.get(name, {})
@@ -187,24 +320,37 @@ def _images_figure(result, name: str) -> bytes:
     fig = Figure(figsize=(2.7 * len(panels) + (0.9 if legend else 0.0), 3.0))
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     lo, hi = _grey_limits(*[p for _, p in panels])
+    # outside an image's field of view (NaN) in a colour no image or contour has
+    grey = colormaps["gray"].with_extremes(bad=_OUTSIDE)
     titles = {
         "mean": f"mean of the {result.scores[name].specificity.n_images} images",
         "checker": "checkerboard: subjects 0 | 1",
         "subject": "subject 0" + (" and its labels" if legend else ""),
     }
     for ax, (kind, arr) in zip(axes, panels, strict=True):
-        ax.imshow(arr, cmap="gray", vmin=lo, vmax=hi, origin="lower", aspect=aspect)
+        ax.imshow(arr, cmap=grey, vmin=lo, vmax=hi, origin="lower", aspect=aspect)
         if kind == "subject" and legend:
-            draw_label_contours(ax, thumbnail(t["labels_0"], mode="nearest"), aspect=aspect)
+            draw_label_contours(
+                ax,
+                thumbnail(t["labels_0"], mode="nearest"),
+                aspect=aspect,
+                values=_label_values(result),
+            )
         ax.set_title(titles[kind], fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.subplots_adjust(wspace=0.05)
-    return png_bytes(fig, dpi=_DPI)
+    return fig
 
 
-def _jacobian_figure(result, name: str) -> bytes | None:
-    """log det J of subject 0 (map, colour bar, folded voxels) and the histogram of all."""
+def _jacobian_figure(result, name: str):
+    """log det J of subject 0 (map, colour bar, folded voxels) and the histogram of all.
+
+    Returns
+    -------
+    matplotlib.figure.Figure or None
+        None without a Jacobian summary (no thumbnails).
+    """
     from matplotlib import colormaps
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
@@ -276,7 +422,7 @@ def _jacobian_figure(result, name: str) -> bytes | None:
         fontsize=7,
         bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
     )
-    return png_bytes(fig, dpi=_DPI)
+    return fig
 
 
 # ----------------------------------------------------------------------------- sections
@@ -288,11 +434,7 @@ def _value_ci(value: float, iv) -> str:
 
 
 def _scores_table(result, names: Sequence[str], slugs: Mapping[str, str]) -> str:
-    overlaps = [
-        m
-        for m in ("overlap.inverse_volume", "overlap.inverse_volume_complexity")
-        if m in result.ranks
-    ]
+    overlaps = [m for m in _TABLE_OVERLAPS if m in result.ranks]
     head = ["Registration", "Specificity<br>[95% CI]", "MC s.e.", "Rel. (rank)"]
     head += ["Generalization<br>[95% CI]", "s.e.", "Rel. (rank)"]
     for m in overlaps:
@@ -322,17 +464,8 @@ def _scores_table(result, names: Sequence[str], slugs: Mapping[str, str]) -> str
             else "none"
         )
         rows.append((n, cells))
-    out = ['<div class="wide"><table><thead><tr>']
-    out.append("".join(f"<th>{h}</th>" for h in head) + "</tr></thead><tbody>")
-    for n, cells in rows:
-        cls = ' class="flagged"' if result.scores[n].flags else ""
-        tds = "".join(
-            f'<td class="text">{c}</td>' if k in (0, len(cells) - 1) else f"<td>{c}</td>"
-            for k, c in enumerate(cells)
-        )
-        out.append(f"<tr{cls}>{tds}</tr>")
-    out.append("</tbody></table></div>")
-    return "\n".join(out)
+    classes = ["flagged" if result.scores[n].flags else "" for n, _ in rows]
+    return _table(head, [c for _, c in rows], text=(0, -1), classes=classes, wide=True)
 
 
 def _legend(result) -> str:
@@ -403,34 +536,31 @@ def _legend(result) -> str:
             "registration keeps its scores but is ranked after every unflagged one.",
         ),
     ]
-    body = "".join(f"<dt>{k}</dt><dd>{v}</dd>" for k, v in items)
-    return f'<dl class="legend">{body}</dl>'
+    return _legend_list(items)
 
 
 def _overlap_table(result, names: Sequence[str]) -> str:
     ws = [m.split(".", 1)[1] for m in result.measures if m.startswith("overlap.")]
     if not ws:
         return ""
-    head = "".join(
-        f"<th>{_e(w.replace('_', ' '))}<br>[95% CI]</th><th>Rel. (rank)</th>" for w in ws
-    )
+    head = ["Registration"]
+    for w in ws:
+        head += [f"{_e(w.replace('_', ' '))}<br>[95% CI]", "Rel. (rank)"]
     rows = []
     for n in names:
         s = result.scores[n]
-        cells = "".join(
-            f"<td>{_value_ci(s.overlap[w], s.intervals.get(f'overlap.{w}'))}</td>"
-            f"<td>{_rel(result, f'overlap.{w}', n)}</td>"
-            for w in ws
-        )
-        rows.append(f'<tr><td class="text">{_e(n)}</td>{cells}</tr>')
+        row = [_e(n)]
+        for w in ws:
+            row += [
+                _value_ci(s.overlap[w], s.intervals.get(f"overlap.{w}")),
+                _rel(result, f"overlap.{w}", n),
+            ]
+        rows.append(row)
     words = "".join(
         f"<li><b>{_e(w.replace('_', ' '))}</b>: {_e(_WEIGHTING_WORDS.get(w, w))}</li>" for w in ws
     )
     return (
-        "<h3>Overlap by label weighting</h3>"
-        f'<div class="wide"><table><thead><tr><th>Registration</th>{head}</tr></thead><tbody>'
-        + "".join(rows)
-        + f"</tbody></table></div><ul>{words}</ul>"
+        "<h3>Overlap by label weighting</h3>" + _table(head, rows, wide=True) + f"<ul>{words}</ul>"
     )
 
 
@@ -438,17 +568,20 @@ def _comparisons(result) -> str:
     comps = list(result.comparisons)
     if not comps:
         return "<p>No pairwise differences: confidence was not computed.</p>"
-    rows = "".join(
-        f"<tr><td class='text'>{_e(c.measure)}</td><td class='text'>{_e(c.a)} &minus; "
-        f"{_e(c.b)}</td><td>{format_number(c.difference)}</td><td>[{format_number(c.ci95[0])}"
-        f", {format_number(c.ci95[1])}]</td><td>{'yes' if c.separable else 'no'}</td></tr>"
+    rows = [
+        [
+            _e(c.measure),
+            f"{_e(c.a)} &minus; {_e(c.b)}",
+            format_number(c.difference),
+            f"[{format_number(c.ci95[0])}, {format_number(c.ci95[1])}]",
+            "yes" if c.separable else "no",
+        ]
         for c in comps
-    )
+    ]
+    head = ["Measure", "a &minus; b", "Difference", "95% CI", "Separable (CI excludes 0)"]
     return (
         "<details><summary>Pairwise differences with their subject-level 95% intervals "
-        f"({len(comps)})</summary><table><thead><tr><th>Measure</th><th>a &minus; b</th>"
-        "<th>Difference</th><th>95% CI</th><th>Separable (CI excludes 0)</th></tr></thead>"
-        f"<tbody>{rows}</tbody></table></details>"
+        f"({len(comps)})</summary>" + _table(head, rows, text=(0, 1)) + "</details>"
     )
 
 
@@ -470,21 +603,14 @@ def _plausibility_table(result, names: Sequence[str]) -> str:
             "–" if cov is None or not cov.per_image else f"{min(cov.per_image):.1%}",
         ]
         flags = "; ".join(_e(f) for f in s.flags) if s.flags else "plausible"
-        cls = ' class="flagged"' if s.flags else ""
-        rows.append(
-            f'<tr{cls}><td class="text">{_e(n)}</td>'
-            + "".join(f"<td>{c}</td>" for c in cells)
-            + f'<td class="text">{flags}</td></tr>'
-        )
+        rows.append([_e(n), *cells, flags])
     th = result.options.get("thresholds", {})
+    head = ["Registration", "Folded voxels (mean)", "Folded (worst image)", "SDlogJ"]
+    head += ["det J min", "det J max", "Inverse consistency (mm)", "Coverage, all images"]
+    head += ["Coverage, least image", "In words"]
+    classes = ["flagged" if result.scores[n].flags else "" for n in names]
     return (
-        "<table><thead><tr><th>Registration</th><th>Folded voxels (mean)</th>"
-        "<th>Folded (worst image)</th><th>SDlogJ</th><th>det J min</th><th>det J max</th>"
-        "<th>Inverse consistency (mm)</th><th>Coverage, all images</th>"
-        "<th>Coverage, least image</th><th>In words</th></tr></thead><tbody>"
-        + "".join(rows)
-        + "</tbody></table>"
-        '<dl class="legend">'
+        _table(head, rows, text=(0, -1), classes=classes, wide=True) + '<dl class="legend">'
         "<dt>Folded voxels</dt><dd>fraction of the voxels of the registration's reference "
         "grid (inside the mask) where the Jacobian determinant det J &le; 0: the map folds "
         "space there. Mean over the images, and the worst single image. Flagged above "
@@ -508,16 +634,18 @@ def _frames_table(result, names: Sequence[str]) -> str:
     for n in names:
         f = result.scores[n].frame
         rows.append(
-            f'<tr><td class="text">{_e(n)}</td>'
-            f'<td class="text">{_e(_FRAME_WORDS.get(f.method, f.method))}</td>'
-            f"<td>{format_number(f.spread_mean_mm, 3)}</td>"
-            f"<td>{format_number(f.spread_max_mm, 3)}</td></tr>"
+            [
+                _e(n),
+                _e(_FRAME_WORDS.get(f.method, f.method)),
+                format_number(f.spread_mean_mm, 3),
+                format_number(f.spread_max_mm, 3),
+            ]
         )
+    head = ["Registration", "Brought into the common frame by"]
+    head += ["Spread, mean (mm)", "Spread, max (mm)"]
     return (
-        "<table><thead><tr><th>Registration</th><th>Brought into the common frame by</th>"
-        "<th>Spread, mean (mm)</th><th>Spread, max (mm)</th></tr></thead><tbody>"
-        + "".join(rows)
-        + "</tbody></table><p>Each registration has its own reference frame and is brought "
+        _table(head, rows, text=(0, 1))
+        + "<p>Each registration has its own reference frame and is brought "
         f"into the common frame (<b>{_e(result.common_frame)}</b>'s) by a transform F. Each "
         "image gives its own estimate F<sub>i</sub> of it; the spread is how far those "
         "estimates lie from F (|F<sub>i</sub>(p) &minus; F(p)| over the images and the "
@@ -527,13 +655,11 @@ def _frames_table(result, names: Sequence[str]) -> str:
     )
 
 
-def _registration_section(result, name: str, slug: str) -> str:
+def _registration_section(result, name: str) -> str:
+    """The body of a registration's section: its scores in a line, its two figures."""
     s = result.scores[name]
     t = result.thumbnails.get(name, {})
-    parts = [
-        f'<section id="{slug}"><h2>Registration: {_e(name)} '
-        '<a class="top" href="#contents">contents &uarr;</a></h2>'
-    ]
+    parts = []
     summary = (
         f"Specificity {format_number(s.specificity.value)} "
         f"{_ci(s.intervals.get('specificity'))}, generalization "
@@ -559,18 +685,20 @@ def _registration_section(result, name: str, slug: str) -> str:
             f"common frame ({_e(s0)} on the first tile, {_e(s1)} on the next): when they "
             "are aligned, edges run on across the tile borders. Right: "
             f"{_e(s0)} with the boundaries of its labels, resampled into the common frame "
-            "(colour legend: label values). Common grey scale in the images' intensity units."
+            "(colour legend: label values). Common grey scale in the images' intensity units; "
+            "pale blue: outside that image's field of view."
         )
         if "image_1" not in t:
             cap = f"Left: {where}the mean image. Right: {_e(s0)}."
     else:
         cap = f"{where.capitalize()}the mean of the N resampled images in the common frame."
-    parts.append(_figure(_images_figure(result, name), f"{name}: images", cap))
+    images = png_bytes(_images_figure(result, name), dpi=_DPI)
+    parts.append(_figure(images, f"{name}: images", cap))
     jac = _jacobian_figure(result, name)
     if jac is not None:
         parts.append(
             _figure(
-                jac,
+                png_bytes(jac, dpi=_DPI),
                 f"{name}: Jacobian determinant",
                 f"Left: log of the Jacobian determinant of {_e(_subject(result, 0))}'s "
                 f"transform on {where}the registration's own reference grid (blue: local "
@@ -579,7 +707,6 @@ def _registration_section(result, name: str, slug: str) -> str:
                 "64 bins over [-2, 2]; the share beyond the bins and folded is printed.",
             )
         )
-    parts.append("</section>")
     return "\n".join(parts)
 
 
@@ -602,26 +729,24 @@ def _inputs_section(result) -> str:
         ("Mask", item(inp.get("mask"))),
         ("Common frame", _e(inp.get("common_frame", result.common_frame))),
     ]
-    out = ["<table><tbody>"]
-    out += [f'<tr><th>{k}</th><td class="text">{v}</td></tr>' for k, v in rows]
-    out.append("</tbody></table>")
+    out = [_key_value_table(rows)]
     regs = inp.get("registrations") or {}
     if regs:
-        out.append(
-            "<table><thead><tr><th>Registration</th><th>Reference</th><th>Reference index"
-            "</th><th>Frame transform</th><th>Transforms (first image)</th></tr></thead>"
-            "<tbody>"
-        )
+        head = ["Registration", "Reference", "Reference index", "Frame transform"]
+        head.append("Transforms (first image)")
+        cells = []
         for name, r in regs.items():
             first = (r.get("transforms") or [[]])[0]
-            out.append(
-                f'<tr><td class="text">{_e(name)}</td><td class="text">'
-                f"{item(r.get('reference'))}</td><td>{_e(r.get('reference_index'))}</td>"
-                f'<td class="text">{item(r.get("frame_transform"))}</td><td class="text">'
-                + ", ".join(item(x) for x in first)
-                + "</td></tr>"
+            cells.append(
+                [
+                    _e(name),
+                    item(r.get("reference")),
+                    _e(r.get("reference_index")),
+                    item(r.get("frame_transform")),
+                    ", ".join(item(x) for x in first),
+                ]
             )
-        out.append("</tbody></table>")
+        out.append(_table(head, cells, text=(0, 1, 3, 4), wide=True))
     listing = "".join(
         f"<li>{item(p)}" + (f" &mdash; labels {item(labels[i])}" if labels else "") + "</li>"
         for i, p in enumerate(images)
@@ -633,22 +758,25 @@ def _inputs_section(result) -> str:
     return "\n".join(out)
 
 
-def _options_section(result) -> str:
-    def flat(d: Mapping, prefix: str = "") -> list[tuple[str, object]]:
-        out = []
-        for k, v in d.items():
-            if isinstance(v, Mapping):
-                out += flat(v, f"{prefix}{k}.")
-            else:
-                out.append((f"{prefix}{k}", v))
-        return out
+def _flat(d: Mapping, prefix: str = "") -> list[tuple[str, object]]:
+    """Nested mappings as ``(dotted.name, value)`` pairs."""
+    out = []
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out += _flat(v, f"{prefix}{k}.")
+        else:
+            out.append((f"{prefix}{k}", v))
+    return out
 
-    rows = flat(dict(result.options)) + [(f"run.{k}", v) for k, v in dict(result.run).items()]
-    rows.append(("version", result.version))
-    body = "".join(
-        f'<tr><th>{_e(k)}</th><td class="text"><code>{_e(v)}</code></td></tr>' for k, v in rows
-    )
-    return f"<table><tbody>{body}</tbody></table>"
+
+def _options_table(options: Mapping) -> str:
+    """Every option, nested ones dotted, values as code."""
+    return _key_value_table([(k, f"<code>{_e(v)}</code>") for k, v in _flat(options)])
+
+
+def _options_section(result) -> str:
+    run = {f"run.{k}": v for k, v in dict(result.run).items()}
+    return _options_table({**dict(result.options), **run, "version": result.version})
 
 
 # ----------------------------------------------------------------------------- the page
@@ -676,18 +804,6 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
     slugs = _slugs(list(result.scores))
     n_images = next(iter(result.scores.values())).specificity.n_images
     o = result.options
-
-    toc = [
-        ("verdict", "Verdict"),
-        ("scores", "Scores, with their legend"),
-        ("figures", "Summary figures"),
-        ("details", "Every overlap weighting and pairwise difference"),
-        ("plausibility", "Deformation plausibility and coverage"),
-        ("frames", "Frame-estimate spread"),
-    ]
-    toc += [(slugs[n], f"Registration: {n}") for n in names]
-    toc += [("inputs", "Inputs"), ("options", "Options")]
-    nav = "".join(f'<li><a href="#{k}">{_e(v)}</a></li>' for k, v in toc)
 
     flagged = any(result.scores[n].flags for n in names)
     verdict = (
@@ -730,57 +846,512 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
         css = "" if fname == "mean_images.png" else "half"
         fig_parts.append(_figure(png, fname, captions.get(fname, _e(fname)), css=css))
 
-    header = (
-        f"<header><h1>Registration evaluation</h1><p>{len(names)} registrations of N = "
-        f"{n_images} images, compared in the frame of <b>{_e(result.common_frame)}</b>; "
-        f"itk-nrreval {_e(result.version)}</p></header>"
+    subtitle = (
+        f"{len(names)} registrations of N = {n_images} images, compared in the frame of "
+        f"<b>{_e(result.common_frame)}</b>; itk-nrreval {_e(result.version)}"
     )
-    body = [
-        header,
-        "<main>",
-        f'<nav id="contents"><h2>Contents</h2><ol>{nav}</ol></nav>',
-        '<section id="verdict"><h2>Verdict <a class="top" href="#contents">contents &uarr;'
-        "</a></h2>"
-        f'<div class="verdict{" flagged" if flagged else ""}">{verdict}</div>'
-        f"<p>Ranking (by specificity, flagged last): {ranking}</p></section>",
-        '<section id="scores"><h2>Scores <a class="top" href="#contents">contents &uarr;</a>'
-        "</h2><p>Rows in the verdict's order. Each registration's name links to its "
-        "section.</p>",
-        _scores_table(result, names, slugs),
-        _legend(result),
-        "</section>",
-        '<section id="figures"><h2>Summary figures <a class="top" href="#contents">'
-        "contents &uarr;</a></h2>",
-        *fig_parts,
-        "</section>",
-        '<section id="details"><h2>Every overlap weighting and every pairwise difference '
-        '<a class="top" href="#contents">contents &uarr;</a></h2>',
-        _overlap_table(result, names),
-        _comparisons(result),
-        "</section>",
-        '<section id="plausibility"><h2>Deformation plausibility and coverage '
-        '<a class="top" href="#contents">contents &uarr;</a></h2>',
-        _plausibility_table(result, names),
-        "</section>",
-        '<section id="frames"><h2>Frame-estimate spread <a class="top" href="#contents">'
-        "contents &uarr;</a></h2>",
-        _frames_table(result, names),
-        "</section>",
-        *[_registration_section(result, n, slugs[n]) for n in names],
-        '<section id="inputs"><h2>Inputs <a class="top" href="#contents">contents &uarr;</a></h2>',
-        _inputs_section(result),
-        "</section>",
-        '<section id="options"><h2>Options <a class="top" href="#contents">contents &uarr;'
-        "</a></h2>",
-        _options_section(result),
-        "</section>",
-        "<footer>Written by itk-nrreval: one self-contained file (figures embedded, no "
-        "script, no network). The numbers are those of results.json beside it.</footer>",
-        "</main>",
+    sections = [
+        (
+            "verdict",
+            "Verdict",
+            f'<div class="verdict{" flagged" if flagged else ""}">{verdict}</div>'
+            f"<p>Ranking (by specificity, flagged last): {ranking}</p>",
+        ),
+        (
+            "scores",
+            "Scores, with their legend",
+            "<p>Rows in the verdict's order. Each registration's name links to its section."
+            "</p>" + _scores_table(result, names, slugs) + _legend(result),
+        ),
+        ("figures", "Summary figures", "".join(fig_parts)),
+        *[(slugs[n], f"Registration: {n}", _registration_section(result, n)) for n in names],
+        (
+            "details",
+            "Every overlap weighting and pairwise difference",
+            _overlap_table(result, names) + _comparisons(result),
+        ),
+        (
+            "plausibility",
+            "Deformation plausibility and coverage",
+            _plausibility_table(result, names),
+        ),
+        ("frames", "Frame-estimate spread", _frames_table(result, names)),
+        ("inputs", "Inputs", _inputs_section(result)),
+        ("options", "Options", _options_section(result)),
     ]
-    return (
-        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
-        '<meta name="viewport" content="width=device-width, initial-scale=1">'
-        f"<title>Registration evaluation: {_e(', '.join(names))}</title>"
-        f"<style>{_CSS}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n"
+    return _page(
+        title=f"Registration evaluation: {', '.join(names)}",
+        heading="Registration evaluation",
+        subtitle=subtitle,
+        sections=sections,
+        footer=f"{_SELF_CONTAINED} The numbers are those of results.json beside it.",
+    )
+
+
+# ----------------------------------------------------------------------------- validate
+
+
+def _r_words(r: float, ci: tuple[float, float]) -> str:
+    """Whether specificity rises as overlap falls, from Pearson r and its 95% interval."""
+    lo, hi = ci
+    if not math.isfinite(r):
+        return "undefined (fewer than two values of d in the fit, or no spread)"
+    if math.isfinite(hi) and hi < 0:
+        return "yes: specificity rises as overlap falls"
+    if r < 0:
+        return "only weakly: r is negative but its 95% interval reaches 0"
+    return "no: specificity does not rise as overlap falls"
+
+
+def _fmt_ci(ci: tuple[float, float]) -> str:
+    lo, hi = ci
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return "–"
+    return f"[{lo:.3f}, {hi:.3f}]"
+
+
+def _d_id(d: float) -> str:
+    return "d-" + f"{d:g}".replace(".", "_")
+
+
+def validation_report_html(
+    result, *, figures: Mapping[str, bytes], units: str, version: str | None = None
+) -> str:
+    """The text of ``report.html`` for a :class:`~itk_nrreval.validation.ValidationResult`.
+
+    The verdict in words first (does specificity rise as overlap falls: Pearson r with its
+    95% interval per label weighting, the Spearman correlation of the mean specificity with
+    the displacement d, the sensitivity), then the table by d (mean and SD over the
+    repeats), the figures, every perturbed set, and the parameters.
+
+    Parameters
+    ----------
+    result : ValidationResult
+    figures : mapping of str to bytes
+        PNG bytes: ``"fig2_<weighting>"`` (:func:`~itk_nrreval.validation.fig2_figure`) per
+        weighting and ``"vs_d"`` (:func:`~itk_nrreval.validation.vs_d_figure`), the same
+        bytes as the files written beside the page.
+    units : str
+        What specificity is measured in, e.g. ``"L1 distance, intensity units"``.
+    version : str, optional
+        The package version, printed in the header.
+
+    Returns
+    -------
+    str
+        One self-contained HTML5 page, as :func:`report_html`'s.
+    """
+    s = result.summary
+    m = result.means()
+    w0 = result.weightings[0]
+    fit_from = result.parameters["fit_from"]
+    sec = result.parameters.get("section")
+    where = f", slice {sec['axis']}:{sec['index']}" if sec else ""
+    grid = " × ".join(map(str, result.shape[::-1]))
+    r0 = s.pearson_r.get(w0, math.nan)
+    ci0 = s.pearson_ci.get(w0, (math.nan, math.nan))
+    answer = _r_words(r0, ci0)
+    good = math.isfinite(ci0[1]) and ci0[1] < 0
+    verdict = [
+        f"<p><b>Does specificity rise as the registration is made worse? {_e(answer[0].upper())}"
+        f"{_e(answer[1:])}.</b></p>",
+        f"<p>Pearson r between specificity and the {_e(w0.replace('_', ' '))} overlap: "
+        f"<b>{format_number(r0, 3)}</b>, 95% interval {_fmt_ci(ci0)} (Fisher's z), over the "
+        f"{s.n_fit} perturbed sets with d &ge; {fit_from:g} px (strongly negative is good: "
+        "the paper's Fig. 2 line).</p>",
+        f"<p>Spearman correlation of the mean specificity with d (d &ge; {fit_from:g} px): "
+        f"<b>{format_number(s.spearman, 3)}</b>; the mean rises strictly with d: "
+        f"<b>{'yes' if s.monotonic else 'no'}</b>. Sensitivity: "
+        f"{format_number(s.sensitivity, 3)} Monte-Carlo standard errors per pixel of d"
+        + (
+            f" ({format_number(s.sensitivity_mm, 3)} per mm)"
+            if math.isfinite(s.sensitivity_mm)
+            else ""
+        )
+        + ".</p>",
+    ]
+    if s.unperturbed is not None:
+        verdict.append(
+            f"<p>Unperturbed specificity (d = 0): {format_number(s.unperturbed)}. Below "
+            f"d = {fit_from:g} px the paper finds a dip under it (interpolation smooths the "
+            "images), which is why the fit starts there.</p>"
+        )
+
+    levels = m["displacement"]
+    head = ["d (px)", "d (mm)", "Specificity<br>mean &plusmn; SD", "MC s.e.<br>(mean)"]
+    head += [f"Overlap, {_e(w.replace('_', ' '))}<br>mean &plusmn; SD" for w in result.weightings]
+    head += ["In the fit"]
+    rows = []
+    for k, d in enumerate(levels):
+        row = [
+            f"{d:g}",
+            format_number(m["displacement_mm"][k], 3),
+            f"{format_number(m['specificity'][k])} &plusmn; "
+            f"{format_number(m['specificity_sd'][k], 2)}",
+            format_number(m["specificity_stderr"][k], 2),
+        ]
+        row += [
+            f"{format_number(m[f'overlap_{w}'][k])} &plusmn; "
+            f"{format_number(m[f'overlap_{w}_sd'][k], 2)}"
+            for w in result.weightings
+        ]
+        row.append("yes" if d >= fit_from else "no")
+        rows.append(row)
+    table = _table(head, rows, text=(), ids=[_d_id(d) for d in levels], wide=True)
+    legend = _legend_list(
+        [
+            (
+                "d",
+                "the mean displacement of every image's random clamped-plate-spline warp, in "
+                "pixels of the grid (and in mm, the mean over the warps); d = 0 is the "
+                "registered set itself.",
+            ),
+            (
+                "Specificity",
+                f"of the perturbed set's texture model ({_e(units)}; M = "
+                f"{result.n_samples:,} samples, seed {result.seed}); <b>lower is better</b>. "
+                f"Mean and standard deviation over the {result.parameters.get('repeats', '')} "
+                "repeats at each d.",
+            ),
+            (
+                "MC s.e.",
+                "Monte-Carlo standard error of one specificity estimate (finite M only), "
+                "mean over the repeats.",
+            ),
+            (
+                "Overlap",
+                "generalized Tanimoto overlap of the perturbed label memberships, 0 to 1, "
+                "<b>higher is better</b>, per label weighting.",
+            ),
+            ("In the fit", f"whether d &ge; {fit_from:g} px: the rows the line and r use."),
+        ]
+    )
+    stats_head = ["Label weighting", "Pearson r", "95% CI", "Fit: slope a", "Fit: intercept b"]
+    stats_rows = [
+        [
+            _e(w.replace("_", " ")),
+            format_number(s.pearson_r.get(w, math.nan), 3),
+            _fmt_ci(s.pearson_ci.get(w, (math.nan, math.nan))),
+            format_number(s.fit.get(w, (math.nan, math.nan))[0]),
+            format_number(s.fit.get(w, (math.nan, math.nan))[1]),
+        ]
+        for w in result.weightings
+    ]
+    correlations = (
+        _table(stats_head, stats_rows)
+        + "<p>The line is specificity = a &times; overlap + b, least squares over the sets "
+        f"with d &ge; {fit_from:g} px.</p>"
+    )
+    figs = []
+    for w in result.weightings:
+        key = f"fig2_{w}"
+        if key in figures:
+            figs.append(
+                _figure(
+                    figures[key],
+                    f"Fig. 2, {w}",
+                    f"The paper's Fig. 2, {_e(w.replace('_', ' '))} weighting: each point one "
+                    "perturbed set, coloured by d (legend, in pixels); error bars &plusmn;1 "
+                    "Monte-Carlo s.e. of its specificity (the title says when they are "
+                    f"smaller than the markers); grey: the line fitted over d &ge; {fit_from:g}"
+                    " px; dashed: the unperturbed specificity.",
+                    css="half",
+                )
+            )
+    if "vs_d" in figures:
+        figs.append(
+            _figure(
+                figures["vs_d"],
+                "specificity and overlap against d",
+                "Mean specificity (left) and overlap (right) against d; error bars &plusmn;1 "
+                "standard deviation over the repeats (the titles say when they hide behind "
+                "the markers).",
+            )
+        )
+    every = _table(
+        ["d (px)", "Repeat", "Specificity", "MC s.e."]
+        + [f"Overlap, {_e(w.replace('_', ' '))}" for w in result.weightings]
+        + ["min det J", "d (mm)"],
+        [
+            [
+                f"{r.displacement:g}",
+                str(r.repeat),
+                format_number(r.specificity),
+                format_number(r.specificity_stderr, 2),
+                *[format_number(r.overlap.get(w, math.nan)) for w in result.weightings],
+                format_number(r.min_jacobian, 3),
+                format_number(r.displacement_mm, 3),
+            ]
+            for r in result.rows
+        ],
+        text=(),
+    )
+    params = {
+        "source": result.source,
+        "n_images": result.n_images,
+        "shape (x, y[, z])": " × ".join(map(str, result.shape[::-1])),
+        "spacing (mm)": result.spacing,
+        "n_samples (M)": result.n_samples,
+        "specificity in": units,
+        "n_knots": result.n_knots,
+        "seed": result.seed,
+        "weightings": ", ".join(result.weightings),
+        **{f"parameters.{k}": v for k, v in _flat(dict(result.parameters))},
+    }
+    if version is not None:
+        params["version"] = version
+    sections = [
+        ("verdict", "Verdict", f'<div class="verdict{"" if good else " flagged"}">'
+         + "".join(verdict) + "</div>"),
+        ("table", "Specificity and overlap by displacement", table + legend + correlations),
+        ("figures", "Figures", "".join(figs)),
+        (
+            "rows",
+            "Every perturbed set",
+            f"<details><summary>The {len(result.rows)} perturbed sets</summary>{every}"
+            "</details>",
+        ),
+        ("parameters", "Inputs and parameters", _options_table(params)),
+    ]  # fmt: skip
+    return _page(
+        title=f"Validation: {result.source}",
+        heading="Validation: specificity under known misregistration",
+        subtitle=(
+            f"{len(result.rows)} perturbed sets of N = {result.n_images} images of {grid} "
+            f"({_e(result.source)}{_e(where)}); specificity: {_e(units)}, M = {result.n_samples:,}"
+            + (f"; itk-nrreval {_e(version)}" if version else "")
+        ),
+        sections=sections,
+        footer=f"{_SELF_CONTAINED} The numbers are those of validation.json beside it.",
+    )
+
+
+# ----------------------------------------------------------------------------- sweep
+
+
+def sweep_report_html(
+    result,
+    *,
+    figures: Mapping[str, bytes],
+    truth_measure: str,
+    specificity_figure: str = "sweep.png",
+) -> str:
+    """The text of ``report.html`` for a :class:`~itk_nrreval.sweep.SweepResult`.
+
+    The verdict in words first (the setting specificity recommends, the settings it cannot
+    separate from it, the best by overlap and, when the true transforms were known, by the
+    true correspondence error), then the table of every setting, the figures, the
+    agreement between measures and the options. The evaluation's own ``report.html``
+    (per-setting images and Jacobians) is in ``evaluation/`` beside it.
+
+    Parameters
+    ----------
+    result : SweepResult
+    figures : mapping of str to bytes
+        PNG bytes by file name: `specificity_figure` (the sweep's figure) and any of the
+        evaluation's summary figures (:func:`itk_nrreval.reports.figure_pngs`).
+    truth_measure : str
+        The key of the true correspondence error in ``result.best_by`` and
+        ``result.spearman``.
+    specificity_figure : str
+        Which of `figures` is the sweep's own.
+
+    Returns
+    -------
+    str
+        One self-contained HTML5 page, as :func:`report_html`'s.
+    """
+    ev = result.evaluation
+    names = [st.name for st in result.settings]
+    slugs = _slugs(names, prefix="setting-")
+    params = list(result.parameters)
+    first = ev.scores[names[0]]
+    overlaps = [m for m in first.measures() if m.startswith("overlap.")]
+    # the table keeps the evaluation table's two weightings; every one is in the verdict
+    shown = [m for m in overlaps if m in _TABLE_OVERLAPS] or overlaps
+    units = specificity_units(ev)
+
+    def link(name: str) -> str:
+        return f'<a href="#{slugs[name]}">{_e(name)}</a>'
+
+    def values(name: str) -> str:
+        st = next(x for x in result.settings if x.name == name)
+        return ", ".join(f"{_e(k)} = {_e(v)}" for k, v in st.values.items())
+
+    rec = result.recommended
+    others = [n for n in result.not_separable if n != rec]
+    verdict = [
+        f"<p><b>Specificity recommends {link(rec)}</b> ({values(rec)}): the lowest "
+        "specificity among the settings not flagged as implausible.</p>",
+        "<p>"
+        + (
+            "Not separable from it (the subject-level 95% interval of the specificity "
+            "difference includes 0): " + ", ".join(link(n) for n in others) + "."
+            if others
+            else "Every other setting's specificity is separably higher (or no "
+            "subject-level interval was computed)."
+        )
+        + "</p>",
+    ]
+    by_best: dict[str, list[str]] = {}  # one line per setting overlap prefers
+    for m in overlaps:
+        if m in result.best_by:
+            by_best.setdefault(result.best_by[m], []).append(m.split(".", 1)[1].replace("_", " "))
+    for best, weightings in by_best.items():
+        verdict.append(
+            f"<p>Best by overlap: {link(best)} ({_e(', '.join(weightings))} weighting"
+            f"{'s' if len(weightings) > 1 else ''}).</p>"
+        )
+    truth = result.truth_error_mm
+    if truth is not None:
+        best = result.best_by[truth_measure]
+        where = (
+            "the same setting"
+            if best == rec
+            else "among those specificity cannot separate from its choice"
+            if best in result.not_separable
+            else "a different setting"
+        )
+        verdict.append(
+            f"<p><b>The truth's choice</b> (lowest true correspondence error): {link(best)}, "
+            f"{format_number(truth[best], 3)} mm, {where}; specificity's choice has "
+            f"{format_number(truth[rec], 3)} mm. Spearman correlation over the settings "
+            "between specificity and the true error: "
+            f"{format_number(result.spearman.get(truth_measure, math.nan), 3)} (1: the same "
+            "order).</p>"
+        )
+    else:
+        verdict.append("<p>No true transforms were given: the truth's choice is unknown.</p>")
+
+    head = ["Setting", *[_e(p) for p in params], "Specificity<br>[95% CI]", "MC s.e."]
+    head += [f"Overlap, {_e(m.split('.', 1)[1].replace('_', ' '))}<br>[95% CI]" for m in shown]
+    if truth is not None:
+        head.append("True error (mm)")
+    head += ["Specificity says", "Flags"]
+    rows, classes = [], []
+    for st in result.settings:
+        sc = ev.scores[st.name]
+        row = [_e(st.name), *[_e(st.values[p]) for p in params]]
+        row += [
+            _value_ci(sc.specificity.value, sc.intervals.get("specificity")),
+            format_number(sc.specificity.stderr, 2),
+        ]
+        row += [_value_ci(sc.measures()[m], sc.intervals.get(m)) for m in shown]
+        if truth is not None:
+            row.append(format_number(truth[st.name], 3))
+        row.append(
+            "&#9733; recommended"
+            if st.name == rec
+            else "not separable"
+            if st.name in result.not_separable
+            else "separably worse"
+        )
+        row.append("; ".join(_e(f) for f in sc.flags) if sc.flags else "none")
+        rows.append(row)
+        classes.append("flagged" if sc.flags else "best" if st.name == rec else "")
+    table = _table(
+        head,
+        rows,
+        text=(0, -2, -1),
+        classes=classes,
+        ids=[slugs[n] for n in names],
+        wide=True,
+    )
+    legend = _legend_list(
+        [
+            (
+                "Specificity",
+                f"of each setting's texture model ({_e(units)}; M = {ev.options['n_samples']:,}"
+                f" samples, seed {ev.options['seed']}, the same samples for every setting); "
+                "<b>lower is better</b>. 95% CI: subject-level (jackknife over the subjects); "
+                "MC s.e.: Monte-Carlo error only.",
+            ),
+            (
+                "Overlap",
+                "generalized Tanimoto overlap of the labels in the common frame, 0 to 1, "
+                "<b>higher is better</b>; every weighting is in results.json and in "
+                "<code>evaluation/report.html</code>.",
+            ),
+            (
+                "True error",
+                "mean distance in mm between where the registration and the true transforms "
+                "put each point (known for generated data only); lower is better.",
+            ),
+            (
+                "Specificity says",
+                "the recommended setting (&#9733;), the settings whose specificity cannot be "
+                "told from it, and the rest.",
+            ),
+            ("Flags", "physically implausible deformations: ranked after every other."),
+        ]
+    )
+    captions = {
+        specificity_figure: (
+            "Each measure against the first swept option (other options as lines); error "
+            "bars: subject-level 95% intervals where computed (the titles say when they are "
+            "smaller than the markers); ringed: the best by each measure; star: "
+            "specificity's choice; red cross: flagged implausible."
+        ),
+        "mean_images.png": (
+            "The mean image of every setting in the common frame, one grey scale, with the "
+            "label boundaries of subject 0 (colour legend: label values). Sharper is better "
+            "aligned."
+        ),
+        "specificity.png": "Specificity of every setting, as in the evaluation's report.",
+    }
+    figs = "".join(
+        _figure(png, fname, captions.get(fname, _e(fname))) for fname, png in figures.items()
+    )
+    agree = _table(
+        ["Measure", "Best setting", "Spearman with specificity"],
+        [
+            [
+                _e(m),
+                link(best),
+                "–" if m == "specificity" else format_number(result.spearman.get(m), 3),
+            ]
+            for m, best in result.best_by.items()
+        ],
+        text=(0, 1),
+    ) + (
+        "<p>Spearman rank correlation over the settings between specificity and each other "
+        "measure, counted so that 1 means agreement (lower specificity with higher overlap, "
+        "or with lower true error).</p>"
+    )
+    options = {
+        "method": result.method,
+        **{f"parameters.{k}": ", ".join(map(str, v)) for k, v in result.parameters.items()},
+        "manifest": result.manifest,
+        "reused settings": ", ".join(st.name for st in result.settings if st.reused) or "none",
+        **{f"evaluation.{k}": v for k, v in _flat(dict(ev.options))},
+        "version": ev.version,
+    }
+    sections = [
+        ("verdict", "Verdict", '<div class="verdict">' + "".join(verdict) + "</div>"),
+        (
+            "settings",
+            "Every setting",
+            "<p>In grid order (the last option varies fastest).</p>" + table + legend,
+        ),
+        ("figures", "Figures", figs),
+        ("agreement", "Agreement between measures", agree),
+        (
+            "options",
+            "Inputs and options",
+            _options_table(options)
+            + "<p>The evaluation's own report (each setting's images, Jacobian maps and "
+            "frame) is <code>evaluation/report.html</code> beside this file.</p>",
+        ),
+    ]
+    n_images = first.specificity.n_images
+    return _page(
+        title=f"Sweep: {result.method} {', '.join(params)}",
+        heading=f"Parameter sweep: {result.method}",
+        subtitle=(
+            f"{len(names)} settings of {_e(', '.join(params))} on N = {n_images} images; "
+            f"specificity: {_e(units)}, M = {ev.options['n_samples']:,}; itk-nrreval "
+            f"{_e(ev.version)}"
+        ),
+        sections=sections,
+        footer=f"{_SELF_CONTAINED} The numbers are those of sweep.json beside it.",
     )

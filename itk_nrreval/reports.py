@@ -26,7 +26,7 @@ import io
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +45,9 @@ __all__ = [
     "thumbnail",
     "draw_label_contours",
     "specificity_units",
+    "bars_hidden",
+    "HIDDEN_BARS",
+    "wrap_name",
 ]
 
 _TABLE_OVERLAPS = (
@@ -291,13 +294,19 @@ LEGEND_LABELS = 18
 
 
 def draw_label_contours(
-    ax, labels: np.ndarray, *, aspect: float = 1.0, fontsize: int = 6, legend: bool = True
+    ax,
+    labels: np.ndarray,
+    *,
+    aspect: float = 1.0,
+    fontsize: int = 6,
+    legend: bool = True,
+    values: Sequence[int] | None = None,
 ) -> tuple[list, str]:
     """Draw the boundaries of every nonzero label of `labels` over an image in `ax`.
 
     Boundary pixels (a nonzero label with a 4-neighbour of another value) are drawn in the
-    label's colour, with a legend naming the label values; with more than
-    :data:`LEGEND_LABELS` values, all in one colour and one legend entry that says so.
+    label's colour, with a legend naming every label value present in `labels`; with more
+    than :data:`LEGEND_LABELS` values, all in one colour and one legend entry that says so.
 
     Parameters
     ----------
@@ -311,11 +320,16 @@ def draw_label_contours(
     legend : bool
         Draw the legend beside `ax`; False leaves it to the caller (e.g. one legend for a
         row of panels).
+    values : sequence of int, optional
+        Every label value of the figure (or the report), present here or not: a value gets
+        the same colour in every panel drawn with the same `values`. Default: the values
+        present in `labels`.
 
     Returns
     -------
     handles : list of matplotlib Patch
-        The legend's entries (empty without labels).
+        The legend's entries, one per nonzero value present in `labels`, in increasing
+        order (empty without labels).
     title : str
         The legend's title.
     """
@@ -329,23 +343,26 @@ def draw_label_contours(
     edge[:, 1:] |= lab[:, 1:] != lab[:, :-1]
     edge[:, :-1] |= lab[:, :-1] != lab[:, 1:]
     edge &= lab != 0
-    values = [int(v) for v in np.unique(lab) if v != 0]
+    present = [int(v) for v in np.unique(lab) if v != 0]
+    # colours are keyed by the position of a value among all of the figure's values, so that
+    # a label keeps its colour in every panel even where another label is missing
+    palette = sorted({int(v) for v in values if v != 0} | set(present)) if values else present
     overlay = np.zeros((*lab.shape, 4))
-    if len(values) <= LEGEND_LABELS:
-        if len(values) <= 9:  # tab10 without its grey
+    if len(palette) <= LEGEND_LABELS:
+        if len(palette) <= 9:  # tab10 without its grey
             colors = [c for i, c in enumerate(colormaps["tab10"].colors) if i != 7]
         else:
             colors = [c for i, c in enumerate(colormaps["tab20"].colors) if i not in (14, 15)]
         handles = []
-        for k, v in enumerate(values):
-            color = (*colors[k], 1.0)
+        for v in present:
+            color = (*colors[palette.index(v)], 1.0)
             overlay[edge & (lab == v)] = color
             handles.append(Patch(color=color, label=str(v)))
         title = "label value"
     else:
         overlay[edge] = (1.0, 0.85, 0.0, 1.0)
-        handles = [Patch(color=(1.0, 0.85, 0.0), label=f"{len(values)} labels")]
-        title = f"labels {values[0]}..{values[-1]}"
+        handles = [Patch(color=(1.0, 0.85, 0.0), label=f"{len(present)} labels")] if present else []
+        title = f"labels {present[0]}..{present[-1]}" if present else "label value"
     ax.imshow(overlay, origin="lower", aspect=aspect, interpolation="nearest")
     if handles and legend:
         ax.legend(
@@ -360,6 +377,59 @@ def draw_label_contours(
             ncol=1 if len(handles) <= 10 else 2,
         )
     return handles, title
+
+
+def bars_hidden(ax, half_lengths, *, markersize: float = 6.0, axis: str = "y") -> bool:
+    """Whether error bars of these half-lengths would all hide behind their markers.
+
+    Call once everything is drawn (the axis limits are final). A bar shows only where it
+    reaches past the marker, whose radius is ``markersize / 2`` points.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes
+    half_lengths : array_like
+        Each bar's half-length, in data units of `axis` (for an asymmetric bar, the longer
+        side); NaN is ignored.
+    markersize : float
+        Marker diameter in points (matplotlib's ``markersize``).
+    axis : {"y", "x"}
+
+    Returns
+    -------
+    bool
+        True when no bar reaches past its marker (also when there is no bar).
+    """
+    lengths = np.asarray(half_lengths, float)
+    lengths = lengths[np.isfinite(lengths)]
+    if not lengths.size:
+        return True
+    lo, hi = ax.get_ylim() if axis == "y" else ax.get_xlim()
+    box = ax.get_position()
+    fig_in = ax.figure.get_figheight() if axis == "y" else ax.figure.get_figwidth()
+    points = (box.height if axis == "y" else box.width) * fig_in * 72.0
+    if ax.get_yscale() == "log" if axis == "y" else ax.get_xscale() == "log":
+        return False  # no single data-per-point scale; do not claim the bars are hidden
+    radius = 0.5 * markersize * abs(hi - lo) / points  # in data units
+    return bool(lengths.max() < radius)
+
+
+#: The words a figure uses for Monte-Carlo error bars that do not show.
+HIDDEN_BARS = "smaller than the markers"
+
+
+def wrap_name(name: str, width: int = 24) -> str:
+    """`name` broken into lines of at most about `width` characters after ``_``, so that
+    long registration names (a sweep's settings) do not run into their neighbours."""
+    lines, line = [], ""
+    for part in name.split("_"):
+        piece = part if not line else "_" + part
+        if line and len(line) + len(piece) > width:
+            lines.append(line + "_")
+            line = part
+        else:
+            line += piece
+    return "\n".join([*lines, line])
 
 
 def specificity_units(result) -> str:
@@ -385,7 +455,7 @@ def _specificity_figure(result, names):
     values = np.array([s.value for s in spec])
     mc = np.array([s.stderr for s in spec])
     ci = _intervals(result, names, "specificity")
-    fig = Figure(figsize=(max(4.8, 1.3 * len(names)), 4.0))
+    fig = Figure(figsize=(max(5.0, 1.0 * len(names)), 4.0))  # about 560 px in the page
     ax = fig.subplots()
     colors = ["tab:red" if result.scores[n].flags else "tab:blue" for n in names]
     if ci is not None:
@@ -399,21 +469,21 @@ def _specificity_figure(result, names):
     ax.set_xlim(-0.6, len(names) - 0.4)
     o = result.options
     ax.set_ylabel(f"specificity ({specificity_units(result)})\nlower is better")
-    lo, hi = ax.get_ylim()
-    # a 6 pt marker on a 4 in figure covers about 2% of the axis height
-    hidden = 1.96 * float(mc.max()) < 0.01 * (hi - lo)
     n_images = spec[0].n_images
+    mc_hidden = bars_hidden(ax, 1.96 * mc, markersize=6)
     if ci is not None:
         what = f"bars: subject-level 95% interval (jackknife over the N = {n_images} subjects)"
+        if bars_hidden(ax, err.max(axis=0), markersize=6):
+            what += f", {HIDDEN_BARS}"
         mc_note = f"Monte-Carlo s.e. at most {mc.max():.2g}" + (
-            " (too small to draw)" if hidden else ""
+            f" (±1.96 s.e. is {HIDDEN_BARS}; not drawn)" if mc_hidden else " (not drawn)"
         )
     else:
         what = "bars: 95% Monte-Carlo interval (±1.96 s.e.; model sampling only)"
         mc_note = (
-            "the Monte-Carlo error bars are smaller than the markers; no subject-level "
-            "interval (confidence off or N < 4)"
-            if hidden
+            f"the Monte-Carlo error bars are {HIDDEN_BARS} (s.e. at most {mc.max():.2g}); "
+            "no subject-level interval (confidence off or N < 4)"
+            if mc_hidden
             else "no subject-level interval (confidence off or N < 4)"
         )
     ax.set_title(
@@ -458,13 +528,20 @@ def _overlap_figure(result, names, overlap: str):
     weighting = overlap.split(".", 1)[1].replace("_", " ")
     ax.set_xlabel(f"generalized overlap (Tanimoto, {weighting} weighting, 0..1)\nhigher is better")
     ax.set_ylabel(f"specificity ({specificity_units(result)})\nlower is better")
+    ybar = yerr.max(axis=0) if yerr.ndim == 2 else yerr
     if ci_y is not None:
         what = "bars: subject-level 95% intervals of both scores (jackknife over subjects)"
+        hidden = bars_hidden(ax, ybar, markersize=6) and (
+            xerr is None or bars_hidden(ax, xerr.max(axis=0), markersize=6, axis="x")
+        )
     else:
         what = (
-            "bars: 95% Monte-Carlo interval of specificity only (no subject-level "
-            "intervals computed)"
+            "bars: 95% Monte-Carlo interval of specificity only (±1.96 s.e.; no "
+            "subject-level intervals computed)"
         )
+        hidden = bars_hidden(ax, ybar, markersize=6)
+    if hidden:
+        what += f"\nthe bars are {HIDDEN_BARS}"
     o = result.options
     ax.set_title(
         f"Specificity against overlap; M = {o['n_samples']:,}, {o['distance'].upper()}\n{what}",
@@ -481,11 +558,18 @@ def _mean_images_figure(result, names):
     hi = max(float(np.nanmax(slices[n])) for n in names)
     thumbs = getattr(result, "thumbnails", {}) or {}
     contours = any("labels_0" in thumbs.get(n, {}) for n in names)
+    # every label value shown in any panel: one colour per value across the row, one legend
+    values: set[int] = set()
+    for n in names:
+        if "labels_0" in thumbs.get(n, {}):
+            values |= {int(v) for v in np.unique(thumbnail(thumbs[n]["labels_0"], mode="nearest"))}
+    values.discard(0)
     fig = Figure(
         figsize=(max(2.6 * len(names), 5.2), 3.4 if contours else 3.0), layout="constrained"
     )
     axes = fig.subplots(1, len(names), squeeze=False)
-    handles, legend_title = [], ""
+    handles: dict[str, object] = {}  # legend entry by label, over all panels
+    legend_title = ""
     for ax, n in zip(axes[0], names, strict=True):
         t = thumbs.get(n, {})
         sp = t.get("common_spacing")
@@ -495,10 +579,15 @@ def _mean_images_figure(result, names):
         )
         if "labels_0" in t:
             found, legend_title = draw_label_contours(
-                ax, thumbnail(t["labels_0"], mode="nearest"), aspect=aspect, legend=False
+                ax,
+                thumbnail(t["labels_0"], mode="nearest"),
+                aspect=aspect,
+                legend=False,
+                values=sorted(values),
             )
-            handles = handles or found
-        ax.set_title(n, fontsize=9)
+            for h in found:
+                handles.setdefault(h.get_label(), h)
+        ax.set_title(wrap_name(n), fontsize=9 if len(n) <= 24 else 7)
         ax.axis("off")
     dim = next(iter(result.mean_images.values())).ndim
     where = "middle slice, " if dim == 3 else ""
@@ -509,8 +598,10 @@ def _mean_images_figure(result, names):
     if contours:
         title += "\ncontours: the labels of subject 0 resampled into the same frame"
     if handles:
+        # numerically ordered: labels found in a later panel only still sort into place
+        order = sorted(handles, key=lambda k: (not k.isdigit(), int(k) if k.isdigit() else 0))
         fig.legend(
-            handles=handles,
+            handles=[handles[k] for k in order],
             title=legend_title,
             loc="outside lower center",
             ncol=min(len(handles), 10),

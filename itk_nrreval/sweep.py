@@ -39,7 +39,6 @@ from ._errors import InputError
 from ._output import json_number, write_json, write_text
 from .evaluation import EvaluationResult, evaluate
 from .manifest import add_registration, load_manifest, write_manifest
-from .reports import write_reports
 
 __all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter"]
 
@@ -289,7 +288,9 @@ def sweep(
     out : path
         Folder: ``registrations/<setting>/`` (transforms, reference, log), ``manifest.yaml``
         (every setting), ``cache/`` (the evaluation's per-image cache), ``evaluation/``
-        (the evaluation's reports) and ``sweep.json`` / ``sweep.csv`` / ``sweep.png``.
+        (the evaluation's reports, its ``report.html`` included) and ``sweep.json`` /
+        ``sweep.csv`` / ``sweep.png`` / ``report.html`` (the sweep's page: the verdict in
+        words, every setting, the figures; :func:`itk_nrreval.html_report.sweep_report_html`).
     labels : sequence of path, optional
         Label maps of the images: the overlap is reported beside specificity.
     mask : path, optional
@@ -418,7 +419,7 @@ def sweep(
     if truth is not None:
         truth_error = _truth_error(evaluation, manifest, truth, truth_reference)
     result = _summarise(method, parameters, tuple(settings), manifest, evaluation, truth_error)
-    write_reports(evaluation, out / "evaluation")
+    evaluation.write(out / "evaluation")  # figures, report.html, results.*
     _write(result, out)
     return result
 
@@ -559,20 +560,39 @@ def _cell(v) -> str:
 
 
 def _write(result: SweepResult, out: Path) -> None:
-    write_json(out / "sweep.json", result.to_dict())
+    """``sweep.png``, ``report.html``, then ``sweep.csv`` and ``sweep.json``, each under a
+    temporary name renamed when complete; the evaluation's ``mean_images.png`` (already
+    written in ``evaluation/``) is embedded in the page as it is."""
+    from ._output import atomic_path
+    from .html_report import sweep_report_html
+    from .reports import png_bytes
+
+    figures = {"sweep.png": png_bytes(_figure(result), dpi=110)}
+    with atomic_path(out / "sweep.png") as tmp:
+        tmp.write_bytes(figures["sweep.png"])
+    means = out / "evaluation" / "mean_images.png"
+    if means.is_file():
+        figures["mean_images.png"] = means.read_bytes()
+    html = sweep_report_html(result, figures=figures, truth_measure=_TRUTH_MEASURE)
+    write_text(out / "report.html", html)
     write_text(out / "sweep.csv", _csv(result))
-    _figure(result, out / "sweep.png")
+    write_json(out / "sweep.json", result.to_dict())
 
 
-def _figure(result: SweepResult, path: Path) -> None:
+def _figure(result: SweepResult):
     """One panel per measure against the first swept option; other options as lines.
 
-    Subject-level 95% intervals as error bars (when computed), flagged settings as red
-    crosses, each measure's best setting ringed, specificity's recommendation starred.
+    Subject-level 95% intervals as error bars (when computed; each title says when they are
+    smaller than the markers or missing), flagged settings as red crosses, each measure's
+    best setting ringed, specificity's recommendation starred.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     from matplotlib.figure import Figure
 
-    from ._output import atomic_path
+    from .reports import HIDDEN_BARS, bars_hidden, specificity_units
 
     first, *others = list(result.parameters)
     xs = list(result.parameters[first])
@@ -591,6 +611,7 @@ def _figure(result: SweepResult, path: Path) -> None:
     for s in result.settings:
         lines.setdefault(tuple(repr(s.values[o]) for o in others), []).append(s)
     for ax, measure in zip(axes, measures, strict=True):
+        halves = []  # every bar's longer side, to say whether any shows
         for key, group in lines.items():
             x = [position[repr(s.values[first])] for s in group]
             y, err = [], [[], []]
@@ -599,6 +620,7 @@ def _figure(result: SweepResult, path: Path) -> None:
                 y.append(v)
                 err[0].append(v - iv[0] if iv else 0.0)
                 err[1].append(iv[1] - v if iv else 0.0)
+                halves.append(max(err[0][-1], err[1][-1]) if iv else math.nan)
             label = ", ".join(f"{o}={s}" for o, s in zip(others, key, strict=True)) or None
             ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=3, label=label)
             for s, xv, yv in zip(group, x, y, strict=True):
@@ -616,16 +638,28 @@ def _figure(result: SweepResult, path: Path) -> None:
             ax.set_xticks([float(x) for x in xs], [f"{x:g}" for x in xs])
         else:
             ax.set_xticks(range(len(xs)), [str(x) for x in xs])
-        ax.set_title(_TITLES.get(measure.split(".")[0], measure) + _unit(measure), fontsize=9)
+        if measure == "specificity":
+            unit = f"\n{specificity_units(result.evaluation)}"
+        else:
+            unit = _unit(measure)
+        if all(math.isnan(h) for h in halves):
+            bars = "no interval" if measure == _TRUTH_MEASURE else "no interval computed"
+        elif bars_hidden(ax, halves, markersize=4):
+            bars = f"95% CI bars {HIDDEN_BARS}"
+        else:
+            bars = "bars: subject-level 95% CI"
+        ax.set_title(f"{_TITLES.get(measure.split('.')[0], measure)}{unit}\n{bars}", fontsize=8)
         if len(lines) > 1 and ax is axes[0]:
             ax.legend(fontsize=7)
+    o = result.evaluation.options
     fig.suptitle(
-        f"{result.method} sweep: ringed = best by each measure, star = specificity's choice, "
-        "red x = flagged implausible; bars = subject-level 95% intervals",
+        f"{result.method} sweep (M = {o['n_samples']:,} specificity samples, N = "
+        f"{result.evaluation.scores[result.settings[0].name].specificity.n_images} images): "
+        "ringed = best by each measure, star = specificity's choice, red x = flagged "
+        "implausible",
         fontsize=8,
     )
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    return fig
 
 
 _TITLES = {
@@ -639,7 +673,7 @@ def _unit(measure: str) -> str:
     if measure == _TRUTH_MEASURE:
         return ", mm"
     if measure.startswith("overlap."):
-        return f", {measure.split('.', 1)[1]}"
+        return f"\n{measure.split('.', 1)[1].replace('_', ' ')} weighting, 0..1"
     return ", intensity units"
 
 

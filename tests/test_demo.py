@@ -58,3 +58,10 @@ def test_demo_genuine_registrations_are_not_flagged(tmp_path):
         assert name in result.evaluation.verdict.ranking
     assert result.evaluation.verdict.text  # the verdict in words heads the demo table
     assert result.table.startswith(result.evaluation.verdict.text[0])
+    # the page to read is written beside the numbers, every registration in it
+    from test_html_report import check_self_contained, parse
+
+    page, raw = parse(tmp_path / "evaluation" / "report.html")
+    check_self_contained(page, raw)
+    heads = {h.split(" contents")[0].strip() for h in page.sections.values()}
+    assert {f"Registration: {n}" for n in scores} <= heads

@@ -89,9 +89,26 @@ def decode_png(src: str) -> bytes:
     return data
 
 
+def check_png(data: bytes) -> tuple[int, int]:
+    """A whole, drawn PNG: its chunks' checksums hold, it decodes to the size its header
+    states, and it is not blank. Returns (width, height)."""
+    from PIL import Image
+
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.format == "PNG"
+        im.verify()  # CRC of every chunk
+    with Image.open(io.BytesIO(data)) as im:
+        pixels = np.asarray(im.convert("RGB"))
+    assert pixels.shape == (height, width, 3)
+    assert width > 20 and height > 20
+    assert len(np.unique(pixels.reshape(-1, 3), axis=0)) > 2, "a blank picture"
+    return width, height
+
+
 def check_self_contained(page: _Page, raw: str) -> None:
     """No external reference of any kind, no script, every internal link resolves."""
-    assert "http://" not in raw and "https://" not in raw
+    assert "http://" not in raw and "https://" not in raw and "file:" not in raw
     assert "script" not in page.tags and "link" not in page.tags
     assert "iframe" not in page.tags and "object" not in page.tags and "embed" not in page.tags
     assert "@import" not in raw and "url(" not in raw
@@ -103,12 +120,7 @@ def check_self_contained(page: _Page, raw: str) -> None:
         assert href.startswith("#"), href
         assert href[1:] in page.ids, f"link to a missing id: {href}"
     for src in page.srcs:
-        data = decode_png(src)
-        from PIL import Image
-
-        with Image.open(io.BytesIO(data)) as im:
-            im.load()
-            assert im.size[0] > 20 and im.size[1] > 20
+        check_png(decode_png(src))
 
 
 # ----------------------------------------------------------------------------- 2D, labels
@@ -460,3 +472,67 @@ def test_label_contours_have_a_legend_naming_the_values():
     many = np.arange(LEGEND_LABELS + 2).repeat(2)[None, :].repeat(4, axis=0)
     handles, title = draw_label_contours(Figure().subplots(), many)
     assert len(handles) == 1 and title == f"labels 1..{LEGEND_LABELS + 1}"
+
+
+# ----------------------------------------------------------------------------- PNGs, legends
+
+
+def test_every_embedded_png_decodes_whole(case2d):
+    """Each data: URI is base64 of a PNG whose chunks check out and that decodes to the
+    size its header states; a corrupted one is caught."""
+    _, out, _ = case2d
+    page, _ = parse(out / "report.html")
+    assert page.srcs
+    sizes = [check_png(decode_png(src)) for src in page.srcs]
+    assert all(w <= 1400 for w, _ in sizes)  # thumbnails and figures, not full volumes
+    data = bytearray(decode_png(page.srcs[0]))
+    data[60] ^= 0xFF  # one flipped byte inside the first data chunk
+    with pytest.raises(Exception):  # noqa: B017 - PIL raises SyntaxError or OSError
+        check_png(bytes(data))
+
+
+def _legend_labels(legend) -> list[str]:
+    return [t.get_text() for t in legend.get_texts()]
+
+
+def test_label_contour_legends_list_every_label_present(case2d):
+    tmp, _, result = case2d
+    from itk_nrreval.html_report import _images_figure
+    from itk_nrreval.reports import _mean_images_figure
+
+    # the labels of subject 0, read from its file: the values any resampling can show
+    on_disk = {
+        int(v) for v in np.unique(sitk.GetArrayFromImage(sitk.ReadImage(str(tmp / "lab0.nii.gz"))))
+    }
+    on_disk.discard(0)
+    for name in result.names:
+        shown = {
+            int(v)
+            for v in np.unique(thumbnail(result.thumbnails[name]["labels_0"], mode="nearest"))
+        }
+        shown.discard(0)
+        assert shown == on_disk, name  # no label lost at this size
+        fig = _images_figure(result, name)
+        legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+        assert len(legends) == 1
+        assert _legend_labels(legends[0]) == [str(v) for v in sorted(shown)]
+    # one legend for the mean images, naming every label of every panel, each value in one
+    # colour in every panel even when a panel lacks another value
+    import dataclasses
+
+    names = list(result.names)
+    thumbs = {n: dict(t) for n, t in result.thumbnails.items()}
+    lab = np.asarray(thumbs[names[1]]["labels_0"]).copy()
+    lab[lab == 2] = 0  # panel 2 lacks label 2 ...
+    lab[:6, :6] = 9  # ... and has a label 9 of its own
+    thumbs[names[1]]["labels_0"] = lab
+    fig = _mean_images_figure(dataclasses.replace(result, thumbnails=thumbs), names)
+    assert _legend_labels(fig.legends[0]) == [str(v) for v in sorted(on_disk | {9})]
+    colours = []
+    for ax, n in zip(fig.axes, names, strict=True):
+        overlay = np.asarray(ax.images[1].get_array())
+        labels = thumbnail(thumbs[n]["labels_0"], mode="nearest")
+        drawn = overlay[..., 3] > 0
+        colours.append({v: {tuple(c) for c in overlay[drawn & (labels == v)]} for v in (1, 3)})
+    for v in (1, 3):
+        assert len(colours[0][v]) == 1 and colours[0][v] == colours[1][v], v

@@ -65,6 +65,7 @@ def test_sweep_writes_one_registration_per_setting_and_reuses_them(population, t
         assert row["true_correspondence_error_mm"] > 0
     assert first["recommended"] in names and first["not_separable"][0] == first["recommended"]
     assert (out / "sweep.png").stat().st_size > 0
+    _check_report(out, first)
     logs = {n: (out / "registrations" / n / "registration.json").stat().st_mtime_ns for n in names}
 
     # one more value: the two earlier registrations are reused, not run again
@@ -84,6 +85,34 @@ def test_sweep_writes_one_registration_per_setting_and_reuses_them(population, t
     assert third["settings"] == [dict(row, reused=True) for row in second["settings"]]
     run = json.loads((out / "evaluation" / "results.json").read_text())["run"]
     assert run["cache_computed"] == 0 and run["cache_reused"] > 0
+
+
+def _check_report(out, summary: dict) -> None:
+    """The sweep's page: self-contained, the verdict (with the truth's choice) before the
+    table, every setting a row, its figure and the evaluation's mean images embedded as the
+    files written beside it; the evaluation's own page written too."""
+    from test_html_report import check_self_contained, decode_png, parse
+
+    page, raw = parse(out / "report.html")
+    check_self_contained(page, raw)
+    text = " ".join(" ".join(page.text).split())
+    assert "<script" not in raw.lower()
+    rec = summary["recommended"]
+    verdict = text.index("Specificity recommends")
+    assert text.index(rec, verdict) < text.index("Every setting", verdict)
+    assert "The truth's choice" in text
+    truth_best = summary["best_by"]["true_correspondence_error_mm"]
+    assert truth_best in text[verdict : text.index("Every setting", verdict)]
+    for row in summary["settings"]:
+        assert row["registration"] in text
+        assert "setting-" + row["registration"].replace(":", "-") in page.ids
+    embedded = {decode_png(src) for src in page.srcs}
+    assert (out / "sweep.png").read_bytes() in embedded
+    assert (out / "evaluation" / "mean_images.png").read_bytes() in embedded
+    assert len(page.srcs) == 2
+    inner, inner_raw = parse(out / "evaluation" / "report.html")
+    check_self_contained(inner, inner_raw)
+    assert not list(out.glob(".*tmp*"))  # no temporary left behind
 
 
 @pytest.mark.parametrize(

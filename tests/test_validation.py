@@ -125,3 +125,42 @@ def test_cli_bad_input_is_one_line(tmp_path, capsys):
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("nrreval validate: error:")
+
+
+def test_report_reads_the_run(reduced, tmp_path):
+    """validate's page: self-contained, the verdict in words first, every d a row, both
+    figures and Fig. 2 per weighting embedded, the files beside it the same bytes."""
+    import dataclasses
+
+    from test_html_report import check_self_contained, decode_png, parse
+
+    from itk_nrreval.validation import OUTPUT_FILES
+
+    written = reduced.write(tmp_path / "v")
+    assert [p.name for p in written] == list(OUTPUT_FILES) and "report.html" in OUTPUT_FILES
+    page, raw = parse(tmp_path / "v" / "report.html")
+    check_self_contained(page, raw)
+    text = " ".join(" ".join(page.text).split())
+    s = reduced.summary
+    r, (lo, hi) = s.pearson_r["complexity"], s.pearson_ci["complexity"]
+    assert r < 0 and hi < 0  # brain-like data: the paper's relation holds
+    verdict = text.index("Does specificity rise")
+    assert "Yes: specificity rises as overlap falls" in text
+    assert verdict < text.index("d (px)")
+    assert f"{r:.3f}" in text and f"[{lo:.3f}, {hi:.3f}]" in text
+    for d in (0.0, 0.375, 1.0, 2.0, 3.0):
+        assert "d-" + f"{d:g}".replace(".", "_") in page.ids
+    embedded = {decode_png(src) for src in page.srcs}
+    assert len(page.srcs) == 3  # Fig. 2 for both weightings, and against d
+    for name in ("validation_fig2.png", "validation_vs_d.png"):
+        assert (tmp_path / "v" / name).read_bytes() in embedded
+    assert "L1 distance, intensity units" in text and "M = 5,000" in text
+    # a run where specificity does not follow overlap says so
+    wrong = dataclasses.replace(
+        s,
+        pearson_r={w: 0.4 for w in s.pearson_r},
+        pearson_ci={w: (0.1, 0.7) for w in s.pearson_r},
+    )
+    dataclasses.replace(reduced, summary=wrong).write(tmp_path / "w")
+    page, _ = parse(tmp_path / "w" / "report.html")
+    assert "No: specificity does not rise as overlap falls" in " ".join(page.text)

@@ -131,5 +131,5 @@ def run(args: argparse.Namespace) -> int:
     for measure, best in result.best_by.items():
         flagged = " (flagged implausible)" if result.evaluation.scores[best].flags else ""
         print(f"  best by {measure}: {best}{flagged}")
-    print(f"wrote {out}/sweep.json, sweep.csv, sweep.png and evaluation/")
+    print(f"wrote {out}/sweep.json, sweep.csv, sweep.png, report.html and evaluation/")
     return 0
