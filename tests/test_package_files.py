@@ -33,3 +33,28 @@ def test_licence_file_matches_pyproject():
     assert pyproject()["project"]["license"]["text"] == "Apache-2.0"
     assert "Apache License" in (ROOT / "LICENSE").read_text()
     assert "Version 2.0" in (ROOT / "LICENSE").read_text()
+
+
+def test_readme_links_resolve_and_keeps_what_a_newcomer_needs():
+    """Every local image or file the README points to exists, and its core sections are there."""
+    import re
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    targets = re.findall(r"\]\(((?:docs|examples|benchmarks)/[^)#\s]+)\)", text)
+    assert targets, "the README shows the figures in docs/"
+    missing = [t for t in targets if not (ROOT / t).exists()]
+    assert not missing, missing
+    headings = set(re.findall(r"^#+ (.+)$", text, flags=re.M))
+    for needed in (
+        "Quick start",
+        "Installing it elsewhere",
+        "Reading the results",
+        "The HTML report",
+        "From a Python console",
+        "Commands",
+        "Results",
+        "License",
+        "Citing",
+    ):
+        assert needed in headings, needed
+    assert "make test" in text and "make demo" in text
