@@ -821,3 +821,28 @@ def _step_limit_mm(spacing, max_step, *, a=0.05, b=0.03, offset=0.2, size=(48, 4
 def test_demons_step_limit_is_max_step_voxels_of_the_finest_axis(spacing, max_step):
     # Before the fix: 1.58 x max_step mm on 1 x 2 mm voxels, 2.53 x max_step on 1.6 x 3.2.
     assert _step_limit_mm(spacing, max_step) == pytest.approx(max_step * min(spacing), rel=2e-3)
+
+
+def test_elastix_inputs_are_written_without_nifti_header_noise(tmp_path, capfd):
+    # A NIfTI header's fields (descrip, qto_xyz, ...) cannot go into a MetaImage: ITK printed
+    # one warning per field and per image on every elastix call.
+    from itk_nrreval.registration._elastix_worker import _write_bare
+
+    img = sitk.GetImageFromArray(np.arange(30, dtype=np.float32).reshape(5, 6))
+    img.SetSpacing((0.9, 1.3))
+    img.SetOrigin((4.0, -2.0))
+    img.SetDirection((0.0, 1.0, -1.0, 0.0))
+    sitk.WriteImage(img, str(tmp_path / "a.nii.gz"))
+    from_nifti = sitk.ReadImage(str(tmp_path / "a.nii.gz"))
+    keys = from_nifti.GetMetaDataKeys()
+    assert keys
+    capfd.readouterr()
+    sitk.WriteImage(from_nifti, str(tmp_path / "noisy.mha"))
+    assert "MetaImageIO" in capfd.readouterr().err  # what the plain writer does
+    _write_bare(from_nifti, tmp_path / "bare.mha")
+    assert "MetaImageIO" not in capfd.readouterr().err
+    back = sitk.ReadImage(str(tmp_path / "bare.mha"))
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(back), sitk.GetArrayFromImage(img))
+    np.testing.assert_allclose(back.GetDirection(), img.GetDirection(), atol=1e-6)
+    np.testing.assert_allclose(back.GetOrigin(), img.GetOrigin(), atol=1e-6)
+    assert from_nifti.GetMetaDataKeys() == keys  # the caller's image is untouched

@@ -135,8 +135,8 @@ class ElastixWorker:
             elastix's own resampling of `moving` on `fixed`'s grid.
         """
         with self._job() as job:
-            sitk.WriteImage(fixed, str(job / "fixed.mha"))
-            sitk.WriteImage(moving, str(job / "moving.mha"))
+            _write_bare(fixed, job / "fixed.mha")
+            _write_bare(moving, job / "moving.mha")
             init = None
             if initial is not None:
                 init = str(job / "initial.tfm")
@@ -181,7 +181,7 @@ class ElastixWorker:
         if stack.GetDimension() != 3:
             raise InputError("the elastix stack registration needs a 3D stack of 2D images")
         with self._job() as job:
-            sitk.WriteImage(stack, str(job / "stack.mha"))
+            _write_bare(stack, job / "stack.mha")
             request = {
                 "op": "stack",
                 "stack": str(job / "stack.mha"),
@@ -447,3 +447,17 @@ def _main() -> None:
 
 if __name__ == "__main__":
     _main()
+
+
+def _write_bare(image: sitk.Image, path: Path) -> None:
+    """Write `image` without its metadata dictionary (geometry and voxels only).
+
+    Images read from NIfTI carry header fields (``descrip``, ``qto_xyz``, ...) that the
+    MetaImage writer cannot store; it says so on stderr, once per field and per image.
+    """
+    # A new image from the voxels: sitk.Image(image) would share the dictionary, and erasing
+    # keys in it erases them in the caller's image too.
+    vector = image.GetNumberOfComponentsPerPixel() > 1
+    bare = sitk.GetImageFromArray(sitk.GetArrayViewFromImage(image), isVector=vector)
+    bare.CopyInformation(image)
+    sitk.WriteImage(bare, str(path))
