@@ -8,7 +8,10 @@ T1-like and a T2-like contrast (:mod:`data_synth`, known true correspondence), t
 * ``joint``: every image to one T1 reference, mutual information (affine, B-spline);
 * ``per-group``: each modality to its own reference with normalised correlation, and one
   mutual-information registration linking the T2 reference to the T1 reference;
-* ``joint-affine`` / ``per-group-affine``: their affine stages alone (controls).
+* ``joint-affine`` / ``per-group-affine``: their affine stages alone (controls);
+* ``per-group-link-2mm``: ``per-group`` with an error of ``LINK_ERROR_MM`` put into its link
+  (every T2 transform ``T_j o L`` becomes ``T_j o L o D``, D a translation of the reference
+  frame): the T2 images move together, away from the T1 images, by a known amount.
 
 All are evaluated with the true transforms (``truth``) in one manifest, whose common frame is
 the template. Reported per registration: the specificity of the Gaussian mixture (one
@@ -18,9 +21,11 @@ Gaussian over all images (groups ignored), and the true mean correspondence erro
 head (:func:`itk_nrreval.demo.correspondence_error`) split into the spread within each
 modality and the distance between the two modalities' mean correspondences (the part a
 shared link error makes, and which the mixture -- one Gaussian per modality, each around its
-own mean -- cannot see).
+own mean -- cannot see; the ``per-group-link-2mm`` row measures how little it sees).
 
-Run: ``python benchmarks/run_all.py multimodal`` (about 15 minutes on 2 cores;
+Writes ``docs/multimodal_benchmark.png`` (mixture specificity against the true error).
+
+Run: ``python benchmarks/run_all.py multimodal`` (about 10 minutes on 2 cores;
 ``MULTIMODAL_QUICK=1``: 4 subjects on a coarse grid, the phantom only).
 """
 
@@ -42,7 +47,7 @@ from itk_nrreval.demo import correspondence_error
 from itk_nrreval.frame import read_chains, resampling_transform
 from itk_nrreval.manifest import load_manifest
 from itk_nrreval.registration import ElastixWorker, register_multimodal
-from itk_nrreval.transforms import displacement_field
+from itk_nrreval.transforms import displacement_field, flatten
 
 QUICK = os.environ.get("MULTIMODAL_QUICK") == "1"
 N_SUBJECTS = 4 if QUICK else 12
@@ -50,6 +55,8 @@ CONTRASTS = ("t1", "t2")
 KINDS = ("phantom",) if QUICK else ("phantom", "mni")
 GRID = {"spacing": 2.8, "size": 80} if QUICK else {}
 N_SAMPLES = 20_000 if QUICK else 100_000
+#: The error put into the per-group link (mm, along x): about three times the link's own.
+LINK_ERROR_MM = 2.0
 SEED = 0
 RUNS = {
     "joint": {"strategy": "joint"},
@@ -104,19 +111,43 @@ def _error_parts(evaluation, manifest, truth, template, mask, groups) -> dict[st
     return out
 
 
+def _with_link_error(result, mm: float):
+    """`result` (per-group) with its links followed by a translation of `mm` along x.
+
+    The translation ``D`` acts in the reference frame, first: image j of another group gets
+    ``T_j o L_g o D`` in place of ``T_j o L_g`` (a composite lists the first-acting last).
+    """
+    shift = sitk.TranslationTransform(result.reference.GetDimension())
+    shift.SetOffset((mm,) + (0.0,) * (result.reference.GetDimension() - 1))
+    ref_group = result.reference_group
+    return dataclasses.replace(
+        result,
+        transforms=tuple(
+            t if g == ref_group else flatten(sitk.CompositeTransform([t, shift]))
+            for t, g in zip(result.transforms, result.groups, strict=True)
+        ),
+        links={g: flatten(sitk.CompositeTransform([t, shift])) for g, t in result.links.items()},
+        resampled=(),
+        seconds=0.0,
+    )
+
+
 def run_case(kind: str, folder: Path, worker: ElastixWorker) -> dict:
     pop = make_population(kind, dim=2, n=N_SUBJECTS, seed=SEED, contrasts=CONTRASTS, **GRID)
     manifest = write_population(pop, folder, montage=False, show_progress=False)
     m = load_manifest(manifest)
     images = [str(p) for p in m.images]
-    seconds = {}
+    names = [_stem(p) for p in images]
+    seconds, results = {}, {}
     for name, kwargs in RUNS.items():
         result = register_multimodal(
             images, m.groups, **kwargs, seed=SEED, progress=False, elastix_worker=worker
         )
-        result.add_to_manifest(manifest, name, out=folder / name, names=[_stem(p) for p in images])
-        seconds[name] = result.seconds
+        result.add_to_manifest(manifest, name, out=folder / name, names=names)
+        seconds[name], results[name] = result.seconds, result
         print(f"  {kind} {name}: {result.seconds:.1f} s", flush=True)
+    wrong = _with_link_error(results["per-group"], LINK_ERROR_MM)
+    wrong.add_to_manifest(manifest, "per-group-link-2mm", out=folder / "link-error", names=names)
     cache = folder / "cache"
     mixture = _evaluate(manifest, cache)
     single = _evaluate(dataclasses.replace(load_manifest(manifest), groups=None), cache)
@@ -141,7 +172,7 @@ def run_case(kind: str, folder: Path, worker: ElastixWorker) -> dict:
             "single_gaussian_stderr": one.stderr,
             "true_error_mm": error[name],
             **parts[name],
-            "seconds": seconds.get(name),
+            "seconds": seconds.get(name),  # None: no registration of its own
         }
     return {
         "kind": kind,
@@ -188,6 +219,60 @@ def _table(case: dict) -> str:
     return "\n".join(lines)
 
 
+def plot(cases: dict, path: Path) -> None:
+    """Per population, mixture specificity against the true correspondence error."""
+    import matplotlib  # noqa: PLC0415 - only for the figure
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    from matplotlib.ticker import FormatStrFormatter  # noqa: PLC0415
+
+    style = {
+        "truth": ("k", "*"),
+        "joint": ("C0", "o"),
+        "per-group": ("C1", "s"),
+        "joint-affine": ("C0", "^"),
+        "per-group-affine": ("C1", "v"),
+        "per-group-link-2mm": ("C3", "D"),
+    }
+    fig, axes = plt.subplots(1, len(cases), figsize=(5.2 * len(cases), 4.2), squeeze=False)
+    for ax, (kind, case) in zip(axes[0], cases.items(), strict=True):
+        regs = case["registrations"]
+        for name, r in regs.items():
+            colour, marker = style.get(name, ("grey", "x"))
+            ax.errorbar(
+                r["true_error_mm"],
+                r["specificity"],
+                yerr=2 * r["stderr"],
+                color=colour,
+                marker=marker,
+                ls="none",
+                label=name,
+            )
+        if "per-group-link-2mm" in regs:  # the link error: the truth moves, the mixture not
+            a, b = regs["per-group"], regs["per-group-link-2mm"]
+            ax.annotate(
+                "",
+                xy=(b["true_error_mm"], b["specificity"]),
+                xytext=(a["true_error_mm"], a["specificity"]),
+                arrowprops={"arrowstyle": "->", "color": "C3"},
+            )
+        ax.set(
+            xlabel="true mean correspondence error (mm)",
+            ylabel="mixture specificity (L1; lower is better)",
+            title=f"{kind} 2D: {case['n_subjects']} subjects x (T1, T2)",
+        )
+        ax.set_yscale("log")
+        for axis in (ax.yaxis.set_major_formatter, ax.yaxis.set_minor_formatter):
+            axis(FormatStrFormatter("%g"))
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    path.parent.mkdir(exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> dict:
     t0 = time.perf_counter()
     cases = {}
@@ -203,6 +288,7 @@ def main() -> dict:
         print(_table(case))
     seconds = time.perf_counter() - t0
     print(f"\n({seconds:.0f} s)")
+    plot(cases, Path(__file__).resolve().parent.parent / "docs" / "multimodal_benchmark.png")
     return {"cases": cases, "seconds": seconds}
 
 

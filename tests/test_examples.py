@@ -79,7 +79,9 @@ def test_example_keeps_its_outputs_in_out(name, tmp_path):
     assert not list((tmp_path / "tmp").iterdir())
 
 
-@pytest.mark.parametrize("name", ["appearance_diagnostics", "evaluate_on_dask", "register_a_group"])
+@pytest.mark.parametrize(
+    "name", ["appearance_diagnostics", "evaluate_on_dask", "multimodal", "register_a_group"]
+)
 def test_slow_examples_take_an_output_folder(name, tmp_path):
     done = run_example(name, ["--help"], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import warnings
 
 import numpy as np
@@ -20,8 +21,9 @@ import SimpleITK as sitk
 import itk_nrreval as nr
 from data_synth import make_population, write_population
 from itk_nrreval import InputError
+from itk_nrreval.cli import main
 from itk_nrreval.demo import correspondence_error
-from itk_nrreval.manifest import load_manifest
+from itk_nrreval.manifest import load_manifest, write_manifest
 from itk_nrreval.registration import (
     ElastixWorker,
     MultimodalResult,
@@ -30,6 +32,7 @@ from itk_nrreval.registration import (
 )
 from itk_nrreval.registration.affine import AffineOptions, affine_register
 from itk_nrreval.registration.bspline import sitk_bspline
+from itk_nrreval.transforms import displacement_field
 
 N_SUBJECTS = 3
 CONTRASTS = ("t1", "t2")
@@ -113,6 +116,119 @@ def test_both_strategies_map_reference_points_to_image_points(results, populatio
         err = _error(r.transforms, r, population, truth)
         assert err < 0.6 * after_affine, f"{name}: {err:.2f} mm vs affine {after_affine:.2f} mm"
         assert err < 2.5, name
+
+
+# --------------------------------------------------------------------------------------------
+# Composition order against known motions. The engines are replaced by an oracle that returns
+# the true transforms (reference point -> template -> image point, from the population's
+# known subject <-> template maps), and the references are fixed to two different subjects so
+# that the true link between them is far from the identity. Whatever register_multimodal does
+# with the oracle's transforms is then checked against the truth alone: composed right, every
+# T2 image lands in the T1 reference frame (error ~ the accuracy of the synthetic inverse
+# maps); with the link omitted, reversed in order or inverted, it does not.
+
+T1_REF, T2_REF = 0, 2  # subjects of the two group references (different anatomy and pose)
+
+
+@pytest.fixture(scope="module")
+def inverse_truth(population):
+    """Per image, the true transform template point -> image point (inverse of `truth`)."""
+    return [s.template_to_subject for _ in CONTRASTS for s in population.subjects]
+
+
+def _true(truth, inverse_truth, reference: int, image: int) -> sitk.Transform:
+    """Image `reference`'s points -> image `image`'s points: ``S_image^-1 o S_reference``."""
+    return sitk.CompositeTransform([inverse_truth[image], truth[reference]])
+
+
+@pytest.fixture(scope="module")
+def oracle_result(images, truth, inverse_truth):
+    import itk_nrreval.registration.multimodal as mm
+
+    chosen = {"t1": T1_REF, "t2": T2_REF}
+    arrays = [sitk.GetArrayFromImage(im) for im in images]
+
+    def choose(group_images, choice, **_):
+        first = sitk.GetArrayFromImage(group_images[0])
+        g = GROUPS[next(i for i, a in enumerate(arrays) if np.array_equal(a, first))]
+        return chosen[g], [None] * len(group_images), None
+
+    def stage(self, indices, reference, *args, **kwargs):
+        return [_true(truth, inverse_truth, reference, i) for i in indices]
+
+    def link(self, reference, other, *args, **kwargs):
+        return _true(truth, inverse_truth, reference, other)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(mm, "choose_reference", choose)
+        mp.setattr(mm._Run, "stage", stage)
+        mp.setattr(mm._Run, "link", link)
+        result = register_multimodal(
+            images, GROUPS, strategy="per-group", engine="simpleitk", progress=False
+        )
+    return result
+
+
+def test_per_group_composition_brings_t2_into_the_t1_frame(
+    oracle_result, population, truth, inverse_truth
+):
+    r = oracle_result
+    r0, rg = T1_REF, N_SUBJECTS + T2_REF
+    assert r.reference_index == r0 and r.group_references == {"t1": r0, "t2": rg}
+    t2 = [i for i, g in enumerate(GROUPS) if g == "t2"]
+    within = {j: _true(truth, inverse_truth, rg, j) for j in t2}  # T_j: T2 reference -> image j
+    link = r.links["t2"]  # L: T1 reference -> T2 reference
+    inverse_link = _true(truth, inverse_truth, rg, r0)  # L^-1 (exact, from the truth)
+    variants = {
+        "composed": list(r.transforms),
+        "link omitted": [within.get(i, t) for i, t in enumerate(r.transforms)],
+        "order reversed": [
+            sitk.CompositeTransform([link, within[i]]) if i in within else t
+            for i, t in enumerate(r.transforms)
+        ],
+        "link inverted": [
+            sitk.CompositeTransform([within[i], inverse_link]) if i in within else t
+            for i, t in enumerate(r.transforms)
+        ],
+    }
+    error = {k: _error(v, r, population, truth) for k, v in variants.items()}
+    # How far apart the two references' anatomies are: the scale of a wrong link's error.
+    identity = sitk.Transform(2, sitk.sitkIdentity)
+    gap = _error([identity, identity], r, population, [truth[r0], truth[rg]])
+    assert gap > 2.0, f"the test needs references far apart, got {gap:.2f} mm"
+    assert error["composed"] < 0.1, error
+    for name in ("link omitted", "order reversed", "link inverted"):
+        assert error[name] > 20 * error["composed"] and error[name] > 0.5, (name, error)
+    # The T1 images are untouched by the link: each is its own true transform.
+    for i in (i for i, g in enumerate(GROUPS) if g == "t1"):
+        p = r.reference.TransformIndexToPhysicalPoint((30, 41))
+        np.testing.assert_allclose(
+            r.transforms[i].TransformPoint(p),
+            _true(truth, inverse_truth, r0, i).TransformPoint(p),
+            atol=1e-9,
+        )
+
+
+def test_the_link_maps_t1_reference_points_to_t2_reference_points(
+    results, population, truth, inverse_truth
+):
+    """Real engines: the per-group link is near the true link, far from the identity."""
+    r = results["per-group"]
+    r0, rg = r.reference_index, r.group_references["t2"]
+    ref = r.reference
+    head = sitk.Resample(population.template_labels, ref, truth[r0], sitk.sitkNearestNeighbor)
+    mask = sitk.GetArrayFromImage(head) > 0
+
+    def points(t):
+        return sitk.GetArrayFromImage(displacement_field(t, ref))[mask]
+
+    true_link = points(_true(truth, inverse_truth, r0, rg))
+    error = np.linalg.norm(points(r.links["t2"]) - true_link, axis=-1).mean()
+    if r0 % N_SUBJECTS == rg % N_SUBJECTS:  # the same subject: the true link is the identity
+        assert error < 1.0
+    else:
+        off = np.linalg.norm(points(sitk.Transform(2, sitk.sitkIdentity)) - true_link, axis=-1)
+        assert error < 0.5 * off.mean(), (error, off.mean())
 
 
 def test_the_results_say_what_they_are(results, images):
@@ -252,3 +368,118 @@ def test_bad_arguments_are_one_line_input_errors(images, groups, kwargs, message
     with pytest.raises(InputError, match=message) as err:
         register_multimodal(images, groups, **kwargs, progress=False)
     assert "\n" not in str(err.value)
+
+
+# --------------------------------------------------------------------------------------------
+# The command line: `nrreval register --method multimodal`.
+
+
+@pytest.fixture(scope="module")
+def written(population, tmp_path_factory):
+    """The population on disk: its manifest (images, groups, truth) and image paths."""
+    manifest = write_population(
+        population, tmp_path_factory.mktemp("cli") / "pop", montage=False, show_progress=False
+    )
+    return manifest, [str(p) for p in load_manifest(manifest).images]
+
+
+def test_cli_registers_with_the_manifest_groups(written, results, population, truth, capsys):
+    manifest, paths = written
+    out = manifest.parent / "per-group"
+    code = main(
+        [
+            "register",
+            "--images",
+            *paths,
+            "--method",
+            "multimodal",
+            "--strategy",
+            "per-group",
+            "--out",
+            str(out),
+            "--seed",
+            "3",
+            "--no-progress",
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    assert "multimodal per-group" in capsys.readouterr().out
+    m = load_manifest(manifest)
+    assert m.groups == tuple(GROUPS)  # read from the manifest, left as it was
+    reg = m.registrations["multimodal-per-group"]
+    assert reg.parameters["strategy"] == "per-group" and reg.parameters["method"] == "multimodal"
+    assert GROUPS[reg.reference_index] == "t1"
+    assert (out / "link_t2.h5").is_file()
+    transforms = [sitk.ReadTransform(str(chain[0])) for chain in reg.transforms]
+    result = RegistrationResult(
+        "multimodal",
+        "elastix",
+        tuple(transforms),
+        sitk.ReadImage(str(reg.reference)),
+        reg.reference_index,
+        (),
+    )
+    affine = results["affine"]
+    after_affine = _error(affine.transforms, affine, population, truth)
+    assert _error(transforms, result, population, truth) < 0.6 * after_affine
+
+
+def _without_groups(manifest, folder):
+    m = load_manifest(manifest)
+    path = folder / "manifest_no_groups.yaml"
+    write_manifest(dataclasses.replace(m, groups=None), path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("args", "manifest", "message"),
+    [
+        ([], "missing", "needs each image's group: give --groups .* does not exist"),
+        ([], "no groups", "needs each image's group: give --groups .* has none"),
+        (["--groups", *GROUPS[:-1]], "missing", "groups: 5 labels for 6 images"),
+        (["--groups", *(["a"] * 5), "b"], "missing", "group 'b' has 1 image"),
+        (["--groups", *(["a", "b"] * N_SUBJECTS)], "with groups", "--groups differ from"),
+        (["--reference-choice", "near-mean"], "with groups", "chooses its references"),
+        (["--engine", "ants"], "with groups", "engine: 'ants' is not one of"),
+        (["--strategy", "both"], "with groups", "invalid choice: 'both'"),
+    ],
+)
+def test_cli_bad_multimodal_input_is_one_line_exit_2(
+    written, tmp_path, capsys, args, manifest, message
+):
+    path, paths = written
+    chosen = {
+        "missing": tmp_path / "missing.yaml",
+        "no groups": _without_groups(path, path.parent),
+        "with groups": path,
+    }[manifest]
+    out = tmp_path / "out"
+    code = main(
+        [
+            "register",
+            "--images",
+            *paths,
+            "--method",
+            "multimodal",
+            *args,
+            "--out",
+            str(out),
+            "--manifest",
+            str(chosen),
+            "--no-progress",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert re.search(message, err), err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not out.exists()  # refused before any registration
+
+
+def test_cli_multimodal_options_need_the_multimodal_method(written, tmp_path, capsys):
+    _, paths = written
+    args = ["register", "--images", *paths, "--method", "affine", "--out", str(tmp_path / "o")]
+    assert main([*args, "--strategy", "joint", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "--strategy is an option of --method multimodal only" in err
+    assert err.count("\n") == 1

@@ -1,26 +1,38 @@
-"""``nrreval register --images IMAGE... --method METHOD --out DIR``: register a group of images."""
+"""``nrreval register --images IMAGE... --method METHOD --out DIR``: register a group of images.
+
+``--method multimodal`` registers a group mixing modalities
+(:func:`itk_nrreval.registration.register_multimodal`, ``--strategy joint|per-group``); each
+image's group comes from ``--groups`` or, when that is not given, from the manifest's
+``groups``, and is recorded in the manifest.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from .._errors import InputError
 from ._options import seed
 
 
 def add_parser(sub) -> None:
-    from ..registration import ENGINES
+    from ..registration import ENGINES, STRATEGIES
 
     engines = sorted({e for es in ENGINES.values() for e in es})
     p = sub.add_parser(
         "register",
-        help="register a group of images (affine, fluid, pairwise, groupwise)",
+        help="register a group of images (affine, fluid, pairwise, groupwise, multimodal)",
         description="Register N images with one of the paper's algorithms; write per-image "
         "transforms (.h5, reference -> image, ITK convention), the reference image and "
         "registration.json to --out, and add the registration to a manifest.",
     )
     p.add_argument("--images", nargs="+", required=True, metavar="IMAGE", help="the images")
-    p.add_argument("--method", required=True, choices=("affine", "fluid", "pairwise", "groupwise"))
+    p.add_argument(
+        "--method",
+        required=True,
+        choices=("affine", "fluid", "pairwise", "groupwise", "multimodal"),
+        help="multimodal: a group mixing modalities, with --strategy and each image's group",
+    )
     ref = p.add_mutually_exclusive_group()
     ref.add_argument("--reference", metavar="REF", help="reference image (default: near-mean)")
     ref.add_argument(
@@ -33,7 +45,28 @@ def add_parser(sub) -> None:
         choices=engines,
         help="affine: simpleitk; fluid: simpleitk (default) or ants; pairwise: elastix "
         "(default) or simpleitk; groupwise: elastix (default), simpleitk or elastix-stack "
-        "(elastix's own groupwise metric on a stack of 2D images; 2D only)",
+        "(elastix's own groupwise metric on a stack of 2D images; 2D only); multimodal: "
+        "elastix (default) or simpleitk",
+    )
+    mm = p.add_argument_group("multimodal", "options of --method multimodal")
+    mm.add_argument(
+        "--strategy",
+        choices=STRATEGIES,
+        help="joint (default): every image to one reference with mutual information; "
+        "per-group: each group to its own reference with correlation, linked to the "
+        "reference group by one mutual-information registration",
+    )
+    mm.add_argument(
+        "--groups",
+        nargs="+",
+        metavar="GROUP",
+        help="each image's group (e.g. modality), one per image, in --images order "
+        "(default: the manifest's groups)",
+    )
+    mm.add_argument(
+        "--reference-group",
+        metavar="GROUP",
+        help="the group whose near-mean image is the frame (default: the first image's)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(
@@ -42,7 +75,10 @@ def add_parser(sub) -> None:
         help="manifest to add the registration to "
         "(default DIR/../manifest.yaml; created if needed)",
     )
-    p.add_argument("--name", help="registration name in the manifest (default: the method)")
+    p.add_argument(
+        "--name",
+        help="registration name in the manifest (default: the method; multimodal-STRATEGY)",
+    )
     p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
@@ -52,18 +88,25 @@ def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
     from ..manifest import add_registration
     from ..registration import register
+    from ..registration.multimodal import record_groups
 
     out = check_output_folder(args.out)  # before the (long) registration
-    reference = args.reference
-    result = register(  # an EngineError becomes one line and exit code 1 (cli.main)
-        args.images,
-        method=args.method,
-        reference=reference,
-        reference_choice=args.reference_choice,
-        engine=args.engine,
-        seed=args.seed,
-        progress=not args.no_progress,
-    )
+    manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
+    if args.method == "multimodal":
+        result = _register_multimodal(args, manifest)
+    else:
+        given = [f"--{k.replace('_', '-')}" for k in _MULTIMODAL_ONLY if getattr(args, k)]
+        if given:
+            raise InputError(f"{given[0]} is an option of --method multimodal only")
+        result = register(  # an EngineError becomes one line and exit code 1 (cli.main)
+            args.images,
+            method=args.method,
+            reference=args.reference,
+            reference_choice=args.reference_choice,
+            engine=args.engine,
+            seed=args.seed,
+            progress=not args.no_progress,
+        )
     names = [_stem(p) for p in args.images]
     # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
     with staged_folder(out, keep=()) as stage:
@@ -72,10 +115,13 @@ def run(args: argparse.Namespace) -> int:
         "reference": out / staged["reference"].name,
         "transforms": [out / p.name for p in staged["transforms"]],
     }
-    manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
-    name = args.name or (
-        f"{args.method}-{args.reference_choice}" if args.reference_choice else args.method
-    )
+    multimodal = args.method == "multimodal"
+    if args.name:
+        name = args.name
+    elif multimodal:  # the two strategies side by side in one manifest by default
+        name = f"multimodal-{result.strategy}"
+    else:
+        name = f"{args.method}-{args.reference_choice}" if args.reference_choice else args.method
     add_registration(
         manifest,
         name,
@@ -83,13 +129,63 @@ def run(args: argparse.Namespace) -> int:
         transforms=[str(p) for p in paths["transforms"]],
         reference_index=result.reference_index,
         images=list(args.images),
+        parameters=result.manifest_parameters() if multimodal else None,
     )
+    if multimodal:
+        record_groups(manifest, result.groups)
+    what = f"{args.method} {result.strategy}" if multimodal else args.method
     print(
-        f"{args.method} ({result.engine}): {result.n_images} images in {result.seconds:.1f} s; "
+        f"{what} ({result.engine}): {result.n_images} images in {result.seconds:.1f} s; "
         f"reference {_describe_reference(result, args.images)}"
     )
     print(f"wrote {out}/ and registration {name!r} in {manifest}")
     return 0
+
+
+_MULTIMODAL_ONLY = ("strategy", "groups", "reference_group")
+
+
+def _register_multimodal(args: argparse.Namespace, manifest: Path):
+    """:func:`register_multimodal` on the command's images, with their groups.
+
+    The groups are ``--groups``, else the manifest's (which must list the same images);
+    both are checked before the registration, and ``--groups`` against the manifest's.
+    """
+    from ..manifest import load_manifest
+    from ..registration import register_multimodal
+    from ..registration.multimodal import check_groups
+
+    if args.reference is not None or args.reference_choice is not None:
+        raise InputError(
+            "--method multimodal chooses its references (each group's near-mean image); "
+            "give --reference-group instead of --reference / --reference-choice"
+        )
+    old = load_manifest(manifest, check_files=False) if manifest.exists() else None
+    if old is not None:
+        mine = tuple(Path(p).resolve() for p in args.images)
+        if mine != tuple(Path(p).resolve() for p in old.images):
+            raise InputError(f"--images differ from the images of {manifest}")
+    if args.groups is not None:
+        groups = check_groups(args.groups, len(args.images))
+        if old is not None and old.groups is not None and tuple(old.groups) != groups:
+            raise InputError(f"--groups differ from the groups of {manifest}")
+    elif old is not None and old.groups is not None:
+        groups = tuple(old.groups)
+    else:
+        state = "has none" if old is not None else "does not exist"
+        raise InputError(
+            "--method multimodal needs each image's group: give --groups (one per image) "
+            f"or a manifest with groups ({manifest} {state})"
+        )
+    return register_multimodal(  # an EngineError becomes one line and exit code 1
+        args.images,
+        groups,
+        strategy=args.strategy or "joint",
+        engine=args.engine,
+        reference_group=args.reference_group,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
 
 
 def _stem(path: str) -> str:

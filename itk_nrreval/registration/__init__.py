@@ -32,6 +32,12 @@ given by the caller); ``reference_choice="near-mean"`` / ``"far-from-mean"`` pic
 training image closest to / farthest from the group mean after affine alignment (the
 paper's two pairwise references). ``groupwise`` returns the final group mean as its
 reference, on the grid of the near-mean training image.
+
+A group mixing modalities (each image with a group label, e.g. T1 / T2) is registered by
+:func:`register_multimodal` instead: all images to one reference with mutual information
+(``strategy="joint"``), or each group to its own reference linked to the reference group's
+by one mutual-information registration (``strategy="per-group"``); see
+:mod:`itk_nrreval.registration.multimodal`.
 """
 
 from __future__ import annotations

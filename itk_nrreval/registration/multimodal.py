@@ -157,16 +157,7 @@ class MultimodalResult(RegistrationResult):
         InputError
             The manifest's ``groups`` differ from this result's.
         """
-        from ..manifest import load_manifest, write_manifest  # noqa: PLC0415
-
-        mine = tuple(str(g) for g in self.groups)
-        if Path(manifest).exists():
-            old = load_manifest(manifest, check_files=False).groups
-            if old is not None and tuple(old) != mine:
-                raise InputError(
-                    f"{manifest}: its groups {list(old)} differ from the registration's "
-                    f"{list(mine)}"
-                )
+        check_manifest_groups(manifest, self.groups)  # before writing anything
         path = super().add_to_manifest(
             manifest,
             name,
@@ -176,9 +167,7 @@ class MultimodalResult(RegistrationResult):
             labels=labels,
             parameters=parameters,
         )
-        m = load_manifest(path, check_files=False)
-        if m.groups is None:
-            write_manifest(dataclasses.replace(m, groups=mine), path)
+        record_groups(path, self.groups)
         return path
 
     def manifest_parameters(self) -> dict[str, Any]:
@@ -196,6 +185,42 @@ class MultimodalResult(RegistrationResult):
             "group_references": {str(g): i for g, i in self.group_references.items()},
             "links": {str(g): n for g, n in self.link_names().items()},
         }
+
+
+def check_manifest_groups(manifest: str | os.PathLike, groups: Sequence[Hashable]) -> None:
+    """Refuse `groups` for a manifest that lists other groups (a missing manifest is fine).
+
+    Raises
+    ------
+    InputError
+        The manifest's ``groups`` differ from `groups` (compared as strings).
+    """
+    from ..manifest import load_manifest  # noqa: PLC0415 - only needed here
+
+    if not Path(manifest).exists():
+        return
+    old = load_manifest(manifest, check_files=False).groups
+    mine = tuple(str(g) for g in groups)
+    if old is not None and tuple(old) != mine:
+        raise InputError(
+            f"{manifest}: its groups {list(old)} differ from the registration's {list(mine)}"
+        )
+
+
+def record_groups(manifest: str | os.PathLike, groups: Sequence[Hashable]) -> None:
+    """Write `groups` (as strings) into a manifest that has none; check them otherwise.
+
+    Raises
+    ------
+    InputError
+        The manifest's ``groups`` differ from `groups`.
+    """
+    from ..manifest import load_manifest, write_manifest  # noqa: PLC0415
+
+    check_manifest_groups(manifest, groups)
+    m = load_manifest(manifest, check_files=False)
+    if m.groups is None:
+        write_manifest(dataclasses.replace(m, groups=tuple(str(g) for g in groups)), manifest)
 
 
 def check_groups(groups, n: int) -> tuple:
