@@ -391,6 +391,7 @@ def overlap_table(
     spacing=None,
     complexity: bool = True,
     target_overlap: bool = True,
+    progress: bool = True,
 ) -> OverlapTable:
     """The per-label pair sums, volumes and complexities of N label images, in one pass.
 
@@ -429,6 +430,9 @@ def overlap_table(
     target_overlap : bool
         Compute the per-label target overlap (a second pass over the counts for crisp maps).
         False leaves the table's `target_overlap` NaN.
+    progress : bool
+        A progress bar on stderr over the labels of large fuzzy inputs (crisp maps take one
+        pass and show none).
 
     Returns
     -------
@@ -492,6 +496,7 @@ def overlap_table(
         spacing_itk,
         complexity=complexity,
         target_overlap=target_overlap,
+        show=progress,
     )
     if skipped:
         warnings.warn(
@@ -602,6 +607,7 @@ def _crisp_sums(
     *,
     complexity: bool,
     target_overlap: bool,
+    show: bool = False,
 ):
     """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
     n_images = data.shape[0]
@@ -672,6 +678,7 @@ def _fuzzy_sums(
     *,
     complexity: bool,
     target_overlap: bool,
+    show: bool = False,
 ):
     """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
     n_images, n_comp = data.shape[:2]
@@ -710,7 +717,7 @@ def _fuzzy_sums(
     q = np.zeros(n_labels)
     work = n_images * n_labels * flat.shape[2]
     for k in progress(
-        range(n_labels), desc="overlap", total=n_labels, enabled=work > _PROGRESS_MIN_WORK
+        range(n_labels), desc="overlap", total=n_labels, enabled=show and work > _PROGRESS_MIN_WORK
     ):
         rows = flat[:, int(values[k])]  # (N, n_voxels), rows adjacent in memory
         if complexity:

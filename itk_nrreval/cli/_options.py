@@ -11,6 +11,7 @@ import math
 
 __all__ = [
     "OneLineParser",
+    "add_quiet_option",
     "integer",
     "samples",
     "seed",
@@ -91,3 +92,14 @@ def fraction(text: str) -> float:
 def positive(text: str) -> float:
     """A finite number > 0."""
     return _number(text, lambda v: 0 < v < math.inf, "a positive number")
+
+
+def add_quiet_option(parser: argparse.ArgumentParser) -> None:
+    """``--quiet`` (alias ``--no-progress``): no progress bars on stderr, for logs."""
+    parser.add_argument(
+        "--quiet",
+        "--no-progress",
+        dest="quiet",
+        action="store_true",
+        help="no progress bars (for logs)",
+    )

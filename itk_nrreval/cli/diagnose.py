@@ -17,7 +17,7 @@ from pathlib import Path
 from .._errors import InputError
 from .._output import check_output_folder
 from ..diagnostics import DiagnosticsResult, save_cell_figure, table1_csv, table1_markdown
-from ._options import samples, seed
+from ._options import add_quiet_option, samples, seed
 
 __all__ = [
     "add_parser",
@@ -55,7 +55,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--seed", type=seed, default=0, metavar="S", help="sample seed (default 0)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the table and figure")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         registrations=names,
         n_samples=args.samples,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=not args.quiet,
     )
     paths = result.write(out)
     print(result.table_markdown(), end="")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._options import fraction, integer, positive, samples, seed
+from ._options import add_quiet_option, fraction, integer, positive, samples, seed
 
 
 def add_parser(sub) -> None:
@@ -50,7 +50,7 @@ def add_parser(sub) -> None:
         help="also write the resampled images and membership maps (NIfTI) under DIR/resampled",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("--quiet", action="store_true", help="no progress bars (for logs)")
+    add_quiet_option(p)
     p.add_argument(
         "--scheduler",
         metavar="local|ADDRESS",

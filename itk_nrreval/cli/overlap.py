@@ -7,6 +7,7 @@ import csv
 import io
 
 from .._output import write_json, write_text
+from ._options import add_quiet_option
 
 _COLUMNS = ("label", "volume", "complexity", "jaccard", "dice", "target_overlap")
 
@@ -38,6 +39,7 @@ def add_parser(sub) -> None:
         "overlap, and each chosen weighting's weights normalized to sum 1) to this CSV file",
     )
     p.add_argument("--json", metavar="OUT", help="also write the numbers to this JSON file")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -46,7 +48,12 @@ def run(args: argparse.Namespace) -> int:
     from ..overlap import WEIGHTINGS, overlap_table
 
     weightings = list(dict.fromkeys(args.weighting)) if args.weighting else list(WEIGHTINGS)
-    table = overlap_table(args.labels, include_background=args.include_background, mask=args.mask)
+    table = overlap_table(
+        args.labels,
+        include_background=args.include_background,
+        mask=args.mask,
+        progress=not args.quiet,
+    )
     values = {w: table.generalized(w) for w in weightings}
     kind = "fuzzy" if table.fuzzy else "crisp"
     print(f"generalized overlap of {table.n_images} {kind} label maps, {len(table.labels)} labels:")

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from .._errors import InputError
-from ._options import seed
+from ._options import add_quiet_option, seed
 
 
 def add_parser(sub) -> None:
@@ -80,7 +80,7 @@ def add_parser(sub) -> None:
         help="registration name in the manifest (default: the method; multimodal-STRATEGY)",
     )
     p.add_argument("--seed", type=seed, default=0, metavar="S")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
             reference_choice=args.reference_choice,
             engine=args.engine,
             seed=args.seed,
-            progress=not args.no_progress,
+            progress=not args.quiet,
         )
     names = [_stem(p) for p in args.images]
     # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
@@ -184,7 +184,7 @@ def _register_multimodal(args: argparse.Namespace, manifest: Path):
         engine=args.engine,
         reference_group=args.reference_group,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=not args.quiet,
     )
 
 

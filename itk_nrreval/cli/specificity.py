@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .._output import write_json
-from ._options import positive, samples, seed
+from ._options import add_quiet_option, positive, samples, seed
 
 
 def add_parser(sub) -> None:
@@ -39,6 +39,7 @@ def add_parser(sub) -> None:
         "becomes a Gaussian mixture with one Gaussian per group (at least 2 images each)",
     )
     p.add_argument("--json", metavar="OUT", help="also write the numbers to this JSON file")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -62,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         mask=args.mask,
         groups=args.groups,
+        progress=not args.quiet,
     )
     print(
         f"specificity = {spec.value:.6g} ± {spec.stderr:.2g} "

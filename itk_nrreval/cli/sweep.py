@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._options import samples, seed
+from ._options import add_quiet_option, samples, seed
 
 
 def _parameter(text: str):
@@ -66,7 +66,7 @@ def add_parser(sub) -> None:
         "--samples", type=samples, default=20_000, metavar="M", help="specificity samples"
     )
     p.add_argument("--seed", type=seed, default=0, metavar="S")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 

@@ -6,7 +6,7 @@ import argparse
 import math
 
 from .._errors import InputError
-from ._options import seed
+from ._options import add_quiet_option, seed
 
 
 def _floats(text: str) -> list[float]:
@@ -95,7 +95,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--seed", type=seed, default=0, metavar="S")
     p.add_argument("--jobs", type=int, default=2, metavar="J", help="threads (default 2)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_quiet_option(p)
     p.set_defaults(func=run)
 
 
@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         n_knots=args.knots,
         seed=args.seed,
         n_jobs=args.jobs,
-        progress=not args.no_progress,
+        progress=not args.quiet,
     )
     if args.synthetic:
         images, labels, spacing = synthetic_set(
