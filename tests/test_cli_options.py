@@ -10,7 +10,7 @@ from itk_nrreval.cli import build_parser
 LONG_WORK = {
     "evaluate": ["m.yaml", "--out", "o"],
     "register": ["--images", "a.nii.gz", "b.nii.gz", "--method", "affine", "--out", "o"],
-    "validate": ["--out", "o"],
+    "validate": ["m.yaml", "--out", "o"],
     "sweep": [
         "--images",
         "a",
