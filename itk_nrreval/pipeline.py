@@ -398,7 +398,7 @@ class Coverage:
         }
 
 
-_COVERAGE_WARNING = 0.9  # warn when the scores are taken on less of the mask than this
+COVERAGE_WARNING = 0.9  # warn when the scores are taken on less of the mask than this
 
 
 def _region(
@@ -431,7 +431,7 @@ def _region(
             f"no voxel {where} is covered by every image under every registration: "
             "check the images' fields of view and the transforms"
         )
-    if evaluated < _COVERAGE_WARNING:
+    if evaluated < COVERAGE_WARNING:
         name = min(fractions, key=lambda r: fractions[r][0])
         frac, per_image = fractions[name]
         i = int(np.argmin(per_image))

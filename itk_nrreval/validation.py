@@ -22,6 +22,7 @@ one that is reachable.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -454,12 +455,19 @@ def manifest_set(manifest, *, section=None, show_progress: bool = True):
     InputError
         A bad manifest, one without labels, or a section of a 2D grid / out of range.
     """
-    images, members, grid, _ = _manifest_arrays(manifest, section, show_progress)
+    images, members, grid, _, _ = _manifest_arrays(manifest, section, show_progress)
     return images, members, grid
 
 
 def _manifest_arrays(manifest, section, show_progress: bool):
-    """:func:`manifest_set` plus the section taken, ``(axis, index)`` or None."""
+    """:func:`manifest_set`, the section taken (``(axis, index)`` or None), and the coverage.
+
+    The coverage is ``(region, fraction of the mask it keeps, name, masked)``; the region
+    (bool, the images' spatial shape) is where the texture model is taken, as in
+    :func:`itk_nrreval.evaluate`: inside the manifest's mask, where every image covers the
+    common grid (voxels outside an image's field of view hold no value, and 0 there would
+    read as texture).
+    """
     from ._images import Geometry
     from .frame import (
         common_reference,
@@ -492,25 +500,50 @@ def _manifest_arrays(manifest, section, show_progress: bool):
             tuple(float(v) for v in np.array(grid.origin) + direction @ offset),
             grid.direction,
         )
+    full_grid = Geometry.from_image(common_reference(m))
+    mask = mask_array(m.mask, shape=full_grid.shape, geometry=full_grid)
     chains = read_chains(m, m.common_frame)
     images = resample_images(
-        m.images, chains, grid, desc="resampling images", show_progress=show_progress
+        m.images,
+        chains,
+        grid,
+        desc="resampling images",
+        show_progress=show_progress,
+        outside=np.nan,
     )
+    covered = ~np.isnan(images).any(axis=0)
+    images[np.isnan(images)] = 0.0  # outside the region only: the inputs are checked finite
     found = [int(v) for v in label_values(m.labels) if v != 0]
     values = np.array([0, *found], dtype=np.int64)
     members = resample_memberships(
         m.labels, chains, grid, values=values, show_progress=show_progress
     )
     members = _drop_absent(members)
+    if mask is None:
+        mask = np.ones(covered.shape, dtype=bool)
+    elif taken is not None:
+        mask = np.take(mask, [taken[1]], axis=2 - _AXES.index(taken[0]))
+    region = covered & mask
     if taken is not None:  # drop the one-voxel axis: 2D arrays
         np_axis = 2 - _AXES.index(taken[0])
         images = np.take(images, 0, axis=1 + np_axis)
         members = np.take(members, 0, axis=2 + np_axis)
-    return images, members, grid, taken
+        region = np.take(region, 0, axis=np_axis)
+    where = f"{name}" + (f", slice {taken[0]}:{taken[1]}" if taken is not None else "")
+    if not region.any():
+        raise InputError(
+            f"{where}: no voxel of the common grid is inside the mask and covered by every image"
+        )
+    coverage = (region, float(region.sum() / mask.sum()), where, m.mask is not None)
+    return images, members, grid, taken, coverage
 
 
 def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
     """:func:`validate` on a manifest's registered set (its common frame, with labels).
+
+    Specificity is taken where :func:`itk_nrreval.evaluate` takes it: inside the manifest's
+    mask, on the voxels every image covers (a warning says so below 90%); the overlap is
+    unaffected by fields of view (no membership outside them).
 
     Parameters
     ----------
@@ -529,14 +562,23 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
     for key in ("spacing", "section", "mask"):
         if key in options:
             raise TypeError(f"validate_manifest() got an unexpected keyword argument {key!r}")
-    images, members, grid, taken = _manifest_arrays(
+    from .pipeline import COVERAGE_WARNING
+
+    images, members, grid, taken, (region, fraction, where, masked) = _manifest_arrays(
         manifest, section, options.get("progress", True)
     )
+    if fraction < COVERAGE_WARNING:
+        warnings.warn(
+            f"{where}: specificity is taken on the {fraction:.0%} of the voxels "
+            f"{'of the mask' if masked else 'of the common grid'} that every image covers",
+            UserWarning,
+            stacklevel=2,
+        )
     spacing = grid.spacing
     if taken is not None:
         spacing = tuple(s for k, s in enumerate(spacing) if k != _AXES.index(taken[0]))
     options.setdefault("source", str(manifest))
-    result = validate(images, members, spacing=spacing, **options)
+    result = validate(images, members, spacing=spacing, mask=region, **options)
     if taken is None:
         return result
     parameters = {**result.parameters, "section": {"axis": taken[0], "index": int(taken[1])}}

@@ -254,3 +254,55 @@ def test_summary_interval_fit_and_mm_sensitivity_by_hand():
     assert summ.slope_mm == pytest.approx(slope_mm, rel=1e-9)
     assert summ.sensitivity_mm == pytest.approx(slope_mm / 0.25, rel=1e-9)
     assert summ.slope == pytest.approx(1.5 * slope_mm, rel=1e-9) and summ.n_fit == 12
+
+
+def test_specificity_is_taken_inside_the_mask_where_every_image_covers(case, tmp_path):
+    """As evaluate does: the manifest's mask and the images' fields of view bound the texture
+    model. Reference: the images resampled by SimpleITK with NaN outside, the region where
+    no image is NaN and the mask is set, and validate() on arrays with that mask."""
+    import shutil
+
+    folder = tmp_path / "cropped"
+    shutil.copytree(case, folder)
+    for i in (1, 2):  # lose the last 5 columns (x), physical positions kept
+        path = str(folder / f"img{i}.nii.gz")
+        img = sitk.ReadImage(path)
+        sitk.WriteImage(sitk.RegionOfInterest(img, [SIZE[0] - 5, *SIZE[1:]], [0, 0, 0]), path)
+    box = np.zeros(SIZE[::-1], np.uint8)
+    box[2:-2, 3:-3, 1:] = 1
+    sitk.WriteImage(grid_image(box), str(folder / "mask.nii.gz"))
+    data = yaml.safe_load((folder / "manifest.yaml").read_text())
+    data["mask"] = "mask.nii.gz"
+    (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+
+    reference = sitk.ReadImage(str(folder / "img0.nii.gz"))
+    stack = np.stack(
+        [
+            sitk.GetArrayFromImage(
+                sitk.Resample(
+                    sitk.Cast(sitk.ReadImage(str(folder / f"img{i}.nii.gz")), sitk.sitkFloat64),
+                    reference,
+                    sitk.AffineTransform(3),
+                    sitk.sitkLinear,
+                    float("nan"),
+                )
+            )
+            for i in range(N)
+        ]
+    )
+    region = ~np.isnan(stack).any(axis=0) & (box > 0)
+    assert 0.3 < region.mean() < box.mean() < 1  # both the crop and the mask matter
+    _, members, _ = manifest_set(folder / "manifest.yaml", show_progress=False)
+    kw = dict(displacements=(0.0, 0.05), spacing=SPACING, **KW)
+    with pytest.warns(
+        UserWarning, match=r"specificity is taken on the \d+% of the voxels of the mask"
+    ):
+        got = validate_manifest(
+            folder / "manifest.yaml", **{k: v for k, v in kw.items() if k != "spacing"}
+        )
+    expected = validate(np.nan_to_num(stack), members, mask=region, **kw)
+    unmasked = validate(np.nan_to_num(stack), members, **kw)
+    for g, e, u in zip(got.rows, expected.rows, unmasked.rows, strict=True):
+        assert g.specificity == pytest.approx(e.specificity, rel=1e-9)
+        assert g.overlap == pytest.approx(e.overlap, rel=1e-9)
+        assert g.specificity != pytest.approx(u.specificity, rel=1e-3)  # the region matters
