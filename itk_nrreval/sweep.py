@@ -212,14 +212,14 @@ def _coerce(default, value, name: str):
     return value
 
 
-def _checked(method: str, parameters: Mapping[str, Sequence]) -> dict[str, tuple]:
+def _checked(method: str, parameters: Mapping[str, Sequence], engine: str) -> dict[str, tuple]:
     """The swept values as the option types want them; every setting checked, before any work.
 
     Raises
     ------
     InputError
         A name that is not an option of `method`, a value of the wrong kind, a setting the
-        method's options refuse, or a value given twice.
+        method's options (or `engine`) refuse, or a value given twice.
     """
     defaults = _defaults(method)
     fields = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
@@ -233,9 +233,13 @@ def _checked(method: str, parameters: Mapping[str, Sequence]) -> dict[str, tuple
         if len(set(map(repr, coerced))) != len(coerced):
             raise InputError(f"--param {name}: a value is given twice ({list(values)})")
         out[name] = coerced
+    from .registration import check_engine_options
+
     for setting in _grid(out):
         try:
-            dataclasses.replace(defaults, **setting).check()
+            options = dataclasses.replace(defaults, **setting)
+            options.check()
+            check_engine_options(method, engine, options)
         except InputError as exc:
             shown = ", ".join(f"{k}={v}" for k, v in setting.items())
             raise InputError(f"--param {shown}: {exc}") from None
@@ -331,9 +335,11 @@ def sweep(
     images = [str(p) for p in images]
     if len(images) < 4:
         raise InputError(f"--images: a sweep needs at least 4 images, got {len(images)}")
-    parameters = _checked(method, parameters)
-    grid = _grid(parameters)
     engine = ENGINES[method][0] if engine is None else engine
+    if engine not in ENGINES[method]:
+        raise InputError(f"--engine {engine!r}: not one of {', '.join(ENGINES[method])}")
+    parameters = _checked(method, parameters, engine)
+    grid = _grid(parameters)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     stems = [_stem(p) for p in images]

@@ -381,6 +381,14 @@ def test_missing_ants_is_a_clear_input_error(population, monkeypatch):
             r"smoothing_mm gives 2 values for 3 levels",
         ),
         (
+            {"method": "pairwise", "engine": "simpleitk", "options": {"bending_weight": 1.0}},
+            r"pairwise options: bending_weight needs the elastix engine, not 'simpleitk'",
+        ),
+        (
+            {"method": "pairwise", "options": {"bending_weight": -0.5}},
+            r"bending_weight must be a number >= 0, got -0.5",
+        ),
+        (
             {"method": "fluid", "options": {"update_smoothing_mm": -1.0}},
             r"update_smoothing_mm must be a finite number >= 0 \(mm\), got -1.0",
         ),
@@ -846,3 +854,42 @@ def test_elastix_inputs_are_written_without_nifti_header_noise(tmp_path, capfd):
     np.testing.assert_allclose(back.GetDirection(), img.GetDirection(), atol=1e-6)
     np.testing.assert_allclose(back.GetOrigin(), img.GetOrigin(), atol=1e-6)
     assert from_nifti.GetMetaDataKeys() == keys  # the caller's image is untouched
+
+
+def _sd_log_jacobian(transform: sitk.Transform, reference: sitk.Image, margin: int = 8) -> float:
+    field = sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        reference.GetSize(),
+        reference.GetOrigin(),
+        reference.GetSpacing(),
+        reference.GetDirection(),
+    )
+    det = sitk.GetArrayFromImage(sitk.DisplacementFieldJacobianDeterminant(field))
+    det = det[margin:-margin, margin:-margin]
+    return float(np.log(np.clip(det, 1e-3, None)).std())
+
+
+def test_elastix_bending_weight_regularises_the_bspline(population, affine_result, worker):
+    """The bending-energy penalty (elastix's regularisation weight) makes fields smoother;
+    weight 0 leaves elastix's map with the similarity metric alone."""
+    from itk_nrreval.registration.bspline import BSplineOptions, elastix_parameters
+
+    plain = elastix_parameters(BSplineOptions(), seed=1)
+    assert plain["Metric"] == ["AdvancedMeanSquares"]
+    penalised = elastix_parameters(BSplineOptions(bending_weight=0.25), seed=1)
+    assert penalised["Metric"] == ["AdvancedMeanSquares", "TransformBendingEnergyPenalty"]
+    assert float(penalised["Metric1Weight"][0]) == 0.25
+    images, _ = population
+    rough = {}
+    for weight in (0.0, 5.0):
+        res = register(
+            images[:3],
+            method="pairwise",
+            reference=images[0],
+            options={"bending_weight": weight, "grid_spacing": 8.0},
+            elastix_worker=worker,
+            progress=False,
+        )
+        rough[weight] = np.mean([_sd_log_jacobian(t, images[0]) for t in res.transforms[1:]])
+    assert rough[5.0] < 0.8 * rough[0.0], rough

@@ -145,3 +145,17 @@ def test_parse_parameter():
     assert parse_parameter("metric=mattes,correlation") == ("metric", ("mattes", "correlation"))
     with pytest.raises(nr.InputError, match="no value"):
         parse_parameter("levels=")
+
+
+def test_an_option_the_engine_cannot_honour_is_refused_before_any_registration(
+    population, tmp_path, capsys
+):
+    out = tmp_path / "sweep"
+    args = ["sweep", "--from", str(population), "--method", "pairwise", "--engine", "simpleitk"]
+    args += ["--param", "bending_weight=0,0.5", "--out", str(out), "--quiet"]
+    assert main(args) == 2
+    assert_one_line(
+        capsys.readouterr().err,
+        "--param bending_weight=0.5: pairwise options: bending_weight needs the elastix engine",
+    )
+    assert not (out / "registrations").exists()

@@ -73,6 +73,7 @@ __all__ = [
     "METHODS",
     "ENGINES",
     "register",
+    "check_engine_options",
     "RegistrationResult",
     "register_multimodal",
     "MultimodalResult",
@@ -101,6 +102,23 @@ _OPTIONS = {
     "groupwise": GroupwiseOptions(),
 }
 REFERENCE_CHOICES = ("near-mean", "far-from-mean")
+
+
+def check_engine_options(method: str, engine: str, options) -> None:
+    """Refuse options that `engine` cannot honour (InputError), before any work.
+
+    Parameters
+    ----------
+    method, engine : str
+        As :func:`register` (`engine` resolved: not None).
+    options : dataclass
+        The method's options (e.g. :class:`BSplineOptions`).
+    """
+    if getattr(options, "bending_weight", 0) > 0 and engine != "elastix":
+        raise InputError(
+            f"{method} options: bending_weight needs the elastix engine, not {engine!r} "
+            "(its B-spline registration has no bending-energy term)"
+        )
 
 
 def _check_choice(name: str, value, accepted) -> None:
@@ -206,6 +224,7 @@ def register(
     opts = aff_opts if method == "affine" else with_options(_OPTIONS[method], options, what=method)
     if hasattr(opts, "check"):
         opts.check()
+    check_engine_options(method, engine, opts)
     t0 = time.perf_counter()
 
     # The reference, and the affines to it.
