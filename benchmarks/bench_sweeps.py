@@ -1,7 +1,7 @@
 """Does specificity pick the right setting? Parameter sweeps on generated populations.
 
 For each generated population (phantom and MNI-based 2D, one 3D phantom) and each sweep
-(demons smoothing of the field and of the update, B-spline grid spacing),
+(demons smoothing of the field and of the update, B-spline grid spacing and bending weight),
 :func:`itk_nrreval.sweep.sweep` registers the population once per setting and evaluates
 every setting; the population's true transforms give each setting's true mean
 correspondence error. Reported per sweep: the setting chosen
@@ -11,7 +11,7 @@ inverse-volume overlap, Spearman correlations over the settings, and which setti
 plausibility checks flagged. Figures are copied to ``docs/sweep_<case>.png``.
 
 Run: ``python benchmarks/run_all.py sweeps`` (about an hour on 2 cores; ``SWEEP_QUICK=1``
-runs the 2D phantom fluid sweep only).
+runs the 2D phantom fluid sweep only, ``SWEEP_CASES=a,b`` the cases named).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ DOCS = HERE.parent / "docs"
 SMOOTHING = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)  # demons field smoothing, mm at full resolution
 GRID = (4.0, 8.0, 16.0, 32.0, 64.0)  # B-spline control-point spacing, mm
 UPDATE = (0.0, 1.0, 2.0, 4.0, 8.0)  # demons update-field smoothing, mm at full resolution
+BENDING = (0.0, 1.0, 10.0, 100.0, 1000.0)  # elastix bending-energy weight (similarity: 1)
 
 CASES = [
     # (case, kind, dim, n, spacing, method, engine, parameter, values)
@@ -51,6 +52,7 @@ CASES = [
         "update_smoothing_mm",
         UPDATE,
     ),
+    ("phantom2d_bending", "phantom", 2, 24, None, "pairwise", None, "bending_weight", BENDING),
     ("phantom3d_fluid", "phantom", 3, 10, 2.0, "fluid", None, "smoothing_mm", (1.0, 4.0, 16.0)),
 ]
 
@@ -68,8 +70,12 @@ def _population(kind: str, dim: int, n: int, spacing) -> Path:
 
 def main() -> dict:
     quick = os.environ.get("SWEEP_QUICK") == "1"
+    chosen = os.environ.get("SWEEP_CASES")  # e.g. "phantom2d_bending,mni2d_fluid"
+    cases = CASES[: 1 if quick else None]
+    if chosen:
+        cases = [c for c in CASES if c[0] in chosen.split(",")]
     results = {}
-    for case, kind, dim, n, spacing, method, engine, name, values in CASES[: 1 if quick else None]:
+    for case, kind, dim, n, spacing, method, engine, name, values in cases:
         t0 = time.perf_counter()
         manifest = _population(kind, dim, n, spacing)
         m = load_manifest(manifest)
