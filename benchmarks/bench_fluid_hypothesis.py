@@ -69,8 +69,10 @@ def _case(label: str, intensity: dict) -> dict:
         combined,
         "truth",
         reference=truth.reference,
-        transforms=[[str(p) for p in t] if isinstance(t, (list, tuple)) else str(t)
-                    for t in truth.transforms],  # fmt: skip
+        transforms=[
+            [str(p) for p in t] if isinstance(t, (list, tuple)) else str(t)
+            for t in truth.transforms
+        ],
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -95,7 +97,7 @@ def _case(label: str, intensity: dict) -> dict:
             k
             for k, r in rows.items()
             if k != "truth" and r["specificity"] < rows["truth"]["specificity"]
-        ],  # fmt: skip
+        ],
         "rows": rows,
     }
 
