@@ -265,6 +265,26 @@ def chunk_moments(values, count):
     return m, m2
 
 
+@numba.njit(cache=True)
+def _summarise_chunk(values, nearest, count, l2, exponent, counts_row):
+    """Finish a chunk's distances, count its nearest images; return its (mean, M2)."""
+    finish_distances(values, count, l2, exponent)
+    for j in range(count):
+        counts_row[nearest[j]] += 1
+    return chunk_moments(values, count)
+
+
+@numba.njit(cache=True)
+def _summarise_pair(va, na, vb, nb, count, l2, exponent, moments, c, counts_a, counts_b):
+    """As :func:`_summarise_chunk` for two models on the same samples, and for a - b:
+    ``moments[0|1|2, c]`` (mean, M2) of a, b and a - b; `va` ends as a - b."""
+    moments[0, c, 0], moments[0, c, 1] = _summarise_chunk(va, na, count, l2, exponent, counts_a)
+    moments[1, c, 0], moments[1, c, 1] = _summarise_chunk(vb, nb, count, l2, exponent, counts_b)
+    for j in range(count):
+        va[j] -= vb[j]
+    moments[2, c, 0], moments[2, c, 1] = chunk_moments(va, count)
+
+
 @numba.njit(parallel=True, cache=True)
 def run_single(train_t, sd, key, n_samples, l2, exponent, chunk, first, last):
     """Per-chunk (count, mean, M2) of the sample nearest distances, Voronoi counts, gen minima.
@@ -287,10 +307,7 @@ def run_single(train_t, sd, key, n_samples, l2, exponent, chunk, first, last):
         values = np.empty(stop - start)
         nearest = np.empty(stop - start, dtype=np.int64)
         _chunk(train_t, sd, key, start, stop, l2, y, dist, values, nearest, gen[c])
-        finish_distances(values, stop - start, l2, exponent)
-        means[c], m2s[c] = chunk_moments(values, stop - start)
-        for j in range(stop - start):
-            counts[c, nearest[j]] += 1
+        means[c], m2s[c] = _summarise_chunk(values, nearest, stop - start, l2, exponent, counts[c])
     return means, m2s, counts, gen
 
 
@@ -337,15 +354,7 @@ def run_paired(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk
             nb,
             gen_b[c],
         )
-        finish_distances(va, m, l2, exponent)
-        finish_distances(vb, m, l2, exponent)
-        moments[0, c, 0], moments[0, c, 1] = chunk_moments(va, m)
-        moments[1, c, 0], moments[1, c, 1] = chunk_moments(vb, m)
-        for j in range(m):
-            va[j] -= vb[j]
-            counts_a[c, na[j]] += 1
-            counts_b[c, nb[j]] += 1
-        moments[2, c, 0], moments[2, c, 1] = chunk_moments(va, m)
+        _summarise_pair(va, na, vb, nb, m, l2, exponent, moments, c, counts_a[c], counts_b[c])
     return moments, counts_a, counts_b, gen_a, gen_b
 
 
@@ -424,10 +433,7 @@ def run_mixture(train_t, centres, basis_rows, basis_start, spans, key, l2, expon
         nearest = np.empty(m, dtype=np.int64)
         basis = basis_rows[basis_start[g] : basis_start[g + 1]]
         _chunk_mixture(train_t, centres[g], basis, key, start, stop, l2, values, nearest, gen[c])
-        finish_distances(values, m, l2, exponent)
-        means[c], m2s[c] = chunk_moments(values, m)
-        for j in range(m):
-            counts[c, nearest[j]] += 1
+        means[c], m2s[c] = _summarise_chunk(values, nearest, m, l2, exponent, counts[c])
     return means, m2s, counts, gen
 
 
@@ -464,15 +470,7 @@ def run_mixture_paired(
         basis_b = rows_b[start_b[g] : start_b[g + 1]]
         _chunk_mixture(train_a, centres_a[g], basis_a, key, start, stop, l2, va, na, gen_a[c])
         _chunk_mixture(train_b, centres_b[g], basis_b, key, start, stop, l2, vb, nb, gen_b[c])
-        finish_distances(va, m, l2, exponent)
-        finish_distances(vb, m, l2, exponent)
-        moments[0, c, 0], moments[0, c, 1] = chunk_moments(va, m)
-        moments[1, c, 0], moments[1, c, 1] = chunk_moments(vb, m)
-        for j in range(m):
-            va[j] -= vb[j]
-            counts_a[c, na[j]] += 1
-            counts_b[c, nb[j]] += 1
-        moments[2, c, 0], moments[2, c, 1] = chunk_moments(va, m)
+        _summarise_pair(va, na, vb, nb, m, l2, exponent, moments, c, counts_a[c], counts_b[c])
     return moments, counts_a, counts_b, gen_a, gen_b
 
 
