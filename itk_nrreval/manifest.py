@@ -292,17 +292,22 @@ def _path(value, base: Path, what: str, problems: list[str]) -> Path | None:
     return None
 
 
-def _image_item(value, base: Path, what: str, problems: list[str]):
-    """A path, or an image object kept as an InMemoryImage named `what`."""
-    if isinstance(value, InMemoryImage):
+def _item(kind, value, base: Path, what: str, problems: list[str]):
+    """A path, or an object kept as `kind` (InMemoryImage or InMemoryTransform) named `what`."""
+    if isinstance(value, kind):
         return value
     if value is None or isinstance(value, (str, bytes, os.PathLike, int, float)):
         return _path(value, base, what, problems)
     try:
-        return InMemoryImage.from_object(value, name=what)
+        return kind.from_object(value, name=what)
     except InputError as exc:
         problems.append(str(exc))
         return None
+
+
+def _image_item(value, base: Path, what: str, problems: list[str]):
+    """A path, or an image object kept as an InMemoryImage named `what`."""
+    return _item(InMemoryImage, value, base, what, problems)
 
 
 def _path_list(value, base: Path, what: str, problems: list[str]) -> tuple | None:
@@ -320,15 +325,7 @@ def _path_list(value, base: Path, what: str, problems: list[str]) -> tuple | Non
 
 def _transform_item(value, base: Path, what: str, problems: list[str]):
     """A path, or a transform / field object kept as an InMemoryTransform named `what`."""
-    if isinstance(value, InMemoryTransform):
-        return value
-    if value is None or isinstance(value, (str, bytes, os.PathLike, int, float)):
-        return _path(value, base, what, problems)
-    try:
-        return InMemoryTransform.from_object(value, name=what)
-    except InputError as exc:
-        problems.append(str(exc))
-        return None
+    return _item(InMemoryTransform, value, base, what, problems)
 
 
 def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:

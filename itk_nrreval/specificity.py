@@ -360,12 +360,19 @@ def _single_pass(
             model.training_params, sd, key, n_samples, l2, exponent, chunk, wrap
         )
     train_t = np.ascontiguousarray(model.training_params.T)
-    # Groups of chunks, a few per thread, so that a progress bar can move between groups.
+
+    def run(first, last):
+        return _sampling.run_single(train_t, sd, key, n_samples, l2, exponent, chunk, first, last)
+
+    return _by_chunk_groups(run, n_chunks, show=show, desc=desc)
+
+
+def _by_chunk_groups(run, n_chunks: int, *, show: bool, desc: str) -> tuple:
+    """``run(first, last)`` over chunks ``0 .. n_chunks - 1`` in groups of a few chunks per
+    thread, so that a progress bar can move between groups; the per-chunk arrays joined."""
     group = 4 * numba.get_num_threads()
     parts = [
-        _sampling.run_single(
-            train_t, sd, key, n_samples, l2, exponent, chunk, c, min(c + group, n_chunks)
-        )
+        run(c, min(c + group, n_chunks))
         for c in progress(
             range(0, n_chunks, group),
             desc=desc,
@@ -419,28 +426,13 @@ def _mixture_pass(
         return (*parts, spans)
     train_t = np.ascontiguousarray(train.T)
     rows, starts = _stacked_bases(mix)
-    group = 4 * numba.get_num_threads()
-    parts = [
-        _sampling.run_mixture(
-            train_t,
-            mix.centres,
-            rows,
-            starts,
-            spans,
-            key,
-            l2,
-            exponent,
-            c,
-            min(c + group, n_chunks),
+
+    def run(first, last):
+        return _sampling.run_mixture(
+            train_t, mix.centres, rows, starts, spans, key, l2, exponent, first, last
         )
-        for c in progress(
-            range(0, n_chunks, group),
-            desc=desc,
-            total=(n_chunks + group - 1) // group,
-            enabled=show,
-        )
-    ]
-    return (*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)), spans)
+
+    return (*_by_chunk_groups(run, n_chunks, show=show, desc=desc), spans)
 
 
 def _stacked_bases(mix: MixtureModel) -> tuple[np.ndarray, np.ndarray]:
