@@ -32,6 +32,9 @@ import time
 import numpy as np
 import SimpleITK as sitk
 
+from itk_nrreval._images import Geometry
+from itk_nrreval.demo import spread_of_correspondence
+
 SEED = 0
 #: ("before-fix", None), ("same", s): s mm at every level, ("scaled", s): ``smoothing_mm = s``
 #: (s mm at full resolution, f * s mm at shrink factor f).
@@ -98,19 +101,9 @@ def _anisotropic(pop, spacing: tuple[float, float]):
 
 
 def _error(transforms, reference: sitk.Image, to_template, mask: np.ndarray) -> float:
-    points = []
-    for t, s in zip(transforms, to_template, strict=True):
-        field = sitk.TransformToDisplacementField(
-            sitk.CompositeTransform([s, t]),  # s(t(p))
-            sitk.sitkVectorFloat64,
-            reference.GetSize(),
-            reference.GetOrigin(),
-            reference.GetSpacing(),
-            reference.GetDirection(),
-        )
-        points.append(sitk.GetArrayFromImage(field)[mask])
-    y = np.stack(points)
-    return float(np.linalg.norm(y - y.mean(axis=0), axis=-1).mean())
+    return spread_of_correspondence(
+        transforms, to_template, Geometry.from_image(reference), mask=mask
+    )
 
 
 def _run(name: str, images, labels, to_template, settings) -> dict:

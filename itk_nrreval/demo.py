@@ -103,17 +103,38 @@ def correspondence_error(
     grid = Geometry.from_image(
         read_image(m.registrations[m.common_frame].reference, what="reference image")
     )
-    out = {}
-    for name, scores in evaluation.scores.items():
-        points = []
-        for t, s in zip(read_chains(m, name), subject_to_template, strict=True):
-            full = sitk.CompositeTransform([s, resampling_transform(t, scores.frame.transform)])
-            d = sitk.GetArrayFromImage(displacement_field(full, grid))
-            points.append(d[mask] if mask is not None else d.reshape(-1, d.shape[-1]))
-        # The grid points themselves cancel in y_i - mean_j y_j.
-        y = np.stack(points)
-        out[name] = float(np.linalg.norm(y - y.mean(axis=0), axis=-1).mean())
-    return out
+    return {
+        name: spread_of_correspondence(
+            [resampling_transform(t, scores.frame.transform) for t in read_chains(m, name)],
+            subject_to_template,
+            grid,
+            mask=mask,
+        )
+        for name, scores in evaluation.scores.items()
+    }
+
+
+def spread_of_correspondence(
+    transforms: list[sitk.Transform],
+    subject_to_template: list[sitk.Transform],
+    grid: Geometry,
+    *,
+    mask: np.ndarray | None = None,
+) -> float:
+    """Mean distance (mm) of ``y_i = S_i(T_i(p))`` from ``mean_j y_j``, over p and i.
+
+    The true correspondence error of one registration (:func:`correspondence_error`) whose
+    transforms `transforms` map the points p of `grid` (the common frame) to image points;
+    ``S_i`` = `subject_to_template` [i], subject points -> template points. `mask` (bool,
+    the grid's numpy shape) selects the points p; default all.
+    """
+    points = []
+    for t, s in zip(transforms, subject_to_template, strict=True):
+        d = sitk.GetArrayFromImage(displacement_field(sitk.CompositeTransform([s, t]), grid))
+        points.append(d[mask] if mask is not None else d.reshape(-1, d.shape[-1]))
+    # The grid points themselves cancel in y_i - mean_j y_j.
+    y = np.stack(points)
+    return float(np.linalg.norm(y - y.mean(axis=0), axis=-1).mean())
 
 
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
