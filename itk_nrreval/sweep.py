@@ -39,6 +39,7 @@ from ._errors import InputError
 from ._output import json_number, write_json, write_text
 from .evaluation import EvaluationResult, evaluate
 from .manifest import add_registration, load_manifest, write_manifest
+from .transforms import file_stem
 
 __all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter"]
 
@@ -342,7 +343,7 @@ def sweep(
     grid = _grid(parameters)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    stems = [_stem(p) for p in images]
+    stems = [file_stem(p) for p in images]
 
     method_defaults = _defaults(method)
     choice = reference_choice if method != "groupwise" else "group mean (near-mean frame)"
@@ -474,7 +475,7 @@ def _affine_stage(images, folder: Path, reference_choice: str, seed: int, progre
             seed=seed,
             progress=progress,
         )
-        result.write(folder, names=[_stem(p) for p in images])
+        result.write(folder, names=[file_stem(p) for p in images])
         log = json.loads((folder / "registration.json").read_text())
     transforms = tuple(read_transform(folder / t) for t in log["transforms"])
     return RegistrationResult(
@@ -690,11 +691,3 @@ def _value(result: SweepResult, name: str, measure: str):
     iv = sc.intervals.get(measure)
     ok = iv is not None and math.isfinite(iv.lo) and math.isfinite(iv.hi)
     return sc.measures()[measure], ((iv.lo, iv.hi) if ok else None)
-
-
-def _stem(path: str) -> str:
-    name = Path(path).name
-    for suffix in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd", ".nhdr"):
-        if name.endswith(suffix):
-            return name[: -len(suffix)]
-    return Path(name).stem

@@ -62,6 +62,7 @@ __all__ = [
     "to_sitk_transform",
     "transform_digest",
     "read_transform",
+    "file_stem",
     "file_suffix",
     "leaves",
     "chain_transform",
@@ -80,6 +81,16 @@ TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
 FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 TransformLike = "sitk.Transform | itk.Transform | InMemoryTransform | str | os.PathLike"
+
+
+def file_stem(path: str | os.PathLike) -> str:
+    """The file name without its image suffix (``s01.nii.gz`` -> ``s01``), else without its
+    last suffix: a name for what is written about that image."""
+    name = Path(path).name
+    for suffix in FIELD_SUFFIXES:
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return Path(name).stem
 
 
 def file_suffix(path: Path) -> str:

@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     from ..manifest import add_registration
     from ..registration import register
     from ..registration.multimodal import record_groups
+    from ..transforms import file_stem
 
     out = check_output_folder(args.out)  # before the (long) registration
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             progress=not args.quiet,
         )
-    names = [_stem(p) for p in args.images]
+    names = [file_stem(p) for p in args.images]
     # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
     with staged_folder(out, keep=()) as stage:
         staged = result.write(stage, names=names)
@@ -186,14 +187,6 @@ def _register_multimodal(args: argparse.Namespace, manifest: Path):
         seed=args.seed,
         progress=not args.quiet,
     )
-
-
-def _stem(path: str) -> str:
-    name = Path(path).name
-    for suffix in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd", ".nhdr"):
-        if name.endswith(suffix):
-            return name[: -len(suffix)]
-    return Path(name).stem
 
 
 def _describe_reference(result, images) -> str:
