@@ -362,6 +362,11 @@ def test_simpleitk_bspline_with_mutual_information_aligns_t2_to_t1(population, t
         (GROUPS, {"options": {"metric": "mattes"}}, "cross_metric"),
         (GROUPS, {"metric": "entropy"}, "metric"),
         (GROUPS, {"options": {"grid_size": 3}}, "unknown 'grid_size'"),
+        (
+            GROUPS,
+            {"engine": "simpleitk", "options": {"bending_weight": 1.0}},
+            "bending_weight needs the elastix engine, not 'simpleitk'",
+        ),
     ],
 )
 def test_bad_arguments_are_one_line_input_errors(images, groups, kwargs, message):

@@ -55,7 +55,7 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from ..transforms import flatten
-from ._common import EngineError, load_images, resample, with_options
+from ._common import EngineError, check_engine_options, load_images, resample, with_options
 from ._elastix_worker import ElastixWorker
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
@@ -102,23 +102,6 @@ _OPTIONS = {
     "groupwise": GroupwiseOptions(),
 }
 REFERENCE_CHOICES = ("near-mean", "far-from-mean")
-
-
-def check_engine_options(method: str, engine: str, options) -> None:
-    """Refuse options that `engine` cannot honour (InputError), before any work.
-
-    Parameters
-    ----------
-    method, engine : str
-        As :func:`register` (`engine` resolved: not None).
-    options : dataclass
-        The method's options (e.g. :class:`BSplineOptions`).
-    """
-    if getattr(options, "bending_weight", 0) > 0 and engine != "elastix":
-        raise InputError(
-            f"{method} options: bending_weight needs the elastix engine, not {engine!r} "
-            "(its B-spline registration has no bending-energy term)"
-        )
 
 
 def _check_choice(name: str, value, accepted) -> None:

@@ -17,6 +17,7 @@ from .._images import read_image
 
 __all__ = [
     "EngineError",
+    "check_engine_options",
     "engine_seed",
     "with_options",
     "load_images",
@@ -169,3 +170,20 @@ def mesh_size(reference: sitk.Image, grid_spacing: float) -> list[int]:
     """B-spline mesh cells per axis giving control points about `grid_spacing` mm apart."""
     extent = [n * s for n, s in zip(reference.GetSize(), reference.GetSpacing(), strict=True)]
     return [max(1, int(round(e / grid_spacing))) for e in extent]
+
+
+def check_engine_options(method: str, engine: str, options) -> None:
+    """Refuse options that `engine` cannot honour (InputError), before any work.
+
+    Parameters
+    ----------
+    method, engine : str
+        As :func:`register` (`engine` resolved: not None).
+    options : dataclass
+        The method's options (e.g. :class:`BSplineOptions`).
+    """
+    if getattr(options, "bending_weight", 0) > 0 and engine != "elastix":
+        raise InputError(
+            f"{method} options: bending_weight needs the elastix engine, not {engine!r} "
+            "(its B-spline registration has no bending-energy term)"
+        )

@@ -61,7 +61,7 @@ from .._errors import InputError
 from .._output import write_json
 from .._progress import progress as progress_bar
 from ..transforms import flatten, write_transform
-from ._common import load_images, resample, with_options
+from ._common import check_engine_options, load_images, resample, with_options
 from ._elastix_worker import ElastixWorker
 from .affine import AffineOptions, affine_register, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference, elastix_parameters, sitk_bspline
@@ -350,6 +350,7 @@ def register_multimodal(
     bs_within.check()
     bs_cross = dataclasses.replace(bs_within, metric=cross_metric)
     bs_cross.check()
+    check_engine_options("multimodal", engine, bs_within)
     imgs, paths = load_images(images)
     n = len(imgs)
     labels = check_groups(groups, n)
