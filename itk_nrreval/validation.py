@@ -482,13 +482,16 @@ def _manifest_arrays(manifest, section, show_progress: bool):
     name = str(m.source) if m.source is not None else "manifest"
     if m.labels is None:
         raise InputError(f"{name}: validation needs label maps ('labels:' in the manifest)")
-    grid = Geometry.from_image(common_reference(m))
+    grid = full_grid = Geometry.from_image(common_reference(m))
+    mask = mask_array(m.mask, shape=full_grid.shape, geometry=full_grid)
     taken = None
     if section is not None:
         if grid.dimension != 3:
             raise InputError(f"{name}: a slice needs a 3D common frame, got a 2D one")
         a, index = _section_index(parse_section(section), grid.size)
         taken = (_AXES[a], index)
+        if mask is not None:  # the slice of it, one voxel thick as the sliced grid
+            mask = np.take(mask, [index], axis=2 - a)
         direction = np.array(grid.direction).reshape(3, 3)
         offset = np.zeros(3)
         offset[a] = index * grid.spacing[a]
@@ -500,8 +503,6 @@ def _manifest_arrays(manifest, section, show_progress: bool):
             tuple(float(v) for v in np.array(grid.origin) + direction @ offset),
             grid.direction,
         )
-    full_grid = Geometry.from_image(common_reference(m))
-    mask = mask_array(m.mask, shape=full_grid.shape, geometry=full_grid)
     chains = read_chains(m, m.common_frame)
     images = resample_images(
         m.images,
@@ -521,8 +522,6 @@ def _manifest_arrays(manifest, section, show_progress: bool):
     members = _drop_absent(members)
     if mask is None:
         mask = np.ones(covered.shape, dtype=bool)
-    elif taken is not None:
-        mask = np.take(mask, [taken[1]], axis=2 - _AXES.index(taken[0]))
     region = covered & mask
     if taken is not None:  # drop the one-voxel axis: 2D arrays
         np_axis = 2 - _AXES.index(taken[0])
