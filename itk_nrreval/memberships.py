@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import SimpleITK as sitk
+from scipy import ndimage
 
 from ._errors import InputError
 from ._images import Geometry
@@ -674,17 +675,16 @@ def _gaussian_memberships(
     dim = codes.GetDimension()
     # Beyond 4 sigma a Gaussian is below 3.4e-4 of its peak: crop each channel there.
     pad = [int(np.ceil(4.0 * sigma_mm / s)) + 1 for s in codes.GetSpacing()]  # ITK order
+    # Every channel's bounding box in one pass (numpy order; None for an absent channel).
+    boxes = ndimage.find_objects(array, max_label=len(values))
     per_label = []
-    for k in range(len(values)):
-        where = np.nonzero(array == k + 1)
-        if where[0].size == 0:
+    for k, box_np in enumerate(boxes):
+        if box_np is None:
             per_label.append((np.empty(0, np.int64), np.empty(0, np.float32)))
             continue
-        lo = [max(0, int(w.min()) - p) for w, p in zip(where[::-1], pad, strict=True)]
-        hi = [
-            min(n, int(w.max()) + p + 1)
-            for w, p, n in zip(where[::-1], pad, codes.GetSize(), strict=True)
-        ]
+        bounds = box_np[::-1]  # ITK order
+        lo = [max(0, b.start - p) for b, p in zip(bounds, pad, strict=True)]
+        hi = [min(n, b.stop + p) for b, p, n in zip(bounds, pad, codes.GetSize(), strict=True)]
         box = sitk.RegionOfInterest(codes, [b - a for a, b in zip(lo, hi, strict=True)], lo)
         channel = sitk.Cast(box == k + 1, sitk.sitkFloat32)
         smooth = sitk.SmoothingRecursiveGaussian(channel, [sigma_mm] * dim)
