@@ -8,7 +8,7 @@ import math
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,10 @@ __all__ = [
     "write_json",
     "write_text",
     "check_output_folder",
+    "check_output_file",
+    "json_written_by",
     "staged_folder",
+    "claim_output_folder",
     "json_number",
 ]
 
@@ -33,28 +36,161 @@ def json_number(value: Any) -> Any:
     return value
 
 
-def check_output_folder(path: str | os.PathLike, *, option: str = "--out") -> Path:
-    """Refuse, before any work, an output folder that cannot be one or cannot be written.
+MARKER = ".nrreval-output.json"
+"""The record, inside every output folder the toolkit makes, of the entries it wrote there:
+the only entries a later run may replace."""
+
+
+def check_output_folder(
+    path: str | os.PathLike,
+    *,
+    inputs: Iterable[str | os.PathLike] = (),
+    option: str = "--out",
+    shared: bool = False,
+) -> Path:
+    """Refuse, before any work, an output folder that cannot be one or could cost a file.
+
+    A folder is accepted when it does not exist yet, is empty, or was made by this toolkit
+    (it holds :data:`MARKER`; a rerun into it resumes). Writing into it later
+    (:func:`staged_folder`) replaces only the entries the record names.
+
+    Parameters
+    ----------
+    path : path
+        The output folder.
+    inputs : paths, keyword-only
+        Every file the command reads. The output folder may not be one of them, nor hold one
+        at any depth (a folder swapped in over its inputs would lose them).
+    option : str, keyword-only
+        The option's name, for the message.
+    shared : bool, keyword-only
+        Accept any folder that holds no input: for a folder whose writer touches only
+        entries of its own naming (the per-image cache), which may hold other things.
+
+    Returns
+    -------
+    Path
+        `path`, absolute and with symbolic links resolved (``--out .`` names the folder,
+        not the working directory's alias of it).
 
     Raises
     ------
     InputError
-        `path` is an existing file, or the folder (or its nearest existing parent, where it
-        would be created) is not writable.
+        `path` is an existing file, holds or is an input, is a non-empty folder this toolkit
+        did not make, or is not writable (nor is its nearest existing parent).
     """
     from ._errors import InputError
 
-    path = Path(path)
+    given = Path(path)
+    path = given.resolve()
     if path.exists() and not path.is_dir():
-        raise InputError(f"{option} {path}: exists and is not a folder")
+        raise InputError(f"{option} {given}: exists and is not a folder")
+    for item in inputs:
+        item = Path(item).resolve()
+        if item == path or path in item.parents:
+            raise InputError(
+                f"{option} {given}: holds the input {item}; "
+                "choose a folder outside the inputs (nothing was written)"
+            )
     existing = path
     while not existing.exists():
         existing = existing.parent
     if not existing.is_dir():
-        raise InputError(f"{option} {path}: {existing} is a file, not a folder")
+        raise InputError(f"{option} {given}: {existing} is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"{option} {path}: {existing} is not writable")
+        raise InputError(f"{option} {given}: {existing} is not writable")
+    if not shared and existing == path and _read_record(path) is None and any(path.iterdir()):
+        raise InputError(
+            f"{option} {given}: a folder that nrreval did not make, and not empty; "
+            "choose a new or empty folder (nothing was written)"
+        )
     return path
+
+
+def check_output_file(
+    path: str | os.PathLike,
+    *,
+    inputs: Iterable[str | os.PathLike] = (),
+    option: str,
+    ours: Callable[[Path], bool],
+) -> Path:
+    """Refuse, before any work, an output file that cannot be one or is someone else's.
+
+    Parameters
+    ----------
+    path : path
+        The file to write.
+    inputs : paths, keyword-only
+        Every file the command reads: `path` may not be one of them.
+    option : str, keyword-only
+        The option's name, for the message.
+    ours : callable, keyword-only
+        Whether an existing file at `path` is one this toolkit wrote (and so may replace).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    InputError
+        `path` is a folder, an input, an existing file the toolkit did not write, or cannot
+        be created.
+    """
+    from ._errors import InputError
+
+    given = Path(path)
+    path = given.resolve()
+    if path.is_dir():
+        raise InputError(f"{option} {given}: is a folder; give a file name")
+    if any(Path(item).resolve() == path for item in inputs):
+        raise InputError(f"{option} {given}: is one of the inputs")
+    if path.exists() and not ours(path):
+        raise InputError(
+            f"{option} {given}: exists and was not written by nrreval; "
+            "choose another name (nothing was written)"
+        )
+    check_output_folder(path.parent, option=f"{option} {given}: its folder", shared=True)
+    return path
+
+
+def json_written_by(tool_key: str = "tool") -> Callable[[Path], bool]:
+    """A test for :func:`check_output_file`: the file is a JSON object whose `tool_key` is
+    :data:`TOOL` (the toolkit's single-file JSON records carry it)."""
+
+    def ours(path: Path) -> bool:
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, ValueError):
+            return False
+        return isinstance(data, dict) and data.get(tool_key) == TOOL
+
+    return ours
+
+
+TOOL = "itk-nrreval"
+"""What the toolkit's own records name as their writer."""
+
+
+def _read_record(folder: Path) -> set[str] | None:
+    """The entries :data:`MARKER` says the toolkit wrote into `folder`, or None where there
+    is no (readable) record: a folder the toolkit did not make."""
+    try:
+        data = json.loads((folder / MARKER).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("tool") != TOOL:
+        return None
+    entries = data.get("entries", [])
+    if not isinstance(entries, list) or not all(isinstance(e, str) for e in entries):
+        return None
+    return {e for e in entries if e and "/" not in e and e not in (".", "..", MARKER)}
+
+
+def _write_record(folder: Path, entries: Iterable[str]) -> None:
+    from ._version import __version__
+
+    write_json(folder / MARKER, {"tool": TOOL, "version": __version__, "entries": sorted(entries)})
 
 
 def _default_mode() -> int:
@@ -98,37 +234,139 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
     write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
+def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str]) -> Path:
+    """Make `out` this toolkit's folder for a run that writes `entries` in place.
+
+    For the commands whose results are written where they stay (``demo``, ``sweep``: a
+    rerun reuses their registrations), rather than staged (:func:`staged_folder`). `out`
+    should have passed :func:`check_output_folder`.
+
+    Parameters
+    ----------
+    out : path
+        The output folder: created where missing.
+    entries : str, keyword-only
+        The top-level names the run writes (files or folders).
+
+    Returns
+    -------
+    Path
+        `out`, absolute.
+
+    Raises
+    ------
+    InputError
+        `out` is a non-empty folder the toolkit did not make, or one of `entries` exists
+        there and was not written by the toolkit.
+    """
+    from ._errors import InputError
+
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    previous = _read_record(out)
+    if previous is None and any(out.iterdir()):
+        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+    previous = previous or set()
+    entries = set(entries)
+    foreign = sorted(n for n in entries - previous if os.path.lexists(out / n))
+    if foreign:
+        raise InputError(f"{out / foreign[0]}: was not written by nrreval and would be replaced")
+    _write_record(out, previous | entries)
+    return out
+
+
 @contextlib.contextmanager
 def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",)) -> Iterator[Path]:
-    """Yield a temporary sibling of `out` to write a whole result into; swap it in on success.
+    """Yield a temporary folder to write a whole result into; move it into `out` on success.
 
-    On success the previous `out` (if any) is replaced by the new folder in two renames,
-    carrying over the entries named in `keep` (the per-image cache, which a rerun reuses);
-    on failure the temporary folder is removed and `out` is left exactly as it was. So `out`
-    always holds one complete result, never a mix of an old run's files and a new one's.
-    A process killed mid-run leaves ``<out>.tmp-<pid>-*`` beside `out`, never a damaged `out`.
+    `out` is claimed on entry: created where missing, and marked as this toolkit's
+    (:data:`MARKER`, the record of the entries it wrote). Entries named in `keep` (the
+    per-image cache, which a rerun reuses) are written straight into `out` while the work
+    runs. On success, the previous run's recorded entries are moved aside, the new ones moved
+    in, the record rewritten and the old entries removed: entries the toolkit did not write
+    (a user's notes) are never moved, replaced or deleted. On bad input
+    (:class:`InputError`), `out` is put back as it was: what this run added to the `keep`
+    entries, and `out` itself if this run made it, are removed. An interrupted run keeps them
+    (a rerun resumes). The temporary folder is a hidden entry of `out`; a process killed
+    mid-run leaves it there, and the next run removes it.
+
+    Raises
+    ------
+    InputError
+        `out` is a non-empty folder the toolkit did not make, or a new entry would replace a
+        file the toolkit did not write (the new result is then left in the temporary folder,
+        whose name the message gives).
     """
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    from ._errors import InputError
+
+    out = Path(out).resolve()
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    previous = _read_record(out)
+    if previous is None and any(out.iterdir()):
+        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+    before = {k: _names_below(out / k) for k in keep}
+    _write_record(out, (previous or set()) | {k for k, names in before.items() if names is None})
     _remove_stale_stages(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{out.name}.tmp-{os.getpid()}-", dir=out.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f"{_STAGE}tmp-{os.getpid()}-", dir=out))
     try:
         yield tmp
+    except InputError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _restore(out, before, previous=previous, made=made)
+        raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    os.chmod(tmp, 0o777 & ~_umask())
-    if not out.exists():
-        os.rename(tmp, out)
-        return
-    old = Path(tempfile.mkdtemp(prefix=f"{out.name}.old-{os.getpid()}-", dir=out.parent))
-    os.rmdir(old)
-    os.rename(out, old)
-    os.rename(tmp, out)
-    for name in keep:
-        if (old / name).exists() and not (out / name).exists():
-            os.rename(old / name, out / name)
+    staged = sorted(os.listdir(tmp))
+    record = _read_record(out) or set()
+    foreign = [n for n in staged if os.path.lexists(out / n) and n not in record]
+    if foreign:
+        raise InputError(
+            f"{out / foreign[0]}: was not written by nrreval and would be replaced; "
+            f"the new results are in {tmp}"
+        )
+    old = Path(tempfile.mkdtemp(prefix=f"{_STAGE}old-{os.getpid()}-", dir=out))
+    for name in sorted(record):
+        if os.path.lexists(out / name) and (name in staged or name not in keep):
+            os.rename(out / name, old / name)
+    for name in staged:
+        os.rename(tmp / name, out / name)
+    _write_record(out, [*staged, *(k for k in keep if (out / k).exists())])
+    os.rmdir(tmp)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _names_below(path: Path) -> set[str] | None:
+    """Every path below `path`, relative to it (None where `path` does not exist)."""
+    if not path.exists():
+        return None
+    return {str(p.relative_to(path)) for p in path.rglob("*")}
+
+
+def _restore(
+    out: Path, before: dict[str, set[str] | None], *, previous: set[str] | None, made: bool
+) -> None:
+    """Undo what a failed run added to `out`: to its `keep` entries, its record (`previous`,
+    None where `out` had none), and `out` itself where the run made it."""
+    for name, names in before.items():
+        path = out / name
+        if names is None:
+            shutil.rmtree(path, ignore_errors=True)
+        elif path.is_dir():
+            added = [p for p in path.rglob("*") if str(p.relative_to(path)) not in names]
+            for p in sorted(added, key=lambda p: len(p.parts)):
+                if p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)
+                elif os.path.lexists(p):
+                    p.unlink()
+    if previous is not None:
+        _write_record(out, previous)
+        return
+    (out / MARKER).unlink(missing_ok=True)
+    if made:
+        with contextlib.suppress(OSError):  # not empty: a file someone else put there
+            out.rmdir()
 
 
 def _umask() -> int:
@@ -137,11 +375,14 @@ def _umask() -> int:
     return umask
 
 
+_STAGE = ".nrreval-stage-"
+
+
 def _remove_stale_stages(out: Path) -> None:
-    """Remove ``<out>.tmp-<pid>-*`` / ``<out>.old-<pid>-*`` folders of processes that are gone."""
-    stages = [*out.parent.glob(f"{out.name}.tmp-*-*"), *out.parent.glob(f"{out.name}.old-*-*")]
-    for path in stages:
-        pid = path.name[len(out.name) + 5 :].split("-", 1)[0]
+    """Remove the ``.nrreval-stage-{tmp,old}-<pid>-*`` folders in `out` of processes that
+    are gone (a run killed mid-write)."""
+    for path in out.glob(f"{_STAGE}*-*-*"):
+        pid = path.name[len(_STAGE) :].split("-")[1]
         if not pid.isdigit() or not path.is_dir():
             continue
         try:

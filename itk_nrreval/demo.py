@@ -24,7 +24,13 @@ import SimpleITK as sitk
 from scipy import stats
 
 from ._images import Geometry, read_image
-from ._output import atomic_path, write_json, write_text
+from ._output import (
+    atomic_path,
+    check_output_folder,
+    claim_output_folder,
+    write_json,
+    write_text,
+)
 from .evaluation import EvaluationResult, evaluate, ranks, relative_ranks
 from .frame import read_chains, resampling_transform
 from .manifest import add_registration, load_manifest, write_manifest
@@ -184,6 +190,18 @@ def _agreement(evaluation: EvaluationResult, error: dict[str, float]) -> dict[st
     return {m: float(stats.spearmanr(spec, [r[n] for n in names])[0]) for m, r in others.items()}
 
 
+DEMO_OUTPUTS = (
+    "data",
+    "manifest.yaml",
+    "registrations",
+    "brain_mask.nii.gz",
+    "evaluation",
+    "demo_table.md",
+    "demo.json",
+)
+"""What :func:`run_demo` writes into its folder (and may replace on a rerun)."""
+
+
 def run_demo(
     *,
     out: str | os.PathLike = "demo-output",
@@ -227,7 +245,7 @@ def run_demo(
     from .registration._elastix_worker import ElastixWorker, elastix_available
 
     say = log or (lambda line: print(line, file=sys.stderr, flush=True))
-    out = Path(out)
+    out = claim_output_folder(check_output_folder(out, option="out"), entries=DEMO_OUTPUTS)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     say(f"[demo] generating {n} {kind} subjects ({dim}D)")

@@ -582,9 +582,11 @@ def evaluate(
         Measure each transform's inverse consistency (one numerical inversion per image).
     out : path, optional
         Also write the reports :meth:`EvaluationResult.write` writes into this folder, as
-        ``nrreval evaluate --out`` does: the run writes into a temporary sibling folder that
-        replaces `out` only when complete (the cache carried over), so `out` holds one
-        complete result or the previous one, never a mix.
+        ``nrreval evaluate --out`` does (:func:`itk_nrreval._output.staged_folder`): the
+        run writes into a temporary folder whose entries replace the previous run's only
+        when complete (the cache carried over), so `out` holds one complete result or the
+        previous one, never a mix. `out` must be new, empty or a folder this toolkit made,
+        and must not hold an input; files the toolkit did not write are never touched.
     figures : bool
         With `out`: also write the PNG figures and ``report.html``, the self-contained HTML
         report that embeds them (:meth:`EvaluationResult.write`).
@@ -617,9 +619,9 @@ def evaluate(
         _check_positive("resamples", resamples, 2)
     if isinstance(save_resampled, bool) and save_resampled and out is None:
         raise ValueError("save_resampled=True: only with out= (it means out/resampled)")
-    if out is not None:
-        out = check_output_folder(out, option="out")
     m = load_manifest(manifest)
+    if out is not None:
+        out = check_output_folder(out, inputs=m.files, option="out")
     # with `out`, everything is written into a temporary sibling swapped in at the end
     stage_or_none = staged_folder(out) if out is not None else contextlib.nullcontext()
     with stage_or_none as stage:

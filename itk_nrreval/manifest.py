@@ -170,6 +170,15 @@ class Manifest:
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
         return any(isinstance(item, _IN_MEMORY) for item in items)
 
+    @property
+    def files(self) -> tuple[Path, ...]:
+        """Every file the manifest reads (the manifest itself first, where it is a file):
+        what an output folder must neither be nor hold."""
+        items = [self.source, *self.images, *(self.labels or ()), self.mask]
+        for r in self.registrations.values():
+            items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
+        return tuple(Path(item) for item in items if isinstance(item, (str, os.PathLike)))
+
     def describe(self) -> dict:
         """A JSON-ready description of the inputs (absolute paths; objects described by their
         manifest item, type and content digest)."""

@@ -36,7 +36,13 @@ from typing import Any
 import SimpleITK as sitk
 
 from ._errors import InputError
-from ._output import json_number, write_json, write_text
+from ._output import (
+    check_output_folder,
+    claim_output_folder,
+    json_number,
+    write_json,
+    write_text,
+)
 from .evaluation import EvaluationResult, evaluate
 from .manifest import add_registration, load_manifest, write_manifest
 from .transforms import file_stem
@@ -262,6 +268,20 @@ def _previous(folder: Path, settings: dict) -> dict | None:
     return found
 
 
+SWEEP_OUTPUTS = (
+    "registrations",
+    "manifest.yaml",
+    "identity.tfm",
+    "cache",
+    "evaluation",
+    "sweep.png",
+    "report.html",
+    "sweep.csv",
+    "sweep.json",
+)
+"""What :func:`sweep` writes into its folder (and may replace on a rerun)."""
+
+
 def sweep(
     images: Sequence[str | os.PathLike],
     *,
@@ -341,8 +361,11 @@ def sweep(
         raise InputError(f"--engine {engine!r}: not one of {', '.join(ENGINES[method])}")
     parameters = _checked(method, parameters, engine)
     grid = _grid(parameters)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    inputs = [*images, *(labels or ()), mask, truth_reference]
+    inputs = [p for p in inputs if isinstance(p, (str, os.PathLike))]
+    out = claim_output_folder(
+        check_output_folder(out, inputs=inputs, option="out"), entries=SWEEP_OUTPUTS
+    )
     stems = [file_stem(p) for p in images]
 
     method_defaults = _defaults(method)

@@ -53,70 +53,154 @@ def test_reports_leave_the_matplotlib_backend_alone(tmp_path):
         matplotlib.use(before)
 
 
-def test_staged_folder_swaps_a_complete_result_in_and_keeps_the_cache(tmp_path):
-    from itk_nrreval._output import staged_folder
+def _tree(folder):
+    """Every path below `folder` with its bytes (None for a folder)."""
+    return {
+        str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None)
+        for p in sorted(folder.rglob("*"))
+    }
+
+
+def test_staged_folder_replaces_only_its_own_entries_and_keeps_the_cache(tmp_path):
+    from itk_nrreval._output import MARKER, staged_folder
 
     out = tmp_path / "out"
-    (out / "cache").mkdir(parents=True)
-    (out / "cache" / "entry").write_text("cached")
-    (out / "results.json").write_text("old")
-    (out / "stale.png").write_text("old figure")
+    with staged_folder(out) as stage:  # a first run: `out` made and marked
+        assert stage.parent == out and stage.name.startswith(".")
+        (out / "cache").mkdir()
+        (out / "cache" / "entry").write_text("cached")
+        (stage / "results.json").write_text("old")
+        (stage / "stale.png").write_text("old figure")
+    (out / "notes.txt").write_text("the user's")  # not the toolkit's: never touched
     with staged_folder(out) as stage:
-        assert stage.parent == tmp_path and stage != out
         (stage / "results.json").write_text("new")
-    assert sorted(p.name for p in out.iterdir()) == ["cache", "results.json"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "cache", "notes.txt", "results.json"]
     assert (out / "results.json").read_text() == "new"
     assert (out / "cache" / "entry").read_text() == "cached"
+    assert (out / "notes.txt").read_text() == "the user's"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # nothing left beside it
 
 
-def test_staged_folder_failure_leaves_the_previous_result(tmp_path):
-    import pytest
+def test_staged_folder_refuses_a_folder_it_did_not_make(tmp_path):
+    from itk_nrreval._errors import InputError
+    from itk_nrreval._output import staged_folder
 
+    out = tmp_path / "data"
+    out.mkdir()
+    (out / "image.nii.gz").write_text("the user's")
+    before = _tree(tmp_path)
+    with pytest.raises(InputError, match="did not make"):
+        with staged_folder(out) as stage:
+            (stage / "results.json").write_text("new")
+    assert _tree(tmp_path) == before
+
+
+def test_staged_folder_never_replaces_a_file_it_did_not_write(tmp_path):
+    """A user's file that appears, during a run, under a name the run writes is kept."""
+    from itk_nrreval._errors import InputError
     from itk_nrreval._output import staged_folder
 
     out = tmp_path / "out"
-    out.mkdir()
-    (out / "results.json").write_text("old")
+    with pytest.raises(InputError, match="not written by nrreval"):
+        with staged_folder(out) as stage:
+            (stage / "report.html").write_text("new")
+            (out / "report.html").write_text("the user's")
+    assert (out / "report.html").read_text() == "the user's"
+
+
+def test_staged_folder_interrupted_keeps_the_previous_result_and_the_cache(tmp_path):
+    from itk_nrreval._output import staged_folder
+
+    out = tmp_path / "out"
+    with staged_folder(out) as stage:
+        (stage / "results.json").write_text("old")
     with pytest.raises(KeyboardInterrupt):
         with staged_folder(out) as stage:
+            (out / "cache").mkdir()
+            (out / "cache" / "entry").write_text("computed before the interruption")
             (stage / "results.json").write_text("half")
             raise KeyboardInterrupt
     assert (out / "results.json").read_text() == "old"
+    assert (out / "cache" / "entry").exists()  # a rerun resumes from it
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     # a stage left by a killed process is removed by the next run
-    dead = tmp_path / "out.tmp-999999999-abc"
+    dead = out / ".nrreval-stage-tmp-999999999-abc"
     dead.mkdir()
     with staged_folder(out):
         pass
     assert not dead.exists()
 
 
-def test_register_cli_replaces_its_output_folder_whole(tmp_path, capsys):
-    """A second `nrreval register` into the same folder leaves only the new run's files."""
+def test_staged_folder_bad_input_leaves_out_as_it_was(tmp_path):
+    """Exit 2 leaves nothing behind: not the cache entries of the run, not a new folder."""
+    from itk_nrreval._errors import InputError
+    from itk_nrreval._output import staged_folder
+
+    new = tmp_path / "new"
+    with pytest.raises(InputError):
+        with staged_folder(new):
+            (new / "cache" / "ab").mkdir(parents=True)
+            (new / "cache" / "ab" / "entry").write_text("x")
+            raise InputError("bad image")
+    assert not new.exists()
+
+    out = tmp_path / "out"
+    with staged_folder(out) as stage:
+        (out / "cache" / "aa").mkdir(parents=True)
+        (out / "cache" / "aa" / "entry").write_text("kept")
+        (stage / "results.json").write_text("old")
+    (out / "notes.txt").write_text("the user's")
+    before = _tree(out)
+    with pytest.raises(InputError):
+        with staged_folder(out):
+            (out / "cache" / "bb").mkdir()
+            (out / "cache" / "bb" / "entry").write_text("x")
+            (out / "cache" / "aa" / "other").write_text("x")
+            raise InputError("bad image")
+    assert _tree(out) == before
+
+
+def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
+    """A second `nrreval register` into its folder replaces the first run's files, keeps
+    a user's file there, and refuses a non-empty folder it did not make."""
     import numpy as np
     import SimpleITK as sitk
 
     from itk_nrreval.cli import main
 
-    paths = []
-    for i in range(3):
-        arr = np.zeros((24, 24), np.float32)
-        arr[6 + i : 16 + i, 5:17] = 100.0
-        paths.append(str(tmp_path / f"s{i}.nii.gz"))
-        sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+    def images(stem):
+        paths = []
+        for i in range(3):
+            arr = np.zeros((24, 24), np.float32)
+            arr[6 + i : 16 + i, 5:17] = 100.0
+            paths.append(str(tmp_path / f"{stem}{i}.nii.gz"))
+            sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+        return paths
+
     out = tmp_path / "affine"
-    out.mkdir()
-    (out / "stale_from_an_old_run.h5").write_text("old")
-    args = ["register", "--images", *paths, "--method", "affine", "--out", str(out)]
-    assert main([*args, "--no-progress", "--reference", paths[0]]) == 0
-    assert not (out / "stale_from_an_old_run.h5").exists()
-    assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["reference.nii.gz", "registration.json", *(f"{i:03d}_s{i}.h5" for i in range(3))]
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("the user's")
+    first, second = images("s"), images("t")
+    args = ["register", "--method", "affine", "--no-progress"]
+    assert main([*args, "--images", *first, "--reference", first[0], "--out", str(foreign)]) == 2
+    assert "did not make" in capsys.readouterr().err
+    assert sorted(p.name for p in foreign.iterdir()) == ["keep.txt"]
+    assert main([*args, "--images", *first, "--reference", first[0], "--out", str(out)]) == 0
+    (out / "notes.txt").write_text("the user's")
+    again = ["--images", *second, "--reference", second[0], "--manifest", str(tmp_path / "m2.yaml")]
+    assert main([*args, *again, "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == sorted(
+        [
+            "notes.txt",
+            "reference.nii.gz",
+            "registration.json",
+            *(f"{i:03d}_t{i}.h5" for i in range(3)),
+        ]
     )
-    assert [p for p in tmp_path.iterdir() if ".tmp-" in p.name or ".old-" in p.name] == []
+    assert [p for p in out.iterdir() if p.name.startswith(".nrreval-stage")] == []
     # the manifest points at the final folder, not the temporary one it was written in
     from itk_nrreval.manifest import load_manifest
 
-    m = load_manifest(tmp_path / "manifest.yaml")
+    m = load_manifest(tmp_path / "m2.yaml")
     assert all(str(t[0]).startswith(str(out)) for t in m.registrations["affine"].transforms)

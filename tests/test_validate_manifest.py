@@ -153,7 +153,9 @@ def test_cli_on_the_manifest_writes_valid_json_with_null_for_undefined(case, tmp
             "--weighting", "volume", "--no-progress"]  # fmt: skip
     code, printed, err = run(args, capsys)
     assert code == 0, err
-    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    from itk_nrreval._output import MARKER
+
+    assert sorted(p.name for p in out.iterdir()) == sorted([MARKER, *OUTPUT_FILES])
     data = strict_json((out / "validation.json").read_text())
     # no d >= 0.375: the correlations are undefined, and JSON says null, not NaN
     assert data["summary"]["pearson_r"] == {"volume": None}

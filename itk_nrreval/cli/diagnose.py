@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from .._errors import InputError
-from .._output import check_output_folder
+from .._output import check_output_folder, staged_folder
 from ..diagnostics import DiagnosticsResult, save_cell_figure, table1_csv, table1_markdown
 from ._options import add_quiet_option, samples, seed
 
@@ -63,9 +63,8 @@ def run(args: argparse.Namespace) -> int:
     from ..diagnostics import diagnose
     from ..manifest import load_manifest
 
-    out = Path(args.out)
-    check_output_folder(out)
     manifest = load_manifest(args.manifest)  # every problem, before any work
+    out = check_output_folder(args.out, inputs=manifest.files)
     names = list(dict.fromkeys(args.registration))
     unknown = [n for n in names if n not in manifest.registrations]
     if unknown:
@@ -80,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not args.quiet,
     )
-    paths = result.write(out)
+    with staged_folder(out, keep=()) as stage:
+        paths = [out / p.name for p in result.write(stage)]
     print(result.table_markdown(), end="")
     print(f"results written to {out}/ ({', '.join(p.name for p in paths)})")
     return 0

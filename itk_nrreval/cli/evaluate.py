@@ -147,9 +147,11 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
-    out = check_output_folder(args.out)
     manifest = load_manifest(args.manifest)  # every problem, before DIR is created
+    out = check_output_folder(args.out, inputs=manifest.files)
     cache = Path(args.cache) if args.cache is not None else out / "cache"
+    if args.cache is not None:
+        check_output_folder(cache, inputs=manifest.files, option="--cache", shared=True)
     result = evaluate(  # writes into a staged copy of `out`, swapped in when complete
         manifest,
         out=out,

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import csv
 import io
+from pathlib import Path
 
+from .._errors import InputError
 from .._output import write_json, write_text
 from ._options import add_quiet_option
 
@@ -44,8 +46,17 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._output import TOOL, check_output_file, json_written_by
     from .._version import __version__
     from ..overlap import WEIGHTINGS, overlap_table
+
+    inputs = [*args.labels, *(p for p in (args.mask,) if p is not None)]
+    if args.table:  # before the work, not after it
+        check_output_file(args.table, inputs=inputs, option="--table", ours=_our_table)
+    if args.json:
+        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by())
+    if args.table and args.json and Path(args.table).resolve() == Path(args.json).resolve():
+        raise InputError("--table and --json: the same file")
 
     weightings = list(dict.fromkeys(args.weighting)) if args.weighting else list(WEIGHTINGS)
     table = overlap_table(
@@ -68,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         write_json(
             args.json,
             {
+                "tool": TOOL,
                 "version": __version__,
                 "label_maps": list(args.labels),
                 "include_background": args.include_background,
@@ -111,3 +123,13 @@ def _csv(rows: list[dict]) -> str:
     writer.writeheader()
     writer.writerows(rows)
     return out.getvalue()
+
+
+def _our_table(path: Path) -> bool:
+    """Whether `path` is a table this command wrote: its header starts with our columns."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            header = f.readline().rstrip("\n").split(",")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return header[: len(_COLUMNS)] == list(_COLUMNS)

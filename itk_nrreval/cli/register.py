@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     from ..registration.multimodal import record_groups
     from ..transforms import file_stem
 
-    out = check_output_folder(args.out)  # before the (long) registration
+    inputs = [*args.images, *(p for p in (args.reference, args.manifest) if p is not None)]
+    out = check_output_folder(args.out, inputs=inputs)  # before the (long) registration
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
     if args.method == "multimodal":
         result = _register_multimodal(args, manifest)

@@ -52,8 +52,13 @@ def _group_list(text: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from .._output import TOOL, check_output_file, json_written_by
     from .._version import __version__
     from ..specificity import texture_measures
+
+    if args.json:  # before the work, not after it
+        inputs = [*args.images, *(p for p in (args.mask,) if p is not None)]
+        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by())
 
     spec, gen = texture_measures(
         args.images,
@@ -82,7 +87,12 @@ def run(args: argparse.Namespace) -> int:
             )
     print(f"generalization = {gen.value:.6g} ± {gen.stderr:.2g}")
     if args.json:
-        record = {"version": __version__, "images": list(args.images), "mask": args.mask}
+        record = {
+            "tool": TOOL,
+            "version": __version__,
+            "images": list(args.images),
+            "mask": args.mask,
+        }
         if args.groups is not None:
             record["groups"] = args.groups
         record["specificity"] = spec.to_dict()

@@ -98,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
         if args.truth is not None:
             raise InputError("--truth: only with --from (a manifest holding the true transforms)")
         images, labels, mask = args.images, args.labels, args.mask
+    if args.source is not None:  # its every file, not only the images
+        check_output_folder(args.out, inputs=m.files)
     parameters: dict = {}
     for name, values in args.param:
         if name in parameters:

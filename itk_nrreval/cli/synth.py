@@ -8,10 +8,9 @@ renamed when complete.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from .._errors import InputError
-from .._output import check_output_folder
+from .._output import check_output_folder, staged_folder
 from ._options import seed
 
 
@@ -59,8 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from data_synth.population import make_population
     from data_synth.writing import write_population
 
-    out = Path(args.out)
-    check_output_folder(out)
+    out = check_output_folder(args.out)
     if args.kind not in ("phantom", "mni"):
         raise InputError(f"--kind must be 'phantom' or 'mni', got {args.kind!r}")
     if args.dim not in (2, 3):
@@ -88,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
         )
     except (ValueError, FileNotFoundError) as exc:
         raise InputError(str(exc).splitlines()[0]) from None
-    manifest = write_population(pop, out)
+    with staged_folder(out, keep=()) as stage:
+        manifest = out / write_population(pop, stage).name
     what = f"{args.kind}, {args.dim}D" + (
         "" if contrasts == ("t1",) else f", {'+'.join(contrasts)}"
     )

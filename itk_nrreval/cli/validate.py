@@ -110,7 +110,8 @@ def _section(text: str):
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._output import check_output_folder
+    from .._output import check_output_folder, staged_folder
+    from ..manifest import load_manifest
     from ..validation import FIT_FROM, synthetic_set, validate, validate_manifest
 
     if args.n_images < 3:
@@ -123,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--slice needs 3D data: add --dim 3 to --synthetic")
     if args.manifest and args.dim is not None:
         raise InputError("--dim applies to --synthetic only (a manifest has its own)")
-    out = check_output_folder(args.out)
+    inputs = load_manifest(args.manifest).files if args.manifest else ()
+    out = check_output_folder(args.out, inputs=inputs)
     weightings = tuple(args.weighting) if args.weighting else ("complexity", "inverse_volume")
     options = dict(
         displacements=args.displacements,
@@ -147,7 +149,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         source = str(args.manifest)
         result = validate_manifest(args.manifest, section=args.slice, source=source, **options)
-    paths = result.write(out)
+    with staged_folder(out, keep=()) as stage:
+        paths = [out / p.name for p in result.write(stage)]
     s = result.summary
     taken = result.parameters.get("section")
     where = f", slice {taken['axis']}:{taken['index']}" if taken else ""

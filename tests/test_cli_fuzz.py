@@ -1,0 +1,284 @@
+"""The command line under random damage: it never loses a file, never prints a traceback.
+
+Each example starts from a valid small data folder (a manifest, its images, label maps and
+transforms), damages it or the command's options at random, runs the command in process and
+checks, whatever happened:
+
+- the exit code is 0 or 2 (2 with one error line), and no traceback is printed;
+- every file that was there before is byte-identical afterwards (hashes before and after);
+- after exit 2, nothing at all was added anywhere: not in ``--out``, not beside it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import yaml
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from itk_nrreval._output import staged_folder
+from itk_nrreval.cli import main
+
+N = 4
+SIZE = 20
+
+
+def _image(arr: np.ndarray) -> sitk.Image:
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing((1.5, 1.0))
+    img.SetOrigin((3.0, -2.0))
+    return img
+
+
+def _write_base(folder: Path) -> None:
+    """N blob images with label maps, two registrations (displacement fields; affines)."""
+    folder.mkdir()
+    y, x = np.mgrid[0:SIZE, 0:SIZE].astype(float)
+    rng = np.random.default_rng(0)
+    images, labels, fields, affines = [], [], [], []
+    for i in range(N):
+        cy, cx = 10 + rng.uniform(-1.5, 1.5), 10 + rng.uniform(-1.5, 1.5)
+        blob = ((y - cy) / 6) ** 2 + ((x - cx) / 5) ** 2 < 1
+        inner = ((y - cy) / 2.5) ** 2 + ((x - cx - 1) / 2) ** 2 < 1
+        arr = (100.0 * blob + 40.0 * inner + rng.normal(0, 2, blob.shape)).astype(np.float32)
+        lab = (blob.astype(np.uint8) + inner.astype(np.uint8)).astype(np.uint8)
+        sitk.WriteImage(_image(arr), str(folder / f"s{i}.nii.gz"))
+        sitk.WriteImage(_image(lab), str(folder / f"l{i}.nii.gz"))
+        disp = np.zeros((SIZE, SIZE, 2))
+        disp[..., 0] = 0.6 * np.sin(y / 4.0 + i)
+        disp[..., 1] = 0.4 * np.cos(x / 5.0 - i)
+        field = sitk.GetImageFromArray(disp, isVector=True)
+        field.CopyInformation(_image(arr))
+        sitk.WriteImage(field, str(folder / f"w{i}.nii.gz"))
+        affine = sitk.AffineTransform(2)
+        affine.SetTranslation((0.3 * i, -0.2 * i))
+        sitk.WriteTransform(affine, str(folder / f"a{i}.tfm"))
+        images.append(f"s{i}.nii.gz")
+        labels.append(f"l{i}.nii.gz")
+        fields.append(f"w{i}.nii.gz")
+        affines.append(f"a{i}.tfm")
+    manifest = {
+        "images": images,
+        "labels": labels,
+        "registrations": {
+            "field": {"reference": "s0.nii.gz", "transforms": fields},
+            "affine": {"reference": "s0.nii.gz", "transforms": affines},
+        },
+    }
+    (folder / "manifest.yaml").write_text(yaml.safe_dump(manifest))
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("fuzz") / "data"
+    _write_base(folder)
+    return folder
+
+
+def _tree(root: Path) -> dict[str, str | None]:
+    """Every path below `root` with the digest of its bytes (None for a folder)."""
+    return {
+        str(p.relative_to(root)): (
+            hashlib.blake2b(p.read_bytes()).hexdigest() if p.is_file() else None
+        )
+        for p in sorted(root.rglob("*"))
+    }
+
+
+# ---- damage to the data --------------------------------------------------------------
+
+
+def _edit(data: Path, edit) -> None:
+    path = data / "manifest.yaml"
+    m = yaml.safe_load(path.read_text())
+    edit(m)
+    path.write_text(yaml.safe_dump(m))
+
+
+def _missing(data, i):
+    (data / f"s{i}.nii.gz").unlink()
+
+
+def _truncated(data, i):
+    p = data / f"w{i}.nii.gz"
+    p.write_bytes(p.read_bytes()[:60])
+
+
+def _text_as_nifti(data, i):
+    (data / f"l{i}.nii.gz").write_text("not an image\n")
+
+
+def _wrong_dimension(data, i):
+    sitk.WriteImage(sitk.Image([SIZE, SIZE, 3], sitk.sitkFloat32), str(data / f"s{i}.nii.gz"))
+
+
+def _four_d(data, i):
+    sitk.WriteImage(sitk.Image([SIZE, SIZE, 2, 2], sitk.sitkFloat32), str(data / f"s{i}.nii.gz"))
+
+
+def _nan(data, i):
+    arr = sitk.GetArrayFromImage(sitk.ReadImage(str(data / f"s{i}.nii.gz")))
+    arr[: SIZE // 2] = np.nan
+    sitk.WriteImage(_image(arr), str(data / f"s{i}.nii.gz"))
+
+
+def _swapped(data, i):
+    def edit(m):
+        m["images"][i], m["labels"][i] = m["labels"][i], m["images"][i]
+
+    _edit(data, edit)
+
+
+def _duplicate(data, i):
+    _edit(data, lambda m: m["images"].__setitem__(i, m["images"][(i + 1) % N]))
+
+
+def _wrong_count(data, i):
+    _edit(data, lambda m: m["labels"].pop(i))
+
+
+def _field_count(data, i):
+    _edit(data, lambda m: m["registrations"]["field"]["transforms"].pop(i))
+
+
+DATA_DAMAGE = {
+    "none": None,
+    "missing file": _missing,
+    "truncated file": _truncated,
+    "text renamed .nii.gz": _text_as_nifti,
+    "wrong dimension": _wrong_dimension,
+    "4D": _four_d,
+    "NaN": _nan,
+    "label map and image swapped": _swapped,
+    "duplicate entries": _duplicate,
+    "wrong label count": _wrong_count,
+    "wrong transform count": _field_count,
+}
+
+# ---- damage to the options -----------------------------------------------------------
+
+BAD_OPTIONS = {
+    "none": [],
+    "samples 0": ["--samples", "0"],
+    "samples text": ["--samples", "many"],
+    "seed negative": ["--seed", "-3"],
+    "distance unknown": ["--distance", "L7"],
+}
+
+# where the output goes, relative to the sandbox (which holds data/ and foreign/, own/)
+OUT_PLACES = ["new", "at the inputs", "above the inputs", "inside the inputs", "an input file",
+              "an existing file", "a foreign folder", "its own folder"]  # fmt: skip
+
+
+def _out_path(root: Path, place: str) -> Path:
+    return {
+        "new": root / "results",
+        "at the inputs": root / "data",
+        "above the inputs": root,
+        "inside the inputs": root / "data" / "results",
+        "an input file": root / "data" / "s1.nii.gz",
+        "an existing file": root / "notes.txt",
+        "a foreign folder": root / "foreign",
+        "its own folder": root / "own",
+    }[place]
+
+
+def _sandbox(base: Path, root: Path) -> None:
+    shutil.copytree(base, root / "data")
+    (root / "notes.txt").write_text("the user's notes\n")
+    (root / "foreign").mkdir()
+    (root / "foreign" / "thesis.tex").write_text("\\documentclass{article}\n")
+    with staged_folder(root / "own") as stage:  # what an earlier run left
+        (stage / "results.json").write_text("{}\n")
+
+
+def _command(name: str, root: Path, out: Path, options: list[str]) -> list[str]:
+    data = root / "data"
+    images = [str(data / f"s{i}.nii.gz") for i in range(N)]
+    labels = [str(data / f"l{i}.nii.gz") for i in range(N)]
+    quick = ["--quiet", "--seed", "0"]
+    if name == "evaluate":
+        return ["evaluate", str(data / "manifest.yaml"), "--out", str(out), "--samples", "100",
+                "--no-figures", "--no-confidence", *quick, *options]  # fmt: skip
+    if name == "specificity":
+        return ["specificity", *images, "--samples", "100", "--json", str(out), *quick, *options]
+    if name == "overlap":
+        return ["overlap", *labels, "--json", str(out), "--quiet"]
+    return ["synth", "--n", "3", "--out", str(out), "--seed", "0"]
+
+
+@settings(
+    max_examples=100,
+    deadline=None,
+    derandomize=True,  # the same examples in every run: a failure is reproducible
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    command=st.sampled_from(
+        ["evaluate", "evaluate", "evaluate", "specificity", "overlap", "synth"]
+    ),
+    # about half the examples leave each part undamaged, so that valid runs (exit 0) are
+    # common too: a damage is then tried both alone and with others
+    damage=st.sampled_from(["none"] * 6 + sorted(DATA_DAMAGE)),
+    which=st.integers(0, N - 1),
+    option=st.sampled_from(["none"] * 4 + sorted(BAD_OPTIONS)),
+    place=st.sampled_from(["new", "inside the inputs", "its own folder"] * 2 + OUT_PLACES),
+)
+def test_cli_under_random_damage_loses_nothing(
+    base, tmp_path_factory, capsys, command, damage, which, option, place
+):
+    root = tmp_path_factory.mktemp("case")
+    _sandbox(base, root)
+    if DATA_DAMAGE[damage] is not None:
+        DATA_DAMAGE[damage](root / "data", which)
+    options = BAD_OPTIONS[option] if command in ("evaluate", "specificity") else []
+    out = _out_path(root, place)
+    before = _tree(root)
+    capsys.readouterr()
+
+    code = main(_command(command, root, out, options))
+
+    err = capsys.readouterr().err
+    event(f"{command}: exit {code}")
+    assert "Traceback" not in err, err
+    assert code in (0, 2), (code, err)
+    after = _tree(root)
+    # a rerun into the toolkit's own folder replaces what the toolkit wrote there, nothing else
+    replaced = "own/" if place == "its own folder" and code == 0 else None
+    lost = {
+        p: d
+        for p, d in before.items()
+        if after.get(p) != d and not (replaced and p.startswith(replaced))
+    }
+    assert not lost, f"changed or removed: {sorted(lost)}"
+    if code == 2:
+        errors = [ln for ln in err.splitlines() if ": error: " in ln]
+        assert len(errors) == 1 and err.strip().endswith(errors[0]), err
+        assert after == before, f"left behind: {sorted(set(after) - set(before))}"
+    shutil.rmtree(root)
+
+
+@pytest.mark.parametrize(
+    "place", ["at the inputs", "above the inputs", "an input file", "a foreign folder"]
+)
+@pytest.mark.parametrize("command", ["evaluate", "specificity", "overlap", "synth"])
+def test_output_onto_the_inputs_is_refused_before_any_work(base, tmp_path, capsys, command, place):
+    """The issue's repro, for each command: refused with exit 2, every file kept."""
+    _sandbox(base, tmp_path)
+    out = _out_path(tmp_path, place)
+    before = _tree(tmp_path)
+    code = main(_command(command, tmp_path, out, []))
+    err = capsys.readouterr().err
+    if command in ("specificity", "overlap") and place in ("above the inputs", "at the inputs"):
+        assert code == 2 and "is a folder" in err
+    elif command == "synth" and place in ("at the inputs", "above the inputs"):
+        assert code == 2 and "did not make" in err
+    else:
+        assert code == 2, err
+    assert _tree(tmp_path) == before
