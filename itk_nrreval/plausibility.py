@@ -348,7 +348,10 @@ def deformation_measures(
             m2_log += m2 + delta * delta * n_log * logs.size / total
             n_log = total
         if round_trip is not None:
-            err = sitk.GetArrayViewFromImage(displacement_field(round_trip, slab_grid))
+            # An array view does not keep its image alive: name the image, or the view
+            # reads freed memory (zeros on a Dask worker, issue 25).
+            err_field = displacement_field(round_trip, slab_grid)
+            err = sitk.GetArrayViewFromImage(err_field)
             norms = np.sqrt(np.sum(err * err, axis=-1))
             err_sum += float(norms[sel].sum() if sel is not None else norms.sum())
 
