@@ -10,9 +10,10 @@ them. The work is cut so that no process holds the N x n data (N images, n voxel
    the overlap needs (label gradients, presence) and the deformation's plausibility
    (:mod:`itk_nrreval.plausibility`, on the registration's own reference grid). Each
    result is written to a disk cache under a digest of everything it depends on (input
-   file contents, transforms, the frame, grid, mask, settings; :mod:`itk_nrreval.cache`),
-   so a rerun -- after an interruption, or with more images or registrations -- finds it
-   there instead of recomputing it;
+   file contents, transforms, the frame, grid, mask, settings, and the code version: the
+   package's and the task's, ``_TASK_VERSIONS``; :mod:`itk_nrreval.cache`), so a rerun
+   -- after an interruption, or with more images or registrations -- finds it there
+   instead of recomputing it;
 2. **per voxel block** (a few tasks per registration): every image's block is read back
    (memory-mapped) to add that block's share of the N x N Gram matrix of the centred
    images, the mean image, and the overlap pair sums per label;
@@ -43,6 +44,7 @@ from typing import Any, Protocol
 import numpy as np
 import SimpleITK as sitk
 
+from . import _version
 from ._errors import InputError
 from ._images import Geometry, mask_array, read_image
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
@@ -83,7 +85,26 @@ __all__ = [
 ]
 
 _FORMAT = 6  # bump when what a cache entry holds changes
+#: The computation version of each cached task: bump a task's number whenever what it
+#: computes changes (a fix, a new default), so that entries computed the old way are never
+#: reused. Every key also holds the package version (:func:`_task_key`).
+_TASK_VERSIONS = {
+    "estimate": 1,
+    "frame": 1,
+    "frame_disp": 1,
+    "reg_mask": 1,
+    "resampled": 2,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    "label_sums": 1,
+}
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
+
+
+def _task_key(kind: str, *parts) -> str:
+    """The cache key of a `kind` entry: its code version and `parts`.
+
+    `parts` must hold every input and every option the entry's result depends on.
+    """
+    return digest_of([kind, _FORMAT, _version.__version__, _TASK_VERSIONS[kind], *parts])
 
 
 # ----------------------------------------------------------------------------- executors
@@ -155,7 +176,7 @@ def _frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Tran
 def _estimate_task(ctx: _Context, common_item, item, reg_grid: Geometry) -> tuple[str, bool]:
     """Cache ``F_i(p) - p`` on the common grid; return (key, reused)."""
     cache = ctx.cache()
-    key = digest_of(["estimate", _FORMAT, ctx.grid, common_item, item, reg_grid])
+    key = _task_key("estimate", ctx.grid, common_item, item, reg_grid)
     if cache.get("estimate", key) is not None:
         return key, True
     tr = chain_transform(item)
@@ -209,22 +230,19 @@ def _resample_task(
     """
     cache = ctx.cache()
     g = ctx.grid
-    key = digest_of(
-        [
-            "resampled",
-            _FORMAT,
-            g,
-            ctx.mask_key,
-            image,
-            labels,
-            item,
-            frame_digest,
-            reg_grid,
-            interpolation,
-            reg_mask_key,
-            ctx.inverse_consistency,
-            list(label_resampling),
-        ]
+    key = _task_key(
+        "resampled",
+        g,
+        ctx.mask_key,
+        image,
+        labels,
+        item,
+        frame_digest,
+        reg_grid,
+        interpolation,
+        reg_mask_key,
+        ctx.inverse_consistency,
+        list(label_resampling),
     )
     entry = cache.get("resampled", key)
     if entry is not None:
@@ -273,7 +291,7 @@ def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
     ``({"gsum": [...], "present": [...]}, reused)``, one entry per label of the image.
     """
     cache = ctx.cache()
-    sums_key = digest_of(["label_sums", _FORMAT, key, ctx.mask_key])
+    sums_key = _task_key("label_sums", key, ctx.mask_key)
     found = cache.get("label_sums", sums_key)
     if found is not None:
         return dict(found.meta), True
@@ -805,7 +823,7 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
         keys[i] = key
         counts.add(reused)
     if spec is None:
-        key = digest_of(["frame", _FORMAT, keys])
+        key = _task_key("frame", keys)
         if disk.get("frame", key) is None:
             total = None
             for k in keys:  # streamed: one field in memory at a time
@@ -816,7 +834,7 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
     digest = digest_of([spec[0], spec[1:]])
     f = _frame_transform(spec, ctx.grid, disk)
     # F(p) - p on the common grid, once, for every image's spread task
-    disp_key = digest_of(["frame_disp", _FORMAT, ctx.grid, digest])
+    disp_key = _task_key("frame_disp", ctx.grid, digest)
     if disk.get("frame_disp", disp_key) is None:
         disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
     calls = [(ctx, k, disp_key) for k in keys]
@@ -845,7 +863,7 @@ def _registration_mask(
     """
     if mask is None:
         return None
-    key = digest_of(["reg_mask", _FORMAT, ctx.mask_key, frame_digest, ctx.grid, reg_grid])
+    key = _task_key("reg_mask", ctx.mask_key, frame_digest, ctx.grid, reg_grid)
     if disk.get("reg_mask", key) is not None:
         return key
     img = sitk.GetImageFromArray(mask.astype(np.uint8))

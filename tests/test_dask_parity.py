@@ -1,4 +1,4 @@
-"""The Dask path writes the same results.json as the in-process path, and the cache keys.
+"""The Dask path writes the same results.json as the in-process path; what cache keys hold.
 
 Issue 25: ``--scheduler local`` reported ``inverse_consistency_mm = 0.0`` for every
 registration, and a rerun that reused its cache kept the 0.0.
@@ -15,9 +15,11 @@ import sys
 import pytest
 import SimpleITK as sitk
 import yaml
+from test_evaluate import make_case
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
+from itk_nrreval import _version, pipeline
 from itk_nrreval.transforms import invert
 
 pytest.importorskip("dask.distributed")
@@ -33,19 +35,22 @@ EXECUTION_FIELDS = {
 }
 
 
-def assert_same_json(a, b, path=()) -> None:
-    """`a` and `b` equal key by key, recursively; floats to REL (or ABS near zero)."""
-    if path in EXECUTION_FIELDS:
+def assert_same_json(a, b, path=(), *, ignore=EXECUTION_FIELDS) -> None:
+    """`a` and `b` equal key by key, recursively; floats to REL (or ABS near zero).
+
+    `ignore`: key paths (tuples) not compared.
+    """
+    if path in ignore:
         return
     where = "/".join(map(str, path)) or "<root>"
     if isinstance(a, dict):
         assert isinstance(b, dict) and sorted(a) == sorted(b), where
         for k in a:
-            assert_same_json(a[k], b[k], (*path, k))
+            assert_same_json(a[k], b[k], (*path, k), ignore=ignore)
     elif isinstance(a, list):
         assert isinstance(b, list) and len(a) == len(b), where
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            assert_same_json(x, y, (*path, i))
+            assert_same_json(x, y, (*path, i), ignore=ignore)
     elif isinstance(a, float) and type(b) is float:
         assert math.isclose(a, b, rel_tol=REL, abs_tol=ABS), (where, a, b)
     else:
@@ -117,3 +122,88 @@ def test_inverse_consistency_under_the_dask_workers_allocator(tmp_path):
         check=True,
     )
     assert float(done.stdout) == pytest.approx(expected, rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- cache keys
+
+FAST = dict(n_samples=500, seed=5, progress=False, confidence=False)
+N_IMAGES = 6  # make_case's
+
+
+def one_registration(tmp_path):
+    """make_case's registration "truth" alone (displacement fields; no frame estimates)."""
+    data = make_case(tmp_path)
+    data["registrations"] = {"truth": data["registrations"]["truth"]}
+    path = tmp_path / "manifest.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path, tmp_path / "cache"
+
+
+def resampled_metas(cache) -> list:
+    return sorted((cache / "resampled").glob("*/*/entry.json"))
+
+
+def inverse_consistency(result) -> dict:
+    return {n: s.plausibility.inverse_consistency_mm for n, s in result.scores.items()}
+
+
+@pytest.mark.parametrize(
+    "first, second",
+    [
+        ({"inverse_consistency": False}, {}),
+        ({}, {"interpolation": "bspline"}),
+        ({}, {"label_interpolation": "nearest"}),
+        ({}, {"label_interpolation": "gaussian", "label_sigma_mm": 1.0}),
+        (
+            {"label_interpolation": "gaussian", "label_sigma_mm": 1.0},
+            {"label_interpolation": "gaussian", "label_sigma_mm": 2.0},
+        ),
+    ],
+)
+def test_cache_not_reused_when_a_per_image_option_changes(tmp_path, first, second):
+    """Every option that changes a per-image result changes its key: it is recomputed.
+
+    The reference is a run of `second` on a fresh cache.
+    """
+    manifest, cache = one_registration(tmp_path)
+    nr.evaluate(manifest, cache=cache, **first, **FAST)
+    again = nr.evaluate(manifest, cache=cache, **second, **FAST)
+    assert again.run["cache_computed"] == N_IMAGES
+    fresh = nr.evaluate(manifest, cache=tmp_path / "fresh", **second, **FAST)
+    # "run" holds the cache counts: computed afresh or not, they differ by construction
+    assert_same_json(fresh.to_dict(), again.to_dict(), ignore={("run",)})
+
+
+def test_cache_not_reused_across_computation_versions(tmp_path, monkeypatch):
+    """Entries of an older computation of a task (here: the 0.0 of issue 25) are not reused.
+
+    The run under the older version number writes its entries, which are then changed to
+    what the buggy code wrote (inverse_consistency_mm 0.0); that version reuses them, the
+    current one recomputes them.
+    """
+    manifest, cache = one_registration(tmp_path)
+    current = pipeline._TASK_VERSIONS["resampled"]
+    with monkeypatch.context() as patch:
+        patch.setitem(pipeline._TASK_VERSIONS, "resampled", current - 1)
+        right = inverse_consistency(nr.evaluate(manifest, cache=cache, **FAST))
+        for path in resampled_metas(cache):
+            entry = json.loads(path.read_text())
+            entry["meta"]["plausibility"]["inverse_consistency_mm"] = 0.0
+            path.write_text(json.dumps(entry))
+        old = nr.evaluate(manifest, cache=cache, **FAST)
+        assert old.run["cache_computed"] == 0  # the tampered entries are the ones read
+        assert set(inverse_consistency(old).values()) == {0.0}
+    new = nr.evaluate(manifest, cache=cache, **FAST)
+    assert new.run["cache_computed"] == N_IMAGES
+    assert inverse_consistency(new) == pytest.approx(right, rel=1e-12)
+    assert min(right.values()) > 1e-3
+
+
+def test_cache_not_reused_across_package_versions(tmp_path, monkeypatch):
+    manifest, cache = one_registration(tmp_path)
+    with monkeypatch.context() as patch:
+        patch.setattr(_version, "__version__", "0.0.1")
+        nr.evaluate(manifest, cache=cache, **FAST)
+    new = nr.evaluate(manifest, cache=cache, **FAST)
+    assert new.run["cache_computed"] == N_IMAGES and new.run["cache_reused"] == 0
+    assert nr.evaluate(manifest, cache=cache, **FAST).run["cache_reused"] == N_IMAGES
