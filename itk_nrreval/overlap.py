@@ -20,6 +20,7 @@ target overlap, come from that table. The kernels live in :mod:`._overlap_kernel
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import warnings
@@ -40,6 +41,7 @@ from ._overlap_kernels import (
     membership_stats,
 )
 from ._progress import progress
+from .memberships import membership_file_labels
 
 __all__ = ["WEIGHTINGS", "OverlapTable", "overlap_table", "generalized_overlap"]
 
@@ -406,17 +408,23 @@ def overlap_table(
         - a sequence of scalar SimpleITK images or files: crisp label maps (a floating pixel
           type is accepted when every value is an integer);
         - a sequence of multi-component images or files (one per subject, components as
-          above): fuzzy memberships.
+          above): fuzzy memberships;
+        - a sequence of membership files that name their labels (a JSON sidecar or header
+          from :func:`itk_nrreval.memberships.write_membership_image`, as written by
+          ``nrreval evaluate --save-resampled``): component k is the membership of the label
+          the file names for it, and there is no background component. One label may come
+          as a scalar image.
 
         The dtype of a bare array decides: crisp label maps must have an integer dtype.
     label_values : sequence of int, optional
         The labels to evaluate. Default: every value present in any image (crisp), or every
         component with a nonzero membership somewhere (fuzzy), less background 0 unless
         `include_background`. When given, they are used as given (`include_background` has
-        no effect); fuzzy label values must be component indices. Values absent from every
-        image are skipped with a warning.
+        no effect); fuzzy label values must be component indices, unless the files name
+        their labels. Values absent from every image are skipped with a warning.
     include_background : bool
-        Keep label 0 (component 0 for fuzzy input) in the default label set.
+        Keep label 0 (component 0 for fuzzy input) in the default label set. An error for
+        files that name their labels without a background one.
     mask : ndarray of bool of shape (*spatial), sitk.Image, path, or None
         Sum only over voxels inside the mask. Gradients are still taken on the full grid.
     spacing : sequence of float, optional
@@ -442,7 +450,8 @@ def overlap_table(
     ------
     InputError
         Fewer than two images, images on different grids, non-integer values in a crisp label
-        map, memberships outside [0, 1], a mixture of scalar and multi-component images, or no
+        map, memberships outside [0, 1], a mixture of scalar and multi-component images, files
+        that name different labels (or some that name theirs and some that do not), or no
         label to evaluate.
     ValueError
         Bad `spacing` or `label_values`.
@@ -478,14 +487,21 @@ def overlap_table(
     n_images = data.shape[0]
     if n_images < 2:
         raise InputError(f"label maps: need at least 2 to form a pair, got {n_images}")
-    fuzzy = _is_fuzzy(stack)
+    component_labels = _component_labels(labels, names)
+    fuzzy = component_labels is not None or _is_fuzzy(stack)
+    if component_labels is not None and data.ndim == stack.geometry.dimension + 1:
+        # one label: NIfTI has no one-component vector image, the file is scalar
+        data = data[:, np.newaxis]
     spatial = data.shape[2:] if fuzzy else data.shape[1:]
     if len(spatial) == 0:
         raise InputError(f"label maps: no spatial axis in an array of shape {data.shape}")
     spacing_itk = _spacing(spacing, stack.geometry, len(spatial))
     mask_flat = mask_array(mask, shape=spatial, geometry=stack.geometry)
     mask_flat = None if mask_flat is None else mask_flat.reshape(-1)
-    sums = _fuzzy_sums if fuzzy else _crisp_sums
+    if fuzzy:
+        sums = functools.partial(_fuzzy_sums, component_labels=component_labels)
+    else:
+        sums = _crisp_sums
     values, skipped, vol, s_pairs, gsum, p, q = sums(
         data,
         names,
@@ -553,6 +569,29 @@ def _check_components(labels) -> None:
         elif n != first[0]:
             name = str(item) if not isinstance(item, sitk.Image) else f"label map[{i}]"
             raise InputError(f"{name}: has {n} components per voxel, but {first[1]} has {first[0]}")
+
+
+def _component_labels(labels, names) -> tuple[int, ...] | None:
+    """The labels every file names for its components (one list for all), or None when no
+    file names them; a mixture, or different lists, is an error naming the odd file."""
+    if isinstance(labels, np.ndarray):
+        return None
+    named = [membership_file_labels(item, name=n) for item, n in zip(labels, names, strict=True)]
+    first = named[0]
+    for n, own in zip(names[1:], named[1:], strict=True):
+        if own == first:
+            continue
+        if own is None or first is None:
+            says, silent = (names[0], n) if own is None else (n, names[0])
+            raise InputError(
+                f"{silent}: does not say which labels its components are, but {says} does; "
+                "pass membership files written the same way"
+            )
+        raise InputError(
+            f"{n}: its components are labels {list(own)}, but those of {names[0]} are "
+            f"labels {list(first)}"
+        )
+    return first
 
 
 def _spacing(spacing, geometry, ndim: int) -> tuple[float, ...]:
@@ -667,6 +706,27 @@ def _crisp_sums(
 # -- fuzzy memberships ---------------------------------------------------------------------
 
 
+def _named_candidates(component_labels, comp_present, label_values, include_background, names):
+    """Components to evaluate, their label values (ascending) and the skipped label values,
+    for files that name the label of each component."""
+    named = np.asarray(component_labels, dtype=np.int64)
+    if label_values is None:
+        if include_background and 0 not in component_labels:
+            raise InputError(
+                f"{names[0]}: no background component (its components are labels "
+                f"{list(component_labels)}): background cannot be included"
+            )
+        wanted = np.sort(named if include_background else named[named != 0])
+    else:
+        wanted = _explicit_values(label_values)
+    where = {int(v): k for k, v in enumerate(named)}
+    components = np.array([where.get(int(v), -1) for v in wanted], dtype=np.int64)
+    keep = components >= 0  # a label no file has a component for is absent from every image
+    keep[keep] = comp_present[components[keep]]
+    skipped = tuple(int(v) for v in wanted[~keep])
+    return components[keep], wanted[keep], skipped
+
+
 def _fuzzy_sums(
     data,
     names,
@@ -676,11 +736,16 @@ def _fuzzy_sums(
     spatial,
     spacing_itk,
     *,
+    component_labels: tuple[int, ...] | None,
     complexity: bool,
     target_overlap: bool,
     show: bool = False,
 ):
-    """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
+    """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`.
+
+    Without `component_labels`, component k is label k (0: background); with them, it is
+    label ``component_labels[k]``.
+    """
     n_images, n_comp = data.shape[:2]
     flat = data.reshape(n_images, n_comp, -1)
     if flat.dtype not in (np.float32, np.float64):
@@ -694,18 +759,23 @@ def _fuzzy_sums(
                 "crisp label maps must have an integer type"
             )
     comp_present = present.any(axis=0)
-    if label_values is None:
-        candidates = np.arange(0 if include_background else 1, n_comp, dtype=np.int64)
+    if component_labels is not None:
+        components, values, skipped = _named_candidates(
+            component_labels, comp_present, label_values, include_background, names
+        )
     else:
-        candidates = _explicit_values(label_values)
-        if candidates[0] < 0 or candidates[-1] >= n_comp:
-            raise ValueError(
-                f"label_values of fuzzy input must be component indices 0..{n_comp - 1}, "
-                f"got {label_values!r}"
-            )
-    keep = comp_present[candidates]
-    values = candidates[keep]
-    skipped = tuple(int(v) for v in candidates[~keep])
+        if label_values is None:
+            candidates = np.arange(0 if include_background else 1, n_comp, dtype=np.int64)
+        else:
+            candidates = _explicit_values(label_values)
+            if candidates[0] < 0 or candidates[-1] >= n_comp:
+                raise ValueError(
+                    f"label_values of fuzzy input must be component indices 0..{n_comp - 1}, "
+                    f"got {label_values!r}"
+                )
+        keep = comp_present[candidates]
+        components = values = candidates[keep]
+        skipped = tuple(int(v) for v in candidates[~keep])
     if values.size == 0:
         raise _no_labels(names, include_background or label_values is not None)
 
@@ -719,7 +789,7 @@ def _fuzzy_sums(
     for k in progress(
         range(n_labels), desc="overlap", total=n_labels, enabled=show and work > _PROGRESS_MIN_WORK
     ):
-        rows = flat[:, int(values[k])]  # (N, n_voxels), rows adjacent in memory
+        rows = flat[:, int(components[k])]  # (N, n_voxels), rows adjacent in memory
         if complexity:
             gsum[:, k] = membership_gradient_sums(
                 rows, shape=spatial, spacing=spacing_itk, mask=mask_flat

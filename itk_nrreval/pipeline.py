@@ -63,7 +63,7 @@ from .frame import (
     resampling_transform,
 )
 from .manifest import Manifest
-from .memberships import SparseMemberships, resample_label_memberships
+from .memberships import SparseMemberships, resample_label_memberships, write_membership_image
 from .model import TextureModel
 from .overlap import OverlapTable
 from .plausibility import (
@@ -584,7 +584,9 @@ def run_pipeline(
     show_progress : bool
         Progress bars on stderr.
     save_resampled : path, optional
-        Write each registration's resampled images and label memberships (NIfTI) here.
+        Write each registration's resampled images and label memberships (NIfTI, each with
+        a JSON sidecar saying what it is: :func:`_save_resampled`) in a folder of its name
+        here, and the evaluated region as ``region.nii.gz``.
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
     label_interpolation, label_sigma_mm
@@ -667,6 +669,8 @@ def run_pipeline(
             thumbnails[name] = _thumbnails(disk, grid, reg_grid, keys, metas)
 
         region, coverage = _region(disk, grid, mask, m, resampled)
+        if save_resampled is not None:
+            _save_region(Path(save_resampled), grid, region)
         region_ctx = ctx
         if region is not None and (mask is None or not np.array_equal(region, mask)):
             flat = region.reshape(-1)
@@ -876,6 +880,10 @@ def _registration_mask(
     return key
 
 
+#: The evaluated region, written beside the registrations' folders by --save-resampled.
+_REGION_FILE = "region.nii.gz"
+
+
 def _save_resampled(
     disk: DiskCache,
     keys: Sequence[str],
@@ -884,20 +892,40 @@ def _save_resampled(
     folder: Path,
     values: list[int] | None,
 ) -> None:
-    """Write ``image_###.nii.gz`` and (with labels) ``memberships_###.nii.gz``.
+    """Write ``image_###.nii.gz`` and (with labels) ``memberships_###.nii.gz``, each with a
+    JSON sidecar (``image_###.json``, ``memberships_###.json``) that says what it is.
 
-    The memberships have one component per nonzero label value (``values[1:]``, in that
-    order); background is one minus their sum inside an image's field of view.
+    The images are float64, in the input's intensity units, 0 outside the subject's field of
+    view (NIfTI keeps no NaN). The memberships have one component per nonzero label value
+    (``values[1:]``, in that order) and no background component
+    (:func:`itk_nrreval.memberships.write_membership_image` gives the format).
     """
-    from ._output import atomic_path
+    from ._output import atomic_path, write_json
 
     folder.mkdir(parents=True, exist_ok=True)
     for i, key in enumerate(keys):
         entry = disk.open("resampled", key)
         img = sitk.GetImageFromArray(entry.array("image").reshape(grid.shape))
         grid.apply_to(img)
+        # ITK's NIfTI writer puts this key in the header's description (`descrip`)
+        img.SetMetaData("ITK_FileNotes", "nrreval resampled image; 0 outside the field of view")
         with atomic_path(folder / f"image_{i:03d}.nii.gz") as tmp:
             sitk.WriteImage(img, str(tmp), True)
+        about = {
+            "subject": i,
+            "registration": folder.name,
+            "evaluated_region": f"../{_REGION_FILE}",
+        }
+        write_json(
+            folder / f"image_{i:03d}.json",
+            {
+                "kind": "resampled image",
+                "image": f"image_{i:03d}.nii.gz",
+                "outside_field_of_view": 0.0,
+                "coverage": metas[i]["coverage"],
+                **about,
+            },
+        )
         if values is None:
             continue
         memb = SparseMemberships(
@@ -911,10 +939,29 @@ def _save_resampled(
         own = memb.dense()
         for j, v in enumerate(metas[i]["labels"]):
             dense[values.index(v) - 1] = own[j]
-        vec = sitk.GetImageFromArray(np.moveaxis(dense, 0, -1), isVector=True)
-        grid.apply_to(vec)
-        with atomic_path(folder / f"memberships_{i:03d}.nii.gz") as tmp:
-            sitk.WriteImage(vec, str(tmp), True)
+        write_membership_image(
+            folder / f"memberships_{i:03d}.nii.gz",
+            dense,
+            labels=values[1:],
+            geometry=grid,
+            about=about,
+        )
+
+
+def _save_region(folder: Path, grid: Geometry, region: np.ndarray | None) -> None:
+    """Write ``region.nii.gz`` (uint8, 1 where the scores were taken) beside the
+    registrations' folders of saved images: ``nrreval overlap --mask`` with it reproduces
+    evaluate's overlap from the saved memberships. `region` None is the whole grid."""
+    from ._output import atomic_path
+
+    where = np.ones(grid.shape, np.uint8) if region is None else region.astype(np.uint8)
+    img = sitk.GetImageFromArray(where)
+    grid.apply_to(img)
+    # ITK's NIfTI writer puts this key in the header's description (`descrip`)
+    img.SetMetaData("ITK_FileNotes", "nrreval evaluated region; 1 where the scores were taken")
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / _REGION_FILE) as tmp:
+        sitk.WriteImage(img, str(tmp), True)
 
 
 def _thumbnails(

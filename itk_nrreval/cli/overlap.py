@@ -22,7 +22,8 @@ def add_parser(sub) -> None:
         help="generalized Tanimoto overlap of registered label maps (the ground-truth reference)",
         description="Generalized Tanimoto overlap (Crum et al. 2006, eq. 4 without pair weights) "
         "of N label maps on one grid: integer label images, or one multi-component membership "
-        "image per subject. Higher is better.",
+        "image per subject (component k is label k, 0 the background, unless the files name "
+        "their labels, as those of `nrreval evaluate --save-resampled` do). Higher is better.",
     )
     p.add_argument("labels", nargs="+", metavar="LABELS", help="label maps (NIfTI, MHA, NRRD)")
     p.add_argument(
