@@ -35,6 +35,7 @@ import hashlib
 import os
 import pickle
 import sys
+import warnings
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -56,6 +57,10 @@ __all__ = [
     "image_digest",
     "is_finite",
     "itk_kind",
+    "SPATIAL_DIMENSIONS",
+    "dimension_problem",
+    "label_like_values",
+    "warn_label_like",
 ]
 
 ImageLike = "np.ndarray | sitk.Image | itk.Image | dict | str | os.PathLike"
@@ -366,6 +371,63 @@ def _restore_image(data: bytes, *state) -> InMemoryImage:
     return InMemoryImage(pickle.loads(data), *state)
 
 
+# ----------------------------------------------------------------------------- checks
+# One set of checks on what an image holds, for every command and the manifest loader.
+
+SPATIAL_DIMENSIONS = (2, 3)  # what the registrations, the frame and the warps are made for
+
+
+def dimension_problem(dimension: int, *, what: str = "image") -> str | None:
+    """Why an image of `dimension` spatial dimensions cannot be used, or None (2D or 3D).
+
+    The text follows the image's name in a message: ``"s00.nii.gz is 4D; expected a 2D or
+    3D image"``. A 4D file (a time series) would otherwise be scored as if its time axis
+    were space.
+    """
+    if dimension in SPATIAL_DIMENSIONS:
+        return None
+    return f"is {dimension}D; expected a 2D or 3D {what}"
+
+
+LABEL_LIKE_VALUES = 32  # an image with at most this many distinct integer values
+_LABEL_LIKE_PROBE = 4096  # voxels looked at first: an intensity image is told apart there
+
+
+def label_like_values(image: sitk.Image) -> int | None:
+    """The number of distinct values when `image` looks like a label map, else None.
+
+    It looks like one when every voxel value is an integer and there are at most
+    :data:`LABEL_LIKE_VALUES` distinct values. A label map given as an image scores as a
+    wildly variable texture (every label boundary a step of several intensity units):
+    worth a warning (:func:`warn_label_like`), not an error.
+    """
+    arr = sitk.GetArrayViewFromImage(image)
+    flat = arr.reshape(-1)
+    # A regular subsample holds a subset of the values: when it already has a non-integer or
+    # too many distinct values, so has the image, and the full sort below is skipped.
+    probe = flat[:: max(1, flat.size // _LABEL_LIKE_PROBE)]
+    for values in (probe, flat):
+        if values.dtype.kind == "f" and not np.array_equal(values, np.round(values)):
+            return None
+        found = np.unique(values)
+        if found.size > LABEL_LIKE_VALUES:
+            return None
+    return int(found.size)
+
+
+def warn_label_like(name: str, n_values: int, *, stacklevel: int = 2) -> None:
+    """Warn that image `name`, holding `n_values` distinct integer values, looks like a label map.
+
+    `stacklevel` counts as :func:`warnings.warn`'s does from the caller of this function.
+    """
+    warnings.warn(
+        f"{name}: the image holds only {n_values} distinct integer values: is it a label map "
+        "given as an image?",
+        UserWarning,
+        stacklevel=stacklevel + 1,
+    )
+
+
 # ----------------------------------------------------------------------------- files
 
 
@@ -452,7 +514,12 @@ def _as_sitk(item, name: str, what: str) -> sitk.Image:
 
 
 def image_stack(
-    images, *, what: str = "image", dtype=np.float64, allow_vector: bool = False
+    images,
+    *,
+    what: str = "image",
+    dtype=np.float64,
+    allow_vector: bool = False,
+    warn_if_label_like: bool = False,
 ) -> ImageStack:
     """Turn an array, a list of SimpleITK images or a list of paths into an :class:`ImageStack`.
 
@@ -468,12 +535,16 @@ def image_stack(
         Cast the voxel values to this type; None keeps the file's type.
     allow_vector : bool
         Accept multi-component images; components become the second axis of ``data``.
+    warn_if_label_like : bool
+        Warn about each image of a sequence that looks like a label map
+        (:func:`label_like_values`), as ``evaluate`` does.
 
     Raises
     ------
     InputError
-        Unreadable files, or images whose size, spacing, origin or direction differ from the
-        first one's (the message names the first offending image), or non-finite values.
+        Unreadable files, images that are not 2D or 3D (:func:`dimension_problem`), images
+        whose size, spacing, origin or direction differ from the first one's (the message
+        names the first offending image), or non-finite values.
     """
     if isinstance(images, np.ndarray):
         data = images if dtype is None else np.asarray(images, dtype=dtype)
@@ -498,6 +569,8 @@ def image_stack(
     arrays = []
     for item, name in zip(images, names, strict=True):
         img = _as_sitk(item, name, what)
+        if (problem := dimension_problem(img.GetDimension(), what=what)) is not None:
+            raise InputError(f"{name}: {problem}")
         if img.GetNumberOfComponentsPerPixel() > 1 and not allow_vector:
             raise InputError(
                 f"{name}: has {img.GetNumberOfComponentsPerPixel()} components per voxel, "
@@ -508,6 +581,8 @@ def image_stack(
             geometry = g
         elif (problem := geometry.mismatch(g)) is not None:
             raise InputError(f"{name}: not on the grid of {names[0]}: {problem}")
+        if warn_if_label_like and (n_values := label_like_values(img)) is not None:
+            warn_label_like(name, n_values)
         arr = sitk.GetArrayFromImage(img)
         if arr.ndim == g.dimension + 1:  # vector image: components last in sitk, first for us
             arr = np.moveaxis(arr, -1, 0)

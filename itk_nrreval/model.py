@@ -97,9 +97,14 @@ class TextureModel:
         ------
         InputError
             Fewer than 3 images, images on different grids, NaN or infinite voxels, or
-            images that are all identical (no mode of variation).
+            images that are all identical (no mode of variation), images not 2D or 3D.
+
+        Warns
+        -----
+        UserWarning
+            An image given as a file or an image object that looks like a label map.
         """
-        stack = image_stack(images)
+        stack = image_stack(images, warn_if_label_like=True)
         n = stack.data.shape[0]
         if n < 3:
             raise InputError(f"need at least 3 images to build a texture model, got {n}")

@@ -46,7 +46,7 @@ import SimpleITK as sitk
 
 from . import _version
 from ._errors import InputError
-from ._images import Geometry, mask_array, read_image
+from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
 from ._progress import progress
 from .cache import DiskCache, digest_of
@@ -268,7 +268,7 @@ def _resample_task(
     meta: dict = {
         "plausibility": plaus.to_dict(),
         "log_jacobian_histogram": jac.histogram(),
-        "label_like": _label_like(raw),
+        "label_like": label_like_values(raw),
         "coverage": float(inside.mean()) if inside.size else 0.0,
     }
     if labels is not None:
@@ -316,22 +316,6 @@ def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
     meta = {"gsum": gsum, "present": present}
     cache.put("label_sums", sums_key, {}, meta)
     return meta, False
-
-
-_LABEL_LIKE_VALUES = 32  # an image with at most this many distinct integer values
-
-
-def _label_like(image: sitk.Image) -> int | None:
-    """The number of distinct values when `image` looks like a label map, else None.
-
-    A label map given as an image scores as a wildly variable texture (every label boundary
-    a step of several intensity units): worth a warning, not an error.
-    """
-    arr = sitk.GetArrayViewFromImage(image)
-    if arr.dtype.kind == "f" and not np.array_equal(arr, np.round(arr)):
-        return None
-    found = np.unique(arr)
-    return int(found.size) if found.size <= _LABEL_LIKE_VALUES else None
 
 
 def _block_task(
@@ -657,12 +641,7 @@ def run_pipeline(
                 counts.add(reused)
                 if meta.get("label_like") and i not in warned:
                     warned.add(i)
-                    warnings.warn(
-                        f"{m.images[i]}: the image holds only {meta['label_like']} distinct "
-                        "integer values: is it a label map given as an image?",
-                        UserWarning,
-                        stacklevel=3,
-                    )
+                    warn_label_like(str(m.images[i]), meta["label_like"], stacklevel=3)
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
             resampled[name] = (keys, metas, frame)

@@ -65,6 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
     manifest = load_manifest(args.manifest)  # every problem, before any work
     out = check_output_folder(args.out, inputs=manifest.files)
+    _warn_label_like_images(manifest)
     names = list(dict.fromkeys(args.registration))
     unknown = [n for n in names if n not in manifest.registrations]
     if unknown:
@@ -84,6 +85,15 @@ def run(args: argparse.Namespace) -> int:
     print(result.table_markdown(), end="")
     print(f"results written to {out}/ ({', '.join(p.name for p in paths)})")
     return 0
+
+
+def _warn_label_like_images(manifest) -> None:
+    """Warn about each image that looks like a label map, as ``evaluate`` does."""
+    from .._images import label_like_values, read_image, warn_label_like
+
+    for item in manifest.images:
+        if (n_values := label_like_values(read_image(item))) is not None:
+            warn_label_like(str(item), n_values)
 
 
 def write_reports(results: Sequence, out: str | Path, *, images: Sequence[str] = ()) -> list[Path]:

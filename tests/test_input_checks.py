@@ -1,0 +1,132 @@
+"""One set of input checks for every command (issue 25, items 4, 5 and 9).
+
+Each command that reads images refuses the same things with the same one-line message
+(exit code 2, the file named) and warns about the same things: a 4D image, a label map
+given as an image. A manifest whose images disagree names the odd one out. Through the CLI
+in process, on small files written here.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+import yaml
+from test_bad_inputs import assert_one_line, run_cli
+
+# evaluate's warning, as tests/test_bad_inputs.py pins it (one line, after the CLI's prefix)
+LABEL_LIKE = (
+    r"the image holds only \d+ distinct integer values: is it a label map given as an image\?"
+)
+
+
+def write_2d(path: Path, seed: int, *, size: int = 16) -> Path:
+    """A smooth random float 2D image (every value distinct)."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    arr = np.sin(3 * x + rng.uniform(0, 3)) + np.cos(2 * y) + 0.1 * rng.random((size, size))
+    sitk.WriteImage(sitk.GetImageFromArray(arr.astype(np.float32)), str(path))
+    return path
+
+
+def write_label_map(path: Path, seed: int, *, size: int = 16) -> Path:
+    """A uint8 2D label map with labels 0..3 (a disc and two squares, shifted per seed)."""
+    y, x = np.mgrid[0:size, 0:size]
+    lab = np.zeros((size, size), np.uint8)
+    lab[(y - 8) ** 2 + (x - 8) ** 2 < 30] = 1
+    lab[2 : 5 + seed % 2, 2:5] = 2
+    lab[10:13, 11 : 14 - seed % 2] = 3
+    sitk.WriteImage(sitk.GetImageFromArray(lab), str(path))
+    return path
+
+
+def write_4d(path: Path, seed: int, *, integer: bool = False) -> Path:
+    """A true 4D image (three 3D volumes joined along t), as a 4D NIfTI holds an fMRI series."""
+    rng = np.random.default_rng(seed)
+    shape = (4, 5, 6)
+    vols = [
+        rng.integers(0, 3, shape).astype(np.uint8)
+        if integer
+        else rng.random(shape).astype(np.float32)
+        for _ in range(3)
+    ]
+    image = sitk.JoinSeries([sitk.GetImageFromArray(v) for v in vols])
+    assert image.GetDimension() == 4 and image.GetNumberOfComponentsPerPixel() == 1
+    sitk.WriteImage(image, str(path))
+    return path
+
+
+def warnings_of(err: str) -> list[str]:
+    return [ln for ln in err.splitlines() if ": warning: " in ln]
+
+
+# ----------------------------------------------------------------------------- item 4
+
+
+def test_specificity_refuses_4d_images(tmp_path, capsys):
+    paths = [str(write_4d(tmp_path / f"v{i}.nii.gz", i)) for i in range(4)]
+    code, err = run_cli(["specificity", *paths, "--samples", "200", "--quiet"], capsys)
+    assert code == 2
+    assert_one_line(err, paths[0], "is 4D", "2D or 3D")
+
+
+def test_specificity_names_a_4d_image_among_2d_ones(tmp_path, capsys):
+    paths = [str(write_2d(tmp_path / f"i{i}.nii.gz", i)) for i in range(4)]
+    paths[2] = str(write_4d(tmp_path / "odd.nii.gz", 9))
+    code, err = run_cli(["specificity", *paths, "--samples", "200", "--quiet"], capsys)
+    assert code == 2
+    assert_one_line(err, paths[2], "is 4D", "2D or 3D")
+
+
+def test_overlap_refuses_4d_label_maps(tmp_path, capsys):
+    paths = [str(write_4d(tmp_path / f"l{i}.nii.gz", i, integer=True)) for i in range(3)]
+    code, err = run_cli(["overlap", *paths, "--quiet"], capsys)
+    assert code == 2
+    assert_one_line(err, paths[0], "is 4D", "2D or 3D")
+
+
+def test_specificity_warns_about_label_maps_given_as_images_as_evaluate_does(tmp_path, capsys):
+    paths = [str(write_2d(tmp_path / f"i{i}.nii.gz", i)) for i in range(4)]
+    paths[1] = str(write_label_map(tmp_path / "lab1.nii.gz", 1))
+    code, err = run_cli(["specificity", *paths, "--samples", "200", "--quiet"], capsys)
+    assert code == 0, err
+    found = warnings_of(err)
+    assert len(found) == 1, err
+    expected = rf"^nrreval specificity: warning: {re.escape(paths[1])}: {LABEL_LIKE}$"
+    assert re.match(expected, found[0]), found[0]
+    assert "Traceback" not in err
+
+
+def _identity_manifest(folder: Path, images: list[Path], *, reference_index: int = 0) -> Path:
+    """A manifest of `images` with one identity registration to image `reference_index`."""
+    tfm = []
+    for i in range(len(images)):
+        sitk.WriteTransform(sitk.AffineTransform(2), str(folder / f"id{i}.tfm"))
+        tfm.append(f"id{i}.tfm")
+    data = {
+        "images": [p.name for p in images],
+        "registrations": {
+            "reg": {
+                "reference": images[reference_index].name,
+                "reference_index": reference_index,
+                "transforms": tfm,
+            }
+        },
+    }
+    path = folder / "manifest.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_diagnose_warns_about_a_label_map_given_as_an_image(tmp_path, capsys):
+    images = [write_2d(tmp_path / f"i{i}.nii.gz", i) for i in range(5)]
+    images[3] = write_label_map(tmp_path / "lab3.nii.gz", 3)
+    manifest = _identity_manifest(tmp_path, images)
+    args = ["diagnose", str(manifest), "--registration", "reg", "--samples", "20", "--quiet"]
+    code, err = run_cli([*args, "--out", str(tmp_path / "out")], capsys)
+    assert code == 0, err
+    found = warnings_of(err)
+    assert len(found) == 1, err
+    assert re.match(rf"^nrreval diagnose: warning: \S*lab3\.nii\.gz: {LABEL_LIKE}$", found[0])
