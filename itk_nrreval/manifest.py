@@ -57,6 +57,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -66,7 +67,7 @@ import SimpleITK as sitk
 import yaml
 
 from ._errors import InputError
-from ._images import InMemoryImage
+from ._images import InMemoryImage, dimension_problem
 from ._output import write_text
 from .transforms import (
     FIELD_SUFFIXES,
@@ -551,7 +552,12 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
             problems.append(f"{what}: {d}D transform for {dim}D images")
 
 
-def _check_image(item, what: str, dim: int | None, problems: list[str]) -> int | None:
+def _image_header(item, what: str, problems: list[str]) -> tuple[int, str] | None:
+    """(dimension, name to show) of an image file or object, its components checked.
+
+    The name is the file's name, or the object's label (``the in-memory sitk.Image``);
+    None when the file is missing or unreadable (a problem is added).
+    """
     if isinstance(item, InMemoryImage):
         d, comps = item.image.GetDimension(), item.image.GetNumberOfComponentsPerPixel()
         shown = item.label
@@ -570,16 +576,50 @@ def _check_image(item, what: str, dim: int | None, problems: list[str]) -> int |
         shown = item.name
     if comps != 1:
         problems.append(f"{what}: {shown} has {comps} components, expected a scalar image")
-    if dim is not None and d != dim:
-        problems.append(f"{what}: {shown} is {d}D, the images are {dim}D")
-    return d
+    return d, shown
+
+
+def _check_image(item, what: str, dim: int | None, problems: list[str]) -> None:
+    header = _image_header(item, what, problems)
+    if header is not None and dim is not None and header[0] != dim:
+        problems.append(f"{what}: {header[1]} is {header[0]}D, the images are {dim}D")
+
+
+def _images_dimension(images, problems: list[str]) -> int | None:
+    """The images' dimension, set by the majority; each image that differs is named.
+
+    Returns None when no image could be read or the majority's dimension is not 2 or 3
+    (one problem then says so; nothing else is compared with it).
+    """
+    headers = {}
+    for i, item in enumerate(images):
+        if (header := _image_header(item, f"images[{i}]", problems)) is not None:
+            headers[i] = header
+    if not headers:
+        return None
+    counts = Counter(d for d, _ in headers.values())
+    # ties go to a usable dimension, then to the first image's
+    dim = max(counts, key=lambda d: (counts[d], dimension_problem(d) is None))
+    if (problem := dimension_problem(dim)) is not None:
+        first = next(i for i, (d, _) in headers.items() if d == dim)
+        which = "all" if counts[dim] == len(headers) else f"{counts[dim]} of"
+        problems.append(
+            f"images: {which} {len(headers)} images are {dim}D (images[{first}]: "
+            f"{headers[first][1]} {problem})"
+        )
+        return None
+    others = len(headers) - 1
+    agree = (
+        f"the other {others}" if counts[dim] == others else f"{counts[dim]} of the other {others}"
+    )
+    for i, (d, shown) in headers.items():
+        if d != dim:
+            problems.append(f"images[{i}]: {shown} is {d}D; {agree} images are {dim}D")
+    return dim
 
 
 def _check_files(m: Manifest, problems: list[str]) -> None:
-    dim = None
-    for i, p in enumerate(m.images):
-        d = _check_image(p, f"images[{i}]", dim, problems)
-        dim = dim if dim is not None else d
+    dim = _images_dimension(m.images, problems)
     for i, p in enumerate(m.labels or ()):
         _check_image(p, f"labels[{i}]", dim, problems)
     if m.mask is not None:

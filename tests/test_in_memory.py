@@ -477,7 +477,8 @@ def test_an_image_of_the_wrong_dimension_fails_like_the_file(case, tmp_path):
         nr.load_manifest(with_file, base_dir=folder)
     with pytest.raises(InputError) as o:
         nr.load_manifest(with_obj, base_dir=folder)
-    assert str(o.value) == "manifest: images[2]: the in-memory sitk.Image is 3D, the images are 2D"
+    expected = "manifest: images[2]: the in-memory sitk.Image is 3D; the other 4 images are 2D"
+    assert str(o.value) == expected
     same_apart_from_names(
         str(f.value), str(o.value), bad_file, "images[2]", "the in-memory sitk.Image"
     )

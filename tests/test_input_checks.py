@@ -130,3 +130,30 @@ def test_diagnose_warns_about_a_label_map_given_as_an_image(tmp_path, capsys):
     found = warnings_of(err)
     assert len(found) == 1, err
     assert re.match(rf"^nrreval diagnose: warning: \S*lab3\.nii\.gz: {LABEL_LIKE}$", found[0])
+
+
+# ----------------------------------------------------------------------------- item 5
+
+
+def test_a_4d_image_in_a_manifest_is_named_as_the_odd_one_out(tmp_path, capsys):
+    images = [write_2d(tmp_path / f"s{i:02d}.nii.gz", i) for i in range(12)]
+    images[0] = write_4d(tmp_path / "s00.nii.gz", 0)
+    manifest = _identity_manifest(tmp_path, images, reference_index=1)
+    code, err = run_cli(
+        ["evaluate", str(manifest), "--out", str(tmp_path / "out"), "--quiet"], capsys
+    )
+    assert code == 2
+    assert_one_line(err, "images[0]: s00.nii.gz is 4D; the other 11 images are 2D")
+    for i in range(1, 12):  # no other image is blamed
+        assert f"images[{i}]" not in err, err
+    assert "problems" not in err
+
+
+def test_a_manifest_of_4d_images_is_refused_in_one_problem(tmp_path, capsys):
+    images = [write_4d(tmp_path / f"s{i:02d}.nii.gz", i) for i in range(4)]
+    manifest = _identity_manifest(tmp_path, images)
+    code, err = run_cli(
+        ["evaluate", str(manifest), "--out", str(tmp_path / "out"), "--quiet"], capsys
+    )
+    assert code == 2
+    assert_one_line(err, str(manifest), "all 4 images are 4D", "s00.nii.gz", "2D or 3D")
