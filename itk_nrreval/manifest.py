@@ -83,6 +83,7 @@ __all__ = [
     "load_manifest",
     "write_manifest",
     "add_registration",
+    "order_as_in_manifest",
     "TRANSFORM_SUFFIXES",
     "FIELD_SUFFIXES",
 ]
@@ -633,6 +634,65 @@ def _check_files(m: Manifest, problems: list[str]) -> None:
                 _check_item(item, w, dim, problems)
         if r.frame_transform is not None:
             _check_item(r.frame_transform, f"{where}.frame_transform", dim, problems)
+
+
+# ----------------------------------------------------------------------------- matching
+
+_LISTED = 4  # unmatched images named in a message; the rest are counted
+
+
+def order_as_in_manifest(
+    paths: Sequence[str | os.PathLike], manifest: Manifest, *, what: str = "images"
+) -> list[int]:
+    """Match image files given in any order (a shell glob's) to a manifest's images by path.
+
+    Parameters
+    ----------
+    paths : sequence of path
+        The images as given (relative to the current directory, or absolute).
+    manifest : Manifest
+        A manifest of image files (its ``source`` names it in messages).
+    what : str
+        What the paths were given as, for messages (``"--images"``).
+
+    Returns
+    -------
+    list of int, length n_images
+        For each of the manifest's images, in its order, the index in `paths` of the same
+        file (paths compared after resolving links): ``[paths[k] for k in order]`` lists the
+        files in the manifest's order, and with them its groups and subjects.
+
+    Raises
+    ------
+    InputError
+        The paths are not the manifest's images: one line naming each path given twice,
+        each path the manifest does not list, and each manifest image not given (with its
+        group, when the manifest has groups).
+    """
+    label = str(manifest.source) if manifest.source is not None else "the manifest"
+    folder = manifest.source.parent if manifest.source is not None else Path.cwd()
+    unmatched: dict[Path, list[int]] = {}  # a file the manifest lists twice is given twice
+    for i, item in enumerate(manifest.images):
+        unmatched.setdefault(Path(item).resolve(), []).append(i)
+    order: dict[int, int] = {}
+    problems = []
+    for k, p in enumerate(paths):
+        left = unmatched.get(Path(p).resolve())
+        if left is None:
+            problems.append(f"{p} is not one of its images")
+        elif not left:
+            problems.append(f"{p} is given more often than the manifest lists it")
+        else:
+            order[left.pop(0)] = k
+    for i, item in enumerate(manifest.images):
+        if i not in order:
+            group = f" (group {manifest.groups[i]})" if manifest.groups is not None else ""
+            problems.append(f"its images[{i}] {_rel(item, folder)}{group} is not given")
+    if problems:
+        more = len(problems) - _LISTED
+        listed = "; ".join(problems[:_LISTED]) + (f"; and {more} more" if more > 0 else "")
+        raise InputError(f"{what} do not match the images of {label}: {listed}")
+    return [order[i] for i in range(manifest.n_images)]
 
 
 # ----------------------------------------------------------------------------- writing

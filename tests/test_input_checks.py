@@ -12,9 +12,14 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 import SimpleITK as sitk
 import yaml
 from test_bad_inputs import assert_one_line, run_cli
+
+from data_synth import make_population, write_population
+from itk_nrreval.cli import main
+from itk_nrreval.manifest import load_manifest
 
 # evaluate's warning, as tests/test_bad_inputs.py pins it (one line, after the CLI's prefix)
 LABEL_LIKE = (
@@ -157,3 +162,58 @@ def test_a_manifest_of_4d_images_is_refused_in_one_problem(tmp_path, capsys):
     )
     assert code == 2
     assert_one_line(err, str(manifest), "all 4 images are 4D", "s00.nii.gz", "2D or 3D")
+
+
+# ----------------------------------------------------------------------------- item 9
+
+
+@pytest.fixture(scope="module")
+def t1_t2(tmp_path_factory):
+    """Three subjects imaged in T1 and T2 (small), as `nrreval synth --contrasts t1,t2` writes
+    them: the manifest lists every T1 before every T2, a shell glob lists them by subject."""
+    population = make_population(
+        "phantom", dim=2, n=3, seed=0, spacing=4.0, size=48, contrasts=("t1", "t2")
+    )
+    folder = tmp_path_factory.mktemp("t1_t2")
+    manifest = write_population(population, folder, montage=False, show_progress=False)
+    globbed = sorted(str(p) for p in (folder / "img").glob("*.nii.gz"))
+    assert [Path(p).name for p in globbed[:2]] == ["s00_t1.nii.gz", "s00_t2.nii.gz"]
+    return manifest, globbed
+
+
+def test_register_matches_images_given_in_shell_order_to_the_manifest(t1_t2, capsys):
+    manifest, globbed = t1_t2
+    before = load_manifest(manifest)
+    groups = [Path(p).name[4:6] for p in globbed]  # --groups in --images order: t1 t2 t1 ...
+    out = manifest.parent / "per-group"
+    code = main(
+        [
+            "register",
+            *("--method", "multimodal", "--strategy", "per-group", "--engine", "simpleitk"),
+            *("--images", *globbed, "--groups", *groups, "--out", str(out), "--no-progress"),
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    m = load_manifest(manifest)
+    assert m.images == before.images and m.groups == before.groups == ("t1",) * 3 + ("t2",) * 3
+    reg = m.registrations["multimodal-per-group"]
+    for image, chain in zip(m.images, reg.transforms, strict=True):  # each image its transform
+        assert chain[0].name.endswith(f"_{image.name.removesuffix('.nii.gz')}.h5"), chain
+    assert m.groups[reg.reference_index] == "t1"  # the first group's image is the frame
+
+
+def test_register_names_the_images_that_do_not_match_the_manifest(t1_t2, tmp_path, capsys):
+    manifest, globbed = t1_t2
+    stranger = tmp_path / "s09_t1.nii.gz"
+    stranger.write_bytes(Path(globbed[0]).read_bytes())
+    given = [p for p in globbed if not p.endswith("s01_t2.nii.gz")] + [str(stranger)]
+    out = tmp_path / "out"
+    args = ["register", "--method", "multimodal", "--strategy", "per-group", "--images", *given]
+    code, err = run_cli([*args, "--manifest", str(manifest), "--out", str(out)], capsys)
+    assert code == 2
+    assert_one_line(
+        err,
+        f"{stranger} is not one of its images",
+        "images[4] img/s01_t2.nii.gz (group t2) is not given",
+    )
+    assert not out.exists()  # refused before any registration

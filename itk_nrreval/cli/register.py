@@ -66,7 +66,8 @@ def add_parser(sub) -> None:
     mm.add_argument(
         "--reference-group",
         metavar="GROUP",
-        help="the group whose near-mean image is the frame (default: the first image's)",
+        help="the group whose near-mean image is the frame (default: the first image's, in "
+        "the manifest's order when it exists)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(
@@ -86,7 +87,7 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
-    from ..manifest import add_registration
+    from ..manifest import add_registration, load_manifest, order_as_in_manifest
     from ..registration import register
     from ..registration.multimodal import record_groups
     from ..transforms import file_stem
@@ -94,14 +95,19 @@ def run(args: argparse.Namespace) -> int:
     inputs = [*args.images, *(p for p in (args.reference, args.manifest) if p is not None)]
     out = check_output_folder(args.out, inputs=inputs)  # before the (long) registration
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
+    old = load_manifest(manifest, check_files=False) if manifest.exists() else None
+    # --images may come in any order (a shell glob lists s00_t1 s00_t2 s01_t1 ...): they are
+    # registered, named and recorded in the manifest's order, which its groups follow.
+    order = None if old is None else order_as_in_manifest(args.images, old, what="--images")
+    images = list(args.images) if order is None else [args.images[k] for k in order]
     if args.method == "multimodal":
-        result = _register_multimodal(args, manifest)
+        result = _register_multimodal(args, manifest, old, images, order)
     else:
         given = [f"--{k.replace('_', '-')}" for k in _MULTIMODAL_ONLY if getattr(args, k)]
         if given:
             raise InputError(f"{given[0]} is an option of --method multimodal only")
         result = register(  # an EngineError becomes one line and exit code 1 (cli.main)
-            args.images,
+            images,
             method=args.method,
             reference=args.reference,
             reference_choice=args.reference_choice,
@@ -109,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             progress=not args.quiet,
         )
-    names = [file_stem(p) for p in args.images]
+    names = [file_stem(p) for p in images]
     # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
     with staged_folder(out, keep=()) as stage:
         staged = result.write(stage, names=names)
@@ -130,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         reference=paths["reference"],
         transforms=[str(p) for p in paths["transforms"]],
         reference_index=result.reference_index,
-        images=list(args.images),
+        images=images,
         parameters=result.manifest_parameters() if multimodal else None,
     )
     if multimodal:
@@ -138,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     what = f"{args.method} {result.strategy}" if multimodal else args.method
     print(
         f"{what} ({result.engine}): {result.n_images} images in {result.seconds:.1f} s; "
-        f"reference {_describe_reference(result, args.images)}"
+        f"reference {_describe_reference(result, images)}"
     )
     print(f"wrote {out}/ and registration {name!r} in {manifest}")
     return 0
@@ -147,13 +153,16 @@ def run(args: argparse.Namespace) -> int:
 _MULTIMODAL_ONLY = ("strategy", "groups", "reference_group")
 
 
-def _register_multimodal(args: argparse.Namespace, manifest: Path):
-    """:func:`register_multimodal` on the command's images, with their groups.
+def _register_multimodal(
+    args: argparse.Namespace, manifest: Path, old, images: list[str], order: list[int] | None
+):
+    """:func:`register_multimodal` on `images`, with their groups.
 
-    The groups are ``--groups``, else the manifest's (which must list the same images);
-    both are checked before the registration, and ``--groups`` against the manifest's.
+    `images` are ``--images`` in the order of the manifest `old` (``images[j] ==
+    args.images[order[j]]``; `order` and `old` are None when there is no manifest yet). The
+    groups are ``--groups`` (given in ``--images`` order), else the manifest's; both are
+    checked before the registration, and ``--groups`` against the manifest's.
     """
-    from ..manifest import load_manifest
     from ..registration import register_multimodal
     from ..registration.multimodal import check_groups
 
@@ -162,13 +171,10 @@ def _register_multimodal(args: argparse.Namespace, manifest: Path):
             "--method multimodal chooses its references (each group's near-mean image); "
             "give --reference-group instead of --reference / --reference-choice"
         )
-    old = load_manifest(manifest, check_files=False) if manifest.exists() else None
-    if old is not None:
-        mine = tuple(Path(p).resolve() for p in args.images)
-        if mine != tuple(Path(p).resolve() for p in old.images):
-            raise InputError(f"--images differ from the images of {manifest}")
     if args.groups is not None:
         groups = check_groups(args.groups, len(args.images))
+        if order is not None:
+            groups = tuple(groups[k] for k in order)
         if old is not None and old.groups is not None and tuple(old.groups) != groups:
             raise InputError(f"--groups differ from the groups of {manifest}")
     elif old is not None and old.groups is not None:
@@ -180,7 +186,7 @@ def _register_multimodal(args: argparse.Namespace, manifest: Path):
             f"or a manifest with groups ({manifest} {state})"
         )
     return register_multimodal(  # an EngineError becomes one line and exit code 1
-        args.images,
+        images,
         groups,
         strategy=args.strategy or "joint",
         engine=args.engine,
