@@ -72,10 +72,15 @@ _FRAME_WORDS = {
     "mean": "the mean of the per-image estimates (a displacement field)",
 }
 
+# The tables must fit a 1280 px window (with its scroll bar) in wide fonts such as DejaVu
+# Sans, or the Flags column ends up behind a sideways scroll (tests/test_report_browser.py
+# measures this in Chromium). Hence: a page 1240 px wide at most, 5 px cell padding, and
+# names (a row's first cell) and file paths (code) that break anywhere, since names such as
+# "groupwise_bspline_grid8mm" have no space to break at; numbers never break.
 _CSS = """
 body{font-family:-apple-system,'Segoe UI',Helvetica,Arial,sans-serif;margin:0;color:#222;
-background:#fafafa;line-height:1.45}
-main{max-width:1180px;margin:0 auto;padding:0 24px 48px}
+background:#fafafa;line-height:1.45;overflow-wrap:break-word}
+main{max-width:1240px;margin:0 auto;padding:0 24px 48px}
 header{background:#2c3e50;color:#fff;padding:18px 24px}
 header h1{margin:0;font-size:1.6em}header p{margin:4px 0 0;color:#d5dde5}
 h2{border-bottom:2px solid #2c3e50;padding-bottom:4px;margin-top:36px}
@@ -86,9 +91,10 @@ a.top{font-size:.85em;float:right;font-weight:normal}
 .verdict{background:#eaf4ea;border-left:6px solid #2e7d32;padding:10px 16px;font-size:1.1em}
 .verdict.flagged{background:#fdf0e6;border-left-color:#d9822b}
 table{border-collapse:collapse;margin:8px 0 12px;font-size:.9em;background:#fff}
-th,td{border:1px solid #ccd;padding:3px 7px;text-align:right;vertical-align:top}
+th,td{border:1px solid #ccd;padding:3px 5px;text-align:right;vertical-align:top}
 th{background:#e8edf2}td:first-child,th:first-child{text-align:left}
 td{white-space:nowrap}td.text{text-align:left;max-width:420px;white-space:normal}
+td.text:first-child,td.text code{overflow-wrap:anywhere}
 tr.flagged td{background:#fff4ec}tr.best td{background:#eaf4ea}
 dl.legend{font-size:.88em;background:#fff;border:1px solid #dde;padding:8px 14px;
 columns:2;column-gap:28px}
