@@ -106,7 +106,7 @@ figure img{max-width:100%;height:auto;display:block}
 figure.half img{max-width:560px}
 figcaption{font-size:.86em;color:#444;display:table-caption;caption-side:bottom;
 background:#fff;border:1px solid #dde;border-top:0;padding:4px 8px 8px}
-.flag{color:#b34700;font-weight:bold}
+.flag{color:#b34700;font-weight:bold}a.flag{white-space:nowrap}
 .ci{color:#555;font-size:.85em;white-space:nowrap}
 div.wide{overflow-x:auto}
 code{background:#eef;padding:0 3px}
