@@ -52,6 +52,7 @@ __all__ = [
     "verdict",
     "ranks",
     "relative_ranks",
+    "tie_groups",
 ]
 
 _DISTANCES = ("l1", "l2")
@@ -191,10 +192,11 @@ class EvaluationResult:
     scores : dict of str to RegistrationScores
         In the manifest's order.
     ranks : dict of str to dict of str to int
-        ``ranks[measure][registration]``: 1 is best; equal scores share the best rank.
+        ``ranks[measure][registration]``: 1 is best; scores tied within noise
+        (:func:`tie_groups`) share the best rank (:meth:`tied_with` names them).
     relative_ranks : dict of str to dict of str to float
         ``relative_ranks[measure][registration]`` in percent: best 100, worst 0, linear
-        between (paper, Section V-E).
+        between (paper, Section V-E); tied scores share one (:func:`relative_ranks`).
     common_frame : str
         The registration whose reference frame is the common frame.
     mean_images : dict of str to ndarray of shape (*spatial_zyx,)
@@ -242,6 +244,13 @@ class EvaluationResult:
         """Measure names, in report order."""
         return tuple(self.ranks)
 
+    def tied_with(self, measure: str, name: str) -> tuple[str, ...]:
+        """The other registrations whose `measure` is tied with `name`'s (the same rank)."""
+        rank = self.ranks[measure][name]
+        if rank is None:
+            return ()
+        return tuple(n for n, r in self.ranks[measure].items() if r == rank and n != name)
+
     def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> list[Path]:
         """Write the reports ``nrreval evaluate`` writes into `out_dir` (created if needed).
 
@@ -275,6 +284,7 @@ class EvaluationResult:
             d = s.to_dict()
             d["rank"] = {m: self.ranks[m][name] for m in self.ranks}
             d["relative_rank"] = {m: self.relative_ranks[m][name] for m in self.ranks}
+            d["tied_with"] = {m: list(self.tied_with(m, name)) for m in self.ranks}
             regs[name] = d
         out = {
             "version": self.version,
@@ -295,13 +305,90 @@ def higher_is_better(measure: str) -> bool:
     return measure.startswith("overlap")
 
 
-def ranks(scores: Mapping[str, float], *, higher_is_better: bool) -> dict[str, int | None]:
-    """Rank order (1 = best); equal scores share the better rank ("1, 2, 2, 4").
+#: A difference within this many combined standard errors is noise (two-sided 95%).
+TIE_Z = 1.96
+
+
+def tie_groups(
+    scores: Mapping[str, float],
+    *,
+    higher_is_better: bool,
+    stderr: Mapping[str, float] | None = None,
+    comparisons: Sequence[Comparison] = (),
+) -> list[tuple[str, ...]]:
+    """The registrations in order, best first, in groups whose scores are not told apart.
+
+    Parameters
+    ----------
+    scores : dict of str to float
+        One measure's score per registration.
+    higher_is_better : bool
+    stderr : dict of str to float, optional
+        Each score's standard error (same units as the scores), e.g. the Monte-Carlo
+        standard error of specificity. Missing or NaN: not used.
+    comparisons : sequence of Comparison
+        This measure's pairwise comparisons (:func:`itk_nrreval.confidence.compare`); a pair
+        not among them is judged by `stderr` alone.
+
+    Returns
+    -------
+    list of tuple of str
+        Best group first; NaN scores are in no group.
+
+    Notes
+    -----
+    Two registrations ``a``, ``b`` are tied when their difference is within noise:
+    ``|a - b| <= 1.96 sqrt(se_a^2 + se_b^2)`` (:data:`TIE_Z`), or their paired comparison
+    is not separable (its subject-level 95% interval includes 0, the verdict's test); equal
+    scores always are. A group is a run in score order: every registration between two tied
+    ones joins their group, and ties chain, so a group may span more than the noise between
+    its two ends -- a tie claims less than the data could show, never more.
+    """
+    valid = {k: float(v) for k, v in scores.items() if not math.isnan(float(v))}
+    order = sorted(valid, key=lambda k: -valid[k] if higher_is_better else valid[k])
+    se = {k: float(v) for k, v in (stderr or {}).items() if v is not None and math.isfinite(v)}
+    not_separable = {frozenset((c.a, c.b)) for c in comparisons if not c.separable}
+
+    def tied(a: str, b: str) -> bool:
+        if valid[a] == valid[b] or frozenset((a, b)) in not_separable:
+            return True
+        if a in se and b in se:
+            return abs(valid[a] - valid[b]) <= TIE_Z * math.hypot(se[a], se[b])
+        return False
+
+    # reach[i]: the last position in score order tied with position i or an earlier one
+    reach = list(range(len(order)))
+    for i, a in enumerate(order):
+        for j in range(i + 1, len(order)):
+            if tied(a, order[j]):
+                reach[i] = j
+        if i:
+            reach[i] = max(reach[i], reach[i - 1])
+    groups: list[tuple[str, ...]] = []
+    start = 0
+    for i in range(len(order)):
+        if reach[i] == i:  # nothing at or before i is tied with anything after it
+            groups.append(tuple(order[start : i + 1]))
+            start = i + 1
+    return groups
+
+
+def ranks(
+    scores: Mapping[str, float],
+    *,
+    higher_is_better: bool,
+    stderr: Mapping[str, float] | None = None,
+    comparisons: Sequence[Comparison] = (),
+) -> dict[str, int | None]:
+    """Rank order (1 = best); tied scores share the better rank ("1, 2, 2, 4").
 
     Parameters
     ----------
     scores : dict of str to float
     higher_is_better : bool
+    stderr, comparisons
+        What tells scores apart from noise (:func:`tie_groups`); default: only equal scores
+        are tied.
 
     Returns
     -------
@@ -312,52 +399,73 @@ def ranks(scores: Mapping[str, float], *, higher_is_better: bool) -> dict[str, i
     --------
     >>> ranks({"a": 0.61, "b": 0.52, "c": 0.52, "d": 0.3}, higher_is_better=True)
     {'a': 1, 'b': 2, 'c': 2, 'd': 4}
+    >>> ranks({"a": 0.61, "b": 0.60, "c": 0.3}, higher_is_better=True,
+    ...       stderr={"a": 0.01, "b": 0.01, "c": 0.01})
+    {'a': 1, 'b': 1, 'c': 3}
     """
-    valid = {k: float(v) for k, v in scores.items() if not math.isnan(float(v))}
-    sign = -1.0 if higher_is_better else 1.0
-    out: dict[str, int | None] = {}
-    for k in scores:
-        if k not in valid:
-            out[k] = None
-        else:
-            out[k] = 1 + sum(sign * v < sign * valid[k] for v in valid.values())
+    groups = tie_groups(
+        scores, higher_is_better=higher_is_better, stderr=stderr, comparisons=comparisons
+    )
+    out: dict[str, int | None] = dict.fromkeys(scores)
+    better = 0
+    for group in groups:
+        for k in group:
+            out[k] = 1 + better
+        better += len(group)
     return out
 
 
 def relative_ranks(
-    scores: Mapping[str, float], *, higher_is_better: bool
+    scores: Mapping[str, float],
+    *,
+    higher_is_better: bool,
+    stderr: Mapping[str, float] | None = None,
+    comparisons: Sequence[Comparison] = (),
 ) -> dict[str, float | None]:
     """Quantitative relative rank in percent: the best score 100, the worst 0, linear between.
+
+    Scores not told apart from noise are tied (:func:`tie_groups`) and get one relative
+    rank, that of their group's mean score, so a spread within the scores' errors is never
+    stretched over the 0-100% range.
 
     Parameters
     ----------
     scores : dict of str to float
     higher_is_better : bool
+    stderr : dict of str to float, optional
+        Each score's standard error (e.g. the Monte-Carlo standard error of specificity).
+    comparisons : sequence of Comparison
+        This measure's pairwise comparisons with their subject-level intervals.
 
     Returns
     -------
     dict of str to float
-        ``100 (s - worst) / (best - worst)``; 100 for all when every score is equal; None for
-        NaN scores.
+        ``100 (g - worst) / (best - worst)`` with ``g`` the mean score of the registration's
+        tie group and ``best``, ``worst`` those of the best and worst groups; 100 for all
+        when every score is tied with the others (one group); None for NaN scores.
 
     Examples
     --------
     >>> relative_ranks({"fluid": 0.131, "mid": 0.249, "affine": 0.367}, higher_is_better=False)
     {'fluid': 100.0, 'mid': 50.0, 'affine': 0.0}
+    >>> relative_ranks({"sitk": 0.13104, "itk": 0.13100}, higher_is_better=False,
+    ...                stderr={"sitk": 0.0005, "itk": 0.0005})
+    {'sitk': 100.0, 'itk': 100.0}
     """
-    valid = {k: float(v) for k, v in scores.items() if not math.isnan(float(v))}
-    if not valid:
-        return {k: None for k in scores}
-    best = max(valid.values()) if higher_is_better else min(valid.values())
-    worst = min(valid.values()) if higher_is_better else max(valid.values())
-    out: dict[str, float | None] = {}
-    for k in scores:
-        if k not in valid:
-            out[k] = None
-        elif best == worst:
-            out[k] = 100.0
-        else:
-            out[k] = round(100.0 * (valid[k] - worst) / (best - worst), 10) + 0.0  # no -0.0
+    groups = tie_groups(
+        scores, higher_is_better=higher_is_better, stderr=stderr, comparisons=comparisons
+    )
+    out: dict[str, float | None] = dict.fromkeys(scores)
+    if not groups:
+        return out
+    means = [math.fsum(float(scores[k]) for k in g) / len(g) for g in groups]
+    best, worst = means[0], means[-1]
+    for group, g in zip(groups, means, strict=True):
+        for k in group:
+            if len(groups) == 1:
+                out[k] = 100.0
+            else:
+                out[k] = round(100.0 * (g - worst) / (best - worst), 10) + 0.0  # no -0.0
     return out
 
 
@@ -804,6 +912,21 @@ def _warn_if_flagged(scores: Mapping[str, RegistrationScores]) -> None:
             )
 
 
+def _own_stderr(scores, measure, comparisons) -> dict[str, float] | None:
+    """The standard errors that tie `measure`'s scores besides the paired comparisons.
+
+    Specificity: its Monte-Carlo standard error, always (the paired jackknife shares the
+    model samples, so it does not see them). Generalization: its standard error over the
+    images, only when no paired subject-level interval was computed (that interval measures
+    the same subject-level noise, paired, hence more sharply). Overlap: none.
+    """
+    if measure == "specificity":
+        return {n: s.specificity.stderr for n, s in scores.items()}
+    if measure == "generalization" and not any(c.measure == measure for c in comparisons):
+        return {n: s.generalization.stderr for n, s in scores.items()}
+    return None
+
+
 def _result(
     m,
     scores,
@@ -828,9 +951,13 @@ def _result(
     rank_table, rel_table = {}, {}
     for measure in measures:
         values_by_name = {n: s.measures()[measure] for n, s in scores.items()}
-        hib = higher_is_better(measure)
-        rank_table[measure] = ranks(values_by_name, higher_is_better=hib)
-        rel_table[measure] = relative_ranks(values_by_name, higher_is_better=hib)
+        noise = dict(
+            higher_is_better=higher_is_better(measure),
+            stderr=_own_stderr(scores, measure, comparisons),
+            comparisons=[c for c in comparisons if c.measure == measure],
+        )
+        rank_table[measure] = ranks(values_by_name, **noise)
+        rel_table[measure] = relative_ranks(values_by_name, **noise)
     options = {
         "n_samples": int(n_samples),
         "seed": int(seed),

@@ -39,10 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from .reports import (
+    TIES_WORDS,
     draw_label_contours,
     figure_pngs,
     format_number,
     format_percent,
+    format_rank,
     middle_slice,
     png_bytes,
     specificity_units,
@@ -265,9 +267,8 @@ def _ci(iv) -> str:
 
 
 def _rel(result, measure: str, name: str) -> str:
-    rank = result.ranks[measure][name]
     rel = result.relative_ranks[measure][name]
-    return f"{format_percent(rel)} ({rank if rank is not None else '–'})"
+    return f"{format_percent(rel)} ({format_rank(result, measure, name)})"
 
 
 # ----------------------------------------------------------------------------- figures
@@ -526,7 +527,7 @@ def _legend(result) -> str:
             "Rel. (rank)",
             "the normalised score 100% &times; (worst &minus; x) / (worst &minus; best) among "
             "the registrations compared: 100% for the best, 0% for the worst, linear between; "
-            "it is <b>not a rank</b>. The rank (1 = best) is in parentheses.",
+            "it is <b>not a rank</b>. The rank (1 = best) is in parentheses. " + _e(TIES_WORDS),
         ),
         (
             "Coverage",

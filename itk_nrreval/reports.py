@@ -40,6 +40,8 @@ __all__ = [
     "figure_pngs",
     "format_number",
     "format_percent",
+    "format_rank",
+    "TIES_WORDS",
     "png_bytes",
     "middle_slice",
     "thumbnail",
@@ -66,6 +68,26 @@ def format_number(v, digits: int = 4) -> str:
 def format_percent(v) -> str:
     """A percentage with one decimal; an en dash for None."""
     return "–" if v is None else f"{v:.1f}%"
+
+
+def format_rank(result, measure: str, name: str) -> str:
+    """The rank of `name` by `measure` for a reader: ``"2"``, ``"1 (tied)"``, or a dash."""
+    rank = result.ranks[measure][name]
+    if rank is None:
+        return "–"
+    return f"{rank} (tied)" if result.tied_with(measure, name) else str(rank)
+
+
+#: How the reports explain the relative rank and its ties (summary.md and report.html).
+TIES_WORDS = (
+    "Scores not told apart from noise are tied: in score order, neighbours whose difference "
+    "is within 1.96 combined standard errors (the Monte-Carlo s.e. for specificity; the "
+    "s.e. for generalization when no subject-level interval was computed) or whose "
+    "subject-level 95% interval of the difference includes 0 (not separable, as in the "
+    "verdict). Tied scores share the better rank, marked (tied), and one relative rank, "
+    "that of their mean, so a spread within the noise is never shown as the whole 0-100% "
+    "range; when every score is tied, all are 100%."
+)
 
 
 def _ci(s, measure: str) -> str:
@@ -99,20 +121,20 @@ def summary_table(result) -> str:
             row += [
                 format_number(s.measures()[m]),
                 _ci(s, m),
-                str(result.ranks[m][name]),
+                format_rank(result, m, name),
                 format_percent(result.relative_ranks[m][name]),
             ]
         row += [
             format_number(s.specificity.value),
             _ci(s, "specificity"),
             format_number(s.specificity.stderr, 2),
-            str(result.ranks["specificity"][name]),
+            format_rank(result, "specificity", name),
             format_percent(result.relative_ranks["specificity"][name]),
         ]
         row += [
             format_number(s.generalization.value),
             _ci(s, "generalization"),
-            str(result.ranks["generalization"][name]),
+            format_rank(result, "generalization", name),
             format_percent(result.relative_ranks["generalization"][name]),
             "; ".join(s.flags) if s.flags else "–",
         ]
@@ -136,7 +158,7 @@ def summary_table(result) -> str:
         "score hold for other subjects?). MC s.e.: Monte-Carlo standard error of the "
         "specificity estimate only (it shrinks as M grows). Rank: 1 is best. Rel. rank: "
         "100% for the best score, 0% for the worst, linear between, (worst - x) / "
-        "(worst - best).",
+        f"(worst - best). {TIES_WORDS}",
         "",
         "| Registration | Frame from | Spread mean (mm) | Spread max (mm) | Folded (mean) | "
         "Folded (worst image) | SDlogJ | det J min | det J max | Inverse consistency (mm) |",
@@ -166,6 +188,7 @@ def results_csv(result) -> str:
     fields += [f"{m}_ci95_{e}" for m in overlaps for e in ("lo", "hi")]
     fields += [f"rank.{m}" for m in result.measures]
     fields += [f"relative_rank.{m}" for m in result.measures]
+    fields += [f"tied_with.{m}" for m in result.measures]
     fields += ["frame_method", "frame_spread_mean_mm", "frame_spread_max_mm"]
     fields += ["folded_fraction", "folded_max", "sdlogj", "jacobian_min", "jacobian_max"]
     fields += ["inverse_consistency_mm", "flags"]
@@ -197,6 +220,7 @@ def results_csv(result) -> str:
         row.update({m: s.measures()[m] for m in overlaps})
         row.update({f"rank.{m}": result.ranks[m][name] for m in result.measures})
         row.update({f"relative_rank.{m}": result.relative_ranks[m][name] for m in result.measures})
+        row.update({f"tied_with.{m}": ";".join(result.tied_with(m, name)) for m in result.measures})
         w.writerow(row)
     return buf.getvalue()
 
