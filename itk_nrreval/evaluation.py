@@ -32,6 +32,7 @@ from .confidence import (
     compare,
     jackknife_groups,
     jackknife_interval,
+    measure_bounds,
     overlap_replicates,
     probability_best,
     specificity_replicates,
@@ -804,7 +805,9 @@ def evaluate(
             for measure, by_name in reps.items():
                 vals = {name: values[name][measure] for name in regs}
                 for name in regs:
-                    intervals[name][measure] = jackknife_interval(vals[name], by_name[name])
+                    intervals[name][measure] = jackknife_interval(
+                        vals[name], by_name[name], bounds=measure_bounds(measure)
+                    )
                 comparisons += compare(measure, vals, by_name)
                 pb = probability_best(
                     vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
