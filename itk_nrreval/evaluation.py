@@ -840,6 +840,8 @@ def evaluate(
             "label_interpolation": label_interpolation,
             "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),
             "thresholds": dataclasses.asdict(thresholds),
+            # what frame_spread_fraction is a fraction of: the reports state the limit in mm
+            "field_of_view_mm": extent,
         }
         result = _result(
             m,

@@ -45,6 +45,8 @@ from .reports import (
     format_number,
     format_percent,
     format_rank,
+    frame_spread_flagged,
+    frame_spread_words,
     middle_slice,
     png_bytes,
     specificity_units,
@@ -645,20 +647,19 @@ def _frames_table(result, names: Sequence[str]) -> str:
                 _e(n),
                 _e(_FRAME_WORDS.get(f.method, f.method)),
                 format_number(f.spread_mean_mm, 3),
+                "flagged" if frame_spread_flagged(result, n) else "no",
                 format_number(f.spread_max_mm, 3),
             ]
         )
     head = ["Registration", "Brought into the common frame by"]
-    head += ["Spread, mean (mm)", "Spread, max (mm)"]
+    head += ["Spread, mean (mm)", "Mean above the flag threshold", "Spread, max (mm)"]
     return (
         _table(head, rows, text=(0, 1))
         + "<p>Each registration has its own reference frame and is brought "
         f"into the common frame (<b>{_e(result.common_frame)}</b>'s) by a transform F. Each "
         "image gives its own estimate F<sub>i</sub> of it; the spread is how far those "
         "estimates lie from F (|F<sub>i</sub>(p) &minus; F(p)| over the images and the "
-        "voxels of the common grid, inside the mask). A large spread means the images do not "
-        "agree where the registration's frame sits, and comparing it in the common frame is "
-        "doubtful.</p>"
+        f"voxels of the common grid, inside the mask). {_e(frame_spread_words(result)[1])}</p>"
     )
 
 

@@ -39,6 +39,7 @@ __all__ = [
     "deformation_measures",
     "combine",
     "flags",
+    "frame_spread_limit_mm",
     "smallest_extent_mm",
 ]
 
@@ -456,6 +457,17 @@ class Thresholds:
     frame_spread_fraction: float = 0.05
 
 
+def frame_spread_limit_mm(extent_mm: float, thresholds: Thresholds = Thresholds()) -> float:  # noqa: B008
+    """The mean frame-estimate spread (mm) above which :func:`flags` flags a registration.
+
+    ``thresholds.frame_spread_fraction * extent_mm``; the reports state the same number, so
+    a spread the page calls doubtful is exactly a flagged one. Only the *mean* spread is
+    judged: the maximum is one voxel of one image (often at the edge of the field of view,
+    where an estimate extrapolates), shown for context.
+    """
+    return thresholds.frame_spread_fraction * extent_mm
+
+
 def _percent(fraction: float) -> str:
     v = 100.0 * fraction
     return f"{v:.0f}%" if v >= 10 else f"{v:.2g}%"
@@ -539,7 +551,7 @@ def flags(
     for name, spread in spreads.items():
         if spread is None or not math.isfinite(spread):
             continue
-        if spread > th.frame_spread_fraction * extent_mm:
+        if spread > frame_spread_limit_mm(extent_mm, th):
             out[name].append(
                 f"frame estimates spread {spread:.1f} mm on average ({_percent(spread / extent_mm)}"
                 f" of the {extent_mm:.0f} mm field of view)"

@@ -41,6 +41,8 @@ __all__ = [
     "format_number",
     "format_percent",
     "format_rank",
+    "frame_spread_words",
+    "frame_spread_flagged",
     "TIES_WORDS",
     "png_bytes",
     "middle_slice",
@@ -88,6 +90,41 @@ TIES_WORDS = (
     "that of their mean, so a spread within the noise is never shown as the whole 0-100% "
     "range; when every score is tied, all are 100%."
 )
+
+
+def frame_spread_words(result) -> tuple[float | None, str]:
+    """The mean frame spread (mm) that is flagged, and the reports' sentence saying so.
+
+    The limit is :func:`itk_nrreval.plausibility.frame_spread_limit_mm` of the run's
+    thresholds and field of view, the number :func:`~itk_nrreval.plausibility.flags` used;
+    None (and a sentence without a number) for a result that does not record them.
+    """
+    from .plausibility import Thresholds, frame_spread_limit_mm
+
+    o = result.options
+    fov = o.get("field_of_view_mm")
+    fraction = o.get("thresholds", {}).get("frame_spread_fraction")
+    if fov is None or fraction is None:
+        return None, (
+            "A mean spread above the flag threshold (frame_spread_fraction of the field "
+            "of view) is flagged: comparing that registration in the common frame is doubtful."
+        )
+    limit = frame_spread_limit_mm(fov, Thresholds(frame_spread_fraction=fraction))
+    return limit, (
+        f"A mean spread above {format_number(limit, 3)} mm ({format_number(100 * fraction, 3)}% "
+        f"of the {format_number(fov, 4)} mm field of view, the flag threshold) is flagged: the "
+        "images do not agree where that registration's frame sits, and comparing it in the "
+        "common frame is doubtful. Below it the spread is not judged. The max spread, the "
+        "farthest estimate at a single voxel of a single image, is shown for context and "
+        "not judged."
+    )
+
+
+def frame_spread_flagged(result, name: str) -> bool:
+    """Whether `name`'s mean frame spread is above the limit of :func:`frame_spread_words`."""
+    limit, _ = frame_spread_words(result)
+    spread = result.scores[name].frame.spread_mean_mm
+    return limit is not None and math.isfinite(spread) and spread > limit
 
 
 def _ci(s, measure: str) -> str:
@@ -160,20 +197,27 @@ def summary_table(result) -> str:
         "100% for the best score, 0% for the worst, linear between, (worst - x) / "
         f"(worst - best). {TIES_WORDS}",
         "",
-        "| Registration | Frame from | Spread mean (mm) | Spread max (mm) | Folded (mean) | "
-        "Folded (worst image) | SDlogJ | det J min | det J max | Inverse consistency (mm) |",
-        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|",
+        "| Registration | Frame from | Spread mean (mm) | Spread flagged | Spread max (mm) | "
+        "Folded (mean) | Folded (worst image) | SDlogJ | det J min | det J max | "
+        "Inverse consistency (mm) |",
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|",
     ]
     for name in order:
         s = result.scores[name]
         pl = s.plausibility
         notes.append(
             f"| {name} | {s.frame.method} | {format_number(s.frame.spread_mean_mm, 3)} | "
+            f"{'yes' if frame_spread_flagged(result, name) else 'no'} | "
             f"{format_number(s.frame.spread_max_mm, 3)} | {pl.folded_fraction:.2%} | "
             f"{pl.folded_max:.2%} | {format_number(pl.sdlogj, 3)} | "
             f"{format_number(pl.jacobian_min, 3)} | {format_number(pl.jacobian_max, 3)} | "
             f"{format_number(pl.inverse_consistency_mm, 3)} |"
         )
+    notes += [
+        "",
+        "Frame spread: how far the per-image estimates of the transform into the common "
+        "frame lie from it. " + frame_spread_words(result)[1],
+    ]
     return "\n".join(lines + notes) + "\n"
 
 

@@ -4,6 +4,7 @@ numbers formatted for people, and the CLI's help and minimums."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from test_evaluate import make_case
 import itk_nrreval as nr
 from itk_nrreval.confidence import jackknife_interval, measure_bounds
 from itk_nrreval.evaluation import TIE_Z, tie_groups
+from itk_nrreval.html_report import report_html
 from itk_nrreval.reports import results_csv, summary_table
 
 # ----------------------------------------------------------------------------- relative ranks
@@ -144,3 +146,48 @@ def test_interval_on_the_log_scale_covers_as_the_linear_one_on_well_behaved_data
     a = jackknife_interval(x.mean(), leave_one_out_means(x))
     b = jackknife_interval(x.mean(), leave_one_out_means(x), bounds=(0.0, math.inf))
     assert b.lo == pytest.approx(a.lo, rel=1e-4) and b.hi == pytest.approx(a.hi, rel=1e-4)
+
+
+# ----------------------------------------------------------------------------- one small run
+
+#: The flag threshold for the run below: 2.5% of its 40 mm field of view, 1 mm. Its identity
+#: registration's frame estimates spread 1.5 mm on average (flagged), perturbed's 0.64 mm
+#: (not flagged) though perturbed's largest single spread is 2.1 mm.
+FRAME_FRACTION = 0.025
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("reader")
+    make_case(tmp)
+    thresholds = nr.Thresholds(frame_spread_fraction=FRAME_FRACTION)
+    with pytest.warns(RuntimeWarning, match="flagged"):
+        result = nr.evaluate(
+            tmp / "manifest.yaml", n_samples=300, progress=False, thresholds=thresholds
+        )
+    return result, summary_table(result), report_html(result, figures={})
+
+
+def _row(html: str, section: str, name: str) -> list[str]:
+    """The cells' text of `name`'s row in the first table of the page's section `section`."""
+    body = html.split(f'<section id="{section}"', 1)[1].split("</section>", 1)[0]
+    row = next(r for r in body.split("<tr>") if f">{name}<" in r)
+    return [re.sub("<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)]
+
+
+def test_the_frame_spread_the_report_calls_doubtful_is_the_one_flagged(run):
+    result, summary, html = run
+    limit = FRAME_FRACTION * 40.0  # the 40 x 40 grid of 1 mm voxels: an independent number
+    spreads = {n: s.frame.spread_mean_mm for n, s in result.scores.items()}
+    assert spreads["perturbed"] < limit < spreads["identity"]
+    assert result.scores["perturbed"].frame.spread_max_mm > limit  # max is not judged
+    for text in (summary, html):
+        assert f"above {limit:g} mm (2.5% of the 40 mm field of view" in text
+        assert "doubtful" in text and "max spread" in text and "not judged" in text
+    for name, s in result.scores.items():
+        flagged = any("frame estimates spread" in f for f in s.flags)
+        assert flagged == (spreads[name] > limit), name
+        assert _row(html, "frames", name)[3] == ("flagged" if flagged else "no"), name
+        assert f"| {name} | {s.frame.method} | " in summary
+        cell = summary.split(f"| {name} | {s.frame.method} | ", 1)[1].split(" | ")[1]
+        assert cell == ("yes" if flagged else "no"), name
