@@ -44,6 +44,8 @@ import numpy as np
 from llvmlite import ir as llvm_ir
 from numpy.lib.stride_tricks import as_strided
 
+from ._errors import readable
+
 __all__ = [
     "membership_pair_sums",
     "membership_gradient_sum",
@@ -117,7 +119,8 @@ def _grid(shape: Sequence[int], spacing: Sequence[float], n_voxels: int):
     sp = np.asarray(spacing, dtype=np.float64).reshape(-1)
     if sp.shape != shp.shape or not np.all(np.isfinite(sp)) or not np.all(sp > 0):
         raise ValueError(
-            f"spacing must be {shp.size} positive numbers in ITK order (x, y[, z]), got {spacing!r}"
+            f"spacing must be {shp.size} positive numbers in ITK order (x, y[, z]), "
+            f"got {readable(spacing)}"
         )
     return shp, 1.0 / sp[::-1]
 
@@ -340,7 +343,7 @@ def label_map_sums(
     if values is not None:
         wanted = np.unique(np.asarray(values, dtype=np.int64).reshape(-1))
         if wanted.size != np.asarray(values).size:
-            raise ValueError(f"values must be distinct, got {values!r}")
+            raise ValueError(f"values must be distinct, got {readable(values)}")
         pm, vol, tgt = _label_counts(x, wanted, mk, target_overlap)
         return (wanted, pm, vol, tgt)
     drop = np.asarray(exclude, dtype=np.int64).reshape(-1)

@@ -24,6 +24,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ._errors import readable
+
 __all__ = [
     "stream_key",
     "fill_normals",
@@ -161,7 +163,7 @@ def fill_normals(key, mu, out):
 def stream_key(seed: int) -> np.uint64:
     """The splitmix64-mixed stream key of a user seed."""
     if not 0 <= int(seed) < 2**63:
-        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
+        raise ValueError(f"seed must be an integer in [0, 2**63), got {readable(seed)}")
     mask = 2**64 - 1
     x = (int(seed) + int(_GAMMA)) & mask
     x = ((x ^ (x >> 30)) * int(_M1)) & mask

@@ -45,7 +45,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from . import _sampling
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._images import Geometry, read_image
 from ._progress import progress as _progress_bar
 from .frame import read_chains, resample_images, resample_onto
@@ -589,11 +589,11 @@ def _populations(counts: np.ndarray, values: np.ndarray) -> CellPopulations:
 
 def _check_options(n_samples, seed) -> None:
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
-        raise ValueError(f"n_samples must be an integer >= 2, got {n_samples!r}")
+        raise ValueError(f"n_samples must be an integer >= 2, got {readable(n_samples)}")
     if not 2 <= n_samples < _sampling.MAX_SAMPLES:
-        raise ValueError(f"n_samples must be an integer in [2, 2**36), got {n_samples!r}")
+        raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
-        raise ValueError(f"seed must be an integer in [0, 2**63), got {seed!r}")
+        raise ValueError(f"seed must be an integer in [0, 2**63), got {readable(seed)}")
 
 
 def appearance_diagnostics(

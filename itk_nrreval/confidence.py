@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import special, stats
 
+from ._errors import readable
 from ._output import json_number
 from .model import TextureModel
 from .overlap import OverlapTable
@@ -145,7 +146,7 @@ def jackknife_groups(n_images: int, n_groups: int | None = None) -> list[np.ndar
         raise ValueError(f"n_images: the jackknife needs at least 4 images, got {n_images}")
     g = n_images if n_groups is None else min(int(n_groups), n_images)
     if g < 2:
-        raise ValueError(f"n_groups: expected at least 2, got {n_groups!r}")
+        raise ValueError(f"n_groups: expected at least 2, got {readable(n_groups)}")
     if n_images - math.ceil(n_images / g) < 3:
         raise ValueError(f"n_groups: {g} groups of {n_images} images leave fewer than 3 images")
     return [np.arange(k, n_images, g) for k in range(g)]

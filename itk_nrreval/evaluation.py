@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._output import check_output_folder, json_number, staged_folder
 from ._progress import progress
 from .confidence import (
@@ -582,7 +582,7 @@ def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str,
     if interpolation not in _INTERPOLATIONS:
         raise ValueError(f"interpolation: {interpolation!r} is not one of {_INTERPOLATIONS}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
-        raise ValueError(f"n_samples: expected an integer >= 2, got {n_samples!r}")
+        raise ValueError(f"n_samples: expected an integer >= 2, got {readable(n_samples)}")
     if weightings is None:
         weightings = WEIGHTINGS
     if isinstance(weightings, str):
@@ -871,7 +871,7 @@ def _check_label_interpolation(method, sigma_mm) -> None:
         if not ok or not 0 < sigma_mm < math.inf:
             raise ValueError(
                 f"label_sigma_mm: label_interpolation='gaussian' needs a finite sigma > 0 mm, "
-                f"got {sigma_mm!r}"
+                f"got {readable(sigma_mm)}"
             )
     elif sigma_mm is not None:
         raise ValueError(
@@ -881,7 +881,7 @@ def _check_label_interpolation(method, sigma_mm) -> None:
 
 def _check_positive(name: str, value, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name}: expected an integer >= {minimum}, got {value!r}")
+        raise ValueError(f"{name}: expected an integer >= {minimum}, got {readable(value)}")
 
 
 def _replicates(run, weightings, resamples, n_samples, distance, seed, show):

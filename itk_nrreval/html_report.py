@@ -749,7 +749,7 @@ def _inputs_section(result) -> str:
                 [
                     _e(name),
                     item(r.get("reference")),
-                    _e(r.get("reference_index")),
+                    _item_text(r.get("reference_index")),
                     item(r.get("frame_transform")),
                     ", ".join(item(x) for x in first),
                 ]
@@ -777,9 +777,16 @@ def _flat(d: Mapping, prefix: str = "") -> list[tuple[str, object]]:
     return out
 
 
+def _item_text(value) -> str:
+    """A value of the inputs or options for a reader: a dash when not set (None)."""
+    return "–" if value is None else _e(value)
+
+
 def _options_table(options: Mapping) -> str:
-    """Every option, nested ones dotted, values as code."""
-    return _key_value_table([(k, f"<code>{_e(v)}</code>") for k, v in _flat(options)])
+    """Every option, nested ones dotted, values as code (a dash when not set)."""
+    return _key_value_table(
+        [(k, "–" if v is None else f"<code>{_e(v)}</code>") for k, v in _flat(options)]
+    )
 
 
 def _options_section(result) -> str:

@@ -57,7 +57,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._images import Geometry
 from ._output import atomic_path, write_json
 from .transforms import file_stem
@@ -264,9 +264,11 @@ def resample_label_memberships(
         raise InputError(f"label interpolation: {method!r} is not one of {LABEL_INTERPOLATIONS}")
     if method == "gaussian":
         if isinstance(sigma_mm, bool) or not isinstance(sigma_mm, (int, float)):
-            raise InputError(f"label smoothing: expected a number of mm, got {sigma_mm!r}")
+            raise InputError(f"label smoothing: expected a number of mm, got {readable(sigma_mm)}")
         if not 0 < sigma_mm < np.inf:
-            raise InputError(f"label smoothing: expected a finite sigma > 0 mm, got {sigma_mm!r}")
+            raise InputError(
+                f"label smoothing: expected a finite sigma > 0 mm, got {readable(sigma_mm)}"
+            )
     elif sigma_mm is not None:
         raise InputError(f"label smoothing: sigma_mm is only for method 'gaussian', not {method!r}")
     labels3 = labels.reshape((1,) * (3 - dim) + labels.shape)  # 2D as one plane of 3D
@@ -353,7 +355,7 @@ def _label_table(
     if values is not None:
         requested = np.asarray(values)
         if requested.ndim != 1 or (requested.size and requested.dtype.kind not in "iu"):
-            raise InputError(f"values: expected a sequence of integers, got {values!r}")
+            raise InputError(f"values: expected a sequence of integers, got {readable(values)}")
         requested = requested.astype(np.int64)
         if np.unique(requested).size != requested.size:
             raise InputError(f"values: repeated label values in {requested.tolist()}")

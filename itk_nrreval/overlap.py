@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._images import image_stack, mask_array
 from ._output import json_number
 from ._overlap_kernels import (
@@ -606,7 +606,8 @@ def _spacing(spacing, geometry, ndim: int) -> tuple[float, ...]:
     sp = np.atleast_1d(np.asarray(spacing, dtype=np.float64))
     if sp.shape != (ndim,) or not np.all(np.isfinite(sp)) or not np.all(sp > 0):
         raise ValueError(
-            f"spacing must be {ndim} positive numbers in ITK order (x, y[, z]), got {spacing!r}"
+            f"spacing must be {ndim} positive numbers in ITK order (x, y[, z]), "
+            f"got {readable(spacing)}"
         )
     return tuple(float(s) for s in sp)
 
@@ -615,14 +616,14 @@ def _explicit_values(label_values) -> np.ndarray:
     vals = np.asarray(label_values)
     if vals.ndim != 1 or vals.size == 0:
         raise ValueError(
-            f"label_values must be a non-empty sequence of integers, got {label_values!r}"
+            f"label_values must be a non-empty sequence of integers, got {readable(label_values)}"
         )
     if not np.issubdtype(vals.dtype, np.integer):
         if not (np.issubdtype(vals.dtype, np.floating) and np.all(vals == np.round(vals))):
-            raise ValueError(f"label_values must be integers, got {label_values!r}")
+            raise ValueError(f"label_values must be integers, got {readable(label_values)}")
     vals = vals.astype(np.int64)
     if np.unique(vals).size != vals.size:
-        raise ValueError(f"label_values must not repeat a value, got {label_values!r}")
+        raise ValueError(f"label_values must not repeat a value, got {readable(label_values)}")
     return np.sort(vals)
 
 
@@ -658,7 +659,7 @@ def _crisp_sums(
             if bad.any():
                 raise InputError(
                     f"{names[i]}: non-integer values in a crisp label map "
-                    f"(e.g. {row[np.argmax(bad)]!r}); pass memberships as one "
+                    f"(e.g. {readable(row[np.argmax(bad)])}); pass memberships as one "
                     "multi-component image per subject"
                 )
         flat = flat.astype(np.int64)
@@ -771,7 +772,7 @@ def _fuzzy_sums(
             if candidates[0] < 0 or candidates[-1] >= n_comp:
                 raise ValueError(
                     f"label_values of fuzzy input must be component indices 0..{n_comp - 1}, "
-                    f"got {label_values!r}"
+                    f"got {readable(label_values)}"
                 )
         keep = comp_present[candidates]
         components = values = candidates[keep]

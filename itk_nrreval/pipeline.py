@@ -45,7 +45,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from . import _version
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
 from ._progress import progress
@@ -763,7 +763,7 @@ def _reduce(
         skipped = tuple(int(c) for c in comps[~present])
         if skipped:
             warnings.warn(
-                f"labels {[values[c] for c in skipped]} are absent from every image and "
+                f"labels {readable([values[c] for c in skipped])} are absent from every image and "
                 "are skipped",
                 UserWarning,
                 stacklevel=4,

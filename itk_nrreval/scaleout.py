@@ -18,7 +18,7 @@ from typing import Any
 
 import SimpleITK as sitk
 
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._progress import progress
 
 __all__ = ["DaskExecutor", "cluster_client", "check_scheduler"]
@@ -82,7 +82,7 @@ def check_scheduler(scheduler: str, workers: int | None) -> None:
             f"scheduler: {scheduler!r} is neither 'local' nor an address like tcp://host:8786"
         )
     if workers is not None and (isinstance(workers, bool) or workers < 1):
-        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+        raise ValueError(f"workers: expected a positive integer, got {readable(workers)}")
 
 
 class DaskExecutor:

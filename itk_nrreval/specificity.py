@@ -33,7 +33,7 @@ import numba
 import numpy as np
 
 from . import _blocked, _sampling
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._progress import progress
 from .model import MixtureModel, TextureModel
 
@@ -210,9 +210,9 @@ def _check_options(n_samples: int, distance: str, exponent: float) -> None:
     if distance not in _DISTANCES:
         raise ValueError(f"distance must be one of {_DISTANCES}, got {distance!r}")
     if not (isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _sampling.MAX_SAMPLES):
-        raise ValueError(f"n_samples must be an integer in [2, 2**36), got {n_samples!r}")
+        raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if not (exponent > 0 and math.isfinite(exponent)):
-        raise ValueError(f"exponent must be a positive number, got {exponent!r}")
+        raise ValueError(f"exponent must be a positive number, got {readable(exponent)}")
 
 
 def _model(images, mask) -> TextureModel:

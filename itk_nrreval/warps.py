@@ -59,6 +59,8 @@ import scipy.linalg
 import SimpleITK as sitk
 from scipy import ndimage
 
+from ._errors import readable
+
 __all__ = [
     "ClampedPlateSpline",
     "CPSWarp",
@@ -406,11 +408,11 @@ def knot_positions(n_knots: int, dim: int, *, radius: float = KNOT_RADIUS) -> np
         Unit-ball coordinates (multiply by the ball's radius for mm from its centre).
     """
     if not (isinstance(n_knots, (int, np.integer)) and n_knots >= 1):
-        raise ValueError(f"n_knots must be a positive integer, got {n_knots!r}")
+        raise ValueError(f"n_knots must be a positive integer, got {readable(n_knots)}")
     if dim not in (2, 3):
-        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+        raise ValueError(f"dim must be 2 or 3, got {readable(dim)}")
     if not 0 < radius < 1:
-        raise ValueError(f"radius must lie in (0, 1), got {radius!r}")
+        raise ValueError(f"radius must lie in (0, 1), got {readable(radius)}")
     per_axis = 81 if dim == 2 else 31
     axis = np.linspace(-radius, radius, per_axis)
     cand = np.stack(np.meshgrid(*([axis] * dim), indexing="ij"), axis=-1).reshape(-1, dim)
@@ -442,10 +444,12 @@ def _check_spacing(spacing, dim: int) -> tuple[float, ...]:
         out = tuple(float(s) for s in spacing)
     except TypeError:
         raise ValueError(
-            f"spacing must be {dim} numbers (mm, ITK order), got {spacing!r}"
+            f"spacing must be {dim} numbers (mm, ITK order), got {readable(spacing)}"
         ) from None
     if len(out) != dim or not all(math.isfinite(s) and s > 0 for s in out):
-        raise ValueError(f"spacing must be {dim} positive numbers (mm, ITK order), got {spacing!r}")
+        raise ValueError(
+            f"spacing must be {dim} positive numbers (mm, ITK order), got {readable(spacing)}"
+        )
     return out
 
 
@@ -998,12 +1002,12 @@ def random_cps(
     d = float(mean_displacement)
     if not (np.isfinite(d) and d >= 0):
         raise ValueError(
-            f"mean_displacement must be a finite number >= 0, got {mean_displacement!r}"
+            f"mean_displacement must be a finite number >= 0, got {readable(mean_displacement)}"
         )
     if not (isinstance(max_tries, (int, np.integer)) and max_tries >= 1):
-        raise ValueError(f"max_tries must be a positive integer, got {max_tries!r}")
+        raise ValueError(f"max_tries must be a positive integer, got {readable(max_tries)}")
     if not 0 <= min_jacobian < 1:
-        raise ValueError(f"min_jacobian must lie in [0, 1), got {min_jacobian!r}")
+        raise ValueError(f"min_jacobian must lie in [0, 1), got {readable(min_jacobian)}")
     dim = len(shape)
     knots = knot_positions(n_knots, dim)
     rng = _as_rng(seed)
@@ -1170,7 +1174,7 @@ def max_safe_displacement(field, *, min_jacobian: float = 0.0) -> float:
         multiply by ``warp.mean_displacement_mm / warp.mean_displacement`` for mm.
     """
     if not 0 <= min_jacobian < 1:
-        raise ValueError(f"min_jacobian must lie in [0, 1), got {min_jacobian!r}")
+        raise ValueError(f"min_jacobian must lie in [0, 1), got {readable(min_jacobian)}")
     if isinstance(field, CPSWarp):
         if field.spline is None or field.scale == 0.0:
             return float("inf")
@@ -1266,7 +1270,9 @@ def warp_stack(images, warps, *, labels=None, n_labels: int | None = None, label
         if label_values is not None:
             values = np.asarray(label_values, dtype=np.int64).ravel()
             if values.size == 0 or np.unique(values).size != values.size:
-                raise ValueError(f"label_values must be distinct integers, got {label_values!r}")
+                raise ValueError(
+                    f"label_values must be distinct integers, got {readable(label_values)}"
+                )
             order = np.argsort(values)
             pos = np.clip(np.searchsorted(values[order], labels), 0, values.size - 1)
             found = values[order][pos] == labels

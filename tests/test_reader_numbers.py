@@ -169,10 +169,13 @@ def run(tmp_path_factory):
 
 
 def _row(html: str, section: str, name: str) -> list[str]:
-    """The cells' text of `name`'s row in the first table of the page's section `section`."""
+    """The cells' text of the first row whose first cell is `name` in the page's `section`."""
     body = html.split(f'<section id="{section}"', 1)[1].split("</section>", 1)[0]
-    row = next(r for r in body.split("<tr>") if f">{name}<" in r)
-    return [re.sub("<[^>]+>", "", c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)]
+    for row in re.findall(r"<tr[^>]*>(.*?)</tr>", body):
+        cells = [re.sub("<[^>]+>", "", c) for c in re.findall(r"<t[dh][^>]*>(.*?)</t[dh]>", row)]
+        if cells and cells[0] == name:
+            return cells
+    raise AssertionError(f"no row of {name} in {section}")
 
 
 def test_the_frame_spread_the_report_calls_doubtful_is_the_one_flagged(run):
@@ -191,3 +194,36 @@ def test_the_frame_spread_the_report_calls_doubtful_is_the_one_flagged(run):
         assert f"| {name} | {s.frame.method} | " in summary
         cell = summary.split(f"| {name} | {s.frame.method} | ", 1)[1].split(" | ")[1]
         assert cell == ("yes" if flagged else "no"), name
+
+
+# ----------------------------------------------------------------------------- for people
+
+PYTHON_INTERNALS = re.compile(r"np\.(?:float|int|uint|bool)\w*\(|array\(|dtype|\bNone\b")
+
+
+def test_reports_show_no_python_internals(run):
+    result, summary, html = run
+    assert not PYTHON_INTERNALS.findall(summary)
+    page_text = re.sub("<[^>]+>", " ", html.split("<body", 1)[1])  # what a reader sees
+    assert not PYTHON_INTERNALS.findall(page_text), set(PYTHON_INTERNALS.findall(page_text))
+    # the identity registration's reference index is shown; the others have none
+    assert _row(html, "inputs", "identity")[2] == "0"
+    assert _row(html, "inputs", "truth")[2] == "–"
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: nr.evaluate({}, n_samples=np.int64(1)),
+        lambda: nr.evaluate({}, confidence_samples=np.int64(1)),
+        lambda: nr.evaluate({}, label_interpolation="gaussian", label_sigma_mm=np.float64(-62)),
+        lambda: nr.overlap_table(np.ones((3, 4, 4), int), spacing=(np.float64(-1.0), 1.0)),
+        lambda: nr.overlap_table(np.ones((3, 4, 4), int), label_values=np.array([1, 1])),
+        lambda: nr.overlap_table(np.ones((3, 4, 4), int), label_values=np.array([1.0, 2.5])),
+        lambda: nr.overlap_table([sitk.GetImageFromArray(np.full((4, 4), 0.3, np.float32))] * 3),
+    ],
+)
+def test_messages_show_numbers_as_people_write_them(call):
+    with pytest.raises(ValueError) as info:
+        call()
+    assert not PYTHON_INTERNALS.findall(str(info.value)), str(info.value)

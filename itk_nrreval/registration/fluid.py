@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import SimpleITK as sitk
 
-from .._errors import InputError
+from .._errors import InputError, readable
 from .._progress import progress
 from ..transforms import chain_transform, field_transform
 from ._common import EngineError, engine_seed, resample
@@ -143,19 +143,22 @@ class FluidOptions:
         if any(not _positive(s) for s in values):
             raise InputError(
                 f"fluid options: smoothing_mm must be finite numbers > 0 (mm), got "
-                f"{self.smoothing_mm!r}"
+                f"{readable(self.smoothing_mm)}"
             )
         u = self.update_smoothing_mm
         if isinstance(u, bool) or not isinstance(u, (int, float)) or not (0 <= u < math.inf):
             raise InputError(
-                f"fluid options: update_smoothing_mm must be a finite number >= 0 (mm), got {u!r}"
+                f"fluid options: update_smoothing_mm must be a finite number >= 0 (mm), "
+                f"got {readable(u)}"
             )
         if not _positive(self.max_step):
-            raise InputError(f"fluid options: max_step must be > 0 voxels, got {self.max_step!r}")
+            raise InputError(
+                f"fluid options: max_step must be > 0 voxels, got {readable(self.max_step)}"
+            )
         if _bad_int(self.histogram_levels, 2):
             raise InputError(
                 f"fluid options: histogram_levels must be an integer >= 2, "
-                f"got {self.histogram_levels!r}"
+                f"got {readable(self.histogram_levels)}"
             )
 
 
