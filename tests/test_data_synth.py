@@ -268,7 +268,7 @@ def test_synth_command_writes_files_and_a_manifest_that_resolves(tmp_path, capsy
     [
         (["--kind", "ct"], r"--kind must be 'phantom' or 'mni', got 'ct'"),
         (["--dim", "4"], r"--dim must be 2 or 3, got 4"),
-        (["--n", "0"], r"--n must be at least 1, got 0"),
+        (["--n", "0"], r"argument --n: expected an integer >= 3, got '0'"),
         (["--warp", "-2"], r"warp_mm must be a finite number >= 0, got -2.0"),
     ],
 )
@@ -276,7 +276,7 @@ def test_synth_command_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, 
     from itk_nrreval.cli import main
 
     out = tmp_path / "pop"
-    assert main(["synth", "--out", str(out), "--n", "2", *argv]) == 2
+    assert main(["synth", "--out", str(out), "--n", "3", *argv]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
     assert re.search(message, err)
@@ -288,7 +288,7 @@ def test_synth_command_refuses_a_file_as_output(tmp_path, capsys):
 
     target = tmp_path / "file.txt"
     target.write_text("x")
-    assert main(["synth", "--out", str(target), "--n", "1"]) == 2
+    assert main(["synth", "--out", str(target), "--n", "3"]) == 2
     assert re.search(r"exists and is not a folder", capsys.readouterr().err)
 
 
@@ -370,13 +370,13 @@ def test_synth_command_two_contrasts_writes_groups(tmp_path, capsys):
     from itk_nrreval.cli import main
 
     out = tmp_path / "pop"
-    argv = ["synth", "--n", "2", "--contrasts", "t1,t2", "--out", str(out)]
+    argv = ["synth", "--n", "3", "--contrasts", "t1,t2", "--out", str(out)]
     assert main(argv) == 0
     assert "t1+t2" in capsys.readouterr().out
     manifest = yaml.safe_load((out / "manifest.yaml").read_text())
-    subjects = ["s00", "s01"]
+    subjects = ["s00", "s01", "s02"]
     assert manifest["images"] == [f"img/{s}_{c}.nii.gz" for c in ("t1", "t2") for s in subjects]
-    assert manifest["groups"] == ["t1", "t1", "t2", "t2"]
+    assert manifest["groups"] == ["t1"] * 3 + ["t2"] * 3
     assert manifest["labels"] == [f"lab/{s}.nii.gz" for s in subjects] * 2
     truth = manifest["registrations"]["truth"]
     assert truth["transforms"] == [f"truth/{s}.h5" for s in subjects] * 2
@@ -395,7 +395,7 @@ def test_synth_command_bad_contrasts_one_line_exit_2(tmp_path, capsys, value):
     from itk_nrreval.cli import main
 
     out = tmp_path / "pop"
-    assert main(["synth", "--out", str(out), "--n", "1", "--contrasts", value]) == 2
+    assert main(["synth", "--out", str(out), "--n", "3", "--contrasts", value]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
     assert "--contrasts must be distinct names from t1, t2" in err

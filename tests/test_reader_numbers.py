@@ -3,6 +3,7 @@ numbers formatted for people, and the CLI's help and minimums."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import re
 
@@ -227,3 +228,53 @@ def test_messages_show_numbers_as_people_write_them(call):
     with pytest.raises(ValueError) as info:
         call()
     assert not PYTHON_INTERNALS.findall(str(info.value)), str(info.value)
+
+
+# ----------------------------------------------------------------------------- the CLI
+
+
+def _options_with_defaults():
+    """(command, option, default, help expanded as argparse prints it) of every option that
+    takes a value and has a default."""
+    from itk_nrreval.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for command, sub in commands.choices.items():
+        for action in sub._actions:
+            if not action.option_strings or action.nargs == 0:  # positional, or a switch
+                continue
+            if action.default is None or action.default is argparse.SUPPRESS:
+                continue
+            yield (
+                command,
+                action.option_strings[0],
+                action.default,
+                sub._get_formatter()._expand_help(action) if action.help else "",
+            )
+
+
+def test_every_option_with_a_default_says_it_in_its_help():
+    missing = []
+    for command, option, default, text in _options_with_defaults():
+        if isinstance(default, (list, tuple)):
+            shown = [",".join(f"{v:g}" for v in default)]
+        elif isinstance(default, float):
+            shown = [f"{default:g}"]
+        elif isinstance(default, int):
+            shown = [str(default), f"{default:,}"]
+        else:
+            shown = [str(default)]
+        if "default" not in text or not any(s in text for s in shown):
+            missing.append(f"{command} {option} (default {default}): {text!r}")
+    assert not missing, "\n".join(missing)
+
+
+@pytest.mark.parametrize("n", ["0", "1", "2"])
+def test_synth_refuses_fewer_images_than_evaluate_needs(tmp_path, capsys, n):
+    from itk_nrreval.cli import main
+
+    assert main(["synth", "--n", n, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--n" in err and ">= 3" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

@@ -18,13 +18,20 @@ def add_parser(sub) -> None:
         "correspondence error beside it.",
     )
     p.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
-    p.add_argument("--kind", choices=("phantom", "mni"), default="phantom")
+    p.add_argument(
+        "--kind",
+        choices=("phantom", "mni"),
+        default="phantom",
+        help="template (default %(default)s)",
+    )
     p.add_argument("--3d", dest="dim", action="store_const", const=3, default=2, help="volumes")
     p.add_argument(
         "--n", type=integer(4), default=None, help="number of images (default 36; quick 12)"
     )
     p.add_argument("--samples", type=samples, default=None, metavar="M", help="default 500000")
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--seed", type=seed, default=0, metavar="S", help="random seed (default %(default)s)"
+    )
     p.add_argument("--quick", action="store_true", help="N = 12, M = 50,000: first contact")
     p.set_defaults(func=run)
 

@@ -21,15 +21,24 @@ def add_parser(sub) -> None:
     p.add_argument("manifest", metavar="MANIFEST", help="manifest (YAML or JSON)")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for results and figures")
     p.add_argument(
-        "--samples", type=samples, default=100_000, metavar="M", help="model samples (1e5 works)"
+        "--samples",
+        type=samples,
+        default=100_000,
+        metavar="M",
+        help="model samples (default %(default)s; 1e5 works)",
     )
     p.add_argument("--seed", type=seed, default=0, metavar="S", help="sample seed (default 0)")
-    p.add_argument("--distance", choices=("l1", "l2"), default="l1")
+    p.add_argument(
+        "--distance",
+        choices=("l1", "l2"),
+        default="l1",
+        help="parameter-space distance (default %(default)s, the paper's Table 3)",
+    )
     p.add_argument(
         "--interpolation",
         choices=("linear", "bspline"),
         default="linear",
-        help="intensity interpolation (labels: see --label-interpolation)",
+        help="intensity interpolation (default %(default)s; labels: see --label-interpolation)",
     )
     p.add_argument(
         "--label-interpolation",

@@ -80,7 +80,9 @@ def add_parser(sub) -> None:
         "--name",
         help="registration name in the manifest (default: the method; multimodal-STRATEGY)",
     )
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--seed", type=seed, default=0, metavar="S", help="random seed (default %(default)s)"
+    )
     add_quiet_option(p)
     p.set_defaults(func=run)
 

@@ -27,10 +27,21 @@ def add_parser(sub) -> None:
         help="model samples (default 100000)",
     )
     p.add_argument(
-        "--distance", choices=("l1", "l2"), default="l1", help="parameter-space distance"
+        "--distance",
+        choices=("l1", "l2"),
+        default="l1",
+        help="parameter-space distance (default %(default)s)",
     )
-    p.add_argument("--exponent", type=positive, default=1.0, metavar="L", help="the paper's lambda")
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--exponent",
+        type=positive,
+        default=1.0,
+        metavar="L",
+        help="the paper's lambda (default %(default)g)",
+    )
+    p.add_argument(
+        "--seed", type=seed, default=0, metavar="S", help="sample seed (default %(default)s)"
+    )
     p.add_argument(
         "--groups",
         type=_group_list,

@@ -63,9 +63,15 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(
-        "--samples", type=samples, default=20_000, metavar="M", help="specificity samples"
+        "--samples",
+        type=samples,
+        default=20_000,
+        metavar="M",
+        help="specificity samples (default %(default)s)",
     )
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--seed", type=seed, default=0, metavar="S", help="random seed (default %(default)s)"
+    )
     add_quiet_option(p)
     p.set_defaults(func=run)
 

@@ -11,7 +11,7 @@ import argparse
 
 from .._errors import InputError
 from .._output import check_output_folder, staged_folder
-from ._options import seed
+from ._options import integer, seed
 
 
 def add_parser(sub) -> None:
@@ -28,7 +28,15 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--dim", type=int, default=2, metavar="{2,3}", help="2D slice or 3D volume (default 2)"
     )
-    p.add_argument("--n", type=int, default=36, metavar="N", help="number of subjects (default 36)")
+    # evaluate, specificity and validate need at least 3 images (a texture model of 2 has one
+    # mode): a population they cannot use is refused when parsed
+    p.add_argument(
+        "--n",
+        type=integer(3),
+        default=36,
+        metavar="N",
+        help="number of subjects (default 36; at least 3)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument("--seed", type=seed, default=0, metavar="S", help="random seed (default 0)")
     p.add_argument("--spacing", type=float, default=None, metavar="MM", help="voxel size in mm")
@@ -63,8 +71,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--kind must be 'phantom' or 'mni', got {args.kind!r}")
     if args.dim not in (2, 3):
         raise InputError(f"--dim must be 2 or 3, got {args.dim}")
-    if args.n < 1:
-        raise InputError(f"--n must be at least 1, got {args.n}")
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
     contrasts = tuple(c.strip() for c in args.contrasts.split(","))

@@ -93,7 +93,9 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--knots", type=int, default=25, metavar="K", help="CPS knots per warp (default 25)"
     )
-    p.add_argument("--seed", type=seed, default=0, metavar="S")
+    p.add_argument(
+        "--seed", type=seed, default=0, metavar="S", help="random seed (default %(default)s)"
+    )
     p.add_argument("--jobs", type=int, default=2, metavar="J", help="threads (default 2)")
     add_quiet_option(p)
     p.set_defaults(func=run)
