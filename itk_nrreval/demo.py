@@ -31,7 +31,7 @@ from ._output import (
     write_json,
     write_text,
 )
-from .evaluation import EvaluationResult, evaluate, ranks, relative_ranks
+from .evaluation import EvaluationResult, evaluate, higher_is_better, ranks, relative_ranks
 from .frame import read_chains, resampling_transform
 from .manifest import add_registration, load_manifest, write_manifest
 from .transforms import displacement_field
@@ -144,7 +144,7 @@ def spread_of_correspondence(
 
 
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
-    from .reports import format_number, format_percent
+    from .reports import format_number, format_percent, format_rank
 
     names = list(evaluation.scores)
     err_rank = ranks(error, higher_is_better=False)
@@ -162,7 +162,7 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
             m = f"overlap.{w}"
             row += [
                 format_number(s.overlap[w], 3),
-                str(evaluation.ranks[m][name]),
+                format_rank(evaluation, m, name),
                 format_percent(evaluation.relative_ranks[m][name]),
             ]
         iv = s.intervals.get("specificity")
@@ -171,7 +171,7 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
             format_number(s.specificity.value, 4),
             ci,
             format_number(s.specificity.stderr, 2),
-            str(evaluation.ranks["specificity"][name]),
+            format_rank(evaluation, "specificity", name),
             format_percent(evaluation.relative_ranks["specificity"][name]),
         ]
         row += [format_number(error[name], 3), str(err_rank[name]), format_percent(err_rel[name])]
@@ -184,8 +184,16 @@ def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
 
 def _agreement(evaluation: EvaluationResult, error: dict[str, float]) -> dict[str, float]:
     names = list(evaluation.scores)
-    spec = [evaluation.ranks["specificity"][n] for n in names]
-    others = {m: evaluation.ranks[m] for m in evaluation.ranks if m != "specificity"}
+    # the order of the scores themselves: the reports' ranks tie scores within noise
+    by_score = {
+        m: ranks(
+            {n: evaluation.scores[n].measures()[m] for n in names},
+            higher_is_better=higher_is_better(m),
+        )
+        for m in evaluation.ranks
+    }
+    spec = [by_score["specificity"][n] for n in names]
+    others = {m: r for m, r in by_score.items() if m != "specificity"}
     others["true_correspondence_error"] = ranks(error, higher_is_better=False)
     return {m: float(stats.spearmanr(spec, [r[n] for n in names])[0]) for m, r in others.items()}
 
