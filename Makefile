@@ -38,7 +38,9 @@ $(ANTS_STAMP): $(STAMP)
 test: install $(TORCH_STAMP) $(ANTS_STAMP)
 	command -v chromium || command -v chromium-browser || command -v google-chrome \
 	  || (command -v apt-get && [ "$$(id -u)" = 0 ] \
-	      && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium) \
+	      && (DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium \
+	          || (apt-get update && DEBIAN_FRONTEND=noninteractive \
+	              apt-get install -y --no-install-recommends chromium))) \
 	  || echo "chromium not installed: browser tests will be skipped"
 	$(PY) -m pytest -q
 
