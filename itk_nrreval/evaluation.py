@@ -49,6 +49,7 @@ __all__ = [
     "RegistrationScores",
     "EvaluationResult",
     "Verdict",
+    "Decision",
     "evaluate",
     "verdict",
     "ranks",
@@ -160,6 +161,32 @@ class RegistrationScores:
         }
 
 
+#: The basis of a decision by specificity: the pair's subject-level 95% interval of the
+#: difference excludes 0 (:class:`itk_nrreval.confidence.Comparison`).
+SPECIFICITY_SEPARABLE = "specificity (subject-level interval separable)"
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One ordered pair the verdict asserts: `better` is a better registration than `worse`.
+
+    Attributes
+    ----------
+    better, worse : str
+        Registration names.
+    basis : str
+        What decided it: :data:`SPECIFICITY_SEPARABLE`, or ``"flag: <reasons>"`` when `worse`
+        is flagged as implausible and `better` is not (the reasons are `worse`'s flags).
+    """
+
+    better: str
+    worse: str
+    basis: str
+
+    def to_dict(self) -> dict:
+        return {"better": self.better, "worse": self.worse, "basis": self.basis}
+
+
 @dataclass(frozen=True)
 class Verdict:
     """The headline: which registration is best, in order and in words.
@@ -174,14 +201,25 @@ class Verdict:
         interval of the specificity difference includes 0).
     text : tuple of str
         The verdict as sentences.
+    decisions : tuple of Decision
+        Every ordered pair the verdict asserts, in ranking order; a pair not listed is open.
+        An unflagged registration is decided better than every flagged one; two
+        registrations flagged alike are decided when their specificity difference is
+        separable (lower is better).
     """
 
     ranking: tuple[str, ...]
     best: tuple[str, ...]
     text: tuple[str, ...]
+    decisions: tuple[Decision, ...] = ()
 
     def to_dict(self) -> dict:
-        return {"ranking": list(self.ranking), "best": list(self.best), "text": list(self.text)}
+        return {
+            "ranking": list(self.ranking),
+            "best": list(self.best),
+            "text": list(self.text),
+            "decisions": [d.to_dict() for d in self.decisions],
+        }
 
 
 @dataclass(frozen=True)
@@ -487,7 +525,8 @@ def verdict(
     unflagged one. The best are the top unflagged registration and those whose specificity
     difference from it is not separable (its subject-level 95% interval includes 0). With
     labels, a sentence says the same of the inverse-volume overlap, the ground-truth
-    reference. Each flagged registration gets a sentence saying why.
+    reference. Each flagged registration gets a sentence saying why. The decisions are the
+    ordered pairs this ranking asserts (:attr:`Verdict.decisions`).
 
     Parameters
     ----------
@@ -573,7 +612,17 @@ def verdict(
             f"{n} is flagged: {'; '.join(scores[n].flags)}. It is ranked after every "
             "unflagged registration."
         )
-    return Verdict(tuple(ranking), tuple(best), tuple(text))
+    # The pairs the ranking asserts: flagged after unflagged, and, flagged alike, the order
+    # of specificity where it is separable. Any other order in the ranking rests on a
+    # difference the data cannot tell from 0, so the pair stays open.
+    decisions = []
+    for i, a in enumerate(ranking):
+        for b in ranking[i + 1 :]:
+            if scores[b].flags and not scores[a].flags:
+                decisions.append(Decision(a, b, "flag: " + "; ".join(scores[b].flags)))
+            elif separable("specificity", a, b):
+                decisions.append(Decision(a, b, SPECIFICITY_SEPARABLE))
+    return Verdict(tuple(ranking), tuple(best), tuple(text), tuple(decisions))
 
 
 def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str, ...]:
