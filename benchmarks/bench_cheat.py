@@ -33,22 +33,23 @@ def classes_of(image: sitk.Image, edges: np.ndarray) -> sitk.Image:
     return out
 
 
-def main() -> dict:
-    import itk_nrreval as nr
-    from data_synth.cheat import class_matching_cheat
-    from itk_nrreval.demo import run_demo
-    from itk_nrreval.frame import read_chains
+def add_cheat(demo_out: Path) -> Path:
+    """Write the cheat of the demo in `demo_out` beside its registrations.
 
-    t0 = time.perf_counter()
-    demo = run_demo(out=OUT, n=36, n_samples=SAMPLES, progress=False, log=lambda _: None)
-    manifest_path = OUT / "manifest.yaml"
-    m = nr.load_manifest(manifest_path)
+    Returns ``demo_out / "manifest_cheat.yaml"``: the demo's manifest plus ``cheat``.
+    """
+    from data_synth.cheat import class_matching_cheat
+    from itk_nrreval.frame import read_chains
+    from itk_nrreval.manifest import load_manifest
+
+    manifest_path = demo_out / "manifest.yaml"
+    m = load_manifest(manifest_path)
     ref = sitk.ReadImage(str(m.registrations["affine"].reference))
     arr = sitk.GetArrayFromImage(ref)
     brain = arr > 0.05 * arr.max()
     edges = np.quantile(arr[brain], [0.0, 0.25, 0.5, 0.75])  # background, then 4 classes
     ref_classes = classes_of(ref, edges)
-    folder = OUT / "registrations" / "cheat"
+    folder = demo_out / "registrations" / "cheat"
     folder.mkdir(parents=True, exist_ok=True)
     items = []
     for i, (path, affine) in enumerate(zip(m.images, read_chains(m, "affine"), strict=True)):
@@ -65,8 +66,18 @@ def main() -> dict:
     }
     if data["registrations"]["cheat"]["reference_index"] is None:
         del data["registrations"]["cheat"]["reference_index"]
-    cheat_manifest = OUT / "manifest_cheat.yaml"
+    cheat_manifest = demo_out / "manifest_cheat.yaml"
     cheat_manifest.write_text(yaml.safe_dump(data, sort_keys=False))
+    return cheat_manifest
+
+
+def main() -> dict:
+    import itk_nrreval as nr
+    from itk_nrreval.demo import run_demo
+
+    t0 = time.perf_counter()
+    demo = run_demo(out=OUT, n=36, n_samples=SAMPLES, progress=False, log=lambda _: None)
+    cheat_manifest = add_cheat(OUT)
     res = nr.evaluate(
         cheat_manifest, n_samples=SAMPLES, cache=OUT / "cache", progress=False, seed=0
     )

@@ -1,0 +1,394 @@
+"""Is the verdict right? Its decided pairs against the true correspondence error.
+
+Each case is one generated population (known true transforms) registered several ways; every
+registration's true mean correspondence error (mm, :func:`itk_nrreval.demo.correspondence_error`)
+is computed beside the evaluation, and the verdict's decided pairs
+(:attr:`itk_nrreval.evaluation.Verdict.decisions`) are judged against it. For every pair of
+registrations whose true errors differ by more than ``MARGIN`` (10% of the smaller), the
+verdict is *right* (it decides the lower-error one better), *wrong* (the other way) or
+*open* (it decides nothing). Pairs closer than that are near-ties: counted apart, decided or
+open.
+
+Cases (2D, N = 12, M = ``N_SAMPLES``):
+
+* ``demo``: the demo's five registrations (:func:`itk_nrreval.demo.run_demo`, phantom);
+* ``cheat``: the demo's registrations plus Rohlfing's class-matching cheat
+  (:func:`bench_cheat.add_cheat`);
+* ``sweep_<case>``: the 2D sweeps of ``bench_sweeps.CASES`` (demons field / update smoothing,
+  B-spline grid spacing, bending weight; phantom and MNI);
+* ``overfit``: demons with little field smoothing (0.25-5 mm) at the default and at five
+  times the iterations;
+* ``bspline_grids``: B-spline grids from 2 mm (very fine) to 64 mm;
+* ``similar``: the true transforms each perturbed by a smooth random field, two of them of
+  the same size (similar true quality) and one twice as large;
+* ``folding``: the true transforms perturbed by small local folds (a little folding, a small
+  error) against smooth perturbations without folds (larger errors).
+
+Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
+(``evaluation.pkl``: the pickled :class:`~itk_nrreval.EvaluationResult`; ``results.json``;
+``truth.json``: the true errors), so ``--rejudge`` recomputes only the verdict
+(:func:`itk_nrreval.evaluation.verdict`) from them, in seconds. Written to
+``benchmarks/out/verdict/``: ``pairs.csv`` / ``pairs.json`` (every pair: case, a, b, true
+errors, decision, basis, outcome) and ``summary.md`` (per case and overall).
+
+Run: ``python benchmarks/run_all.py verdict`` (every case), or
+``python benchmarks/bench_verdict.py [--quick] [--cases a,b] [--rejudge]``; ``--quick`` runs
+``demo``, ``similar`` and ``folding`` (a few minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib.util
+import io
+import itertools
+import json
+import pickle
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "out" / "verdict"
+N = 12
+N_SAMPLES = 20_000
+SEED = 0
+#: Pairs whose true errors differ by more than this fraction of the smaller are judged.
+MARGIN = 0.10
+QUICK = ("demo", "similar", "folding")
+
+
+def _bench(name: str):
+    """Another benchmark module of this folder (its builders are reused, not copied)."""
+    path = HERE / f"bench_{name}.py"
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _quiet(function, *args, **kwargs):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # flags and coverage are what is measured here
+        return function(*args, **kwargs)
+
+
+def _true_errors(evaluation, manifest: Path, data_manifest: Path) -> dict[str, float]:
+    """True correspondence error (mm) of every registration, inside the manifest's mask."""
+    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.sweep import _truth_error
+    from itk_nrreval.transforms import chain_transform
+
+    truth = load_manifest(data_manifest).registrations["truth"]
+    chains = [chain_transform(t) for t in truth.transforms]
+    return _truth_error(evaluation, manifest, chains, truth.reference)
+
+
+# ------------------------------------------------------------------------------------ cases
+
+
+def _demo(folder: Path):
+    from itk_nrreval.demo import run_demo
+
+    demo = _quiet(
+        run_demo, out=folder, n=N, n_samples=N_SAMPLES, seed=SEED, progress=False, log=print
+    )
+    return demo.evaluation, demo.correspondence_error_mm
+
+
+def _cheat(folder: Path):
+    import itk_nrreval as nr
+
+    demo = OUT / "demo"
+    if not (demo / "manifest.yaml").exists():
+        _run_case("demo")
+    manifest = _bench("cheat").add_cheat(demo)  # beside the demo's registrations
+    ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
+    return ev, _true_errors(ev, manifest, demo / "data" / "manifest.yaml")
+
+
+def _sweep(folder: Path, *, kind: str, method: str, parameters: dict, engine=None):
+    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.sweep import sweep
+    from itk_nrreval.transforms import chain_transform
+
+    data = _population(kind)
+    m = load_manifest(data)
+    truth = m.registrations["truth"]
+    res = _quiet(
+        sweep,
+        list(m.images),
+        method=method,
+        parameters=parameters,
+        out=folder / "sweep",
+        labels=list(m.labels),
+        engine=engine,
+        truth=[chain_transform(t) for t in truth.transforms],
+        truth_reference=truth.reference,
+        n_samples=N_SAMPLES,
+        seed=SEED,
+        progress=False,
+    )
+    return res.evaluation, dict(res.truth_error_mm)
+
+
+def _population(kind: str) -> Path:
+    from data_synth import make_population, write_population
+
+    manifest = OUT / f"data_{kind}2d_n{N}" / "manifest.yaml"
+    if not manifest.exists():
+        pop = make_population(kind, dim=2, n=N, seed=SEED)
+        write_population(pop, manifest.parent, montage=False, show_progress=False)
+    return manifest
+
+
+def _perturbed(folder: Path, perturbations: dict[str, list[np.ndarray]]):
+    """The true transforms, each perturbed first by a displacement field on the template grid.
+
+    `perturbations` maps a registration name to one field per subject (numpy order, mm,
+    components x, y): registration ``name`` maps p to ``truth_i(p + u_i(p))``.
+    """
+    import itk_nrreval as nr
+    from data_synth.population import _field_image
+    from itk_nrreval.manifest import add_registration, load_manifest
+
+    data = _population("phantom")
+    truth = load_manifest(data).registrations["truth"]
+    template = sitk.ReadImage(str(truth.reference))
+    manifest = folder / "manifest.yaml"
+    manifest.unlink(missing_ok=True)
+    m = load_manifest(data)
+    for name, fields in perturbations.items():
+        items = []
+        for i, (u, chain) in enumerate(zip(fields, truth.transforms, strict=True)):
+            path = folder / name / f"s{i:02d}.mha"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            sitk.WriteImage(_field_image(u, template), str(path))
+            chain = chain if isinstance(chain, (list, tuple)) else [chain]
+            items.append([str(path), *[str(p) for p in chain]])
+        add_registration(
+            manifest,
+            name,
+            reference=truth.reference,
+            transforms=items,
+            images=list(m.images),
+            labels=list(m.labels),
+        )
+    ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
+    return ev, _true_errors(ev, manifest, data)
+
+
+def _smooth_fields(seed: int, rms_mm: float, sigma_mm: float = 12.0) -> list[np.ndarray]:
+    """One smooth random displacement per subject, RMS `rms_mm`, vanishing at the border."""
+    from data_synth.population import _smooth_noise, _taper
+
+    template = sitk.ReadImage(str(_truth_reference()))
+    rng = np.random.default_rng(seed)
+    taper = _taper(template)[..., None]
+    return [
+        rms_mm * taper * _smooth_noise(rng, template, n_components=2, sigma_mm=sigma_mm)
+        for _ in range(N)
+    ]
+
+
+def _fold_fields(seed: int, *, n_bumps: int = 8, sigma_mm: float = 4.0, amplitude_mm: float = 12.0):
+    """Per subject, `n_bumps` small radial bumps inside the head: each folds in a thin ring.
+
+    The bump ``A (r / s) exp(-r^2 / 2 s^2)`` folds where its radial derivative is below -1,
+    a ring around ``r = sqrt(3) s`` once ``A > 2.24 s``; it is zero a few ``s`` away.
+    """
+    template = sitk.ReadImage(str(_truth_reference()))
+    arr = sitk.GetArrayFromImage(template)
+    inside = np.argwhere(arr > 0.3 * arr.max())  # numpy (y, x) indices inside the head
+    spacing = np.asarray(template.GetSpacing())[::-1]  # numpy order
+    yy, xx = np.indices(arr.shape)
+    rng = np.random.default_rng(seed)
+    fields = []
+    for _ in range(N):
+        u = np.zeros((*arr.shape, 2))
+        for cy, cx in inside[rng.choice(len(inside), n_bumps, replace=False)]:
+            dy, dx = (yy - cy) * spacing[0], (xx - cx) * spacing[1]
+            bump = amplitude_mm / sigma_mm * np.exp(-(dx**2 + dy**2) / (2 * sigma_mm**2))
+            u[..., 0] += bump * dx  # ITK component order: x, y
+            u[..., 1] += bump * dy
+        fields.append(u)
+    return fields
+
+
+def _truth_reference() -> Path:
+    from itk_nrreval.manifest import load_manifest
+
+    return Path(load_manifest(_population("phantom")).registrations["truth"].reference)
+
+
+def _cases() -> dict:
+    """Case name -> builder(folder) -> (EvaluationResult, true error per registration)."""
+    sweeps = _bench("sweeps")
+    cases = {"demo": _demo, "cheat": _cheat}
+    for case, kind, dim, _n, _spacing, method, engine, name, values in sweeps.CASES:
+        if dim == 2:
+            cases[f"sweep_{case}"] = lambda folder, k=kind, m=method, e=engine, p={name: values}: (
+                _sweep(folder, kind=k, method=m, parameters=p, engine=e)
+            )
+    cases["overfit"] = lambda folder: _sweep(
+        folder,
+        kind="phantom",
+        method="fluid",
+        parameters={
+            "smoothing_mm": (0.25, 1.0, 5.0),
+            "iterations": ((100, 60, 40), (500, 300, 200)),
+        },
+    )
+    cases["bspline_grids"] = lambda folder: _sweep(
+        folder,
+        kind="phantom",
+        method="pairwise",
+        parameters={"grid_spacing": (2.0, 4.0, 8.0, 16.0, 32.0, 64.0)},
+    )
+    cases["similar"] = lambda folder: _perturbed(
+        folder,
+        {
+            "smooth2mm_a": _smooth_fields(1, 2.0),
+            "smooth2mm_b": _smooth_fields(2, 2.0),
+            "smooth4mm": _smooth_fields(3, 4.0),
+        },
+    )
+    cases["folding"] = lambda folder: _perturbed(
+        folder,
+        {
+            "folds": _fold_fields(4),
+            "smooth2mm": _smooth_fields(5, 2.0),
+            "smooth3mm": _smooth_fields(6, 3.0),
+        },
+    )
+    return cases
+
+
+# ---------------------------------------------------------------------------- run and judge
+
+
+def _run_case(case: str) -> None:
+    """Register and evaluate one case; save what a re-judged verdict needs."""
+    folder = OUT / case
+    folder.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    evaluation, errors = _cases()[case](folder)
+    (folder / "evaluation.pkl").write_bytes(pickle.dumps(evaluation))
+    (folder / "results.json").write_text(json.dumps(evaluation.to_dict(), indent=1) + "\n")
+    truth = {"true_error_mm": errors, "seconds": round(time.perf_counter() - t0, 1)}
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    print(f"[verdict] {case}: {truth['seconds']:.0f} s", flush=True)
+
+
+def _verdict(case: str):
+    """The verdict of a saved case, recomputed by today's :func:`verdict`."""
+    from itk_nrreval.evaluation import verdict
+
+    evaluation = pickle.loads((OUT / case / "evaluation.pkl").read_bytes())
+    has_labels = any(s.overlap for s in evaluation.scores.values())
+    return verdict(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
+
+
+def judge(case: str) -> list[dict]:
+    """Every pair of registrations of a saved case, with the verdict's decision and outcome."""
+    errors = json.loads((OUT / case / "truth.json").read_text())["true_error_mm"]
+    decided = {(d.better, d.worse): d.basis for d in _verdict(case).decisions}
+    rows = []
+    for a, b in itertools.combinations(errors, 2):
+        if errors[b] < errors[a]:
+            a, b = b, a  # a: the lower true error
+        judged = errors[b] - errors[a] > MARGIN * errors[a]
+        if (a, b) in decided:
+            decision, basis, outcome = f"{a} > {b}", decided[(a, b)], "right"
+        elif (b, a) in decided:
+            decision, basis, outcome = f"{b} > {a}", decided[(b, a)], "wrong"
+        else:
+            decision, basis, outcome = "open", "", "open"
+        if not judged:
+            outcome = "near-tie, " + ("open" if outcome == "open" else "decided")
+        rows.append(
+            {
+                "case": case,
+                "a": a,
+                "b": b,
+                "true_error_a_mm": round(errors[a], 4),
+                "true_error_b_mm": round(errors[b], 4),
+                "decision": decision,
+                "basis": basis,
+                "outcome": outcome,
+            }
+        )
+    return rows
+
+
+def _counts(rows: list[dict]) -> dict[str, int]:
+    keys = ("right", "wrong", "open", "near-tie, decided", "near-tie, open")
+    return {k: sum(r["outcome"] == k for r in rows) for k in keys}
+
+
+def _write(rows: list[dict], cases: list[str]) -> dict:
+    OUT.mkdir(parents=True, exist_ok=True)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["case"])
+    writer.writeheader()
+    writer.writerows(rows)
+    (OUT / "pairs.csv").write_text(buffer.getvalue())
+    (OUT / "pairs.json").write_text(json.dumps(rows, indent=1) + "\n")
+    counts = {c: _counts([r for r in rows if r["case"] == c]) for c in cases}
+    counts["overall"] = _counts(rows)
+    lines = [
+        f"Pairs whose true errors differ by more than {MARGIN:.0%}: right / wrong / open; "
+        "near-ties (closer than that): decided / open.",
+        "",
+        "| case | right | wrong | open | near-ties decided | near-ties open |",
+        "|---|--:|--:|--:|--:|--:|",
+    ]
+    for c, k in counts.items():
+        name = f"**{c}**" if c == "overall" else c
+        lines.append(
+            f"| {name} | {k['right']} | {k['wrong']} | {k['open']} | "
+            f"{k['near-tie, decided']} | {k['near-tie, open']} |"
+        )
+    lines += ["", "Wrong decisions:", ""]
+    lines += [
+        f"- {r['case']}: {r['decision']} ({r['basis']}); true errors {r['a']} "
+        f"{r['true_error_a_mm']:.2f} mm, {r['b']} {r['true_error_b_mm']:.2f} mm"
+        for r in rows
+        if r["outcome"] == "wrong"
+    ] or ["- none"]
+    text = "\n".join(lines) + "\n"
+    (OUT / "summary.md").write_text(text)
+    print(text)
+    return {"counts": counts, "pairs": rows}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK)}")
+    parser.add_argument("--cases", help="comma-separated case names (default: all)")
+    parser.add_argument(
+        "--rejudge",
+        action="store_true",
+        help="recompute only the verdict from the saved evaluations (no registration)",
+    )
+    args = parser.parse_args([] if argv is None else argv)
+    known = list(_cases())
+    cases = args.cases.split(",") if args.cases else list(QUICK if args.quick else known)
+    unknown = [c for c in cases if c not in known]
+    if unknown:
+        parser.error(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    if args.rejudge:
+        cases = [c for c in cases if (OUT / c / "evaluation.pkl").exists()]
+    else:
+        for case in cases:
+            _run_case(case)
+    return _write([row for case in cases for row in judge(case)], cases)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
