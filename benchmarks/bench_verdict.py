@@ -383,7 +383,10 @@ def main(argv: list[str] | None = None) -> dict:
     if unknown:
         parser.error(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(known)}")
     if args.rejudge:
-        cases = [c for c in cases if (OUT / c / "evaluation.pkl").exists()]
+        missing = [c for c in cases if not (OUT / c / "evaluation.pkl").exists()]
+        if missing:
+            print(f"[verdict] not run yet, left out: {', '.join(missing)}", flush=True)
+        cases = [c for c in cases if c not in missing]
     else:
         for case in cases:
             _run_case(case)
