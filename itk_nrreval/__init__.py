@@ -10,7 +10,9 @@ from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
 from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
+    Decision,
     EvaluationResult,
+    OpenPair,
     RegistrationScores,
     Verdict,
     evaluate,
@@ -69,6 +71,8 @@ __all__ = [
     "EvaluationResult",
     "RegistrationScores",
     "Verdict",
+    "Decision",
+    "OpenPair",
     "Plausibility",
     "Thresholds",
     "deformation_plausibility",

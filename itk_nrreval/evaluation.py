@@ -44,12 +44,14 @@ from .overlap import WEIGHTINGS
 from .pipeline import Coverage, InProcessExecutor, run_pipeline
 from .plausibility import Plausibility, Thresholds, combine, flags, smallest_extent_mm
 from .specificity import GeneralizationResult, SpecificityResult
+from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
     "RegistrationScores",
     "EvaluationResult",
     "Verdict",
     "Decision",
+    "OpenPair",
     "evaluate",
     "verdict",
     "ranks",
@@ -158,67 +160,6 @@ class RegistrationScores:
             "folded_fraction": self.folded_fraction,
             "folded_max": self.folded_max,
             "n_modes": self.specificity.n_modes,
-        }
-
-
-#: The basis of a decision by specificity: the pair's subject-level 95% interval of the
-#: difference excludes 0 (:class:`itk_nrreval.confidence.Comparison`).
-SPECIFICITY_SEPARABLE = "specificity (subject-level interval separable)"
-
-
-@dataclass(frozen=True)
-class Decision:
-    """One ordered pair the verdict asserts: `better` is a better registration than `worse`.
-
-    Attributes
-    ----------
-    better, worse : str
-        Registration names.
-    basis : str
-        What decided it: :data:`SPECIFICITY_SEPARABLE`, or ``"flag: <reasons>"`` when `worse`
-        is flagged as implausible and `better` is not (the reasons are `worse`'s flags).
-    """
-
-    better: str
-    worse: str
-    basis: str
-
-    def to_dict(self) -> dict:
-        return {"better": self.better, "worse": self.worse, "basis": self.basis}
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """The headline: which registration is best, in order and in words.
-
-    Attributes
-    ----------
-    ranking : tuple of str
-        Every registration, by specificity (lower first), every flagged registration after
-        every unflagged one.
-    best : tuple of str
-        The top unflagged registration and those not separable from it (subject-level 95%
-        interval of the specificity difference includes 0).
-    text : tuple of str
-        The verdict as sentences.
-    decisions : tuple of Decision
-        Every ordered pair the verdict asserts, in ranking order; a pair not listed is open.
-        An unflagged registration is decided better than every flagged one; two
-        registrations flagged alike are decided when their specificity difference is
-        separable (lower is better).
-    """
-
-    ranking: tuple[str, ...]
-    best: tuple[str, ...]
-    text: tuple[str, ...]
-    decisions: tuple[Decision, ...] = ()
-
-    def to_dict(self) -> dict:
-        return {
-            "ranking": list(self.ranking),
-            "best": list(self.best),
-            "text": list(self.text),
-            "decisions": [d.to_dict() for d in self.decisions],
         }
 
 
@@ -506,123 +447,6 @@ def relative_ranks(
             else:
                 out[k] = round(100.0 * (g - worst) / (best - worst), 10) + 0.0  # no -0.0
     return out
-
-
-def _join(names: Sequence[str]) -> str:
-    names = list(names)
-    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
-
-
-def verdict(
-    scores: Mapping[str, RegistrationScores],
-    comparisons: Sequence[Comparison],
-    *,
-    has_labels: bool,
-) -> Verdict:
-    """The headline ranking and its sentences.
-
-    Registrations are ordered by specificity (lower first), every flagged one after every
-    unflagged one. The best are the top unflagged registration and those whose specificity
-    difference from it is not separable (its subject-level 95% interval includes 0). With
-    labels, a sentence says the same of the inverse-volume overlap, the ground-truth
-    reference. Each flagged registration gets a sentence saying why. The decisions are the
-    ordered pairs this ranking asserts (:attr:`Verdict.decisions`).
-
-    Parameters
-    ----------
-    scores : dict of str to RegistrationScores
-    comparisons : sequence of Comparison
-        From :func:`itk_nrreval.confidence.compare` (empty: no confidence computed).
-    has_labels : bool
-
-    Returns
-    -------
-    Verdict
-    """
-    names = list(scores)
-    flagged = [n for n in names if scores[n].flags]
-    unflagged = [n for n in names if not scores[n].flags]
-    spec = {n: scores[n].specificity.value for n in names}
-    ranking = sorted(unflagged, key=spec.get) + sorted(flagged, key=spec.get)
-    pool = [n for n in ranking if n in unflagged] or ranking
-    text = []
-
-    def separable(measure: str, a: str, b: str) -> bool | None:
-        for c in comparisons:
-            if c.measure == measure and {c.a, c.b} == {a, b}:
-                return c.separable
-        return None
-
-    top = pool[0]
-    others = "every other unflagged registration" if flagged else "every other registration"
-    if not unflagged:
-        text.append(
-            "Every registration is flagged as implausible; the ranking below is "
-            "by specificity alone."
-        )
-    if len(pool) == 1:
-        best = (top,)
-        text.append(f"{top} is the only unflagged registration.")
-    elif separable("specificity", top, pool[1]) is None:
-        best = (top,)
-        text.append(
-            f"{top} has the lowest specificity; subject-level confidence was not computed, so "
-            "whether the others differ from it on other subjects is not known."
-        )
-    else:
-        ties = [n for n in pool[1:] if not separable("specificity", top, n)]
-        best = (top, *ties)
-        pb = scores[top].probability_best.get("specificity")
-        chance = f"; probability of being best {pb:.2f}" if pb is not None and pb == pb else ""
-        if not ties:
-            text.append(f"{top} is best by specificity (separable from {others}{chance}).")
-        else:
-            verb = "is" if len(ties) == 1 else "are"
-            text.append(
-                f"{top} has the lowest specificity, but {_join(ties)} {verb} not separable "
-                "from it on this data (the 95% subject-level interval of the difference "
-                "includes 0)."
-            )
-        rest = [n for n in pool if n not in best]
-        for a, b in zip(rest, rest[1:], strict=False):
-            if not separable("specificity", a, b):
-                text.append(f"{a} and {b} are not separable on this data.")
-    overlap = "overlap.inverse_volume"
-    if has_labels and all(overlap in scores[n].measures() for n in names):
-        value = {n: scores[n].measures()[overlap] for n in names}
-        by_overlap = sorted(names, key=lambda n: -value[n])
-        top_o = by_overlap[0]
-        if separable(overlap, top_o, by_overlap[1] if len(names) > 1 else top_o) is None:
-            text.append(f"By inverse-volume overlap (the ground-truth reference) {top_o} is best.")
-        else:
-            ties = [n for n in by_overlap[1:] if not separable(overlap, top_o, n)]
-            if ties:
-                verb = "is" if len(ties) == 1 else "are"
-                text.append(
-                    f"By inverse-volume overlap (the ground-truth reference) {top_o} is highest, "
-                    f"but {_join(ties)} {verb} not separable from it."
-                )
-            else:
-                text.append(
-                    f"By inverse-volume overlap (the ground-truth reference) {top_o} is best "
-                    "(separable from every other registration)."
-                )
-    for n in flagged:
-        text.append(
-            f"{n} is flagged: {'; '.join(scores[n].flags)}. It is ranked after every "
-            "unflagged registration."
-        )
-    # The pairs the ranking asserts: flagged after unflagged, and, flagged alike, the order
-    # of specificity where it is separable. Any other order in the ranking rests on a
-    # difference the data cannot tell from 0, so the pair stays open.
-    decisions = []
-    for i, a in enumerate(ranking):
-        for b in ranking[i + 1 :]:
-            if scores[b].flags and not scores[a].flags:
-                decisions.append(Decision(a, b, "flag: " + "; ".join(scores[b].flags)))
-            elif separable("specificity", a, b):
-                decisions.append(Decision(a, b, SPECIFICITY_SEPARABLE))
-    return Verdict(tuple(ranking), tuple(best), tuple(text), tuple(decisions))
 
 
 def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str, ...]:

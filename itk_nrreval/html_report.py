@@ -542,7 +542,8 @@ def _legend(result) -> str:
             "Flags",
             "why the deformation is physically implausible (voxels that fold, a rough "
             "Jacobian, frame estimates that disagree); thresholds under Options. A flagged "
-            "registration keeps its scores but is ranked after every unflagged one.",
+            "registration keeps its scores; a flag is a warning, not a decision (only severe "
+            "folding decides against it: see the verdict).",
         ),
     ]
     return _legend_list(items)
@@ -870,7 +871,8 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
             "verdict",
             "Verdict",
             f'<div class="verdict{" flagged" if flagged else ""}">{verdict}</div>'
-            f"<p>Ranking (by specificity, flagged last): {ranking}</p>",
+            f"<p>Ranking (by level of the decisions: first the registrations no other is "
+            f"decided better than; by specificity within a level): {ranking}</p>",
         ),
         (
             "scores",
@@ -1195,18 +1197,23 @@ def sweep_report_html(
 
     rec = result.recommended
     others = [n for n in result.not_separable if n != rec]
-    verdict = [
-        f"<p><b>Specificity recommends {link(rec)}</b> ({values(rec)}): the lowest "
-        "specificity among the settings not flagged as implausible.</p>",
-        "<p>"
-        + (
-            "Not separable from it (the subject-level 95% interval of the specificity "
-            "difference includes 0): " + ", ".join(link(n) for n in others) + "."
-            if others
-            else "Every other setting's specificity is separably higher (or no "
-            "subject-level interval was computed)."
-        )
-        + "</p>",
+    if result.decided:
+        verdict = [
+            f"<p><b>The verdict recommends {link(rec)}</b> ({values(rec)}): decided better "
+            "than every other setting.</p>"
+        ]
+    else:
+        verdict = [
+            "<p><b>The verdict leaves open</b> "
+            + ", ".join(link(n) for n in [rec, *others])
+            + f": no setting is decided better than these, and the evidence does not order "
+            f"them. {link(rec)} ({values(rec)}) has the lowest specificity among them.</p>"
+        ]
+    candidates = set(result.not_separable)
+    open_pairs = result.evaluation.verdict.open_pairs
+    among = [p for p in open_pairs if {p.a, p.b} <= candidates]
+    verdict += [
+        f"<p>{link(p.a)} and {link(p.b)}: not decided: {_e(p.reason)}.</p>" for p in among[:4]
     ]
     by_best: dict[str, list[str]] = {}  # one line per setting overlap prefers
     for m in overlaps:
@@ -1223,13 +1230,13 @@ def sweep_report_html(
         where = (
             "the same setting"
             if best == rec
-            else "among those specificity cannot separate from its choice"
+            else "in the open set"
             if best in result.not_separable
             else "a different setting"
         )
         verdict.append(
             f"<p><b>The truth's choice</b> (lowest true correspondence error): {link(best)}, "
-            f"{format_number(truth[best], 3)} mm, {where}; specificity's choice has "
+            f"{format_number(truth[best], 3)} mm, {where}; the verdict's choice has "
             f"{format_number(truth[rec], 3)} mm. Spearman correlation over the settings "
             "between specificity and the true error: "
             f"{format_number(result.spearman.get(truth_measure, math.nan), 3)} (1: the same "
@@ -1242,7 +1249,7 @@ def sweep_report_html(
     head += [f"Overlap, {_e(m.split('.', 1)[1].replace('_', ' '))}<br>[95% CI]" for m in shown]
     if truth is not None:
         head.append("True error (mm)")
-    head += ["Specificity says", "Flags"]
+    head += ["Verdict says", "Flags"]
     rows, classes = [], []
     for st in result.settings:
         sc = ev.scores[st.name]
@@ -1293,11 +1300,11 @@ def sweep_report_html(
                 "put each point (known for generated data only); lower is better.",
             ),
             (
-                "Specificity says",
-                "the recommended setting (&#9733;), the settings whose specificity cannot be "
-                "told from it, and the rest.",
+                "Verdict says",
+                "the recommended setting (&#9733;), the open set the verdict cannot order "
+                "(none decided better than them), and the rest.",
             ),
-            ("Flags", "physically implausible deformations: ranked after every other."),
+            ("Flags", "physically implausible deformations: a warning, not a decision."),
         ]
     )
     captions = {

@@ -187,7 +187,8 @@ def summary_table(result) -> str:
     o = result.options
     notes = [
         "",
-        f"Rows in the verdict's order (by specificity, flagged registrations last). Common "
+        f"Rows in the verdict's order (by level of its decisions, by specificity within a "
+        f"level: only the decided pairs listed in results.json are claims). Common "
         f"frame: {result.common_frame}. Specificity and generalization: lower is better "
         f"({o['distance'].upper()} distance in the model's parameter space, in the images' "
         f"intensity units; M = {o['n_samples']} samples, seed {o['seed']}); overlap: higher "

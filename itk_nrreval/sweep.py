@@ -89,11 +89,16 @@ class SweepResult:
     evaluation : EvaluationResult
         The side-by-side evaluation (``evaluation.verdict`` holds the ranking).
     recommended : str
-        The setting specificity prefers (the verdict's best: the lowest specificity among
-        registrations that are not flagged as implausible).
+        The verdict's choice (:func:`itk_nrreval.verdict.verdict`): with `decided`, the
+        setting decided better than every other; otherwise the one with the lowest
+        specificity among the open set.
     not_separable : tuple of str
-        The settings whose specificity cannot be told from the recommended one's
-        (subject-level 95% interval of the difference includes 0), the recommended first.
+        The open set: the settings no other setting is decided better than (the verdict's
+        ``best``), the recommended first. One setting when `decided`.
+    decided : bool
+        Whether the verdict decides the recommended setting better than every other; when
+        False, the evidence leaves `not_separable` open and the recommendation is only the
+        lowest specificity among them.
     truth_error_mm : dict of str to float or None
         The true mean correspondence error per setting (mm; lower is better), when the
         true transforms were given.
@@ -113,6 +118,7 @@ class SweepResult:
     evaluation: EvaluationResult = field(repr=False)
     recommended: str
     not_separable: tuple[str, ...]
+    decided: bool
     truth_error_mm: dict[str, float] | None
     best_by: dict[str, str]
     spearman: dict[str, float]
@@ -141,6 +147,7 @@ class SweepResult:
             "manifest": str(self.manifest),
             "recommended": self.recommended,
             "not_separable": list(self.not_separable),
+            "decided": self.decided,
             "best_by": dict(self.best_by),
             "spearman_vs_specificity": {k: json_number(v) for k, v in self.spearman.items()},
             "settings": self.rows(),
@@ -561,6 +568,7 @@ def _summarise(method, parameters, settings, manifest, evaluation, truth_error) 
         evaluation=evaluation,
         recommended=verdict.best[0],
         not_separable=tuple(verdict.best),
+        decided=verdict.decided,
         truth_error_mm=truth_error,
         best_by=best_by,
         spearman=spearman,

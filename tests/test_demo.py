@@ -57,6 +57,10 @@ def test_demo_genuine_registrations_are_not_flagged(tmp_path):
         assert scores[name].flags == (), (name, scores[name].flags)
         assert name in result.evaluation.verdict.ranking
     assert result.evaluation.verdict.text  # the verdict in words heads the demo table
+    # no pair decided against the truth (pairs whose true errors are within 10% aside)
+    error = result.correspondence_error_mm
+    for d in result.evaluation.verdict.decisions:
+        assert error[d.better] < error[d.worse] * 1.1, (d, error)
     assert result.table.startswith(result.evaluation.verdict.text[0])
     # the page to read is written beside the numbers, every registration in it
     from test_html_report import check_self_contained, parse

@@ -847,7 +847,7 @@ def test_slicer_console_example_runs_outside_slicer(tmp_path):
     )
     assert run.returncode == 0, run.stderr
     lines = run.stdout.splitlines()
-    assert lines[0].startswith("truth is best by specificity")
+    assert lines[0].startswith("truth is best: decided better than every other registration")
     ranked = [ln.split(":")[0] for ln in lines if ": specificity " in ln]
     assert ranked == ["truth", "pose_only"]
     assert "Traceback" not in run.stderr

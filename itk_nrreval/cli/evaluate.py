@@ -95,7 +95,7 @@ def add_parser(sub) -> None:
         help="jackknife groups for specificity (default min(N, 50); N: leave one out)",
     )
     f = p.add_argument_group(
-        "plausibility flags (a flagged registration is ranked after every unflagged one)"
+        "plausibility flags (a warning in the verdict, not a decision against the registration)"
     )
     d = Thresholds()
     f.add_argument(

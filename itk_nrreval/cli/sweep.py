@@ -127,15 +127,14 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     reused = sum(s.reused for s in result.settings)
-    print(
-        f"{len(result.settings)} settings ({reused} already registered); specificity prefers "
-        f"{result.recommended}"
-        + (
-            f", not separable from {', '.join(result.not_separable[1:])}"
-            if len(result.not_separable) > 1
-            else ""
+    head = f"{len(result.settings)} settings ({reused} already registered); "
+    if result.decided:
+        print(f"{head}the verdict recommends {result.recommended} (decided better than the rest)")
+    else:
+        print(
+            head + f"the verdict leaves open {', '.join(result.not_separable)} "
+            f"({result.recommended} has the lowest specificity among them)"
         )
-    )
     for measure, best in result.best_by.items():
         flagged = " (flagged implausible)" if result.evaluation.scores[best].flags else ""
         print(f"  best by {measure}: {best}{flagged}")

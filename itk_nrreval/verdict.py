@@ -1,0 +1,361 @@
+"""The verdict: which registrations the evidence decides are better than which, and why.
+
+Specificity, like any intensity-based measure, can be lowered by a registration that fits
+what it should not: noise, bias, structure that does not correspond. Rougher fields fit
+more, so on its own a lower specificity does not say a registration is better (the
+known-truth benchmark, ``benchmarks/bench_verdict.py``, measures this: the old verdict,
+which trusted every separable specificity difference and ranked every flagged registration
+last, decided 16 of 90 pairs against the truth). The verdict therefore decides a pair only
+on evidence that holds up:
+
+- **specificity, charged for roughness**: ``a`` is decided better than ``b`` when its
+  specificity is separably lower (the subject-level 95% interval of the difference excludes
+  0) by more than roughness alone could buy: where ``a``'s fields are rougher by
+  ``dr = SDlogJ(a) - SDlogJ(b)`` (the mean standard deviation of the log Jacobian
+  determinant), ``ln(spec(b) / spec(a)) >= EXCHANGE_RATE * dr`` (a 1.5x lower specificity
+  for 0.1 rougher fields, 2.7x for 0.25; no charge for smoother fields); and, with labels,
+  the overlap does not separably prefer ``b``;
+- **overlap, charged the same way** (with labels): ``a``'s inverse-volume generalized
+  overlap is separably higher, on the log-odds scale by at least ``EXCHANGE_RATE * dr``; it
+  is not flagged as implausible (overlap is what a label-matching cheat games, by folding:
+  Rohlfing's cheat); and the specificity does not separably prefer ``b``;
+- **severe folding**: a registration that folds at least :data:`SEVERE_FOLDED_FRACTION` of
+  its voxels (a tear, not a fold) is decided worse than every registration that folds less
+  than :data:`NO_FOLDING_FRACTION`.
+
+Anything else stays open, with the reason in words. A plausibility flag by itself decides
+nothing: on the benchmark a B-spline registration that folds 2.4% of its voxels had the
+best true error of its case, and "flagged after every unflagged registration" decided it
+wrong twice.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from .confidence import Comparison
+
+__all__ = [
+    "Decision",
+    "Verdict",
+    "verdict",
+    "EXCHANGE_RATE",
+    "SEVERE_FOLDED_FRACTION",
+    "NO_FOLDING_FRACTION",
+]
+
+EXCHANGE_RATE = 4.0
+"""What roughness is allowed to buy: fields rougher by ``dr`` (mean SDlogJ, dimensionless)
+must come with a specificity lower by a factor of at least ``exp(4 dr)``, or an overlap
+higher by that factor in odds, to decide. Set on the known-truth benchmark's six 2D sweeps
+(demons smoothing, B-spline grid, bending weight; phantom and MNI): the steepest pair that a
+separable specificity decided against the truth there had ``ln(spec ratio) / dr`` = 3.3,
+the steepest for the overlap (log-odds ratio / dr) 2.8. Checked on the cases not used to
+set it (the demo, the cheat, over-fitting, B-spline grids, folding, similar
+registrations): no pair decided wrong there."""
+
+SEVERE_FOLDED_FRACTION = 0.10
+"""A registration that folds at least this fraction of its voxels (mean over its images)
+tears the image: decided worse than every registration that does not fold."""
+
+NO_FOLDING_FRACTION = 0.01
+"""Below this mean folded fraction a registration counts as not folding (for the severe
+folding rule)."""
+
+_SPECIFICITY = "specificity"
+_OVERLAP = "overlap.inverse_volume"
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One ordered pair the verdict asserts: `better` is a better registration than `worse`.
+
+    Attributes
+    ----------
+    better, worse : str
+        Registration names.
+    basis : str
+        What decided it, in words: ``"specificity (...)"``, ``"overlap (...)"`` or
+        ``"severe folding (...)"``.
+    """
+
+    better: str
+    worse: str
+    basis: str
+
+    def to_dict(self) -> dict:
+        return {"better": self.better, "worse": self.worse, "basis": self.basis}
+
+
+@dataclass(frozen=True)
+class OpenPair:
+    """A pair the verdict leaves open, and why.
+
+    Attributes
+    ----------
+    a, b : str
+        Registration names (`a` has the lower specificity).
+    reason : str
+        Why the evidence does not decide it, in words.
+    """
+
+    a: str
+    b: str
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {"a": self.a, "b": self.b, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The headline: which registrations are best, what is decided and what is open.
+
+    Attributes
+    ----------
+    ranking : tuple of str
+        Every registration, by level (first the registrations no other is decided better
+        than, then those only they are decided better than, ...), by specificity within a
+        level (lower first). Only the decided pairs are claims; the order within a level is
+        not one.
+    best : tuple of str
+        The registrations no other registration is decided better than, by specificity:
+        one name where the evidence decides the best, more where it leaves them open.
+    text : tuple of str
+        The verdict as sentences.
+    decisions : tuple of Decision
+        Every ordered pair the verdict asserts (the module docstring gives the rules); a
+        pair not listed is open.
+    open_pairs : tuple of OpenPair
+        Every pair not decided, with the reason.
+    """
+
+    ranking: tuple[str, ...]
+    best: tuple[str, ...]
+    text: tuple[str, ...]
+    decisions: tuple[Decision, ...] = ()
+    open_pairs: tuple[OpenPair, ...] = ()
+
+    @property
+    def decided(self) -> bool:
+        """Whether one registration is decided better than every other."""
+        if len(self.best) != 1:
+            return False
+        beaten = {d.worse for d in self.decisions if d.better == self.best[0]}
+        return beaten == set(self.ranking) - {self.best[0]}
+
+    def to_dict(self) -> dict:
+        return {
+            "ranking": list(self.ranking),
+            "best": list(self.best),
+            "text": list(self.text),
+            "decisions": [d.to_dict() for d in self.decisions],
+            "open": [p.to_dict() for p in self.open_pairs],
+        }
+
+
+def _join(names: Sequence[str]) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+
+
+def verdict(
+    scores: Mapping[str, Any],
+    comparisons: Sequence[Comparison],
+    *,
+    has_labels: bool,
+) -> Verdict:
+    """Decide, pair by pair, which registrations are better, and say so in words.
+
+    The rules are in the module docstring. Without subject-level comparisons (confidence
+    not computed) no difference is known to be separable, so only severe folding decides.
+
+    Parameters
+    ----------
+    scores : dict of str to RegistrationScores
+        (:class:`itk_nrreval.evaluation.RegistrationScores`, which holds this verdict: not
+        imported here.)
+    comparisons : sequence of Comparison
+        From :func:`itk_nrreval.confidence.compare` (empty: no confidence computed).
+    has_labels : bool
+        Whether the overlap is a measure here.
+
+    Returns
+    -------
+    Verdict
+    """
+    names = list(scores)
+    spec = {n: scores[n].specificity.value for n in names}
+    rough = {n: float(scores[n].plausibility.sdlogj) for n in names}
+    folded = {n: float(scores[n].plausibility.folded_fraction) for n in names}
+    overlap = {n: scores[n].measures().get(_OVERLAP, math.nan) for n in names}
+    sep = {(c.measure, c.a, c.b): c for c in comparisons}
+
+    def prefers(measure: str, a: str, b: str, *, lower: bool) -> str | None:
+        """The registration `measure` separably prefers, or None."""
+        c = sep.get((measure, a, b)) or sep.get((measure, b, a))
+        if c is None or not c.separable:
+            return None
+        a_minus_b = c.difference if c.a == a else -c.difference
+        return (a if a_minus_b < 0 else b) if lower else (a if a_minus_b > 0 else b)
+
+    decisions: list[Decision] = []
+    open_pairs: list[OpenPair] = []
+    for a, b in itertools.combinations(names, 2):
+        a, b = sorted((a, b), key=spec.get)
+        by_spec = prefers(_SPECIFICITY, a, b, lower=True)
+        by_overlap = prefers(_OVERLAP, a, b, lower=False) if has_labels else None
+        flagged = {n for n in (a, b) if scores[n].flags}
+        decision = _decide(a, b, by_spec, by_overlap, spec, overlap, rough, folded, flagged)
+        if decision is not None:
+            decisions.append(decision)
+        else:
+            reason = _why_open(
+                a, b, by_spec, by_overlap, rough, flagged, has_labels, bool(comparisons)
+            )
+            open_pairs.append(OpenPair(a, b, reason))
+
+    ranking, best = _levels(names, decisions, spec)
+    text = _sentences(scores, best, decisions, open_pairs, has_labels, bool(comparisons))
+    return Verdict(ranking, best, text, tuple(decisions), tuple(open_pairs))
+
+
+def _decide(a, b, by_spec, by_overlap, spec, overlap, rough, folded, flagged) -> Decision | None:
+    for w, l in ((a, b), (b, a)):
+        if folded[l] >= SEVERE_FOLDED_FRACTION and folded[w] < NO_FOLDING_FRACTION:
+            return Decision(w, l, f"severe folding ({l} folds {folded[l]:.0%} of its voxels)")
+    for w, l in ((a, b), (b, a)):
+        rougher = max(0.0, rough[w] - rough[l])
+        spec_gain = _log_ratio(spec[l], spec[w])
+        if by_spec == w and by_overlap != l and spec_gain >= EXCHANGE_RATE * rougher:
+            also = " and overlap" if by_overlap == w else ""
+            return Decision(
+                w,
+                l,
+                f"specificity{also} (separable; {math.exp(spec_gain):.2f}x lower, "
+                f"{_roughness(w, l, rough)})",
+            )
+        if by_overlap is not None and by_overlap == w and by_spec != l and w not in flagged:
+            odds_gain = _log_ratio(_odds(overlap[w]), _odds(overlap[l]))
+            if odds_gain >= EXCHANGE_RATE * rougher:
+                return Decision(
+                    w,
+                    l,
+                    f"overlap (separable; {math.exp(odds_gain):.2f}x the odds, "
+                    f"{_roughness(w, l, rough)})",
+                )
+    return None
+
+
+def _odds(p: float) -> float:
+    return p / (1.0 - p) if p < 1.0 else math.inf
+
+
+def _log_ratio(x: float, y: float) -> float:
+    """ln(x / y) for positive x, y; at the edges -inf (x <= 0) or inf (y <= 0), not an
+    error."""
+    if not x > 0:
+        return -math.inf
+    if not y > 0 or math.isinf(x):
+        return math.inf
+    return math.log(x / y)
+
+
+def _roughness(w: str, l: str, rough) -> str:
+    word = "no rougher" if rough[w] <= rough[l] else "rougher"
+    return f"fields {word}: SDlogJ {rough[w]:.2f} vs {rough[l]:.2f}"
+
+
+def _times(x: float, y: float) -> str:
+    # a factor over a near-zero SDlogJ (an affine registration's) means nothing
+    return f"{x / y:.1f}x " if y >= 0.01 else ""
+
+
+def _why_open(a, b, by_spec, by_overlap, rough, flagged, has_labels, confidence) -> str:
+    if not confidence:
+        return "subject-level confidence was not computed, so no difference is known to hold"
+    if by_spec is not None and by_overlap is not None and by_spec != by_overlap:
+        return f"specificity prefers {by_spec}, overlap prefers {by_overlap}"
+    preferred = by_spec or by_overlap
+    if preferred is not None and by_spec is None and preferred in flagged:
+        return f"only the overlap prefers {preferred}, which is flagged (a cheat games overlap)"
+    if preferred is not None:
+        other = b if preferred == a else a
+        what = "lower specificity" if by_spec else "higher overlap"
+        return (
+            f"{preferred}'s {what} comes with fields {_times(rough[preferred], rough[other])}"
+            f"rougher (SDlogJ {rough[preferred]:.2f} vs {rough[other]:.2f}), and its advantage "
+            "is not larger than what roughness alone can buy"
+        )
+    if has_labels:
+        return "neither specificity nor overlap differs separably"
+    return "the specificity difference is not separable"
+
+
+def _levels(names, decisions, spec) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """Ranking by level of the decision graph (registrations no remaining one is decided
+    better than come first), by specificity within a level; and the first level."""
+    remaining = set(names)
+    ranking: list[str] = []
+    best: tuple[str, ...] = ()
+    while remaining:
+        level = [n for n in remaining if not any(
+            d.worse == n and d.better in remaining for d in decisions
+        )] or list(remaining)  # fmt: skip
+        level.sort(key=spec.get)
+        if not best:
+            best = tuple(level)
+        ranking += level
+        remaining -= set(level)
+    return tuple(ranking), best
+
+
+def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> tuple[str, ...]:
+    text = []
+    names = list(scores)
+    if len(names) == 1:
+        return (f"{names[0]} is the only registration.",)
+    top = best[0]
+    beaten = {d.worse for d in decisions if d.better == top}
+    if len(best) == 1 and beaten == set(names) - {top}:
+        bases = sorted({d.basis.split(" (")[0] for d in decisions if d.better == top})
+        text.append(
+            f"{top} is best: decided better than every other registration (by {_join(bases)})."
+        )
+    elif len(best) == 1:
+        text.append(
+            f"{top} is best: no registration is decided better than it, and every other is "
+            "decided worse than at least one registration."
+        )
+    else:
+        text.append(
+            f"Not decided between {_join(best)}: no registration is decided better than "
+            f"these, and the evidence does not order them ({top} has the lowest specificity)."
+        )
+        among = [p for p in open_pairs if p.a in best and p.b in best]
+        for p in among[:4]:
+            text.append(f"{p.a} and {p.b}: not decided: {p.reason}.")
+        if len(among) > 4:
+            text.append(f"({len(among) - 4} more open pairs among them: results.json 'open'.)")
+    if not confidence:
+        text.append(
+            "Subject-level confidence was not computed: no difference is known to hold on "
+            "other subjects, so only severe folding decides."
+        )
+    n_pairs = len(decisions) + len(open_pairs)
+    text.append(f"{len(decisions)} of {n_pairs} pairs decided, {len(open_pairs)} open.")
+    if has_labels and all(_OVERLAP in scores[n].measures() for n in names):
+        value = {n: scores[n].measures()[_OVERLAP] for n in names}
+        top_o = max(names, key=lambda n: value[n])
+        text.append(f"Highest inverse-volume overlap (the ground-truth reference): {top_o}.")
+    for n in names:
+        if scores[n].flags:
+            text.append(
+                f"{n} is flagged: {'; '.join(scores[n].flags)}. A flag is a warning, not a "
+                "decision: only severe folding decides against it."
+            )
+    return tuple(text)
