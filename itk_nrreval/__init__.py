@@ -8,6 +8,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 from ._errors import EngineError, InputError
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
+from .derivatives import manifest_from_derivatives, manifest_from_transforms
 from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
     Decision,
@@ -68,6 +69,8 @@ __all__ = [
     "load_manifest",
     "write_manifest",
     "add_registration",
+    "manifest_from_derivatives",
+    "manifest_from_transforms",
     "EvaluationResult",
     "RegistrationScores",
     "Verdict",

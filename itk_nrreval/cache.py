@@ -66,12 +66,14 @@ def content_digest(path: str | os.PathLike) -> str:
     displacement field): each file's digest is kept for the process, under its path, size,
     modification and change times and inode, so a file that changes is decoded again.
     Header + data pairs (``.mhd``, ``.nhdr``) are decoded every time (their data file's
-    changes do not show in the header's times).
+    changes do not show in the header's times), and so are elastix parameter files (read
+    with their initial transforms' files, whose changes do not show in theirs).
     """
+    from .elastix_files import is_elastix_parameter_file
     from .transforms import file_suffix
 
     path = Path(path)
-    if file_suffix(path) in (".mhd", ".nhdr"):
+    if file_suffix(path) in (".mhd", ".nhdr") or is_elastix_parameter_file(path):
         return _decoded_digest(str(path))
     st = path.stat()
     return _cached_digest(
@@ -88,8 +90,11 @@ def _decoded_digest(path: str) -> str:
     import SimpleITK as sitk
 
     from ._images import image_digest
+    from .elastix_files import is_elastix_parameter_file, read_elastix_transform
     from .transforms import TRANSFORM_SUFFIXES, file_suffix, transform_digest
 
+    if is_elastix_parameter_file(path):  # its initial transforms' files count too
+        return transform_digest(read_elastix_transform(path))
     try:
         if file_suffix(Path(path)) in TRANSFORM_SUFFIXES:
             return transform_digest(sitk.ReadTransform(path))

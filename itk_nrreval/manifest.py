@@ -69,6 +69,11 @@ import yaml
 from ._errors import InputError
 from ._images import InMemoryImage, dimension_problem
 from ._output import write_text
+from .elastix_files import (
+    elastix_file_dimension,
+    is_elastix_parameter_file,
+    read_elastix_transform,
+)
 from .transforms import (
     FIELD_SUFFIXES,
     TRANSFORM_SUFFIXES,
@@ -82,6 +87,8 @@ __all__ = [
     "Manifest",
     "load_manifest",
     "write_manifest",
+    "written_by_nrreval",
+    "WRITTEN_BY",
     "add_registration",
     "order_as_in_manifest",
     "TRANSFORM_SUFFIXES",
@@ -496,7 +503,8 @@ _TEXT_HEADER = re.compile(r"^Transform:\s*\S+?_(\d)_(\d)\s*$")
 def transform_file_dimension(path: Path) -> int:
     """Spatial dimension of a transform file or displacement-field image, cheaply.
 
-    Text transform files are scanned for their ``Transform: Name_double_D_D`` line; other
+    Text transform files are scanned for their ``Transform: Name_double_D_D`` line (elastix
+    parameter files are read with their initial transforms, cheap text); other
     transform files are read; displacement-field images give their header's dimension.
 
     Raises
@@ -510,6 +518,9 @@ def transform_file_dimension(path: Path) -> int:
         if comps != dim:
             raise ValueError(field_components_problem(dim, comps))
         return dim
+    if suffix == ".txt" and is_elastix_parameter_file(path):
+        read_elastix_transform(path)  # the whole chain of runs: every file found and readable
+        return elastix_file_dimension(path)
     if suffix in (".txt", ".tfm"):
         with open(path, errors="replace") as fh:
             for line in fh:
@@ -743,6 +754,10 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
 def write_manifest(manifest: Manifest | Mapping, path: str | os.PathLike) -> Path:
     """Write `manifest` as YAML to `path` atomically, paths relative to its folder.
 
+    The first line is the comment :data:`WRITTEN_BY` and the version: a later run may
+    replace the file (:func:`written_by_nrreval`); the caller decides whether `path` may be
+    written (:func:`itk_nrreval._output.check_output_file`).
+
     Parameters
     ----------
     manifest : Manifest or mapping
@@ -756,12 +771,31 @@ def write_manifest(manifest: Manifest | Mapping, path: str | os.PathLike) -> Pat
     Path
         `path`.
     """
+    from ._version import __version__
+
     path = Path(path)
     m = load_manifest(manifest, check_files=False)
     folder = path.absolute().parent
     text = yaml.safe_dump(_to_dict(m, folder), sort_keys=False, default_flow_style=None, width=100)
-    write_text(path, text)
+    write_text(path, f"{WRITTEN_BY} {__version__}\n{text}")
     return path
+
+
+WRITTEN_BY = "# written by itk-nrreval"
+"""The first line of every manifest :func:`write_manifest` writes (then the version): how
+:func:`written_by_nrreval` tells the toolkit's manifests from a user's."""
+
+
+def written_by_nrreval(path: str | os.PathLike) -> bool:
+    """Whether the file at `path` is a manifest this toolkit wrote (its first line is
+    :data:`WRITTEN_BY`, alone or followed by a version): one it may replace
+    (:func:`itk_nrreval._output.check_output_file`'s `ours`)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            first = fh.readline().rstrip("\n")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return first == WRITTEN_BY or first.startswith(WRITTEN_BY + " ")
 
 
 def add_registration(

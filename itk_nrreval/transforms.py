@@ -54,6 +54,7 @@ from ._images import (
     to_sitk_image,
 )
 from ._output import atomic_path
+from .elastix_files import is_elastix_parameter_file, read_elastix_transform
 
 __all__ = [
     "TRANSFORM_SUFFIXES",
@@ -346,7 +347,9 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
     ----------
     item : sitk.Transform, InMemoryTransform or path
         ``.tfm`` / ``.txt`` / ``.h5`` / ``.hdf5`` / ``.mat`` (incl. ANTs
-        ``*0GenericAffine.mat``) are read with ``sitk.ReadTransform``; ``.nii.gz`` / ``.nii``
+        ``*0GenericAffine.mat``) are read with ``sitk.ReadTransform``, an elastix
+        ``TransformParameters.<k>.txt`` with its initial transforms
+        (:func:`itk_nrreval.elastix_files.read_elastix_transform`); ``.nii.gz`` / ``.nii``
         / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
         fields. An in-memory transform is returned as is; a manifest's transform object
         (:class:`InMemoryTransform`) gives its transform.
@@ -385,6 +388,11 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
             return field_transform(image)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
+    if suffix == ".txt" and is_elastix_parameter_file(path):
+        t = read_elastix_transform(path)
+        if not _finite(t):
+            raise InputError(f"{path}: transform contains NaN or infinite values")
+        return t
     try:
         if suffix in TRANSFORM_SUFFIXES:
             t = sitk.ReadTransform(str(path)).Downcast()

@@ -13,13 +13,35 @@ import sys
 import warnings
 
 from .._errors import EngineError, InputError
-from . import demo, diagnose, evaluate, overlap, register, specificity, sweep, synth, validate
+from . import (
+    demo,
+    diagnose,
+    evaluate,
+    manifest,
+    overlap,
+    register,
+    specificity,
+    sweep,
+    synth,
+    validate,
+)
 from ._options import OneLineParser
 
 __all__ = ["main"]
 
 # One entry per sub-command module, in the order `nrreval --help` lists them.
-COMMANDS = [demo, evaluate, specificity, overlap, synth, register, sweep, validate, diagnose]
+COMMANDS = [
+    demo,
+    evaluate,
+    manifest,
+    specificity,
+    overlap,
+    synth,
+    register,
+    sweep,
+    validate,
+    diagnose,
+]
 
 
 def build_parser() -> OneLineParser:

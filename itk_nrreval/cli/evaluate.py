@@ -1,4 +1,5 @@
-"""``nrreval evaluate MANIFEST --out DIR``: score registrations side by side in one frame."""
+"""``nrreval evaluate MANIFEST --out DIR`` (or ``DERIV [DERIV ...]``): score registrations side
+by side in one frame."""
 
 from __future__ import annotations
 
@@ -18,7 +19,20 @@ def add_parser(sub) -> None:
         "the images (and labels), and score each by specificity, generalization and (with "
         "labels) the generalized overlap, ranked side by side like the paper's Table 3.",
     )
-    p.add_argument("manifest", metavar="MANIFEST", help="manifest (YAML or JSON)")
+    p.add_argument(
+        "manifest",
+        nargs="+",
+        metavar="MANIFEST|DERIV",
+        help="a manifest (YAML or JSON), or BIDS derivatives folders (fMRIPrep, sMRIPrep: one "
+        "registration each; see `nrreval manifest`)",
+    )
+    p.add_argument(
+        "--space",
+        metavar="SPACE",
+        help="with DERIV: the template space (e.g. MNI152NLin2009cAsym, or MNI152NLin6Asym:res-2); "
+        "default: the one space the transforms go into",
+    )
+    p.add_argument("--mask", metavar="FILE", help="with DERIV: a mask on the template's grid")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for results and figures")
     p.add_argument(
         "--samples",
@@ -146,7 +160,6 @@ def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
     from ..evaluation import evaluate
-    from ..manifest import load_manifest
     from ..plausibility import Thresholds
     from ..reports import summary_table
 
@@ -156,7 +169,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
-    manifest = load_manifest(args.manifest)  # every problem, before DIR is created
+    manifest = _manifest(args)  # every problem, before DIR is created
     out = check_output_folder(args.out, inputs=manifest.files)
     cache = Path(args.cache) if args.cache is not None else out / "cache"
     if args.cache is not None:
@@ -197,3 +210,25 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"results written to {out}/")
     return 0
+
+
+def _manifest(args: argparse.Namespace):
+    """One manifest file, read as it always was; or derivatives folders, read as
+    ``nrreval manifest DERIV ...`` reads them."""
+    from .._errors import InputError
+    from ..manifest import load_manifest
+    from .manifest import manifest_of
+
+    sources = [Path(s) for s in args.manifest]
+    folders = [s.is_dir() for s in sources]
+    if all(folders):
+        return manifest_of(argparse.Namespace(derivatives=args.manifest, **vars(args)))
+    for option in ("space", "mask"):
+        if getattr(args, option) is not None:
+            raise InputError(f"--{option} goes with derivatives folders, not a manifest")
+    if len(sources) > 1:
+        file = next(s for s, folder in zip(sources, folders, strict=True) if not folder)
+        raise InputError(
+            f"{file}: give one manifest file, or derivatives folders (not a file among several)"
+        )
+    return load_manifest(args.manifest[0])

@@ -44,6 +44,7 @@ from pathlib import Path
 import SimpleITK as sitk
 
 from .._errors import InputError
+from ..elastix_files import bspline_from_parameter_map
 from ._common import EngineError
 
 __all__ = ["ElastixWorker", "elastix_available"]
@@ -267,25 +268,14 @@ class ElastixWorker:
 
 
 def _bspline_transform(pm: dict[str, list[str]]) -> sitk.BSplineTransform:
-    """elastix's B-spline parameter map as a SimpleITK transform (same coefficient layout).
-
-    ITK's BSplineTransform fixed parameters are the coefficient grid's size, origin, spacing
-    and direction, which elastix writes as GridSize, GridOrigin, GridSpacing, GridDirection;
-    the parameters are the coefficients, all x then all y (then z), in both.
-    """
+    """elastix's B-spline parameter map as a SimpleITK transform
+    (:func:`itk_nrreval.elastix_files.bspline_from_parameter_map`)."""
     if pm.get("Transform", [""])[0] not in ("BSplineTransform", "RecursiveBSplineTransform"):
         raise EngineError(f"elastix returned a {pm.get('Transform')} transform, not a B-spline")
-    if any(int(v) != 0 for v in pm.get("GridIndex", [])):
-        raise EngineError("elastix returned a B-spline grid with a nonzero start index")
-    dim = len(pm["GridSize"])
-    order = int(pm.get("BSplineTransformSplineOrder", ["3"])[0])
-    t = sitk.BSplineTransform(dim, order)
-    fixed = [
-        float(v) for k in ("GridSize", "GridOrigin", "GridSpacing", "GridDirection") for v in pm[k]
-    ]
-    t.SetFixedParameters(fixed)
-    t.SetParameters([float(v) for v in pm["TransformParameters"]])
-    return t
+    try:
+        return bspline_from_parameter_map(pm)
+    except ValueError as exc:
+        raise EngineError(f"elastix returned {exc}") from None
 
 
 def _stack_bsplines(pm: dict[str, list[str]]) -> list[sitk.BSplineTransform]:

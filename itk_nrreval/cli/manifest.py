@@ -1,0 +1,133 @@
+"""``nrreval manifest``: write the manifest of what pipelines wrote, to read, edit or keep.
+
+From BIDS derivatives folders (fMRIPrep, sMRIPrep: one registration each), or from ANTs
+output prefixes and elastix output folders with the images they belong to; the files found
+are described in :mod:`itk_nrreval.derivatives`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "manifest",
+        help="write the manifest of BIDS derivatives, ANTs prefixes or elastix folders",
+        description="Find the images, labels and transforms pipelines wrote and write the "
+        "manifest `nrreval evaluate` would use. Either BIDS derivatives folders (one "
+        "registration each, named after dataset_description.json's GeneratedBy), or --images "
+        "and --reference with --ants / --elastix patterns, where what the * stands for is the "
+        "subject's label. Quote the patterns so the shell leaves them to nrreval.",
+    )
+    p.add_argument(
+        "derivatives",
+        nargs="*",
+        metavar="DERIV",
+        help="BIDS derivatives folders (sub-<label>/[ses-<label>/]anat/)",
+    )
+    p.add_argument(
+        "--space",
+        metavar="SPACE",
+        help="with DERIV: the template space (e.g. MNI152NLin2009cAsym, or MNI152NLin6Asym:res-2); "
+        "default: the one space the transforms go into",
+    )
+    p.add_argument(
+        "--ants",
+        action="append",
+        default=[],
+        metavar="[NAME=]PREFIX",
+        help="ANTs output prefix pattern, e.g. 'out/sub-*_' (its *1Warp.nii.gz and "
+        "*0GenericAffine.mat, or *Composite.h5); repeat for more registrations "
+        "(default names ants, ants-2, ...)",
+    )
+    p.add_argument(
+        "--elastix",
+        action="append",
+        default=[],
+        metavar="[NAME=]FOLDER",
+        help="elastix output folder pattern, e.g. 'out/sub-*/' (its last "
+        "TransformParameters.<k>.txt); repeat for more (default names elastix, elastix-2, ...)",
+    )
+    p.add_argument(
+        "--images",
+        metavar="PATTERN",
+        help="with --ants/--elastix: the images (moving), e.g. 'img/sub-*_T1w.nii.gz'",
+    )
+    p.add_argument(
+        "--labels", metavar="PATTERN", help="with --ants/--elastix: their label maps (optional)"
+    )
+    p.add_argument(
+        "--reference",
+        metavar="FILE",
+        help="with --ants/--elastix: the fixed image every subject was registered to",
+    )
+    p.add_argument("--mask", metavar="FILE", help="a mask on the template's (reference's) grid")
+    p.add_argument("--out", required=True, metavar="FILE", help="the manifest to write (YAML)")
+    p.set_defaults(func=run)
+
+
+def _named(values: list[str]) -> list[tuple[str | None, str]]:
+    """``NAME=PATTERN`` or ``PATTERN`` -> (name or None, pattern)."""
+    out = []
+    for value in values:
+        name, eq, pattern = value.partition("=")
+        if eq and name and "/" not in name and "*" not in name:
+            out.append((name, pattern))
+        else:
+            out.append((None, value))
+    return out
+
+
+def manifest_of(args: argparse.Namespace):
+    """The manifest the arguments describe (shared with ``nrreval evaluate DERIV ...``)."""
+    from .._errors import InputError
+    from ..derivatives import manifest_from_derivatives, manifest_from_transforms
+
+    pipelines = bool(getattr(args, "ants", None) or getattr(args, "elastix", None))
+    if args.derivatives and pipelines:
+        raise InputError("give derivatives folders, or --ants/--elastix with --images, not both")
+    if args.derivatives:
+        given = [o for o in ("images", "labels", "reference") if getattr(args, o, None) is not None]
+        if given:
+            raise InputError(f"--{given[0]} goes with --ants/--elastix, not derivatives folders")
+        return manifest_from_derivatives(args.derivatives, space=args.space, mask=args.mask)
+    if not pipelines:
+        raise InputError("nothing to read: give derivatives folders, or --ants/--elastix")
+    if args.space is not None:
+        raise InputError("--space goes with derivatives folders")
+    for option in ("images", "reference"):
+        if getattr(args, option) is None:
+            raise InputError(f"--ants/--elastix need --{option}")
+    patterns = {}
+    for option, kind in (("--ants", "ants"), ("--elastix", "elastix")):
+        patterns[kind] = {}
+        for k, (name, pattern) in enumerate(_named(getattr(args, kind))):
+            name = name or (kind if k == 0 else f"{kind}-{k + 1}")
+            if name in patterns[kind] or name in patterns.get("ants", {}) and kind != "ants":
+                raise InputError(f"{option} {pattern}: a second registration named {name!r}")
+            patterns[kind][name] = pattern
+    return manifest_from_transforms(
+        images=args.images,
+        reference=args.reference,
+        ants=patterns["ants"],
+        elastix=patterns["elastix"],
+        labels=args.labels,
+        mask=args.mask,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    from .._output import check_output_file
+    from ..manifest import write_manifest, written_by_nrreval
+
+    manifest = manifest_of(args)
+    out = check_output_file(
+        args.out, inputs=manifest.files, option="--out", ours=written_by_nrreval
+    )
+    write_manifest(manifest, out)
+    print(
+        f"manifest of {manifest.n_images} images and {len(manifest.names)} registrations "
+        f"({', '.join(manifest.names)}) written to {args.out}"
+    )
+    return 0
