@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ import yaml
 import itk_nrreval as nr
 from data_synth import make_population
 from itk_nrreval.cli import main
-from itk_nrreval.transforms import write_transform
+from itk_nrreval.transforms import chain_transform, read_transform, write_transform
 
 SPACE = "SynthTemplate"
 EVALUATE = ["--samples", "2000", "--no-figures", "--no-confidence", "--quiet"]
@@ -337,3 +339,140 @@ def test_manifest_never_replaces_a_file_it_did_not_write(tmp_path, population, c
     t1w = anat(root, "01")[0] / "sub-01_desc-preproc_T1w.nii.gz"
     code, _, err = run_cli(["manifest", root, "--out", t1w], capsys)
     assert code == 2 and "is one of the inputs" in err
+
+
+# ----------------------------------------------------------------------------- ANTs, elastix
+
+
+def write_subjects(folder, pop) -> list[str]:
+    """Images, label maps and the template as a user's folder holds them; the labels."""
+    labels = [f"{i:02d}" for i in range(1, len(pop) + 1)]
+    for label, subject in zip(labels, pop.subjects, strict=True):
+        write(subject.image, folder / "img" / f"sub-{label}_T1w.nii.gz")
+        write(subject.labels, folder / "lab" / f"sub-{label}_dseg.nii.gz")
+    write(pop.template, folder / "template.nii.gz")
+    return labels
+
+
+def hand_manifest(folder, labels, registrations) -> dict:
+    return {
+        "images": [str(folder / "img" / f"sub-{s}_T1w.nii.gz") for s in labels],
+        "labels": [str(folder / "lab" / f"sub-{s}_dseg.nii.gz") for s in labels],
+        "registrations": {
+            name: {"reference": str(folder / "template.nii.gz"), "transforms": transforms}
+            for name, transforms in registrations.items()
+        },
+    }
+
+
+def test_ants_prefixes_read_as_written_by_ants(tmp_path, population, capsys, monkeypatch):
+    ants = pytest.importorskip("ants")
+    monkeypatch.chdir(tmp_path)
+    labels = write_subjects(tmp_path, population)
+    fixed = ants.image_read("template.nii.gz")
+    warped = {}
+    for s in labels:
+        moving = ants.image_read(f"img/sub-{s}_T1w.nii.gz")
+        (tmp_path / "ants").mkdir(exist_ok=True)
+        result = ants.registration(
+            fixed, moving, "SyN", outprefix=f"ants/sub-{s}_", reg_iterations=(20, 10, 0)
+        )
+        warped[s] = result["warpedmovout"].numpy().T  # ANTs (x, y) -> numpy (y, x)
+    args = ["--images", "img/sub-*_T1w.nii.gz", "--labels", "lab/sub-*_dseg.nii.gz"]
+    args += ["--reference", "template.nii.gz", "--ants", "syn=ants/sub-*_"]
+    code, _, err = run_cli(["manifest", *args, "--out", "m.yaml"], capsys)
+    assert code == 0, err
+    chains = {
+        "syn": [
+            [
+                str(tmp_path / f"ants/sub-{s}_1Warp.nii.gz"),
+                str(tmp_path / f"ants/sub-{s}_0GenericAffine.mat"),
+            ]
+            for s in labels
+        ]
+    }
+    (tmp_path / "hand.yaml").write_text(yaml.safe_dump(hand_manifest(tmp_path, labels, chains)))
+    assert_same_files(nr.load_manifest("m.yaml"), nr.load_manifest("hand.yaml"))
+    # independent of the reading: the chain resamples each image as ANTs itself did
+    m = nr.load_manifest("m.yaml")
+    template = sitk.ReadImage("template.nii.gz")
+    for s, chain in zip(labels, m.registrations["syn"].transforms, strict=True):
+        image = sitk.ReadImage(f"img/sub-{s}_T1w.nii.gz", sitk.sitkFloat32)
+        ours = sitk.GetArrayFromImage(sitk.Resample(image, template, chain_transform(chain)))
+        assert np.abs(ours - warped[s]).max() < 1e-3 * np.abs(warped[s]).max(), s
+    for name in ("m.yaml", "hand.yaml"):
+        assert run_cli(["evaluate", name, "--out", f"out-{name}", *EVALUATE], capsys)[0] == 0
+    assert_same_scores(scores(tmp_path / "out-m.yaml"), scores(tmp_path / "out-hand.yaml"))
+
+
+ELASTIX_SCRIPT = """
+import sys, os
+import itk
+
+fixed = itk.imread("template.nii.gz", itk.F)
+po = itk.ParameterObject.New()
+affine = po.GetDefaultParameterMap("affine", 2)
+bspline = po.GetDefaultParameterMap("bspline", 2, 16.0)
+for pm in (affine, bspline):
+    pm["MaximumNumberOfIterations"] = ["40"]
+po.AddParameterMap(affine)
+po.AddParameterMap(bspline)
+for label in sys.argv[1:]:
+    moving = itk.imread(f"img/sub-{label}_T1w.nii.gz", itk.F)
+    out = f"elx/sub-{label}"  # relative: elastix records the first run's file as such
+    os.makedirs(out)
+    _, result = itk.elastix_registration_method(
+        fixed, moving, parameter_object=po, output_directory=out, log_to_console=False
+    )
+    # elastix's own mapping of the fixed grid, for the test to compare with
+    field = itk.transformix_deformation_field(moving, result)
+    itk.imwrite(field, f"field-{label}.nii.gz")
+"""
+
+
+def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys, monkeypatch):
+    pytest.importorskip("itk")
+    from itk_nrreval.registration._elastix_worker import elastix_available
+
+    if not elastix_available():
+        pytest.skip("itk-elastix is not installed")
+    monkeypatch.chdir(tmp_path)
+    labels = write_subjects(tmp_path, population)[:4]
+    # itk-elastix in its own process (about 1 GB, and it can crash its process); transformix
+    # writes into the working directory: this test's folder
+    subprocess.run([sys.executable, "-c", ELASTIX_SCRIPT, *labels], check=True, cwd=tmp_path)
+    first = (tmp_path / "elx/sub-01/TransformParameters.1.txt").read_text()
+    assert '(InitialTransformParameterFileName "elx/sub-01/TransformParameters.0.txt")' in first
+
+    args = ["--images", "img/sub-*_T1w.nii.gz", "--labels", "lab/sub-*_dseg.nii.gz"]
+    args += ["--reference", "template.nii.gz", "--elastix", "elx/sub-*/"]
+    code, _, err = run_cli(["manifest", *args, "--out", "m.yaml"], capsys)
+    assert code == 0, err
+    assert err.strip() == (
+        f"nrreval manifest: warning: {tmp_path}/img/sub-05_T1w.nii.gz: no transform in elastix; "
+        "left out"
+    )
+    last = {"elastix": [str(tmp_path / f"elx/sub-{s}/TransformParameters.1.txt") for s in labels]}
+    (tmp_path / "hand.yaml").write_text(yaml.safe_dump(hand_manifest(tmp_path, labels, last)))
+    assert_same_files(nr.load_manifest("m.yaml"), nr.load_manifest("hand.yaml"))
+    # independent of the reading: the affine and B-spline, chained, map the fixed grid as
+    # transformix does
+    template = sitk.ReadImage("template.nii.gz")
+    for s in labels:
+        transform = read_transform(tmp_path / f"elx/sub-{s}/TransformParameters.1.txt")
+        ours = sitk.GetArrayFromImage(
+            sitk.TransformToDisplacementField(
+                transform,
+                sitk.sitkVectorFloat64,
+                template.GetSize(),
+                template.GetOrigin(),
+                template.GetSpacing(),
+                template.GetDirection(),
+            )
+        )
+        theirs = sitk.GetArrayFromImage(sitk.ReadImage(f"field-{s}.nii.gz"))
+        assert np.abs(ours - theirs).max() < 1e-3, s  # mm
+        assert np.abs(theirs).max() > 1.0  # a registration that moved something
+    for name in ("m.yaml", "hand.yaml"):
+        assert run_cli(["evaluate", name, "--out", f"out-{name}", *EVALUATE], capsys)[0] == 0
+    assert_same_scores(scores(tmp_path / "out-m.yaml"), scores(tmp_path / "out-hand.yaml"))
