@@ -315,6 +315,7 @@ def test_bad_arguments_one_line(tmp_path, population, capsys):
         (["evaluate", manifest, root, "--out", out], "m.yaml: give one manifest file"),
         (["evaluate", manifest, "--space", SPACE, "--out", out], "--space goes with"),
         (["evaluate", tmp_path / "nope", "--out", out], "nope: manifest file not found"),
+        (["evaluate", root, tmp_path / "nope", "--out", out], "nope: not found (expected a"),
     ]
     for args, message in cases:
         code, _, err = run_cli(args, capsys)
@@ -476,3 +477,54 @@ def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys
     for name in ("m.yaml", "hand.yaml"):
         assert run_cli(["evaluate", name, "--out", f"out-{name}", *EVALUATE], capsys)[0] == 0
     assert_same_scores(scores(tmp_path / "out-m.yaml"), scores(tmp_path / "out-hand.yaml"))
+
+
+def test_elastix_chain_by_hand(tmp_path):
+    """Parameter files written as elastix writes them, their mapping worked out by hand."""
+    from itk_nrreval.cache import content_digest
+
+    folder = tmp_path / "moved"
+    folder.mkdir()
+    euler = folder / "TransformParameters.0.txt"
+    entries = [
+        '(Transform "EulerTransform")',
+        "(NumberOfParameters 3)",
+        "(TransformParameters 0.1 1 2)",
+        '(InitialTransformParameterFileName "NoInitialTransform")',
+        '(HowToCombineTransforms "Compose")',
+        "(FixedImageDimension 2)",
+        "(MovingImageDimension 2)",
+        "(CenterOfRotationPoint 3 4)",
+        "// a comment, as elastix writes them",
+    ]
+    euler.write_text("\n".join(entries) + "\n")
+    shift = folder / "TransformParameters.1.txt"
+    shift.write_text(
+        '(Transform "TranslationTransform")\n(TransformParameters 5 6)\n'
+        # recorded where elastix ran, before the folder was moved
+        '(InitialTransformParameterFileName "/elsewhere/out/TransformParameters.0.txt")\n'
+        "(FixedImageDimension 2)\n"
+    )
+    p = np.array([10.0, -3.0])
+    c, angle = np.array([3.0, 4.0]), 0.1
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    expected = rotation @ (p - c) + c + np.array([1.0, 2.0]) + np.array([5.0, 6.0])
+    transform = read_transform(shift)
+    assert np.allclose(transform.TransformPoint(tuple(p)), expected, atol=1e-12)
+    # the cache key of the last file follows the first one's content
+    before = content_digest(shift)
+    euler.write_text(euler.read_text().replace("0.1 1 2", "0.1 1 3"))
+    assert content_digest(shift) != before
+    # an ITK text transform is not taken for an elastix file
+    itk_text = tmp_path / "affine.txt"
+    sitk.WriteTransform(sitk.TranslationTransform(2, (1.0, 2.0)), str(itk_text))
+    assert read_transform(itk_text).TransformPoint((0.0, 0.0)) == (1.0, 2.0)
+    # elastix files without their initial one, or of a kind not read: one line naming the file
+    euler.unlink()
+    with pytest.raises(nr.InputError, match=r"TransformParameters\.1\.txt: its initial transform"):
+        read_transform(shift)
+    shift.write_text('(Transform "AffineDTITransform")\n(FixedImageDimension 2)\n')
+    with pytest.raises(
+        nr.InputError, match=r"\.1\.txt: elastix AffineDTITransform transform is not"
+    ):
+        read_transform(shift)

@@ -228,6 +228,8 @@ def _manifest(args: argparse.Namespace):
             raise InputError(f"--{option} goes with derivatives folders, not a manifest")
     if len(sources) > 1:
         file = next(s for s, folder in zip(sources, folders, strict=True) if not folder)
+        if not file.exists():
+            raise InputError(f"{file}: not found (expected a derivatives folder)")
         raise InputError(
             f"{file}: give one manifest file, or derivatives folders (not a file among several)"
         )
