@@ -23,7 +23,7 @@ from .evaluation import (
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
 from .model import TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
-from .plausibility import Plausibility, Thresholds, deformation_plausibility
+from .plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
 from .registration import RegistrationResult, register
 from .specificity import (
     GeneralizationResult,
@@ -78,6 +78,7 @@ __all__ = [
     "OpenPair",
     "Plausibility",
     "Thresholds",
+    "SubjectThresholds",
     "deformation_plausibility",
     "evaluate",
     "ranks",

@@ -42,8 +42,16 @@ from .manifest import Manifest, load_manifest
 from .memberships import LABEL_INTERPOLATIONS
 from .overlap import WEIGHTINGS
 from .pipeline import Coverage, InProcessExecutor, run_pipeline
-from .plausibility import Plausibility, Thresholds, combine, flags, smallest_extent_mm
+from .plausibility import (
+    Plausibility,
+    SubjectThresholds,
+    Thresholds,
+    combine,
+    flags,
+    smallest_extent_mm,
+)
 from .specificity import GeneralizationResult, SpecificityResult
+from .subject_qc import SubjectQC, assess_subjects
 from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
@@ -93,6 +101,9 @@ class RegistrationScores:
     coverage : Coverage or None
         How much of the common grid its images cover; the scores are taken where every
         image covers it under every registration (:class:`itk_nrreval.pipeline.Coverage`).
+    subjects : tuple of SubjectQC
+        Every subject's quality control under this registration, in manifest order
+        (:mod:`itk_nrreval.subject_qc`): which subjects stand out from the cohort, and why.
     """
 
     name: str
@@ -105,6 +116,12 @@ class RegistrationScores:
     intervals: Mapping[str, Interval] = field(default_factory=dict)
     probability_best: Mapping[str, float] = field(default_factory=dict)
     coverage: Coverage | None = None
+    subjects: tuple[SubjectQC, ...] = ()
+
+    @property
+    def flagged_subjects(self) -> tuple[SubjectQC, ...]:
+        """The subjects with a flag, in manifest order."""
+        return tuple(s for s in self.subjects if s.flags)
 
     @property
     def folded_fraction(self) -> float:
@@ -160,6 +177,7 @@ class RegistrationScores:
             "folded_fraction": self.folded_fraction,
             "folded_max": self.folded_max,
             "n_modes": self.specificity.n_modes,
+            "subjects": [q.to_dict() for q in self.subjects],
         }
 
 
@@ -486,6 +504,7 @@ def evaluate(
     confidence_samples: int | None = None,
     resamples: int | None = None,
     thresholds: Thresholds | None = None,
+    subject_thresholds: SubjectThresholds | None = None,
     inverse_consistency: bool = True,
     out: str | os.PathLike | None = None,
     figures: bool = True,
@@ -560,6 +579,12 @@ def evaluate(
         Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
         whose docstring gives the defaults and their rationale). A flagged registration keeps
         its scores, but the verdict ranks it after every unflagged one.
+    subject_thresholds : SubjectThresholds, optional
+        When a subject of a registration is flagged as failed
+        (:class:`itk_nrreval.plausibility.SubjectThresholds`; results in
+        ``RegistrationScores.subjects``). A subject whose field of view covers less of the
+        common grid than ``off_grid_coverage`` times the median subject's is also left out
+        of every registration's scores (a warning names it).
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
     out : path, optional
@@ -594,6 +619,8 @@ def evaluate(
     weightings = _check_options(n_samples, distance, interpolation, weightings)
     _check_label_interpolation(label_interpolation, label_sigma_mm)
     thresholds = Thresholds() if thresholds is None else thresholds
+    if subject_thresholds is None:
+        subject_thresholds = SubjectThresholds()
     if confidence_samples is None:
         confidence_samples = min(int(n_samples), 100_000)
     _check_positive("confidence_samples", confidence_samples, 2)
@@ -621,6 +648,7 @@ def evaluate(
             label_sigma_mm=label_sigma_mm,
             show_progress=progress,
             save_resampled=save_resampled or None,
+            off_grid_coverage=subject_thresholds.off_grid_coverage,
         )
         if scheduler is None:
             if workers is not None:
@@ -689,6 +717,7 @@ def evaluate(
                     best_p[name][measure] = pb[name]
         scores = {}
         for name, r in regs.items():
+            subjects = _subjects(m, r, subject_thresholds)
             overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
             scores[name] = RegistrationScores(
                 name,
@@ -701,6 +730,7 @@ def evaluate(
                 intervals[name],
                 best_p[name],
                 r.coverage,
+                subjects,
             )
         _warn_if_flagged(scores)
         means = {name: r.mean_image for name, r in regs.items()}
@@ -713,6 +743,9 @@ def evaluate(
             "label_interpolation": label_interpolation,
             "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),
             "thresholds": dataclasses.asdict(thresholds),
+            "subject_thresholds": dataclasses.asdict(subject_thresholds),
+            # images off the common grid: in no registration's scores (manifest indices)
+            "left_out_of_scores": [i for i in range(m.n_images) if i not in set(_scored(run))],
             # what frame_spread_fraction is a fraction of: the reports state the limit in mm
             "field_of_view_mm": extent,
         }
@@ -734,6 +767,36 @@ def evaluate(
         if stage is not None:
             result.write(stage, figures=figures)
     return result
+
+
+def _scored(run) -> tuple[int, ...]:
+    """The images in the scores (the same for every registration of a run)."""
+    return next(iter(run.registrations.values())).scored
+
+
+def _subjects(m: Manifest, r, thresholds: SubjectThresholds) -> tuple[SubjectQC, ...]:
+    """Every subject's quality control under registration run `r`."""
+    fits = [f.to_dict() for f in r.affine_fits]
+    plaus = [p.to_dict() for p in r.plausibility]
+    deformation = {
+        k: [row[k] for row in plaus]
+        for k in ("folded_fraction", "sdlogj", "jacobian_min", "jacobian_max")
+    }
+    deformation["inverse_consistency_mm"] = [row["inverse_consistency_mm"] for row in plaus]
+    for k in ("linear_det", "nonlinear_rms_mm", "displacement_rms_mm"):
+        deformation[k] = [row[k] for row in fits]
+    sums = r.overlap_sums
+    return assess_subjects(
+        images=[str(p) for p in m.images],
+        scored=r.scored,
+        gram=r.gram,
+        deformation=deformation,
+        coverage=r.coverage.per_image,
+        overlap_volume=None if sums is None else sums["volume"],
+        overlap_target_sums=None if sums is None else sums["target_sums"],
+        overlap_weights=None if r.overlap is None else r.overlap.weights("volume"),
+        thresholds=thresholds,
+    )
 
 
 def _check_label_interpolation(method, sigma_mm) -> None:

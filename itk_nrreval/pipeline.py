@@ -69,7 +69,9 @@ from .overlap import OverlapTable
 from .plausibility import (
     LOG_JACOBIAN_BINS,
     LOG_JACOBIAN_RANGE,
+    AffineFit,
     Plausibility,
+    affine_fit,
     deformation_measures,
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
@@ -93,7 +95,8 @@ _TASK_VERSIONS = {
     "frame": 1,
     "frame_disp": 1,
     "reg_mask": 1,
-    "resampled": 2,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    "resampled": 3,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    # 3: the transform's closest affine map (issue 27)
     "label_sums": 1,
 }
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
@@ -219,13 +222,14 @@ def _resample_task(
     values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices,
     ascending per label), ``lab_val`` (float32). Its metadata holds the label values, the
     fraction of the mask (or grid) the image covers, and the deformation's plausibility
-    measures on the registration's reference grid `reg_grid` (inside the mask mapped there,
-    `reg_mask_key`). `own_values` are the label map's own nonzero values (found once by the
-    driver); `label_resampling` is ``(method, sigma_mm)`` of
-    :func:`~itk_nrreval.memberships.resample_label_memberships`. For the report, the entry
-    also holds ``detj_middle`` (float32: det J on the middle slice of `reg_grid`, NaN
-    outside its mask) and the metadata
-    ``log_jacobian_histogram`` (fixed-bin counts of log det J over the same voxels; both
+    measures and the transform's closest affine map
+    (:func:`~itk_nrreval.plausibility.affine_fit`) on the registration's reference grid
+    `reg_grid` (inside the mask mapped there, `reg_mask_key`). `own_values` are the label
+    map's own nonzero values (found once by the driver); `label_resampling` is
+    ``(method, sigma_mm)`` of :func:`~itk_nrreval.memberships.resample_label_memberships`.
+    For the report, the entry also holds ``detj_middle`` (float32: det J on the middle slice
+    of `reg_grid`, NaN outside its mask) and the metadata ``log_jacobian_histogram``
+    (fixed-bin counts of log det J over the same voxels; both
     from :func:`itk_nrreval.plausibility.deformation_measures`).
     """
     cache = ctx.cache()
@@ -267,6 +271,7 @@ def _resample_task(
     arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
     meta: dict = {
         "plausibility": plaus.to_dict(),
+        "affine_fit": affine_fit(t, reg_grid, mask=reg_mask).to_dict(),
         "log_jacobian_histogram": jac.histogram(),
         "label_like": label_like_values(raw),
         "coverage": float(inside.mean()) if inside.size else 0.0,
@@ -379,8 +384,9 @@ class Coverage:
     Attributes
     ----------
     fraction : float
-        The fraction of the mask's (or grid's) voxels covered by every image under this
-        registration.
+        The fraction of the mask's (or grid's) voxels covered by every image in the scores
+        under this registration (images left off the grid do not count:
+        :func:`off_grid_subjects`).
     per_image : tuple of float, length n_images
         Each image's covered fraction of the mask (or grid) under this registration.
     evaluated : float
@@ -403,10 +409,31 @@ class Coverage:
 COVERAGE_WARNING = 0.9  # warn when the scores are taken on less of the mask than this
 
 
+def off_grid_subjects(resampled: Mapping, ratio: float) -> tuple[int, ...]:
+    """The subjects that cover less of the common grid than `ratio` times the median
+    subject, under any registration (ascending indices).
+
+    Such a subject's transform maps it (almost) off the grid; kept, it would empty the region
+    every score is taken on (:func:`_region`) for every registration.
+    """
+    out: set[int] = set()
+    for _keys, metas, _frame in resampled.values():
+        per_image = np.array([float(meta["coverage"]) for meta in metas])
+        out |= set(np.flatnonzero(per_image < ratio * float(np.median(per_image))).tolist())
+    return tuple(sorted(out))
+
+
 def _region(
-    disk: DiskCache, grid: Geometry, mask: np.ndarray | None, m: Manifest, resampled: Mapping
+    disk: DiskCache,
+    grid: Geometry,
+    mask: np.ndarray | None,
+    m: Manifest,
+    resampled: Mapping,
+    left_out: Sequence[int] = (),
 ) -> tuple[np.ndarray | None, dict[str, Coverage]]:
     """The voxels every image covers under every registration (inside the mask).
+
+    Images `left_out` (:func:`off_grid_subjects`) do not restrict the region.
 
     Returns the region (bool, the grid's numpy shape; None when it is the whole grid and
     there is no mask) and each registration's :class:`Coverage`.
@@ -418,7 +445,9 @@ def _region(
     fractions: dict[str, tuple[float, tuple[float, ...]]] = {}
     for name, (keys, metas, _frame) in resampled.items():
         covered = np.ones(n_vox, bool)
-        for k in keys:
+        for i, k in enumerate(keys):
+            if i in left_out:
+                continue
             bits = disk.open("resampled", k).array("covered")
             covered &= np.unpackbits(bits, count=n_vox).astype(bool)
         inside = covered[base] if base is not None else covered
@@ -436,7 +465,7 @@ def _region(
     if evaluated < COVERAGE_WARNING:
         name = min(fractions, key=lambda r: fractions[r][0])
         frac, per_image = fractions[name]
-        i = int(np.argmin(per_image))
+        i = min((j for j in range(len(per_image)) if j not in left_out), key=lambda j: per_image[j])
         warnings.warn(
             f"the scores are taken on the {evaluated:.0%} of the voxels {where} that every "
             f"image covers under every registration; least: registration {name!r} "
@@ -465,22 +494,30 @@ class RegistrationRun:
         None without labels.
     frame : FrameMapping
     plausibility : list of Plausibility, length n_images
-        Each transform's deformation plausibility on the registration's reference grid.
+        Each transform's deformation plausibility on the registration's reference grid
+        (every image, those left out of the scores too).
     coverage : Coverage
         How much of the common grid (inside the mask) its images cover.
     mean_image : ndarray of shape (*spatial_zyx,)
         The mean resampled image on the common grid.
-    gram : ndarray of shape (n_images, n_images)
-        Gram matrix of the centred resampled images (inside the mask): the model of any
-        subset of the subjects follows from it (:mod:`itk_nrreval.confidence`).
+    gram : ndarray of shape (n_scored, n_scored)
+        Gram matrix of the centred resampled images in the scores (`scored`; inside the
+        region): the model of any subset of them follows from it
+        (:mod:`itk_nrreval.confidence`).
     overlap_sums : dict of str to ndarray, or None
         The per-image sums the overlap table was built from (``labels``, ``volume``,
         ``target_sums``, ``gradient_sums``, ``pair_min``, ``pair_max``; see
-        :meth:`OverlapTable.from_sums`); None without labels.
+        :meth:`OverlapTable.from_sums`), rows in `scored` order; None without labels.
     thumbnails : dict of str to ndarray
         Small arrays for the HTML report, whatever N (:func:`_thumbnails`): middle slices of
         two subjects' resampled images, of the first subject's labels and of its det J, and
         the log det J histogram over all subjects.
+    affine_fits : list of AffineFit, length n_images
+        Each transform's closest affine map on the reference grid
+        (:func:`itk_nrreval.plausibility.affine_fit`).
+    scored : tuple of int
+        The images in the scores (manifest indices, ascending; every image but those off
+        the common grid, :func:`off_grid_subjects`): the rows of `gram` and `overlap_sums`.
     """
 
     name: str
@@ -494,6 +531,8 @@ class RegistrationRun:
     gram: np.ndarray = field(repr=False)
     overlap_sums: Mapping[str, np.ndarray] | None = field(repr=False)
     thumbnails: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
+    affine_fits: list[AffineFit] = field(default_factory=list, repr=False)
+    scored: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -552,6 +591,7 @@ def run_pipeline(
     inverse_consistency: bool = True,
     label_interpolation: str = "linear",
     label_sigma_mm: float | None = None,
+    off_grid_coverage: float = 0.5,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -575,6 +615,10 @@ def run_pipeline(
         Measure each transform's inverse consistency (one numerical inversion per image).
     label_interpolation, label_sigma_mm
         How label maps become memberships (:func:`itk_nrreval.evaluate`).
+    off_grid_coverage : float
+        Leave out of the scores every image that covers less of the common grid than this
+        fraction of the median image, under any registration (:func:`off_grid_subjects`);
+        they are named in a warning.
 
     Returns
     -------
@@ -647,7 +691,19 @@ def run_pipeline(
             resampled[name] = (keys, metas, frame)
             thumbnails[name] = _thumbnails(disk, grid, reg_grid, keys, metas)
 
-        region, coverage = _region(disk, grid, mask, m, resampled)
+        left_out = off_grid_subjects(resampled, off_grid_coverage)
+        if left_out and m.n_images - len(left_out) >= 3:
+            warnings.warn(
+                f"{len(left_out)} of {m.n_images} images cover (almost) none of the common "
+                f"grid under some registration and are left out of every score: "
+                f"{readable([str(m.images[i]) for i in left_out])}",
+                UserWarning,
+                stacklevel=3,
+            )
+        else:
+            left_out = ()  # too few images would be left: the region check reports it
+        scored = tuple(i for i in range(m.n_images) if i not in left_out)
+        region, coverage = _region(disk, grid, mask, m, resampled, left_out)
         if save_resampled is not None:
             _save_region(Path(save_resampled), grid, region)
         region_ctx = ctx
@@ -672,19 +728,26 @@ def run_pipeline(
                 executor,
                 region_ctx,
                 name,
-                keys,
-                metas,
+                [keys[i] for i in scored],
+                [metas[i] for i in scored],
                 frame,
                 values,
                 region,
                 coverage[name],
-                groups=m.groups,
+                groups=None if m.groups is None else [m.groups[i] for i in scored],
                 n_samples=n_samples,
                 seed=seed,
                 distance=distance,
                 show=show_progress,
             )
-            runs[name] = dataclasses.replace(runs[name], thumbnails=thumbnails[name])
+            runs[name] = dataclasses.replace(
+                runs[name],
+                thumbnails=thumbnails[name],
+                # every image's deformation, those left out of the scores too
+                plausibility=[Plausibility.from_dict(meta["plausibility"]) for meta in metas],
+                affine_fits=[AffineFit.from_dict(meta["affine_fit"]) for meta in metas],
+                scored=scored,
+            )
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
 
 

@@ -34,9 +34,12 @@ from .transforms import chain_transform, displacement_field, invert, jacobian_de
 __all__ = [
     "Plausibility",
     "Thresholds",
+    "SubjectThresholds",
+    "AffineFit",
     "JacobianSummary",
     "deformation_plausibility",
     "deformation_measures",
+    "affine_fit",
     "combine",
     "flags",
     "frame_spread_limit_mm",
@@ -371,6 +374,111 @@ def deformation_measures(
     return plausibility, JacobianSummary(hist, below, above, folded, middle)
 
 
+@dataclass(frozen=True)
+class AffineFit:
+    """The affine map closest to a transform on a grid (least squares over its voxels).
+
+    Attributes
+    ----------
+    linear_det : float
+        Determinant of the fitted map's linear part (unitless): about 1 for a pose, negative
+        for a map that mirrors space (axes flipped).
+    displacement_rms_mm : float
+        Root mean square of ``|T(p) - p|`` over the evaluated voxels, mm.
+    nonlinear_rms_mm : float
+        Root mean square of ``|T(p) - (A p + b)|``, mm, with ``A p + b`` the fitted affine
+        map: the part of the displacement no affine map explains; 0 (to round-off) for a
+        linear transform.
+    """
+
+    linear_det: float
+    displacement_rms_mm: float
+    nonlinear_rms_mm: float
+
+    def to_dict(self) -> dict:
+        return {k: json_number(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: Mapping) -> AffineFit:
+        """Inverse of :meth:`to_dict` (None back to NaN)."""
+        return cls(**{k: math.nan if data[k] is None else float(data[k]) for k in asdict(NAN_FIT)})
+
+
+def affine_fit(
+    transform: sitk.Transform,
+    grid: Geometry | sitk.Image,
+    *,
+    mask: np.ndarray | None = None,
+    max_slab_voxels: int = SLAB_VOXELS,
+) -> AffineFit:
+    """Fit an affine map to a transform over a grid's voxels, by least squares.
+
+    Parameters
+    ----------
+    transform : sitk.Transform (or a path / chain in ANTs order)
+        Maps reference points to image points (mm, LPS).
+    grid : Geometry or sitk.Image
+        The points p (voxel centres): the registration's reference grid.
+    mask : ndarray of bool, shape ``grid.shape`` (numpy order), optional
+        Fit over these voxels only (at least ``dimension + 1`` of them, not all on one plane).
+    max_slab_voxels : int
+        Sample the displacement slab by slab along the last axis above this many voxels, so
+        that memory stays bounded; the result does not depend on it.
+
+    Returns
+    -------
+    AffineFit
+        All NaN when the voxels do not determine an affine map (too few, or on one plane).
+
+    Notes
+    -----
+    With ``u(p) = T(p) - p`` and ``q = p - c`` (c the grid's centre, so that the sums do not
+    lose the millimetres to the coordinates' size), the fit ``u ~ B^T [q, 1]`` solves the
+    normal equations ``S_qq B = S_qu`` with ``S_qq = sum [q, 1][q, 1]^T`` and
+    ``S_qu = sum [q, 1] u^T``, accumulated slab by slab; the linear part is ``I + B[:d]^T``
+    and the residual sum of squares ``sum |u|^2 - <B, S_qu>``.
+    """
+    g = _geometry(grid)
+    t = chain_transform(transform)
+    d = g.dimension
+    if t.GetDimension() != d:
+        raise InputError(f"transform: {t.GetDimension()}D transform on a {d}D grid {g.size}")
+    direction = np.asarray(g.direction, np.float64).reshape(d, d)
+    spacing = np.asarray(g.spacing, np.float64)
+    centre = np.asarray(g.origin) + direction @ (spacing * (np.asarray(g.size) - 1) / 2)
+    s_qq = np.zeros((d + 1, d + 1))
+    s_qu = np.zeros((d + 1, d))
+    s_uu = 0.0
+    count = 0
+    for rows, _halo, slab_grid, _inner in _slabs(g, max(int(max_slab_voxels), 1)):
+        field = displacement_field(t, slab_grid)
+        u = sitk.GetArrayFromImage(field).reshape(-1, d)
+        # ITK index (x, y[, z]) of every voxel of the slab, in numpy order of the voxels
+        index = np.indices(slab_grid.shape).reshape(d, -1)[::-1].T
+        q = np.asarray(slab_grid.origin) + (index * spacing) @ direction.T - centre
+        if mask is not None:
+            sel = np.asarray(mask, bool)[rows].reshape(-1)
+            u, q = u[sel], q[sel]
+        q1 = np.hstack([q, np.ones((q.shape[0], 1))])
+        s_qq += q1.T @ q1
+        s_qu += q1.T @ u
+        s_uu += float(np.sum(u * u))
+        count += u.shape[0]
+    if count <= d or np.linalg.matrix_rank(s_qq) < d + 1:
+        return NAN_FIT
+    b = np.linalg.solve(s_qq, s_qu)
+    residual = max(s_uu - float(np.sum(b * s_qu)), 0.0)
+    return AffineFit(
+        linear_det=float(np.linalg.det(np.eye(d) + b[:d].T)),
+        displacement_rms_mm=math.sqrt(s_uu / count),
+        nonlinear_rms_mm=math.sqrt(residual / count),
+    )
+
+
+#: The fit of a transform whose voxels determine no affine map.
+NAN_FIT = AffineFit(math.nan, math.nan, math.nan)
+
+
 def combine(per_image: Sequence[Plausibility]) -> Plausibility:
     """One registration's plausibility from its images' (every image weighs the same).
 
@@ -455,6 +563,62 @@ class Thresholds:
     sdlogj_ratio: float = 2.0
     sdlogj_floor: float = 0.2
     frame_spread_fraction: float = 0.05
+
+
+@dataclass(frozen=True, kw_only=True)
+class SubjectThresholds:
+    """When :func:`itk_nrreval.subject_qc.assess_subjects` flags one subject of a cohort.
+
+    Each subject is compared with the rest of its cohort (the same registration's other
+    subjects) by robust z-scores, ``z = (x - median) / (1.4826 MAD)`` over the cohort; see
+    :mod:`itk_nrreval.subject_qc` for the measures. The defaults aim at flagging at most 2 %
+    of the subjects of a cohort of 36 that registered well (measured on generated cohorts:
+    ``benchmarks/bench_subject_qc.py`` and the README).
+
+    Attributes
+    ----------
+    outlier_z : float
+        Flag a subject whose log distance to the texture model of the others has z above
+        this (default 3.5).
+    deformation_z : float
+        Flag a subject whose log SDlogJ, log non-linear displacement (RMS beyond the best
+        affine map) or log inverse-consistency error has z above this (default 3.5) ...
+    deformation_ratio : float
+        ... and is more than this many times the cohort's median (default 1.5): in a cohort
+        whose deformations are much alike (a small MAD), a z-score alone would flag
+        differences too small to mean a failure.
+    overlap_z : float
+        Flag a subject whose label overlap with the others has z below minus this (default
+        3.5).
+    folded : float
+        Flag a subject whose transform folds more than this fraction of its voxels (default
+        0.01, as :attr:`Thresholds.folded_mean` for a registration).
+    off_grid_coverage : float
+        A subject covering less of the common grid than this fraction of the cohort's median
+        coverage (under any registration) is flagged and left out of every registration's
+        scores, so that it cannot empty the region they are taken on (default 0.5).
+    duplicate_distance : float
+        Two subjects whose resampled images lie closer than this fraction of the cohort's
+        median pairwise distance are flagged as duplicates (default 0.01).
+    affine_only_ratio : float
+        Flag a subject whose non-linear displacement is below this fraction of the cohort's
+        median, when that median is above 0.001 mm (default 0.1): its registration stopped
+        early, or did only the affine step.
+    scaled_ratio : float
+        Diagnose scaled displacements when a subject flagged for its deformation moves
+        more than this many times the cohort's median non-linear displacement (default
+        1.5).
+    """
+
+    outlier_z: float = 3.5
+    deformation_z: float = 3.5
+    deformation_ratio: float = 1.5
+    overlap_z: float = 3.5
+    folded: float = 0.01
+    off_grid_coverage: float = 0.5
+    duplicate_distance: float = 0.01
+    affine_only_ratio: float = 0.1
+    scaled_ratio: float = 1.5
 
 
 def frame_spread_limit_mm(extent_mm: float, thresholds: Thresholds = Thresholds()) -> float:  # noqa: B008

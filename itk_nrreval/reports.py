@@ -36,6 +36,8 @@ from ._output import atomic_path, write_text
 __all__ = [
     "summary_table",
     "results_csv",
+    "subjects_csv",
+    "subjects_summary",
     "write_reports",
     "figure_pngs",
     "format_number",
@@ -219,7 +221,98 @@ def summary_table(result) -> str:
         "Frame spread: how far the per-image estimates of the transform into the common "
         "frame lie from it. " + frame_spread_words(result)[1],
     ]
-    return "\n".join(lines + notes) + "\n"
+    return "\n".join(lines + notes + subjects_summary(result)) + "\n"
+
+
+def subjects_summary(result) -> list[str]:
+    """The lines of ``summary.md`` that name the flagged subjects of every registration.
+
+    Per registration, each flagged subject (manifest index and image) with its diagnosis
+    and flags, or that none is flagged; and the subjects left out of every score.
+    """
+    if not any(s.subjects for s in result.scores.values()):
+        return []
+    lines = [
+        "",
+        "## Flagged subjects",
+        "",
+        "Each subject compared with the rest of its cohort under the same registration "
+        "(robust z-scores, z = (x - median) / (1.4826 MAD)): its distance to the texture "
+        "model of the others, its deformation, its label overlap with the others, its "
+        "coverage of the common grid (per-subject values in subjects.csv).",
+        "",
+    ]
+    left_out = result.options.get("left_out_of_scores") or []
+    if left_out:
+        first = next(iter(result.scores.values()))
+        names = ", ".join(f"{i} ({first.subjects[i].image})" for i in left_out)
+        lines += [
+            f"Left out of every registration's scores (off the common grid): subject {names}.",
+            "",
+        ]
+    for name, s in result.scores.items():
+        flagged = [q for q in s.subjects if q.flags]
+        if not flagged:
+            lines.append(f"- {name}: none of the {len(s.subjects)} subjects is flagged.")
+            continue
+        lines.append(f"- {name}: {len(flagged)} of the {len(s.subjects)} subjects flagged:")
+        for q in flagged:
+            cause = q.diagnosis if q.diagnosis is not None else "no common cause recognised"
+            lines.append(f"  - subject {q.index} ({q.image}): {cause}. {'; '.join(q.flags)}.")
+    return lines
+
+
+def _missing(v) -> bool:
+    return v is None or (isinstance(v, float) and math.isnan(v))
+
+
+#: The columns of ``subjects.csv`` taken from a subject's deformation, in order.
+_SUBJECT_DEFORMATION = (
+    "folded_fraction",
+    "sdlogj",
+    "sdlogj_z",
+    "jacobian_min",
+    "jacobian_max",
+    "inverse_consistency_mm",
+    "inverse_consistency_z",
+    "linear_det",
+    "nonlinear_rms_mm",
+    "nonlinear_rms_z",
+    "displacement_rms_mm",
+)
+
+
+def subjects_csv(result) -> str:
+    """One row per registration and subject (manifest order): the subject's quality control.
+
+    Columns: registration, index, image, in_scores, score (distance to the model of the
+    others, intensity units), z, overlap, overlap_z, coverage, the deformation measures
+    (mm where a length) and their z, flags (joined by "; "), diagnosis. Empty cells: not
+    computed.
+    """
+    fields = ["registration", "index", "image", "in_scores", "score", "z"]
+    fields += ["overlap", "overlap_z", "coverage", *_SUBJECT_DEFORMATION, "flags", "diagnosis"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for name, s in result.scores.items():
+        for q in s.subjects:
+            row = {
+                "registration": name,
+                "index": q.index,
+                "image": q.image,
+                "in_scores": q.in_scores,
+                "score": q.score,
+                "z": q.z,
+                "overlap": q.overlap,
+                "overlap_z": q.overlap_z,
+                "coverage": q.coverage,
+                **{k: q.deformation.get(k) for k in _SUBJECT_DEFORMATION},
+                "flags": "; ".join(q.flags),
+                "diagnosis": q.diagnosis or "",
+            }
+            w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
+    return buf.getvalue()
 
 
 def results_csv(result) -> str:
@@ -706,8 +799,9 @@ def write_reports(
     figures: bool | Mapping[str, bytes] = True,
     html: str | None = None,
 ) -> list[Path]:
-    """Write figures, then ``report.html``, then ``results.json``, ``results.csv`` and
-    ``summary.md`` into `out`.
+    """Write figures, then ``report.html``, then ``results.json``, ``results.csv``,
+    ``summary.md`` and ``subjects.csv`` (per-subject quality control, :func:`subjects_csv`)
+    into `out`.
 
     Parameters
     ----------
@@ -744,6 +838,8 @@ def write_reports(
         "results.csv": results_csv(result),
         "summary.md": summary_table(result),
     }
+    if any(s.subjects for s in result.scores.values()):
+        texts["subjects.csv"] = subjects_csv(result)
     for fname, text in texts.items():
         write_text(out / fname, text)
         written.append(out / fname)

@@ -1,0 +1,438 @@
+"""Which subjects' registrations failed: per-subject quality control of a registered cohort.
+
+The verdict (:func:`itk_nrreval.evaluation.verdict`) says which registration of a group is
+best; this module asks, per registration, which of its subjects stand out from the rest of
+the cohort, and why. Everything here is computed from numbers the evaluation already has --
+nothing is resampled again:
+
+* **model distance** (``score``, the images' intensity units): the subject's leave-one-out
+  reconstruction error, the Euclidean distance of its resampled image (inside the evaluated
+  region) to the texture model of the other N - 1 subjects with all their modes, i.e. to the
+  affine span of the others (:func:`itk_nrreval.specificity.loo_generalization`, from the
+  N x N Gram matrix alone);
+* **deformation**: its transform's folded fraction, SDlogJ, det J range and inverse
+  consistency (:class:`itk_nrreval.plausibility.Plausibility`), and the affine map closest
+  to it (:class:`itk_nrreval.plausibility.AffineFit`: the determinant of the linear part,
+  the non-linear displacement beyond it);
+* **overlap** (with labels): the generalized Tanimoto overlap of its label memberships with
+  the others', pooled over its N - 1 pairs (the per-image sums hold each subject's sums over
+  its pairs, not each pair: the mean of its N - 1 pairwise overlaps is not available), with
+  volume weighting (every voxel counts alike: under the inverse-volume weighting a
+  structure of a few voxels, whose overlap is mostly partial-volume noise, decided most
+  subjects' overlap on generated cohorts);
+* **coverage**: the fraction of the common grid (inside the mask) its field of view covers.
+
+Each measure is compared with the cohort by a robust z-score, ``z = (x - median) / (1.4826
+MAD)`` over the subjects (the median and MAD of a normal sample estimate its mean and
+standard deviation, and a few failed subjects barely move them); scale-like measures
+(distances, SDlogJ, displacement, inverse consistency) are compared on the log scale, where
+their spread is about symmetric. :class:`itk_nrreval.plausibility.SubjectThresholds` says
+when a subject is flagged, and a common cause of failure that explains the flags is named
+in words (the diagnosis): left off the common grid, duplicated image, mirrored, stopped
+early / affine only, scaled displacements.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ._output import json_number
+from .model import TextureModel
+from .specificity import loo_generalization
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .plausibility import SubjectThresholds
+
+__all__ = [
+    "SubjectQC",
+    "robust_z",
+    "leave_one_out_distances",
+    "pair_distances",
+    "subject_overlaps",
+    "assess_subjects",
+    "MAD_TO_SD",
+]
+
+#: The MAD of a normal sample times this estimates its standard deviation.
+MAD_TO_SD = 1.4826
+
+#: Below this cohort median (mm) of the non-linear displacement, the cohort itself is affine
+#: and "affine only" says nothing about one subject.
+_AFFINE_COHORT_MM = 1e-3
+
+#: Floors of the log-scale measures: values below are no variation at all (SDlogJ of a
+#: linear map, the round-off inverse consistency of one), and are compared as the floor.
+_LOG_FLOORS = {"sdlogj": 1e-3, "nonlinear_rms_mm": 1e-3, "inverse_consistency_mm": 1e-3}
+
+
+@dataclass(frozen=True)
+class SubjectQC:
+    """One subject's quality control under one registration.
+
+    Attributes
+    ----------
+    index : int
+        The subject's (image's) position in the manifest.
+    image : str
+        Its image, as the manifest names it.
+    score : float or None
+        Its distance to the texture model of the other subjects (the images' intensity
+        units); None when it was left out of the scores (or N < 4).
+    z : float or None
+        The robust z-score of its log `score` over the cohort (positive: farther than the
+        typical subject).
+    deformation : dict of str to float or None
+        ``folded_fraction``, ``sdlogj``, ``jacobian_min``, ``jacobian_max``,
+        ``inverse_consistency_mm``, ``linear_det``, ``nonlinear_rms_mm``,
+        ``displacement_rms_mm``, and the robust z-scores ``sdlogj_z``, ``nonlinear_rms_z``,
+        ``inverse_consistency_z`` (log scale).
+    overlap : float or None
+        Its label overlap with the others (in [0, 1]); None without labels or when left out.
+    overlap_z : float or None
+        Its robust z-score over the cohort (negative: less overlap than the typical subject).
+    coverage : float
+        The fraction of the common grid (inside the mask) its field of view covers.
+    in_scores : bool
+        False when it was left out of every registration's scores (off the common grid).
+    flags : tuple of str
+        Why it stands out, in words; empty when it does not.
+    diagnosis : str or None
+        A common cause of failure that explains the flags, in words; None when none is
+        recognised (or nothing is flagged).
+    """
+
+    index: int
+    image: str
+    score: float | None
+    z: float | None
+    deformation: Mapping[str, float | None] = field(default_factory=dict)
+    overlap: float | None = None
+    overlap_z: float | None = None
+    coverage: float = math.nan
+    in_scores: bool = True
+    flags: tuple[str, ...] = ()
+    diagnosis: str | None = None
+
+    @property
+    def flagged(self) -> bool:
+        return bool(self.flags)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``results.json`` entry: numbers JSON-safe (NaN and infinities as None)."""
+        return {
+            "index": self.index,
+            "image": self.image,
+            "score": json_number(self.score),
+            "z": json_number(self.z),
+            "plausibility": {k: json_number(v) for k, v in self.deformation.items()},
+            "overlap": (
+                None
+                if self.overlap is None
+                else {"value": json_number(self.overlap), "z": json_number(self.overlap_z)}
+            ),
+            "coverage": json_number(self.coverage),
+            "in_scores": self.in_scores,
+            "flags": list(self.flags),
+            "diagnosis": self.diagnosis,
+        }
+
+
+def robust_z(values, *, log: bool = False, floor: float = 0.0) -> np.ndarray:
+    """Robust z-scores over a cohort: ``(x - median) / (1.4826 MAD)``.
+
+    Parameters
+    ----------
+    values : array_like of float, shape (n,)
+        One value per subject; NaN values get NaN and are left out of the median and MAD.
+    log : bool
+        Score ``log(max(x, floor))`` instead of x (for positive, scale-like measures).
+    floor : float
+        With `log`, values below it are taken as it (must then be > 0).
+
+    Returns
+    -------
+    ndarray of float, shape (n,)
+        When the MAD is 0 (over half of the cohort share one value), values at the median
+        score 0 and any other +-inf: a cohort that does not vary at all makes any departure
+        from it extreme.
+    """
+    x = np.asarray(values, np.float64).copy()
+    if log:
+        x = np.log(np.maximum(x, floor))  # NaN stays NaN
+    ok = np.isfinite(x)
+    z = np.full(x.shape, np.nan)
+    if not ok.any():
+        return z
+    median = float(np.median(x[ok]))
+    scale = MAD_TO_SD * float(np.median(np.abs(x[ok] - median)))
+    if scale > 0:
+        z[ok] = (x[ok] - median) / scale
+    else:
+        diff = x[ok] - median
+        z[ok] = np.where(diff == 0, 0.0, np.copysign(np.inf, diff))
+    return z
+
+
+def leave_one_out_distances(gram: np.ndarray) -> np.ndarray:
+    """Each image's distance to the texture model of the others, from their Gram matrix.
+
+    Parameters
+    ----------
+    gram : ndarray of shape (n, n)
+        Gram matrix of the centred images (:meth:`TextureModel.from_gram`), n >= 4.
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        Image k's Euclidean distance (intensity units) to its reconstruction by the model
+        of the n - 1 others with all their modes: its distance to their affine span
+        (:func:`itk_nrreval.specificity.loo_generalization`).
+    """
+    return loo_generalization(TextureModel.from_gram(gram)).nearest_distances
+
+
+def pair_distances(gram: np.ndarray) -> np.ndarray:
+    """The Euclidean distances between the images, shape (n, n), from their Gram matrix.
+
+    ``|x_i - x_j|^2 = G_ii + G_jj - 2 G_ij`` (centring moves every image alike); round-off
+    below zero is taken as 0.
+    """
+    g = np.asarray(gram, np.float64)
+    diag = np.diag(g)
+    return np.sqrt(np.maximum(diag[:, None] + diag[None, :] - 2 * g, 0.0))
+
+
+def subject_overlaps(volume, target_sums, weights) -> np.ndarray:
+    """Each subject's generalized overlap with the others, from the per-image sums.
+
+    Parameters
+    ----------
+    volume, target_sums : array_like, shape (n, n_labels)
+        ``sum_v A_il`` and ``sum_v sum_{j != i} min(A_il, A_jl)`` (voxel units), as
+        :meth:`itk_nrreval.overlap.OverlapTable.from_sums` takes them.
+    weights : array_like, shape (n_labels,)
+        The label weights alpha_l (e.g. the cohort table's inverse-volume weights).
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        ``sum_l alpha_l sum_{j != i} min(A_il, A_jl) / sum_l alpha_l sum_{j != i} max(A_il,
+        A_jl)``: the generalized Tanimoto overlap of the N - 1 pairs (i, j), where
+        ``sum_{j != i} max = (N - 2) vol_i + sum_j vol_j - target_sums_i``
+        (``max(a, b) = a + b - min(a, b)``). NaN where the denominator is 0.
+    """
+    vol = np.asarray(volume, np.float64)
+    mins = np.asarray(target_sums, np.float64)
+    alpha = np.asarray(weights, np.float64)
+    n = vol.shape[0]
+    maxs = (n - 2) * vol + vol.sum(axis=0) - mins
+    num, den = mins @ alpha, maxs @ alpha
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+
+
+def _fmt(v: float, digits: int = 3) -> str:
+    return f"{v:.{digits}g}"
+
+
+def _z_words(z: float) -> str:
+    return "z = +inf" if z == math.inf else "z = -inf" if z == -math.inf else f"z = {z:+.1f}"
+
+
+def assess_subjects(
+    *,
+    images: Sequence[str],
+    scored: Sequence[int],
+    gram: np.ndarray,
+    deformation: Mapping[str, Sequence[float | None]],
+    coverage: Sequence[float],
+    overlap_volume: np.ndarray | None = None,
+    overlap_target_sums: np.ndarray | None = None,
+    overlap_weights: np.ndarray | None = None,
+    thresholds: SubjectThresholds,
+) -> tuple[SubjectQC, ...]:
+    """Every subject's quality control under one registration: scores, z, flags, diagnosis.
+
+    Parameters
+    ----------
+    images : sequence of str, length N
+        Every subject's image, in manifest order.
+    scored : sequence of int, length n
+        The subjects in the scores (indices into `images`, ascending): the rows of `gram`
+        and of the overlap sums. The others were left out (off the common grid).
+    gram : ndarray of shape (n, n)
+        Gram matrix of the scored subjects' centred resampled images (inside the region).
+    deformation : mapping of str to sequence of float, each of length N
+        Per subject: ``folded_fraction``, ``sdlogj``, ``jacobian_min``, ``jacobian_max``,
+        ``inverse_consistency_mm`` (None: not measured), ``linear_det``,
+        ``nonlinear_rms_mm``, ``displacement_rms_mm`` (mm).
+    coverage : sequence of float, length N
+        Each subject's covered fraction of the common grid (inside the mask).
+    overlap_volume, overlap_target_sums : ndarray of shape (n, n_labels), optional
+        The scored subjects' per-label sums (:func:`subject_overlaps`); None without labels.
+    overlap_weights : ndarray of shape (n_labels,), optional
+        The label weights of the overlap.
+    thresholds : SubjectThresholds
+
+    Returns
+    -------
+    tuple of SubjectQC
+        One per subject, in manifest order.
+
+    Notes
+    -----
+    A subject is flagged when (thresholds ``th``):
+
+    * it covers less than ``th.off_grid_coverage`` times the cohort's median coverage
+      (then it is not in `scored`, and only its deformation is judged);
+    * another subject's resampled image lies within ``th.duplicate_distance`` times the
+      cohort's median pairwise distance;
+    * the linear part of its transform mirrors space (determinant < 0) while the cohort's
+      median does not;
+    * its log model distance has z > ``th.outlier_z``;
+    * it folds more than ``th.folded`` of its voxels;
+    * its log SDlogJ, log non-linear displacement or log inverse consistency has z >
+      ``th.deformation_z`` and is above ``th.deformation_ratio`` times the cohort's median;
+    * its non-linear displacement is below ``th.affine_only_ratio`` times the cohort's
+      median (when that median is above 0.001 mm);
+    * its overlap has z < ``-th.overlap_z``.
+
+    The diagnosis is the first that applies of: off the common grid; duplicated image;
+    mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
+    non-linear displacement above ``th.scaled_ratio`` times the median).
+    """
+    th = thresholds
+    n_all = len(images)
+    scored = [int(i) for i in scored]
+    cov = np.asarray(coverage, np.float64)
+    defo = {
+        k: np.array([math.nan if v is None else float(v) for v in vals], np.float64)
+        for k, vals in deformation.items()
+    }
+
+    score = np.full(n_all, np.nan)
+    z = np.full(n_all, np.nan)
+    if len(scored) >= 4:
+        dist = leave_one_out_distances(gram)
+        # a duplicate is at distance 0 from the others' span: log of a tiny floor, not -inf
+        tiny = max(float(np.max(dist)), 1.0) * 1e-12
+        score[scored] = dist
+        z[scored] = robust_z(dist, log=True, floor=tiny)
+
+    nearest = {}  # scored subject -> (nearest other subject, its distance / median distance)
+    if len(scored) >= 3:
+        pairs = pair_distances(gram)
+        off = pairs[~np.eye(len(scored), dtype=bool)]
+        median_pair = float(np.median(off))
+        np.fill_diagonal(pairs, np.inf)
+        for row, i in enumerate(scored):
+            j = int(np.argmin(pairs[row]))
+            ratio = pairs[row, j] / median_pair if median_pair > 0 else math.nan
+            nearest[i] = (scored[j], ratio)
+
+    zs = {
+        name: robust_z(defo[name], log=True, floor=_LOG_FLOORS[name])
+        for name in ("sdlogj", "nonlinear_rms_mm", "inverse_consistency_mm")
+    }
+    median_cov = float(np.median(cov))
+    median_det = float(np.nanmedian(defo["linear_det"]))
+    median_nonlinear = float(np.nanmedian(defo["nonlinear_rms_mm"]))
+
+    overlap = np.full(n_all, np.nan)
+    overlap_z = np.full(n_all, np.nan)
+    has_overlap = overlap_volume is not None
+    if has_overlap:
+        values = subject_overlaps(overlap_volume, overlap_target_sums, overlap_weights)
+        overlap[scored] = values
+        overlap_z[scored] = robust_z(values)
+
+    out = []
+    in_scores = set(scored)
+    for i in range(n_all):
+        flags: list[str] = []
+        causes: list[str] = []
+        if i not in in_scores:
+            flags.append(
+                f"covers {cov[i]:.0%} of the common grid (cohort median {median_cov:.0%}): "
+                "left out of the scores"
+            )
+            causes.append(
+                "its transform maps the image (almost) off the common grid: wrong transform, "
+                "wrong reference or a unit/axis mix-up"
+            )
+        if i in nearest and nearest[i][1] < th.duplicate_distance:
+            j, ratio = nearest[i]
+            flags.append(
+                f"its resampled image is {ratio:.2g}x the median pairwise distance from "
+                f"subject {j}'s"
+            )
+            causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")
+        det = defo["linear_det"][i]
+        if det < 0 and median_det > 0:
+            flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
+            causes.append("mirrored: its transform flips an axis (left-right swapped?)")
+        if z[i] > th.outlier_z:
+            flags.append(
+                f"far from the model of the others: distance {_fmt(score[i])} ({_z_words(z[i])})"
+            )
+        folded = defo["folded_fraction"][i]
+        if folded > th.folded:
+            flags.append(f"{folded:.1%} of its voxels fold (det J <= 0)")
+        rough = False
+        for name, words in (
+            ("sdlogj", "SDlogJ"),
+            ("nonlinear_rms_mm", "non-linear displacement (mm RMS)"),
+            ("inverse_consistency_mm", "inverse-consistency error (mm)"),
+        ):
+            median = float(np.nanmedian(defo[name]))
+            if zs[name][i] > th.deformation_z and defo[name][i] > th.deformation_ratio * median:
+                rough = True
+                flags.append(
+                    f"{words} {_fmt(defo[name][i])} against the cohort's median "
+                    f"{_fmt(median)} ({_z_words(zs[name][i])})"
+                )
+        nonlinear = defo["nonlinear_rms_mm"][i]
+        if median_nonlinear > _AFFINE_COHORT_MM and nonlinear < th.affine_only_ratio * (
+            median_nonlinear
+        ):
+            flags.append(
+                f"almost no non-linear displacement: {_fmt(nonlinear, 2)} mm RMS beyond "
+                f"the best affine map (cohort median {_fmt(median_nonlinear)} mm)"
+            )
+            causes.append("stopped early or affine only: no non-linear deformation")
+        if (rough or folded > th.folded) and nonlinear > th.scaled_ratio * median_nonlinear:
+            causes.append(
+                f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
+                "median non-linear displacement (a unit or scale mix-up?)"
+            )
+        if overlap_z[i] < -th.overlap_z:
+            flags.append(
+                f"label overlap with the others {overlap[i]:.3f} (cohort median "
+                f"{float(np.nanmedian(overlap)):.3f}, {_z_words(overlap_z[i])})"
+            )
+        out.append(
+            SubjectQC(
+                index=i,
+                image=str(images[i]),
+                score=None if math.isnan(score[i]) else float(score[i]),
+                z=None if math.isnan(z[i]) else float(z[i]),
+                deformation={
+                    **{k: (None if math.isnan(v[i]) else float(v[i])) for k, v in defo.items()},
+                    "sdlogj_z": float(zs["sdlogj"][i]),
+                    "nonlinear_rms_z": float(zs["nonlinear_rms_mm"][i]),
+                    "inverse_consistency_z": float(zs["inverse_consistency_mm"][i]),
+                },
+                overlap=None if not has_overlap or math.isnan(overlap[i]) else float(overlap[i]),
+                overlap_z=None if math.isnan(overlap_z[i]) else float(overlap_z[i]),
+                coverage=float(cov[i]),
+                in_scores=i in in_scores,
+                flags=tuple(flags),
+                diagnosis=causes[0] if causes and flags else None,
+            )
+        )
+    return tuple(out)
