@@ -252,12 +252,13 @@ class EvaluationResult:
     def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> list[Path]:
         """Write the reports ``nrreval evaluate`` writes into `out_dir` (created if needed).
 
-        ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict and
-        the paper's Table 3 layout) and, with `figures`, ``specificity.png``,
-        ``specificity_vs_overlap.png``, ``mean_images.png`` and ``report.html`` (one
-        self-contained page to read: the verdict, the scores with their legend, per
-        registration its images, deformation and frame, the inputs and options; it embeds
-        the same figures; :func:`itk_nrreval.html_report.report_html`), through
+        ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict,
+        the paper's Table 3 layout and the flagged subjects), ``subjects.csv`` (every
+        subject's quality control, :func:`itk_nrreval.reports.subjects_csv`) and, with
+        `figures`, ``specificity.png``, ``specificity_vs_overlap.png``, ``mean_images.png``
+        and ``report.html`` (one self-contained page to read: the verdict, the scores with
+        their legend, per registration its images, deformation and frame, the inputs and
+        options; it embeds the same figures; :func:`itk_nrreval.html_report.report_html`), through
         :func:`itk_nrreval.reports.write_reports`. Each file is written under a temporary
         name and renamed when complete; files of other names in `out_dir` are left alone
         (``evaluate(..., out=DIR)`` swaps a whole folder in instead).

@@ -236,6 +236,13 @@ def subject_overlaps(volume, target_sums, weights) -> np.ndarray:
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
 
 
+def _median(values) -> float:
+    """The median of the finite values; NaN (without a warning) when there is none."""
+    x = np.asarray(values, np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else math.nan
+
+
 def _fmt(v: float, digits: int = 3) -> str:
     return f"{v:.{digits}g}"
 
@@ -340,8 +347,8 @@ def assess_subjects(
         for name in ("sdlogj", "nonlinear_rms_mm", "inverse_consistency_mm")
     }
     median_cov = float(np.median(cov))
-    median_det = float(np.nanmedian(defo["linear_det"]))
-    median_nonlinear = float(np.nanmedian(defo["nonlinear_rms_mm"]))
+    median_det = _median(defo["linear_det"])
+    median_nonlinear = _median(defo["nonlinear_rms_mm"])
 
     overlap = np.full(n_all, np.nan)
     overlap_z = np.full(n_all, np.nan)
@@ -389,7 +396,7 @@ def assess_subjects(
             ("nonlinear_rms_mm", "non-linear displacement (mm RMS)"),
             ("inverse_consistency_mm", "inverse-consistency error (mm)"),
         ):
-            median = float(np.nanmedian(defo[name]))
+            median = _median(defo[name])
             if zs[name][i] > th.deformation_z and defo[name][i] > th.deformation_ratio * median:
                 rough = True
                 flags.append(
@@ -413,7 +420,7 @@ def assess_subjects(
         if overlap_z[i] < -th.overlap_z:
             flags.append(
                 f"label overlap with the others {overlap[i]:.3f} (cohort median "
-                f"{float(np.nanmedian(overlap)):.3f}, {_z_words(overlap_z[i])})"
+                f"{_median(overlap):.3f}, {_z_words(overlap_z[i])})"
             )
         out.append(
             SubjectQC(
