@@ -700,7 +700,8 @@ def evaluate(
                 stacklevel=2,
             )
             confidence = False
-        if confidence and m.n_images >= 4:
+        n_scored = len(_scored(run))  # the jackknife runs over the subjects in the scores
+        if confidence and n_scored >= 4:
             reps = _replicates(
                 run, weightings, resamples, confidence_samples, distance, seed, progress
             )
@@ -737,9 +738,9 @@ def evaluate(
         means = {name: r.mean_image for name, r in regs.items()}
         thumbnails = {name: r.thumbnails for name, r in regs.items()}
         options = {
-            "confidence": bool(confidence and m.n_images >= 4),
+            "confidence": bool(confidence and n_scored >= 4),
             "confidence_samples": int(confidence_samples),
-            "resamples": len(jackknife_groups(m.n_images, resamples)) if m.n_images >= 4 else None,
+            "resamples": len(jackknife_groups(n_scored, resamples)) if n_scored >= 4 else None,
             "inverse_consistency": bool(inverse_consistency),
             "label_interpolation": label_interpolation,
             "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),

@@ -202,3 +202,13 @@ def test_affine_fit_recovers_a_mirroring_affine_map_and_a_field():
     residual = u.reshape(-1, 2) - design @ coef
     assert fit.nonlinear_rms_mm == pytest.approx(np.sqrt((residual**2).sum(1).mean()), rel=1e-9)
     assert fit.displacement_rms_mm == pytest.approx(np.sqrt((u**2).sum(-1).mean()), rel=1e-12)
+
+
+def test_the_jackknife_runs_over_the_subjects_in_the_scores(cohort, tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = nr.evaluate(
+            cohort[1], n_samples=100, confidence_samples=100, progress=False, cache=tmp_path
+        )
+    assert result.options["resamples"] == N - 1  # leave-one-out over the 35 scored subjects
+    assert math.isfinite(result.scores["damaged"].intervals["specificity"].lo)
