@@ -204,3 +204,36 @@ def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
 
     m = load_manifest(tmp_path / "m2.yaml")
     assert all(str(t[0]).startswith(str(out)) for t in m.registrations["affine"].transforms)
+
+
+def test_register_refuses_to_rewrite_a_manifest_it_did_not_write(tmp_path, capsys):
+    """Adding a registration rewrites the manifest: a hand-written one (comments, layout) is
+    refused before any work, byte for byte untouched."""
+    import numpy as np
+    import SimpleITK as sitk
+
+    from itk_nrreval.cli import main
+
+    paths = []
+    for i in range(3):
+        arr = np.zeros((24, 24), np.float32)
+        arr[6 + i : 16 + i, 5:17] = 100.0
+        paths.append(str(tmp_path / f"s{i}.nii.gz"))
+        sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+    mine = tmp_path / "mine.yaml"
+    mine.write_text(
+        "# my study, do not lose this comment\nimages: [s0.nii.gz, s1.nii.gz, s2.nii.gz]\n"
+    )
+    before = mine.read_bytes()
+    args = ["register", "--method", "affine", "--no-progress", "--images", *paths]
+    code = main([*args, "--manifest", str(mine), "--out", str(tmp_path / "affine")])
+    err = capsys.readouterr().err
+    assert code == 2 and "a manifest nrreval did not write" in err and str(mine) in err
+    assert mine.read_bytes() == before and not (tmp_path / "affine").exists()
+    # a manifest nrreval wrote is extended as before
+    ours = tmp_path / "ours.yaml"
+    assert main([*args, "--manifest", str(ours), "--out", str(tmp_path / "a1")]) == 0
+    assert main([*args, "--manifest", str(ours), "--out", str(tmp_path / "a2"), "--name", "b"]) == 0
+    from itk_nrreval.manifest import load_manifest
+
+    assert set(load_manifest(ours).registrations) == {"affine", "b"}
