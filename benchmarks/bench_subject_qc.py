@@ -26,20 +26,12 @@ import numpy as np
 
 import itk_nrreval as nr
 from data_synth import make_population
-from data_synth.damage import DAMAGES, write_damaged
+from data_synth.damage import DAMAGES, DIAGNOSES, write_damaged
 
 N = 36
 SIZE = 64
 SEEDS = tuple(range(1, 13))
 SCALE = 3.0
-#: The words of each damage's diagnosis (:func:`itk_nrreval.subject_qc.assess_subjects`).
-DIAGNOSES = {
-    "mirrored": "mirrored",
-    "affine_only": "affine only",
-    "scaled": "displacements scaled",
-    "duplicated": "duplicated image",
-    "off_grid": "off the common grid",
-}
 Z_NAMES = ("z", "overlap_z", "sdlogj_z", "nonlinear_rms_z", "inverse_consistency_z")
 
 

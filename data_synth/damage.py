@@ -30,9 +30,19 @@ from itk_nrreval.transforms import write_transform
 from .population import Population
 from .writing import write_population
 
-__all__ = ["DAMAGES", "damaged_transform", "write_damaged"]
+__all__ = ["DAMAGES", "DIAGNOSES", "damaged_transform", "write_damaged"]
 
 DAMAGES = ("mirrored", "affine_only", "scaled", "duplicated", "off_grid")
+
+#: The words each damage's diagnosis holds (:func:`itk_nrreval.subject_qc.assess_subjects`):
+#: what the tests and the benchmark count as a right diagnosis.
+DIAGNOSES = {
+    "mirrored": "mirrored",
+    "affine_only": "affine only",
+    "scaled": "displacements scaled",
+    "duplicated": "duplicated image",
+    "off_grid": "off the common grid",
+}
 
 
 def _centre(image: sitk.Image) -> np.ndarray:

@@ -160,28 +160,30 @@ def test_staged_folder_bad_input_leaves_out_as_it_was(tmp_path):
     assert _tree(out) == before
 
 
-def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
-    """A second `nrreval register` into its folder replaces the first run's files, keeps
-    a user's file there, and refuses a non-empty folder it did not make."""
+def _blob_images(folder, stem: str) -> list[str]:
+    """Three small 2D images, a bright block moved by one pixel each time."""
     import numpy as np
     import SimpleITK as sitk
 
-    from itk_nrreval.cli import main
+    paths = []
+    for i in range(3):
+        arr = np.zeros((24, 24), np.float32)
+        arr[6 + i : 16 + i, 5:17] = 100.0
+        paths.append(str(folder / f"{stem}{i}.nii.gz"))
+        sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+    return paths
 
-    def images(stem):
-        paths = []
-        for i in range(3):
-            arr = np.zeros((24, 24), np.float32)
-            arr[6 + i : 16 + i, 5:17] = 100.0
-            paths.append(str(tmp_path / f"{stem}{i}.nii.gz"))
-            sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
-        return paths
+
+def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
+    """A second `nrreval register` into its folder replaces the first run's files, keeps
+    a user's file there, and refuses a non-empty folder it did not make."""
+    from itk_nrreval.cli import main
 
     out = tmp_path / "affine"
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     (foreign / "keep.txt").write_text("the user's")
-    first, second = images("s"), images("t")
+    first, second = _blob_images(tmp_path, "s"), _blob_images(tmp_path, "t")
     args = ["register", "--method", "affine", "--no-progress"]
     assert main([*args, "--images", *first, "--reference", first[0], "--out", str(foreign)]) == 2
     assert "did not make" in capsys.readouterr().err
@@ -209,17 +211,9 @@ def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
 def test_register_refuses_to_rewrite_a_manifest_it_did_not_write(tmp_path, capsys):
     """Adding a registration rewrites the manifest: a hand-written one (comments, layout) is
     refused before any work, byte for byte untouched."""
-    import numpy as np
-    import SimpleITK as sitk
-
     from itk_nrreval.cli import main
 
-    paths = []
-    for i in range(3):
-        arr = np.zeros((24, 24), np.float32)
-        arr[6 + i : 16 + i, 5:17] = 100.0
-        paths.append(str(tmp_path / f"s{i}.nii.gz"))
-        sitk.WriteImage(sitk.GetImageFromArray(arr), paths[-1])
+    paths = _blob_images(tmp_path, "s")
     mine = tmp_path / "mine.yaml"
     mine.write_text(
         "# my study, do not lose this comment\nimages: [s0.nii.gz, s1.nii.gz, s2.nii.gz]\n"

@@ -18,7 +18,7 @@ import SimpleITK as sitk
 
 import itk_nrreval as nr
 from data_synth import make_population
-from data_synth.damage import write_damaged
+from data_synth.damage import DIAGNOSES, write_damaged
 from itk_nrreval.plausibility import affine_fit
 from itk_nrreval.subject_qc import robust_z, subject_overlaps
 
@@ -27,13 +27,6 @@ from itk_nrreval.subject_qc import robust_z, subject_overlaps
 #: median one (z = 6.4): with few subjects an unusual anatomy is an outlier too.
 N = 36
 DAMAGES = {2: "mirrored", 9: "affine_only", 16: "scaled", 23: "duplicated", 35: "off_grid"}
-DIAGNOSES = {
-    "mirrored": "mirrored",
-    "affine_only": "affine only",
-    "scaled": "displacements scaled",
-    "duplicated": "duplicated image",
-    "off_grid": "off the common grid",
-}
 
 
 @pytest.fixture(scope="module")
