@@ -50,6 +50,7 @@ from .plausibility import (
     flags,
     smallest_extent_mm,
 )
+from .reports import FLAGGED_SUBJECTS_SHOWN
 from .specificity import GeneralizationResult, SpecificityResult
 from .subject_qc import SubjectQC, assess_subjects
 from .verdict import Decision, OpenPair, Verdict, verdict
@@ -651,6 +652,15 @@ def evaluate(
             save_resampled=save_resampled or None,
             off_grid_coverage=subject_thresholds.off_grid_coverage,
         )
+        # each registration's subjects are assessed once, while the pipeline still has the
+        # cache: the report pictures the flagged ones it shows, read from there
+        assessed: dict[str, tuple[SubjectQC, ...]] = {}
+
+        def pictured(r) -> list[int]:
+            assessed[r.name] = _subjects(m, r, subject_thresholds)
+            return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
+
+        options["pictured_subjects"] = pictured
         if scheduler is None:
             if workers is not None:
                 raise ValueError("workers: only with a scheduler (local or an address)")
@@ -719,7 +729,7 @@ def evaluate(
                     best_p[name][measure] = pb[name]
         scores = {}
         for name, r in regs.items():
-            subjects = _subjects(m, r, subject_thresholds)
+            subjects = assessed[name]
             overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
             scores[name] = RegistrationScores(
                 name,

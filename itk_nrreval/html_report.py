@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .reports import (
+    FLAGGED_SUBJECTS_SHOWN,
     TIES_WORDS,
     draw_label_contours,
     figure_pngs,
@@ -307,6 +308,44 @@ def _label_values(result) -> list[int]:
     return sorted(values)
 
 
+def _grey_panels(
+    panels: Sequence[tuple[str, np.ndarray]], *, aspect: float, legend: bool, inches: float = 2.7
+):
+    """A row of images on one grey scale, titled, without ticks.
+
+    Parameters
+    ----------
+    panels : sequence of (str, ndarray)
+        Each panel's title and 2D image (intensity units; NaN outside a field of view,
+        drawn pale blue).
+    aspect : float
+        Pixel height over width (:func:`_aspect`).
+    legend : bool
+        Leave room on the right for a legend.
+    inches : float
+        Width of a panel (inches; 100 pixels each in the page).
+
+    Returns
+    -------
+    (matplotlib.figure.Figure, sequence of Axes)
+    """
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(inches * len(panels) + (0.9 if legend else 0.0), inches * 3.0 / 2.7))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    lo, hi = _grey_limits(*[p for _, p in panels])
+    # outside an image's field of view (NaN) in a colour no image or contour has
+    grey = colormaps["gray"].with_extremes(bad=_OUTSIDE)
+    for ax, (title, arr) in zip(axes, panels, strict=True):
+        ax.imshow(arr, cmap=grey, vmin=lo, vmax=hi, origin="lower", aspect=aspect)
+        ax.set_title(title, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.subplots_adjust(wspace=0.05)
+    return fig, axes
+
+
 def _images_figure(result, name: str):
     """Mean image, checkerboard of subjects 0 and 1, subject 0 with its label contours.
 
@@ -314,9 +353,6 @@ def _images_figure(result, name: str):
     -------
     matplotlib.figure.Figure
     """
-    from matplotlib import colormaps
-    from matplotlib.figure import Figure
-
     t = result.thumbnails.get(name, {})
     mean = thumbnail(middle_slice(result.mean_images[name]))
     aspect = _aspect(t.get("common_spacing"))
@@ -326,29 +362,55 @@ def _images_figure(result, name: str):
     if "image_0" in t:
         panels.append(("subject", thumbnail(t["image_0"])))
     legend = "labels_0" in t
-    fig = Figure(figsize=(2.7 * len(panels) + (0.9 if legend else 0.0), 3.0))
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    lo, hi = _grey_limits(*[p for _, p in panels])
-    # outside an image's field of view (NaN) in a colour no image or contour has
-    grey = colormaps["gray"].with_extremes(bad=_OUTSIDE)
     titles = {
         "mean": f"mean of the {result.scores[name].specificity.n_images} images",
         "checker": "checkerboard: subjects 0 | 1",
         "subject": "subject 0" + (" and its labels" if legend else ""),
     }
-    for ax, (kind, arr) in zip(axes, panels, strict=True):
-        ax.imshow(arr, cmap=grey, vmin=lo, vmax=hi, origin="lower", aspect=aspect)
-        if kind == "subject" and legend:
-            draw_label_contours(
-                ax,
-                thumbnail(t["labels_0"], mode="nearest"),
-                aspect=aspect,
-                values=_label_values(result),
-            )
-        ax.set_title(titles[kind], fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    fig.subplots_adjust(wspace=0.05)
+    fig, axes = _grey_panels(
+        [(titles[kind], arr) for kind, arr in panels], aspect=aspect, legend=legend
+    )
+    if legend:
+        draw_label_contours(
+            axes[-1],
+            thumbnail(t["labels_0"], mode="nearest"),
+            aspect=aspect,
+            values=_label_values(result),
+        )
+    return fig
+
+
+def _subject_figure(result, name: str, index: int):
+    """A subject in the common frame, the registration's mean image, and a checkerboard of
+    the two (the subject on the first tile), on one grey scale.
+
+    Parameters
+    ----------
+    result : EvaluationResult
+    name : str
+        The registration.
+    index : int
+        The subject (manifest index); its slice must be among the thumbnails
+        (``image_<index>``: the pipeline keeps those of the flagged subjects the report
+        shows).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    t = result.thumbnails[name]
+    subject = thumbnail(t[f"image_{index}"])
+    mean = thumbnail(middle_slice(result.mean_images[name]))
+    fig, _ = _grey_panels(
+        [
+            (f"subject {index}", subject),
+            ("mean image", mean),
+            ("checkerboard of the two", _checkerboard(subject, mean)),
+        ],
+        aspect=_aspect(t.get("common_spacing")),
+        legend=False,
+        inches=1.9,  # two subjects side by side in the page
+    )
     return fig
 
 
@@ -664,11 +726,58 @@ def _frames_table(result, names: Sequence[str]) -> str:
     )
 
 
+def _flagged_subjects(result, name: str) -> str:
+    """The flagged subjects of a registration: how many, then for each of the first
+    :data:`~itk_nrreval.reports.FLAGGED_SUBJECTS_SHOWN` (manifest order) its name, diagnosis
+    and flags in words and its picture beside the mean image; a line for the rest."""
+    s = result.scores[name]
+    if not s.subjects:
+        return ""  # not assessed (a result of an earlier version)
+    flagged = s.flagged_subjects
+    n = len(s.subjects)
+    if not flagged:
+        return f"<h3>Flagged subjects</h3><p>None of the {n} subjects is flagged.</p>"
+    where = "the middle slice of " if result.mean_images[name].ndim == 3 else ""
+    parts = [
+        f"<h3>Flagged subjects: {len(flagged)} of the {n} subjects flagged</h3>"
+        "<p>Each subject compared with the rest of the cohort under this registration "
+        "(robust z-scores, z = (x &minus; median) / (1.4826 MAD)): its distance to the "
+        "texture model of the others, its deformation, its label overlap with the others, "
+        "its coverage of the common grid. Every subject's values are in "
+        "<code>subjects.csv</code>; every z-score in "
+        f'<a href="#figures">subjects.png</a>. The pictures: {where}the subject resampled '
+        "into the common frame, the mean of the N images, and a checkerboard of the two "
+        "(the subject on the first tile): where the subject is aligned, edges run on across "
+        "the tile borders. One grey scale per picture; pale blue: outside the subject's "
+        "field of view.</p>"
+    ]
+    t = result.thumbnails.get(name, {})
+    for q in flagged[:FLAGGED_SUBJECTS_SHOWN]:
+        cause = q.diagnosis if q.diagnosis is not None else "no common cause recognised"
+        words = (
+            f"<b>{_e(_subject(result, q.index))}</b><br><b>Diagnosis:</b> {_e(cause)}.<br>"
+            "<b>Flags:</b> " + "; ".join(_e(f) for f in q.flags) + "."
+        )
+        if f"image_{q.index}" in t:
+            png = png_bytes(_subject_figure(result, name, q.index), dpi=_DPI)
+            parts.append(_figure(png, f"{name}: subject {q.index}", words))
+        else:  # thumbnails of an earlier version, or a result put together in memory
+            parts.append(f"<p>{words}<br>(No picture: its resampled slice was not kept.)</p>")
+    rest = len(flagged) - FLAGGED_SUBJECTS_SHOWN
+    if rest > 0:
+        parts.append(
+            f"<p>{rest} more flagged subject{'s' if rest > 1 else ''}, not shown: "
+            "<code>subjects.csv</code> and <code>summary.md</code> list every one.</p>"
+        )
+    return "\n".join(parts)
+
+
 def _registration_section(result, name: str) -> str:
-    """The body of a registration's section: its scores in a line, its two figures."""
+    """The body of a registration's section: its flagged subjects, its scores in a line,
+    its two figures."""
     s = result.scores[name]
     t = result.thumbnails.get(name, {})
-    parts = []
+    parts = [_flagged_subjects(result, name), "<h3>Scores, images and deformation</h3>"]
     summary = (
         f"Specificity {format_number(s.specificity.value)} "
         f"{_ci(s.intervals.get('specificity'))}, generalization "
@@ -717,6 +826,33 @@ def _registration_section(result, name: str) -> str:
             )
         )
     return "\n".join(parts)
+
+
+def _subjects_in_verdict(result, names: Sequence[str], slugs: Mapping[str, str]) -> str:
+    """The verdict area's lines on the subjects: those left off the common grid (in no
+    registration's scores), and how many each registration flags, linked to its section."""
+    out = []
+    left_out = result.options.get("left_out_of_scores") or []
+    if left_out:
+        who = ", ".join(_e(_subject(result, i)) for i in left_out)
+        out.append(
+            f"<p><b>Left out of every registration's scores</b> (off the common grid: its "
+            f"transform maps the image (almost) outside it): {who}.</p>"
+        )
+    counts = []
+    for n in names:
+        subjects = result.scores[n].subjects
+        if subjects:
+            k = len(result.scores[n].flagged_subjects)
+            what = f"{k} of {len(subjects)} subjects flagged" if k else "no subject flagged"
+            counts.append(f'<a href="#{slugs[n]}">{_e(n)}</a>: {what}')
+    if counts:
+        out.append(
+            "<p>Flagged subjects (each registration's section names them): "
+            + "; ".join(counts)
+            + ".</p>"
+        )
+    return "".join(out)
 
 
 def _inputs_section(result) -> str:
@@ -828,6 +964,7 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
         else "<p>No verdict was computed.</p>"
     )
     ranking = " &rarr; ".join(f'<a href="#{slugs[n]}">{_e(n)}</a>' for n in names)
+    subjects = _subjects_in_verdict(result, names, slugs)
 
     fig_parts = []
     captions = {
@@ -857,6 +994,14 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
             )
             + ". A sharp mean means the images are well aligned."
         ),
+        "subjects.png": (
+            "Every subject in the scores, per registration: the robust z-score of its log "
+            "distance to the texture model of the other subjects (0: a typical subject; "
+            "above the dashed line the distance alone flags it). Red: flagged for any reason "
+            "(a duplicated image lies far below: too close to another), numbered by subject "
+            "for those each registration's section shows. Subjects left off the common grid "
+            "have no score and are not drawn."
+        ),
     }
     for fname, png in figures.items():
         css = "" if fname == "mean_images.png" else "half"
@@ -872,7 +1017,7 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
             "Verdict",
             f'<div class="verdict{" flagged" if flagged else ""}">{verdict}</div>'
             f"<p>Ranking (by level of the decisions: first the registrations no other is "
-            f"decided better than; by specificity within a level): {ranking}</p>",
+            f"decided better than; by specificity within a level): {ranking}</p>" + subjects,
         ),
         (
             "scores",

@@ -510,8 +510,9 @@ class RegistrationRun:
         :meth:`OverlapTable.from_sums`), rows in `scored` order; None without labels.
     thumbnails : dict of str to ndarray
         Small arrays for the HTML report, whatever N (:func:`_thumbnails`): middle slices of
-        two subjects' resampled images, of the first subject's labels and of its det J, and
-        the log det J histogram over all subjects.
+        two subjects' resampled images (and of the subjects `pictured_subjects` of
+        :func:`run_pipeline` names, ``image_<i>``), of the first subject's labels and of its
+        det J, and the log det J histogram over all subjects.
     affine_fits : list of AffineFit, length n_images
         Each transform's closest affine map on the reference grid
         (:func:`itk_nrreval.plausibility.affine_fit`).
@@ -592,6 +593,7 @@ def run_pipeline(
     label_interpolation: str = "linear",
     label_sigma_mm: float | None = None,
     off_grid_coverage: float = 0.5,
+    pictured_subjects: Callable[[RegistrationRun], Sequence[int]] | None = None,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -619,6 +621,11 @@ def run_pipeline(
         Leave out of the scores every image that covers less of the common grid than this
         fraction of the median image, under any registration (:func:`off_grid_subjects`);
         they are named in a warning.
+    pictured_subjects : callable, optional
+        Given a registration's finished :class:`RegistrationRun` (without these pictures),
+        the subjects (manifest indices) whose resampled middle slice its thumbnails should
+        also hold (``image_<i>``), e.g. the subjects its quality control flags: read from
+        the cache before it goes, a few slices rather than all N.
 
     Returns
     -------
@@ -748,6 +755,15 @@ def run_pipeline(
                 affine_fits=[AffineFit.from_dict(meta["affine_fit"]) for meta in metas],
                 scored=scored,
             )
+            if pictured_subjects is not None:
+                extra = {
+                    f"image_{i}": _image_slice(disk, grid, keys[i])
+                    for i in pictured_subjects(runs[name])
+                    if f"image_{i}" not in thumbnails[name]
+                }
+                runs[name] = dataclasses.replace(
+                    runs[name], thumbnails={**thumbnails[name], **extra}
+                )
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
 
 
@@ -1006,6 +1022,21 @@ def _save_region(folder: Path, grid: Geometry, region: np.ndarray | None) -> Non
         sitk.WriteImage(img, str(tmp), True)
 
 
+def _image_slice(disk: DiskCache, grid: Geometry, key: str) -> np.ndarray:
+    """The middle slice (numpy index ``shape[0] // 2``; the whole grid in 2D) of a resampled
+    image's cache entry, float32, NaN outside its field of view; read from the memory-mapped
+    entry without loading the volume."""
+    per = int(np.prod(grid.shape[1:])) if grid.dimension == 3 else int(np.prod(grid.shape))
+    start = per * (grid.shape[0] // 2) if grid.dimension == 3 else 0
+    shape = grid.shape[1:] if grid.dimension == 3 else grid.shape
+    entry = disk.open("resampled", key)
+    img = np.array(entry.array("image", mmap=True)[start : start + per], np.float32)
+    bits = entry.array("covered", mmap=True)[start // 8 : (start + per + 7) // 8]
+    covered = np.unpackbits(np.asarray(bits))[start % 8 : start % 8 + per].astype(bool)
+    img[~covered] = np.nan
+    return img.reshape(shape)
+
+
 def _thumbnails(
     disk: DiskCache,
     grid: Geometry,
@@ -1020,7 +1051,8 @@ def _thumbnails(
     entry without loading a volume:
 
     * ``image_0``, ``image_1`` (float32): subjects 0 and 1 resampled into the common frame,
-      NaN outside their fields of view (``image_1`` only when N >= 2);
+      NaN outside their fields of view (``image_1`` only when N >= 2; :func:`_image_slice`;
+      :func:`run_pipeline` adds ``image_<i>`` of the subjects it is asked to picture);
     * ``labels_0`` (int32, with labels): subject 0's label value of largest resampled
       membership, 0 where the background's (one minus the labels') is at least as large;
     * ``detj_0`` (float32): det J of subject 0's transform on the middle slice of the
@@ -1036,12 +1068,7 @@ def _thumbnails(
     shape = grid.shape[1:] if grid.dimension == 3 else grid.shape
     out: dict[str, np.ndarray] = {}
     for i in range(min(2, len(keys))):
-        entry = disk.open("resampled", keys[i])
-        img = np.array(entry.array("image", mmap=True)[start : start + per], np.float32)
-        bits = entry.array("covered", mmap=True)[start // 8 : (start + per + 7) // 8]
-        covered = np.unpackbits(np.asarray(bits))[start % 8 : start % 8 + per].astype(bool)
-        img[~covered] = np.nan
-        out[f"image_{i}"] = img.reshape(shape)
+        out[f"image_{i}"] = _image_slice(disk, grid, keys[i])
     entry = disk.open("resampled", keys[0])
     if "labels" in metas[0]:
         ptr = entry.array("lab_ptr")

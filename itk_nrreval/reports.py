@@ -54,7 +54,13 @@ __all__ = [
     "bars_hidden",
     "HIDDEN_BARS",
     "wrap_name",
+    "FLAGGED_SUBJECTS_SHOWN",
 ]
+
+#: How many flagged subjects per registration the HTML report shows with pictures (in
+#: manifest order; how many more there are is said): the pipeline keeps a resampled slice of
+#: these only, so the report stays light whatever the number of subjects.
+FLAGGED_SUBJECTS_SHOWN = 6
 
 _TABLE_OVERLAPS = (
     ("overlap.inverse_volume", "Overlap (inverse volume)"),
@@ -774,13 +780,105 @@ def _mean_images_figure(result, names):
     return fig
 
 
+def _subjects_figure(result, names):
+    """Every scored subject's model-distance z-score per registration, a strip plot.
+
+    One column per registration (`names`, in order), one point per subject in the scores at
+    its robust z-score of the log distance to the texture model of the others
+    (:attr:`SubjectQC.z <itk_nrreval.subject_qc.SubjectQC.z>`), spread sideways so that
+    points do not hide one another; red: flagged for any reason, numbered by the subject's
+    index for those the report shows; dashed: the threshold above which the distance alone
+    flags a subject. The axis is linear within the threshold and logarithmic beyond
+    (symlog), where the failures lie.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter
+
+    threshold = float(result.options.get("subject_thresholds", {}).get("outlier_z", math.nan))
+    fig = Figure(figsize=(max(5.0, 1.3 * len(names)), 4.0))
+    ax = fig.subplots()
+    # the same spread every time: the figure's bytes are compared with the file's
+    jitter = np.random.default_rng(0)
+    xs: dict[bool, list[float]] = {False: [], True: []}
+    ys: dict[bool, list[float]] = {False: [], True: []}
+    infinite = 0
+    for k, name in enumerate(names):
+        scored = [q for q in result.scores[name].subjects if q.z is not None]
+        spread = jitter.uniform(-0.28, 0.28, len(scored))
+        shown = {q.index for q in result.scores[name].flagged_subjects[:FLAGGED_SUBJECTS_SHOWN]}
+        for q, dx in zip(scored, spread, strict=True):
+            z = q.z
+            if math.isinf(z):  # no spread in the cohort (MAD 0): drawn at the edge
+                infinite += 1
+                z = math.copysign(1e3, z)
+            xs[q.flagged].append(k + dx)
+            ys[q.flagged].append(z)
+            if q.index in shown:
+                ax.annotate(
+                    str(q.index),
+                    (k + dx, z),
+                    textcoords="offset points",
+                    xytext=(4, 2),
+                    fontsize=7,
+                    color="tab:red",
+                )
+    if xs[False]:
+        ax.scatter(xs[False], ys[False], s=12, color="tab:blue", alpha=0.6, label="not flagged")
+    if xs[True]:
+        ax.scatter(
+            xs[True],
+            ys[True],
+            s=30,
+            color="tab:red",
+            edgecolors="k",
+            linewidths=0.5,
+            label="flagged (any reason)",
+        )
+    ylabel = "z of log distance to the model of the others"
+    if math.isfinite(threshold):
+        ax.axhline(
+            threshold, color="tab:red", ls="--", lw=1, label=f"flag threshold z = {threshold:g}"
+        )
+        # the cohort within the threshold, read linearly; the failures, often far beyond it
+        ax.set_yscale("symlog", linthresh=threshold)
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # not 10^1
+        ylabel += f"\n(linear within ±{threshold:g}, logarithmic beyond)"
+    ax.set_xticks(range(len(names)), [wrap_name(n) for n in names], rotation=30, ha="right")
+    ax.set_xlim(-0.6, len(names) - 0.4)
+    ax.margins(y=0.08)  # the farthest points whole, clear of the frame
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7, loc="best")
+    left_out = len(result.options.get("left_out_of_scores") or [])
+    notes = [
+        "Each subject against its cohort: robust z = (x - median) / (1.4826 MAD) "
+        "of its log distance",
+        "to the texture model of the other subjects; numbers: flagged subjects shown in the report",
+    ]
+    if left_out:
+        notes.append(
+            f"{left_out} subject{'s' if left_out > 1 else ''} left out of the scores (off the "
+            "common grid): not drawn"
+        )
+    if infinite:
+        notes.append(f"{infinite} z = ±inf (no spread in the cohort) drawn at ±1000")
+    ax.set_title("\n".join(notes), fontsize=8)
+    return fig
+
+
 def figure_pngs(result) -> dict[str, bytes]:
     """The summary figures, each rendered once to PNG bytes, by file name.
 
     ``specificity.png`` (scores with their subject-level 95% intervals, or Monte-Carlo
     error bars and a note when those are all there is), ``specificity_vs_overlap.png``
     (with labels) and ``mean_images.png`` (middle slice of each registration's mean image,
-    with the label contours of subject 0 and their legend when labels were given).
+    with the label contours of subject 0 and their legend when labels were given) and,
+    when subjects were scored against their cohort, ``subjects.png`` (every subject's
+    model-distance z-score per registration, the flag threshold, the flagged subjects:
+    :func:`_subjects_figure`).
     """
     names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
     out = {"specificity.png": png_bytes(_specificity_figure(result, names))}
@@ -789,6 +887,8 @@ def figure_pngs(result) -> dict[str, bytes]:
     if overlap is not None:
         out["specificity_vs_overlap.png"] = png_bytes(_overlap_figure(result, names, overlap))
     out["mean_images.png"] = png_bytes(_mean_images_figure(result, names))
+    if any(q.z is not None for n in names for q in result.scores[n].subjects):
+        out["subjects.png"] = png_bytes(_subjects_figure(result, names))
     return out
 
 

@@ -25,7 +25,7 @@ from itk_nrreval.plausibility import (
     deformation_measures,
     deformation_plausibility,
 )
-from itk_nrreval.reports import figure_pngs, format_number, thumbnail
+from itk_nrreval.reports import FLAGGED_SUBJECTS_SHOWN, figure_pngs, format_number, thumbnail
 from itk_nrreval.transforms import field_transform
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -106,6 +106,12 @@ def check_png(data: bytes) -> tuple[int, int]:
     return width, height
 
 
+def subject_pictures(result) -> int:
+    """How many flagged subjects' pictures the report shows: at most
+    FLAGGED_SUBJECTS_SHOWN per registration."""
+    return sum(min(len(s.flagged_subjects), FLAGGED_SUBJECTS_SHOWN) for s in result.scores.values())
+
+
 def check_self_contained(page: _Page, raw: str) -> None:
     """No external reference of any kind, no script, every internal link resolves."""
     assert "http://" not in raw and "https://" not in raw and "file:" not in raw
@@ -154,11 +160,17 @@ def test_report_is_self_contained_and_complete(case2d):
     for words in ("not a rank", "(worst − x) / (worst − best)", "intensity units", "Monte-Carlo"):
         assert words in text, words
     assert "jackknife" in text and "Tanimoto" in text and "higher is better" in text
-    # a constant number of pictures: 3 summary figures + 2 per registration
-    assert len(page.srcs) == 3 + 2 * len(result.names)
+    # a bounded number of pictures: 4 summary figures + 2 per registration + its flagged
+    # subjects, at most FLAGGED_SUBJECTS_SHOWN
+    assert len(page.srcs) == 4 + 2 * len(result.names) + subject_pictures(result)
     # the summary figures embedded are the very files written beside the report
     embedded = {decode_png(src) for src in page.srcs}
-    for fname in ("specificity.png", "specificity_vs_overlap.png", "mean_images.png"):
+    for fname in (
+        "specificity.png",
+        "specificity_vs_overlap.png",
+        "mean_images.png",
+        "subjects.png",
+    ):
         assert (out / fname).read_bytes() in embedded
     # each flag (none here) and each frame spread is printed
     for name in result.names:
@@ -268,7 +280,7 @@ def test_specificity_figure_says_when_monte_carlo_bars_hide(tmp_path):
     result.write(tmp_path / "out")
     page, raw = parse(tmp_path / "out" / "report.html")
     check_self_contained(page, raw)
-    assert len(page.srcs) == 2 + 2 * len(names)
+    assert len(page.srcs) == 3 + 2 * len(names) + subject_pictures(result)
     assert "Monte-Carlo intervals only" in " ".join(page.text)
 
 
@@ -369,7 +381,7 @@ def test_3d_thumbnails_are_middle_slices(case3d):
     # the 3D mean image's middle slice is what the report shows
     page, raw = parse(out / "report.html")
     check_self_contained(page, raw)
-    assert len(page.srcs) == 3 + 2 * len(result.names)
+    assert len(page.srcs) == 4 + 2 * len(result.names) + subject_pictures(result)
     assert (out / "report.html").stat().st_size < 2_000_000
 
 
