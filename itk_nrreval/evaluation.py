@@ -256,9 +256,11 @@ class EvaluationResult:
         ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict,
         the paper's Table 3 layout and the flagged subjects), ``subjects.csv`` (every
         subject's quality control, :func:`itk_nrreval.reports.subjects_csv`) and, with
-        `figures`, ``specificity.png``, ``specificity_vs_overlap.png``, ``mean_images.png``
+        `figures`, ``specificity.png``, ``specificity_vs_overlap.png``, ``mean_images.png``,
+        ``subjects.png`` (every subject's z-score, :func:`itk_nrreval.reports.figure_pngs`)
         and ``report.html`` (one self-contained page to read: the verdict, the scores with
-        their legend, per registration its images, deformation and frame, the inputs and
+        their legend, per registration its flagged subjects with their pictures, its
+        images, deformation and frame, the inputs and
         options; it embeds the same figures; :func:`itk_nrreval.html_report.report_html`), through
         :func:`itk_nrreval.reports.write_reports`. Each file is written under a temporary
         name and renamed when complete; files of other names in `out_dir` are left alone

@@ -3,18 +3,22 @@ reports are read.
 
 The page opens from disk with no network and no JavaScript: every figure is a PNG embedded as
 a ``data:`` URI, the style sheet is inline, and the only links are to the page's own
-sections. It gives, in order: the verdict in words; the scores with their legend, units and
-intervals; the summary figures (the same PNG bytes as the files beside it); deformation
-plausibility and coverage; the frame-estimate spread; per registration its mean image, a
-checkerboard of two subjects, the label contours of one subject with a colour legend, a
-log-Jacobian-determinant map and the histogram of log det J over all subjects; the inputs
-and the options.
+sections. It gives, in order: the verdict in words, with the subjects left off the common
+grid and how many subjects each registration flags; the scores with their legend, units and
+intervals; the summary figures (the same PNG bytes as the files beside it, ``subjects.png``
+among them: every subject's model-distance z-score); per registration first its flagged
+subjects (:mod:`itk_nrreval.subject_qc`: name, diagnosis and flags in words, the subject in
+the common frame beside the mean image and a checkerboard of the two), then its mean image,
+a checkerboard of two subjects, the label contours of one subject with a colour legend, a
+log-Jacobian-determinant map and the histogram of log det J over all subjects; deformation
+plausibility and coverage; the frame-estimate spread; the inputs and the options.
 
 It stays light whatever the number of images N: every picture is a middle slice shrunk to at
 most 256 pixels a side (:attr:`EvaluationResult.thumbnails
-<itk_nrreval.evaluation.EvaluationResult.thumbnails>`, gathered by the pipeline), and there
-is a constant number of pictures per registration; only the list of input files grows
-with N.
+<itk_nrreval.evaluation.EvaluationResult.thumbnails>`, gathered by the pipeline: of subjects
+0 and 1, and of the flagged subjects shown, at most
+:data:`~itk_nrreval.reports.FLAGGED_SUBJECTS_SHOWN` per registration), and there is a
+bounded number of pictures per registration; only the list of input files grows with N.
 
 :meth:`EvaluationResult.write <itk_nrreval.evaluation.EvaluationResult.write>` writes it
 through :func:`itk_nrreval.reports.write_reports`; this module takes the result without
