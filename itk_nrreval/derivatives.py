@@ -52,7 +52,7 @@ import SimpleITK as sitk
 
 from ._errors import InputError
 from .elastix_files import final_parameter_file
-from .manifest import Manifest, load_manifest
+from .manifest import IDENTITY_FRAME, Manifest, load_manifest
 
 __all__ = [
     "BidsName",
@@ -317,7 +317,7 @@ def manifest_from_derivatives(
         Images (and labels, where every subject kept has a ``dseg``) of the first folder,
         subjects in label order (then session); per folder a registration named after its
         ``GeneratedBy`` whose reference is a ``space-<SPACE>`` image and whose parameters
-        record the pipeline, folder and space. The first folder's is the common frame.
+        record the pipeline, folder and space. The first folder's is the common frame; the others are in the same template space (``frame_transform: identity``), so no frame is estimated.
 
     Raises
     ------
@@ -389,6 +389,9 @@ def manifest_from_derivatives(
         "registrations": {
             f.name: {
                 "reference": str(ref),
+                # every folder's template images are on one grid in one space (checked by
+                # _references): the frames are the same, not to be estimated
+                **({"frame_transform": IDENTITY_FRAME} if i > 0 else {}),
                 "transforms": [str(r[k]) for k in kept],
                 "parameters": {
                     "generated_by": f.generated_by or None,
@@ -396,7 +399,7 @@ def manifest_from_derivatives(
                     "space": space_name,
                 },
             }
-            for f, r, ref in zip(scanned, registered, references, strict=True)
+            for i, (f, r, ref) in enumerate(zip(scanned, registered, references, strict=True))
         },
     }
     return load_manifest(data)

@@ -20,6 +20,10 @@ A manifest is a YAML (or JSON) file::
         reference: group/mean.nii.gz
         frame_transform: group/common_to_group.h5   # common frame -> this frame (optional)
         transforms: [...]
+      pipeline_v2:
+        reference: v2/template.nii.gz
+        frame_transform: identity     # the same template space as the common frame
+        transforms: [...]
 
 Every transform maps reference (fixed) points to image (moving) points. A chain is listed
 in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
@@ -80,6 +84,7 @@ from .transforms import (
     InMemoryTransform,
     field_components_problem,
     file_suffix,
+    transform_digest,
 )
 
 __all__ = [
@@ -421,6 +426,27 @@ def _parameters(value, where: str, problems: list[str]) -> dict | None:
         return None
 
 
+IDENTITY_FRAME = "identity"
+"""``frame_transform: identity`` in a manifest: this registration's frame is the common
+frame itself (its reference is on the same template grid, in the same space), so no frame
+is estimated: e.g. two pipelines' outputs in one template space."""
+
+
+def _identity_frame(reference, what: str, problems: list[str]) -> InMemoryTransform | None:
+    """The identity transform of the reference's dimension, kept as ``identity``."""
+    if reference is None:
+        return None
+    try:
+        if isinstance(reference, InMemoryImage):
+            dim = reference.image.GetDimension()
+        else:
+            dim = _image_info(Path(reference))[0]
+    except (RuntimeError, OSError):
+        return None  # the reference's own problem is reported by the file checks
+    t = sitk.Transform(dim, sitk.sitkIdentity)
+    return InMemoryTransform(t, what, IDENTITY_FRAME, transform_digest(t), True)
+
+
 def _parse_registration(
     name: str, entry, base: Path, n: int | None, problems: list[str]
 ) -> Registration | None:
@@ -474,7 +500,10 @@ def _parse_registration(
             problems.append(f"{where}.reference_index: {ref_index} is not in 0..{n - 1}")
             ok = False
     frame = entry.get("frame_transform")
-    if frame is not None:
+    if isinstance(frame, str) and frame == IDENTITY_FRAME:
+        frame = _identity_frame(reference, f"{where}.frame_transform", problems)
+        ok &= frame is not None
+    elif frame is not None:
         frame = _transform_item(frame, base, f"{where}.frame_transform", problems)
         ok &= frame is not None
     parameters = entry.get("parameters")
@@ -710,6 +739,8 @@ def order_as_in_manifest(
 
 
 def _rel(path, folder: Path | None) -> str:
+    if isinstance(path, InMemoryTransform) and path.source == IDENTITY_FRAME:
+        return IDENTITY_FRAME
     if isinstance(path, _IN_MEMORY):
         raise InputError(
             f"manifest: {path.name} is an in-memory {path.source} and cannot be written to a "

@@ -159,6 +159,8 @@ def test_two_pipeline_versions_compared_as_a_hand_written_manifest(tmp_path, pop
                 "reference": str(
                     anat(root, "01")[0] / f"sub-01_space-{SPACE}_desc-preproc_T1w.nii.gz"
                 ),
+                # one template space: the second pipeline's frame is the common one
+                **({"frame_transform": "identity"} if v == "2.0" else {}),
                 "transforms": [
                     str(anat(root, s)[0] / f"sub-{s}_from-T1w_to-{SPACE}_mode-image_xfm.h5")
                     for s in kept
@@ -179,6 +181,11 @@ def test_two_pipeline_versions_compared_as_a_hand_written_manifest(tmp_path, pop
     assert auto["SynthPrep-1.0"]["specificity"] < auto["SynthPrep-2.0"]["specificity"]
     assert auto["SynthPrep-1.0"]["overlap.inverse_volume"] > 0.6
     assert auto["SynthPrep-2.0"]["overlap.inverse_volume"] < 0.5
+    # both in the one template space: the second's frame is the common one, not estimated
+    # from the two registrations' disagreement (its spread says how far they disagree)
+    results = json.loads((tmp_path / "auto" / "results.json").read_text())
+    assert results["registrations"]["SynthPrep-2.0"]["frame"]["method"] == "frame_transform"
+    assert results["registrations"]["SynthPrep-1.0"]["frame"]["method"] == "common"
 
     # the same from Python, and `nrreval manifest` writes that manifest
     with pytest.warns(UserWarning, match="sub-03"):
@@ -198,6 +205,10 @@ def assert_same_files(m, expected) -> None:
     for name, reg in expected.registrations.items():
         assert m.registrations[name].reference == reg.reference, name
         assert m.registrations[name].transforms == reg.transforms, name
+        frames = (m.registrations[name].frame_transform, reg.frame_transform)
+        assert [getattr(f, "source", f) for f in frames[:1]] == [
+            getattr(f, "source", f) for f in frames[1:]
+        ], name
 
 
 @pytest.mark.filterwarnings("ignore:the scores are taken on")
