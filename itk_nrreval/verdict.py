@@ -23,10 +23,11 @@ on evidence that holds up:
   its voxels (a tear, not a fold) is decided worse than every registration that folds less
   than :data:`NO_FOLDING_FRACTION`.
 
-Anything else stays open, with the reason in words. A plausibility flag by itself decides
-nothing: on the benchmark a B-spline registration that folds 2.4% of its voxels had the
-best true error of its case, and "flagged after every unflagged registration" decided it
-wrong twice.
+Anything else stays open, with the reason in words, and so does every pair whose
+decisions go round in a cycle (a > b > c > a by different evidence: one of them is
+wrong). A plausibility flag by itself decides nothing: on the benchmark a B-spline
+registration that folds 2.4% of its voxels had the best true error of its case, and
+"flagged after every unflagged registration" decided it wrong twice.
 """
 
 from __future__ import annotations
@@ -218,6 +219,11 @@ def verdict(
                 a, b, by_spec, by_overlap, rough, flagged, has_labels, bool(comparisons)
             )
             open_pairs.append(OpenPair(a, b, reason))
+    decisions, contradicted = _without_cycles(decisions)
+    for d in contradicted:
+        a, b = sorted((d.better, d.worse), key=spec.get)
+        reason = f"the evidence contradicts itself: {d.better} > {d.worse} by {d.basis}, yet "
+        open_pairs.append(OpenPair(a, b, reason + f"{d.worse} > {d.better} through others"))
 
     ranking, best = _levels(names, decisions, spec)
     text = _sentences(scores, best, decisions, open_pairs, has_labels, bool(comparisons))
@@ -294,6 +300,27 @@ def _why_open(a, b, by_spec, by_overlap, rough, flagged, has_labels, confidence)
     if has_labels:
         return "neither specificity nor overlap differs separably"
     return "the specificity difference is not separable"
+
+
+def _without_cycles(decisions: list[Decision]) -> tuple[list[Decision], list[Decision]]:
+    """The decisions that lie on no cycle, and those that do.
+
+    Decisions by different evidence can go round (a > b by folding, b > c and c > a by
+    specificity): then at least one of them is wrong, and the data do not say which, so
+    every decision between registrations that reach each other is withdrawn.
+    """
+    reach = {d.better: set() for d in decisions} | {d.worse: set() for d in decisions}
+    for d in decisions:
+        reach[d.better].add(d.worse)
+    changed = True
+    while changed:  # transitive closure: a handful of registrations
+        changed = False
+        for node, below in reach.items():
+            grown = below.union(*(reach[m] for m in below))
+            if grown != below:
+                reach[node], changed = grown, True
+    kept = [d for d in decisions if d.better not in reach[d.worse]]
+    return kept, [d for d in decisions if d.better in reach[d.worse]]
 
 
 def _levels(names, decisions, spec) -> tuple[tuple[str, ...], tuple[str, ...]]:
