@@ -317,7 +317,9 @@ def manifest_from_derivatives(
         Images (and labels, where every subject kept has a ``dseg``) of the first folder,
         subjects in label order (then session); per folder a registration named after its
         ``GeneratedBy`` whose reference is a ``space-<SPACE>`` image and whose parameters
-        record the pipeline, folder and space. The first folder's is the common frame; the others are in the same template space (``frame_transform: identity``), so no frame is estimated.
+        record the pipeline, folder and space. The first folder's is the common frame; the
+        others are in the same template space (``frame_transform: identity``), so no frame
+        is estimated.
 
     Raises
     ------

@@ -193,7 +193,20 @@ def leave_one_out_distances(gram: np.ndarray) -> np.ndarray:
         of the n - 1 others with all their modes: its distance to their affine span
         (:func:`itk_nrreval.specificity.loo_generalization`).
     """
-    return loo_generalization(TextureModel.from_gram(gram)).nearest_distances
+    gram = np.asarray(gram, dtype=float)
+    n = gram.shape[0]
+    centring = np.eye(n) - 1.0 / n
+    values, vectors = np.linalg.eigh(centring @ gram @ centring)
+    # n points span at most n - 1 dimensions: the centred Gram matrix has one zero
+    # eigenvalue, and n - 1 positive ones where the points are affinely independent
+    kept = values[1:]
+    if kept[0] <= kept[-1] * n * 1e-12:  # a duplicate or a degenerate cohort: exactly, slowly
+        return loo_generalization(TextureModel.from_gram(gram)).nearest_distances
+    # the distance from point k to the affine span of the others is 1 / sqrt(G+_kk), G+ the
+    # pseudo-inverse of the centred Gram matrix: one eigendecomposition for all k, where
+    # refitting n models costs n of them
+    inverse_diagonal = np.einsum("ij,j,ij->i", vectors[:, 1:], 1.0 / kept, vectors[:, 1:])
+    return 1.0 / np.sqrt(inverse_diagonal)
 
 
 def pair_distances(gram: np.ndarray) -> np.ndarray:

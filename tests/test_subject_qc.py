@@ -15,6 +15,8 @@ import warnings
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import itk_nrreval as nr
 from data_synth import make_population
@@ -205,3 +207,30 @@ def test_the_jackknife_runs_over_the_subjects_in_the_scores(cohort, tmp_path):
         )
     assert result.options["resamples"] == N - 1  # leave-one-out over the 35 scored subjects
     assert math.isfinite(result.scores["damaged"].intervals["specificity"].lo)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(4, 30), extra=st.integers(0, 40))
+def test_leave_one_out_distances_equal_refitting_each_model(seed, n, extra):
+    """The closed form (one eigendecomposition) against refitting the model of the others
+    for every subject (loo_generalization, an SVD each), on random images."""
+    from itk_nrreval.specificity import loo_generalization
+    from itk_nrreval.subject_qc import leave_one_out_distances
+
+    rng = np.random.default_rng(seed)
+    images = rng.normal(size=(n, n + extra)) * rng.uniform(0.1, 10)
+    centred = images - images.mean(axis=0)
+    fast = leave_one_out_distances(centred @ centred.T)
+    slow = loo_generalization(images).nearest_distances
+    np.testing.assert_allclose(fast, slow, rtol=1e-6, atol=1e-9 * np.abs(slow).max())
+
+
+def test_leave_one_out_distance_of_a_duplicated_image_is_zero():
+    from itk_nrreval.subject_qc import leave_one_out_distances
+
+    rng = np.random.default_rng(1)
+    images = rng.normal(size=(8, 30))
+    images[5] = images[2]
+    centred = images - images.mean(axis=0)
+    d = leave_one_out_distances(centred @ centred.T)
+    assert d[5] < 1e-6 and d[2] < 1e-6 and d[0] > 1
