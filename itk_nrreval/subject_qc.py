@@ -376,7 +376,7 @@ def assess_subjects(
     for i in range(n_all):
         flags: list[str] = []
         causes: list[str] = []
-        if i not in in_scores:
+        if i not in in_scores and cov[i] < th.off_grid_coverage * median_cov:
             flags.append(
                 f"covers {cov[i]:.0%} of the common grid (cohort median {median_cov:.0%}): "
                 "left out of the scores"
@@ -385,10 +385,17 @@ def assess_subjects(
                 "its transform maps the image (almost) off the common grid: wrong transform, "
                 "wrong reference or a unit/axis mix-up"
             )
+        elif i not in in_scores:  # the scores of every registration share one region
+            flags.append(
+                f"left out of the scores: another registration maps it off the common grid "
+                f"(it covers {cov[i]:.0%} here)"
+            )
         if i in nearest and nearest[i][1] < th.duplicate_distance:
             j, ratio = nearest[i]
             flags.append(
-                f"its resampled image is {ratio:.2g}x the median pairwise distance from "
+                f"its resampled image is identical to subject {j}'s"
+                if ratio < 1e-6  # "0x the median distance" says it less plainly
+                else f"its resampled image is {ratio:.2g}x the median pairwise distance from "
                 f"subject {j}'s"
             )
             causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")

@@ -234,3 +234,30 @@ def test_leave_one_out_distance_of_a_duplicated_image_is_zero():
     centred = images - images.mean(axis=0)
     d = leave_one_out_distances(centred @ centred.T)
     assert d[5] < 1e-6 and d[2] < 1e-6 and d[0] > 1
+
+
+def test_left_out_under_another_registration_is_said_as_such(cohort, tmp_path):
+    """Subject 35 is off the grid under 'damaged' only: under 'truth' it covers the grid, is
+    left out all the same (one region for every registration), and the flag says why;
+    its own transform is not blamed. A duplicate is called identical, not '0x' away."""
+    import yaml
+
+    clean, damaged = (yaml.safe_load(open(p)) for p in cohort)
+    both = {**damaged, "registrations": {**clean["registrations"], **damaged["registrations"]}}
+    manifest = tmp_path / "both.yaml"
+    base = cohort[0].parent
+    manifest.write_text(yaml.safe_dump(both))
+    for name in ("img", "lab", "truth", "damaged"):  # the manifests' relative paths
+        if (base / name).exists():
+            (tmp_path / name).symlink_to(base / name)
+    result = _evaluate(manifest, tmp_path / "out")
+    truth = result.scores["truth"].subjects[35]
+    assert not truth.in_scores
+    assert truth.flags == (
+        f"left out of the scores: another registration maps it off the common grid "
+        f"(it covers {truth.coverage:.0%} here)",
+    )
+    assert truth.diagnosis is None
+    assert "off the common grid" in result.scores["damaged"].subjects[35].diagnosis
+    flags = result.scores["damaged"].subjects[23].flags
+    assert "its resampled image is identical to subject 22's" in flags
