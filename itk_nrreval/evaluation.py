@@ -582,7 +582,8 @@ def evaluate(
     thresholds : Thresholds, optional
         Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
         whose docstring gives the defaults and their rationale). A flagged registration keeps
-        its scores, but the verdict ranks it after every unflagged one.
+        its scores; the flag is a warning in the verdict, not a decision
+        (:mod:`itk_nrreval.verdict`: only severe folding decides against it).
     subject_thresholds : SubjectThresholds, optional
         When a subject of a registration is flagged as failed
         (:class:`itk_nrreval.plausibility.SubjectThresholds`; results in
