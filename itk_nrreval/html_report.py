@@ -275,7 +275,9 @@ def _ci(iv) -> str:
 
 def _rel(result, measure: str, name: str) -> str:
     rel = result.relative_ranks[measure][name]
-    return f"{format_percent(rel)} ({format_rank(result, measure, name)})"
+    # the rank on a line of its own: "100.0% (1 (tied))" on one line widened the table past
+    # the page
+    return f"{format_percent(rel)}<br><small>rank {format_rank(result, measure, name)}</small>"
 
 
 # ----------------------------------------------------------------------------- figures
@@ -595,7 +597,7 @@ def _legend(result) -> str:
             "Rel. (rank)",
             "the normalised score 100% &times; (worst &minus; x) / (worst &minus; best) among "
             "the registrations compared: 100% for the best, 0% for the worst, linear between; "
-            "it is <b>not a rank</b>. The rank (1 = best) is in parentheses. " + _e(TIES_WORDS),
+            "it is <b>not a rank</b>. The rank (1 = best) is below it. " + _e(TIES_WORDS),
         ),
         (
             "Coverage",
