@@ -52,7 +52,7 @@ from .plausibility import (
 )
 from .reports import FLAGGED_SUBJECTS_SHOWN
 from .specificity import GeneralizationResult, SpecificityResult
-from .subject_qc import SubjectQC, assess_subjects
+from .subject_qc import SubjectQC, across_registrations, assess_subjects
 from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
@@ -730,6 +730,7 @@ def evaluate(
                 )
                 for name in regs:
                     best_p[name][measure] = pb[name]
+        assessed = across_registrations(assessed, thresholds=subject_thresholds)
         scores = {}
         for name, r in regs.items():
             subjects = assessed[name]

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -55,6 +55,7 @@ __all__ = [
     "pair_distances",
     "subject_overlaps",
     "assess_subjects",
+    "across_registrations",
     "MAD_TO_SD",
 ]
 
@@ -463,3 +464,48 @@ def assess_subjects(
             )
         )
     return tuple(out)
+
+
+def across_registrations(
+    assessed: Mapping[str, Sequence[SubjectQC]], *, thresholds: SubjectThresholds
+) -> dict[str, tuple[SubjectQC, ...]]:
+    """Name the subjects whose image stands out under every registration.
+
+    A subject far from the model of the others (``z > thresholds.outlier_z``) under one
+    registration may be badly registered; under every registration of two or more, the
+    affine one included, it is the image itself that differs from the cohort (anatomy,
+    contrast, an artefact, a header), not one registration of it. Such a subject's diagnosis
+    says so wherever no other cause was named; its flags are unchanged.
+
+    Parameters
+    ----------
+    assessed : mapping of str to sequence of SubjectQC
+        Per registration, every subject in manifest order (:func:`assess_subjects`).
+    thresholds : SubjectThresholds, keyword-only
+
+    Returns
+    -------
+    dict of str to tuple of SubjectQC
+        The same, with those diagnoses.
+    """
+    names = list(assessed)
+    out = {name: tuple(assessed[name]) for name in names}
+    if len(names) < 2:
+        return out
+    n = len(out[names[0]])
+    everywhere = [
+        all(out[name][i].z is not None and out[name][i].z > thresholds.outlier_z for name in names)
+        for i in range(n)
+    ]
+    words = (
+        f"far from the model under every registration ({len(names)} of {len(names)}): the "
+        "image itself stands out from the cohort (anatomy, contrast, an artefact or its "
+        "header), not one registration of it"
+    )
+    return {
+        name: tuple(
+            replace(q, diagnosis=words) if everywhere[i] and q.diagnosis is None else q
+            for i, q in enumerate(subjects)
+        )
+        for name, subjects in out.items()
+    }

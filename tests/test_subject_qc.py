@@ -261,3 +261,31 @@ def test_left_out_under_another_registration_is_said_as_such(cohort, tmp_path):
     assert "off the common grid" in result.scores["damaged"].subjects[35].diagnosis
     flags = result.scores["damaged"].subjects[23].flags
     assert "its resampled image is identical to subject 22's" in flags
+
+
+def test_an_image_that_stands_out_under_every_registration_is_named_as_such(cohort, tmp_path):
+    """Subject 5's image with its contrast inverted: far from the model under both
+    registrations (the true one and a copy of it), so its diagnosis blames the image, not a
+    registration; the clean subjects stay unflagged."""
+    import shutil
+
+    import yaml
+
+    base = cohort[0].parent
+    for name in ("img", "lab", "truth"):
+        shutil.copytree(base / name, tmp_path / name)
+    odd = tmp_path / "img" / "s05.nii.gz"
+    image = sitk.ReadImage(str(odd))
+    array = sitk.GetArrayFromImage(image)
+    inverted = sitk.GetImageFromArray(array.max() - array)
+    inverted.CopyInformation(image)
+    sitk.WriteImage(inverted, str(odd))
+    data = yaml.safe_load(open(cohort[0]))
+    data["registrations"]["truth_again"] = data["registrations"]["truth"]
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump(data))
+    result = _evaluate(tmp_path / "two.yaml", tmp_path / "out")
+    for name in ("truth", "truth_again"):
+        subjects = result.scores[name].subjects
+        assert subjects[5].z > 3.5
+        assert subjects[5].diagnosis.startswith("far from the model under every registration")
+        assert not [q.index for q in subjects if q.flags and q.index != 5]
