@@ -20,7 +20,7 @@ __all__ = [
     "write_text",
     "check_output_folder",
     "check_output_file",
-    "json_written_by",
+    "json_written_by_nrreval",
     "staged_folder",
     "claim_output_folder",
     "json_number",
@@ -154,18 +154,14 @@ def check_output_file(
     return path
 
 
-def json_written_by(tool_key: str = "tool") -> Callable[[Path], bool]:
-    """A test for :func:`check_output_file`: the file is a JSON object whose `tool_key` is
-    :data:`TOOL` (the toolkit's single-file JSON records carry it)."""
-
-    def ours(path: Path) -> bool:
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, ValueError):
-            return False
-        return isinstance(data, dict) and data.get(tool_key) == TOOL
-
-    return ours
+def json_written_by_nrreval(path: Path) -> bool:
+    """Whether `path` is a JSON object whose ``"tool"`` is :data:`TOOL`, as the toolkit's
+    single-file JSON records are (an `ours` of :func:`check_output_file`)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and data.get("tool") == TOOL
 
 
 TOOL = "itk-nrreval"
@@ -262,10 +258,7 @@ def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str]) -> Pa
     from ._errors import InputError
 
     out = Path(out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    previous = _read_record(out)
-    if previous is None and any(out.iterdir()):
-        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+    previous, _ = _claim(out)
     previous = previous or set()
     entries = set(entries)
     foreign = sorted(n for n in entries - previous if os.path.lexists(out / n))
@@ -300,11 +293,7 @@ def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",))
     from ._errors import InputError
 
     out = Path(out).resolve()
-    made = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    previous = _read_record(out)
-    if previous is None and any(out.iterdir()):
-        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+    previous, made = _claim(out)
     before = {k: _names_below(out / k) for k in keep}
     _write_record(out, (previous or set()) | {k for k, names in before.items() if names is None})
     _remove_stale_stages(out)
@@ -337,6 +326,19 @@ def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",))
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _claim(out: Path) -> tuple[set[str] | None, bool]:
+    """Create `out` where missing; its record (None: the toolkit has not written there) and
+    whether this call made it. Refuses a non-empty folder the toolkit did not make."""
+    from ._errors import InputError
+
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    previous = _read_record(out)
+    if previous is None and any(out.iterdir()):
+        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+    return previous, made
+
+
 def _names_below(path: Path) -> set[str] | None:
     """Every path below `path`, relative to it (None where `path` does not exist)."""
     if not path.exists():
@@ -367,12 +369,6 @@ def _restore(
     if made:
         with contextlib.suppress(OSError):  # not empty: a file someone else put there
             out.rmdir()
-
-
-def _umask() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return umask
 
 
 _STAGE = ".nrreval-stage-"

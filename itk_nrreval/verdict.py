@@ -144,10 +144,7 @@ class Verdict:
     @property
     def decided(self) -> bool:
         """Whether one registration is decided better than every other."""
-        if len(self.best) != 1:
-            return False
-        beaten = {d.worse for d in self.decisions if d.better == self.best[0]}
-        return beaten == set(self.ranking) - {self.best[0]}
+        return _decided_best(self.best, self.decisions, self.ranking)
 
     def to_dict(self) -> dict:
         return {
@@ -245,7 +242,7 @@ def _decide(a, b, by_spec, by_overlap, spec, overlap, rough, folded, flagged) ->
                 f"specificity{also} (separable; {math.exp(spec_gain):.2f}x lower, "
                 f"{_roughness(w, l, rough)})",
             )
-        if by_overlap is not None and by_overlap == w and by_spec != l and w not in flagged:
+        if by_overlap == w and by_spec != l and w not in flagged:
             odds_gain = _log_ratio(_odds(overlap[w]), _odds(overlap[l]))
             if odds_gain >= EXCHANGE_RATE * rougher:
                 return Decision(
@@ -323,6 +320,14 @@ def _without_cycles(decisions: list[Decision]) -> tuple[list[Decision], list[Dec
     return kept, [d for d in decisions if d.better in reach[d.worse]]
 
 
+def _decided_best(best, decisions, names) -> bool:
+    """Whether the one best registration is decided better than every other."""
+    if len(best) != 1:
+        return False
+    beaten = {d.worse for d in decisions if d.better == best[0]}
+    return beaten == set(names) - {best[0]}
+
+
 def _levels(names, decisions, spec) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """Ranking by level of the decision graph (registrations no remaining one is decided
     better than come first), by specificity within a level; and the first level."""
@@ -347,8 +352,7 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
     if len(names) == 1:
         return (f"{names[0]} is the only registration.",)
     top = best[0]
-    beaten = {d.worse for d in decisions if d.better == top}
-    if len(best) == 1 and beaten == set(names) - {top}:
+    if _decided_best(best, decisions, names):
         bases = sorted({d.basis.split(" (")[0] for d in decisions if d.better == top})
         text.append(
             f"{top} is best: decided better than every other registration (by {_join(bases)})."

@@ -47,7 +47,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._output import TOOL, check_output_file, json_written_by
+    from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
     from ..overlap import WEIGHTINGS, overlap_table
 
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     if args.table:  # before the work, not after it
         check_output_file(args.table, inputs=inputs, option="--table", ours=_our_table)
     if args.json:
-        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by())
+        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by_nrreval)
     if args.table and args.json and Path(args.table).resolve() == Path(args.json).resolve():
         raise InputError("--table and --json: the same file")
 

@@ -63,13 +63,13 @@ def _group_list(text: str) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .._output import TOOL, check_output_file, json_written_by
+    from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
     from ..specificity import texture_measures
 
     if args.json:  # before the work, not after it
         inputs = [*args.images, *(p for p in (args.mask,) if p is not None)]
-        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by())
+        check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by_nrreval)
 
     spec, gen = texture_measures(
         args.images,
