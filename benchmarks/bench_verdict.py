@@ -112,12 +112,14 @@ def _cheat(folder: Path):
     return ev, _true_errors(ev, manifest, demo / "data" / "manifest.yaml")
 
 
-def _sweep(folder: Path, *, kind: str, method: str, parameters: dict, engine=None):
+def _sweep(
+    folder: Path, *, kind: str, method: str, parameters: dict, engine=None, dim=2, n=N, spacing=None
+):
     from itk_nrreval.manifest import load_manifest
     from itk_nrreval.sweep import sweep
     from itk_nrreval.transforms import chain_transform
 
-    data = _population(kind)
+    data = _population(kind, dim=dim, n=n, spacing=spacing)
     m = load_manifest(data)
     truth = m.registrations["truth"]
     res = _quiet(
@@ -137,12 +139,14 @@ def _sweep(folder: Path, *, kind: str, method: str, parameters: dict, engine=Non
     return res.evaluation, dict(res.truth_error_mm)
 
 
-def _population(kind: str) -> Path:
+def _population(kind: str, *, dim: int = 2, n: int = N, spacing: float | None = None) -> Path:
     from data_synth import make_population, write_population
 
-    manifest = OUT / f"data_{kind}2d_n{N}" / "manifest.yaml"
+    grid = "" if spacing is None else f"_{spacing:g}mm"
+    manifest = OUT / f"data_{kind}{dim}d_n{n}{grid}" / "manifest.yaml"
     if not manifest.exists():
-        pop = make_population(kind, dim=2, n=N, seed=SEED)
+        extra = {} if spacing is None else {"spacing": spacing}
+        pop = make_population(kind, dim=dim, n=n, seed=SEED, **extra)
         write_population(pop, manifest.parent, montage=False, show_progress=False)
     return manifest
 
@@ -235,6 +239,18 @@ def _cases() -> dict:
             cases[f"sweep_{case}"] = lambda folder, k=kind, m=method, e=engine, p={name: values}: (
                 _sweep(folder, kind=k, method=m, parameters=p, engine=e)
             )
+    # 3D: demons field smoothing on the phantom (2 mm grid) and the MNI-based brain (3 mm
+    # grid, to keep the case to minutes), 10 subjects
+    for kind, spacing in (("phantom", 2.0), ("mni", 3.0)):
+        cases[f"sweep_{kind}3d_fluid"] = lambda folder, k=kind, s=spacing: _sweep(
+            folder,
+            kind=k,
+            method="fluid",
+            parameters={"smoothing_mm": (1.0, 4.0, 16.0)},
+            dim=3,
+            n=10,
+            spacing=s,
+        )
     cases["overfit"] = lambda folder: _sweep(
         folder,
         kind="phantom",

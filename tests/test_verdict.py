@@ -157,24 +157,29 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
                 return w if bool(w_minus_l < 0) == lower else l
         return None
 
-    pw, pl = scores[w].plausibility, scores[l].plausibility
     by_spec = winner("specificity", lower=True)
     by_overlap = winner("overlap.inverse_volume", lower=False) if has_labels else None
-    rougher = max(0.0, pw.sdlogj - pl.sdlogj)
-    ratio = scores[l].specificity.value / scores[w].specificity.value
+
+    def evidence(measure, r):
+        """Whether `measure` separably prefers `r` by more than r's rougher fields buy (and,
+        for the overlap, r is not flagged)."""
+        o = l if r == w else w
+        rougher = max(0.0, scores[r].plausibility.sdlogj - scores[o].plausibility.sdlogj)
+        if measure == "specificity":
+            gain = np.log(scores[o].specificity.value / scores[r].specificity.value)
+            return by_spec == r and gain >= EXCHANGE_RATE * rougher
+        pr, po = scores[r].overlap["inverse_volume"], scores[o].overlap["inverse_volume"]
+        gain = np.log((pr / (1 - pr)) / (po / (1 - po)))
+        return by_overlap == r and gain >= EXCHANGE_RATE * rougher and not scores[r].flags
+
     out = []
+    pw, pl = scores[w].plausibility, scores[l].plausibility
     if pl.folded_fraction >= SEVERE_FOLDED_FRACTION and pw.folded_fraction < NO_FOLDING_FRACTION:
         out.append("severe folding")
-    if by_spec == w and by_overlap != l and np.log(ratio) >= EXCHANGE_RATE * rougher:
+    against = evidence("specificity", l) or evidence("overlap", l)
+    if evidence("specificity", w) and not against:
         out.append("specificity")
-    ow, ol = scores[w].overlap["inverse_volume"], scores[l].overlap["inverse_volume"]
-    odds_ratio = (ow / (1 - ow)) / (ol / (1 - ol))
-    if (
-        by_overlap == w
-        and by_spec != l
-        and np.log(odds_ratio) >= EXCHANGE_RATE * rougher
-        and not scores[w].flags
-    ):
+    if evidence("overlap", w) and not against:
         out.append("overlap")
     return out
 
@@ -320,3 +325,51 @@ def test_decisions_that_go_round_are_withdrawn(cheat_case):
     reasons = {frozenset((p.a, p.b)): p.reason for p in v.open_pairs}
     assert all(r.startswith("the evidence contradicts itself") for r in reasons.values())
     assert set(v.best) == {"a", "b", "c"}
+
+
+def test_a_preference_that_roughness_buys_is_no_evidence_against_the_other_measure(cheat_case):
+    """Specificity separably prefers `rough` (fields rougher by 0.5 SDlogJ), the overlap
+    separably prefers `smooth`. A specificity advantage smaller than exp(EXCHANGE_RATE * 0.5)
+    is what roughness alone can buy (the demons sweeps of the known-truth benchmark): it does
+    not count, so the overlap decides for `smooth`. An advantage beyond that counts, and the
+    two measures disagree: the pair stays open."""
+    from itk_nrreval.verdict import EXCHANGE_RATE
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+
+    def reg(name, spec, overlap, sdlogj):
+        plaus = dataclasses.replace(base.plausibility, folded_fraction=0.0, sdlogj=sdlogj)
+        return dataclasses.replace(
+            base,
+            name=name,
+            specificity=dataclasses.replace(base.specificity, value=spec),
+            overlap={**base.overlap, "inverse_volume": overlap},
+            plausibility=plaus,
+            flags=(),
+        )
+
+    bought = np.exp(EXCHANGE_RATE * 0.5)  # the specificity ratio 0.5 rougher fields can buy
+    for ratio, decided in ((0.5 * bought, True), (2.0 * bought, False)):
+        scores = {
+            "smooth": reg("smooth", 2.0, 0.7, 0.2),
+            "rough": reg("rough", 2.0 / ratio, 0.6, 0.7),
+        }
+        comparisons = []
+        for measure, values in (
+            ("specificity", {k: s.specificity.value for k, s in scores.items()}),
+            ("overlap.inverse_volume", {k: s.overlap["inverse_volume"] for k, s in scores.items()}),
+        ):
+            reps = {k: v + 1e-3 * np.arange(6) for k, v in values.items()}  # separable
+            comparisons += compare(measure, values, reps)
+        v = verdict(scores, comparisons, has_labels=True)
+        if decided:
+            (d,) = v.decisions
+            assert (d.better, d.worse) == ("smooth", "rough")
+            assert d.basis.startswith("overlap (")
+            assert "rough's lower specificity comes with fields 3.5x rougher" in d.basis
+            assert v.best == ("smooth",) and v.decided
+        else:
+            assert v.decisions == ()
+            (p,) = v.open_pairs
+            assert p.reason == "specificity prefers rough, overlap prefers smooth"
