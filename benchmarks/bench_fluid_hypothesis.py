@@ -1,4 +1,4 @@
-"""Why does specificity prefer weakly smoothed demons? A direct test of the README's hypothesis.
+"""Why does specificity prefer weakly smoothed demons? A direct test (docs/results.md).
 
 The demo and the sweeps show specificity choosing less smoothing of the demons fields than
 the true correspondence error does. The hypothesis was that weakly regularised fields

@@ -29,7 +29,8 @@ Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict
 ``truth.json``: the true errors), so ``--rejudge`` recomputes only the verdict
 (:func:`itk_nrreval.evaluation.verdict`) from them, in seconds. Written to
 ``benchmarks/out/verdict/``: ``pairs.csv`` / ``pairs.json`` (every pair: case, a, b, true
-errors, decision, basis, outcome) and ``summary.md`` (per case and overall).
+errors, decision, basis, outcome) and ``summary.md`` (per case and overall; also the same
+verdict without the overlap, as on data without labels).
 
 Run: ``python benchmarks/run_all.py verdict`` (every case), or
 ``python benchmarks/bench_verdict.py [--quick] [--cases a,b] [--rejudge]``; ``--quick`` runs
@@ -301,19 +302,21 @@ def _run_case(case: str) -> None:
     print(f"[verdict] {case}: {truth['seconds']:.0f} s", flush=True)
 
 
-def _verdict(case: str):
-    """The verdict of a saved case, recomputed by today's :func:`verdict`."""
+def _verdict(case: str, *, labels: bool = True):
+    """The verdict of a saved case, recomputed by today's :func:`verdict`; with
+    ``labels=False`` as if the case had no label maps (specificity and folding alone)."""
     from itk_nrreval.evaluation import verdict
 
     evaluation = pickle.loads((OUT / case / "evaluation.pkl").read_bytes())
-    has_labels = any(s.overlap for s in evaluation.scores.values())
+    has_labels = labels and any(s.overlap for s in evaluation.scores.values())
     return verdict(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
 
 
-def judge(case: str) -> list[dict]:
-    """Every pair of registrations of a saved case, with the verdict's decision and outcome."""
+def judge(case: str, *, labels: bool = True) -> list[dict]:
+    """Every pair of registrations of a saved case, with the verdict's decision and outcome
+    (``labels=False``: the verdict without the overlap)."""
     errors = json.loads((OUT / case / "truth.json").read_text())["true_error_mm"]
-    decided = {(d.better, d.worse): d.basis for d in _verdict(case).decisions}
+    decided = {(d.better, d.worse): d.basis for d in _verdict(case, labels=labels).decisions}
     rows = []
     for a, b in itertools.combinations(errors, 2):
         if errors[b] < errors[a]:
@@ -347,7 +350,7 @@ def _counts(rows: list[dict]) -> dict[str, int]:
     return {k: sum(r["outcome"] == k for r in rows) for k in keys}
 
 
-def _write(rows: list[dict], cases: list[str]) -> dict:
+def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
     OUT.mkdir(parents=True, exist_ok=True)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["case"])
@@ -357,18 +360,24 @@ def _write(rows: list[dict], cases: list[str]) -> dict:
     (OUT / "pairs.json").write_text(json.dumps(rows, indent=1) + "\n")
     counts = {c: _counts([r for r in rows if r["case"] == c]) for c in cases}
     counts["overall"] = _counts(rows)
+    alone = {c: _counts([r for r in unlabelled if r["case"] == c]) for c in cases}
+    alone["overall"] = _counts(unlabelled)
     lines = [
         f"Pairs whose true errors differ by more than {MARGIN:.0%}: right / wrong / open; "
-        "near-ties (closer than that): decided / open.",
+        "near-ties (closer than that): decided / open. Without labels: the same verdict "
+        "without the overlap (specificity and folding alone).",
         "",
-        "| case | right | wrong | open | near-ties decided | near-ties open |",
-        "|---|--:|--:|--:|--:|--:|",
+        "| case | right | wrong | open | near-ties decided | near-ties open "
+        "| without labels: right / wrong / open |",
+        "|---|--:|--:|--:|--:|--:|--:|",
     ]
     for c, k in counts.items():
         name = f"**{c}**" if c == "overall" else c
+        u = alone[c]
         lines.append(
             f"| {name} | {k['right']} | {k['wrong']} | {k['open']} | "
-            f"{k['near-tie, decided']} | {k['near-tie, open']} |"
+            f"{k['near-tie, decided']} | {k['near-tie, open']} | "
+            f"{u['right']} / {u['wrong']} / {u['open']} |"
         )
     lines += ["", "Wrong decisions:", ""]
     lines += [
@@ -380,7 +389,7 @@ def _write(rows: list[dict], cases: list[str]) -> dict:
     text = "\n".join(lines) + "\n"
     (OUT / "summary.md").write_text(text)
     print(text)
-    return {"counts": counts, "pairs": rows}
+    return {"counts": counts, "counts_without_labels": alone, "pairs": rows}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -406,7 +415,9 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         for case in cases:
             _run_case(case)
-    return _write([row for case in cases for row in judge(case)], cases)
+    rows = [row for case in cases for row in judge(case)]
+    unlabelled = [row for case in cases for row in judge(case, labels=False)]
+    return _write(rows, cases, unlabelled)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ and far-from-mean (``pair2``) subjects -- about 5 minutes on 2 cores. Each regis
 full appearance model is sampled M times (default 1,000 as in the paper) and the samples are
 assigned to the nearest raw and projected training image
 (:func:`itk_nrreval.appearance_diagnostics`); the tables and the figure
-(``appearance_table1.md``, ``appearance_cells.png``, the README's) go to ``DIR``.
+(``appearance_table1.md``, ``appearance_cells.png``, as in docs/results.md) go to ``DIR``.
 """
 
 from __future__ import annotations

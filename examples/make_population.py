@@ -6,8 +6,9 @@ Run from the repository root::
 
 It builds 36 phantom subjects (2D, 141 x 141) and 36 MNI152 subjects, checks that the true
 transforms bring every subject's labels back onto the template's, and writes to DIR the
-montages ``synth_phantom_2d.png`` and ``synth_mni_2d.png`` (the README's) and the phantom
-population as ``nrreval evaluate`` input (``DIR/phantom``), like ``nrreval synth`` does.
+montages ``synth_phantom_2d.png`` and ``synth_mni_2d.png`` (shown in docs/generated-data.md)
+and the phantom population as ``nrreval evaluate`` input (``DIR/phantom``), like
+``nrreval synth`` does.
 """
 
 from __future__ import annotations

@@ -541,7 +541,7 @@ def evaluate(
         `label_sigma_mm` mm and then resampled linearly. Recorded in the result's options.
         A perfect registration does not reach overlap 1 with any of them (each subject's
         labels sit on its own grid, so boundaries land between common-frame voxels at
-        different places), and the choice moves the ceiling (README, "Reading the results").
+        different places), and the choice moves the ceiling (``docs/outputs.md``).
     label_sigma_mm : float, optional
         The Gaussian's standard deviation (mm); only with, and required by,
         ``label_interpolation="gaussian"``.

@@ -573,7 +573,7 @@ class SubjectThresholds:
     subjects) by robust z-scores, ``z = (x - median) / (1.4826 MAD)`` over the cohort; see
     :mod:`itk_nrreval.subject_qc` for the measures. The defaults aim at flagging at most 2 %
     of the subjects of a cohort of 36 that registered well (measured on generated cohorts:
-    ``benchmarks/bench_subject_qc.py`` and the README).
+    ``benchmarks/bench_subject_qc.py``, ``docs/subject-qc.md``).
 
     Attributes
     ----------
