@@ -33,7 +33,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from itk_nrreval._images import Geometry
-from itk_nrreval.demo import spread_of_correspondence
+from itk_nrreval.correspondence import spread_of_correspondence
 
 SEED = 0
 #: ("before-fix", None), ("same", s): s mm at every level, ("scaled", s): ``smoothing_mm = s``

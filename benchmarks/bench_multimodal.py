@@ -18,7 +18,7 @@ the template. Reported per registration: the specificity of the Gaussian mixture
 Gaussian per modality; value, Monte-Carlo standard error, the T1 and T2 parts, and how many
 of the samples of each modality land nearest an image of the other), the specificity of one
 Gaussian over all images (groups ignored), and the true mean correspondence error over the
-head (:func:`itk_nrreval.demo.correspondence_error`) split into the spread within each
+head (:func:`itk_nrreval.correspondence.correspondence_error`) split into the spread within each
 modality and the distance between the two modalities' mean correspondences (the part a
 shared link error makes, and which the mixture -- one Gaussian per modality, each around its
 own mean -- cannot see; the ``per-group-link-2mm`` row measures how little it sees).
@@ -43,7 +43,7 @@ import SimpleITK as sitk
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval.demo import correspondence_error
+from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.frame import read_chains, resampling_transform
 from itk_nrreval.manifest import load_manifest
 from itk_nrreval.registration import ElastixWorker, register_multimodal

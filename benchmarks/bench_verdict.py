@@ -1,8 +1,9 @@
 """Is the verdict right? Its decided pairs against the true correspondence error.
 
 Each case is one generated population (known true transforms) registered several ways; every
-registration's true mean correspondence error (mm, :func:`itk_nrreval.demo.correspondence_error`)
-is computed beside the evaluation, and the verdict's decided pairs
+registration's true mean correspondence error (mm,
+:func:`itk_nrreval.correspondence.correspondence_error`) is computed beside the evaluation,
+and the verdict's decided pairs
 (:attr:`itk_nrreval.evaluation.Verdict.decisions`) are judged against it. For every pair of
 registrations whose true errors differ by more than ``MARGIN`` (10% of the smaller), the
 verdict is *right* (it decides the lower-error one better), *wrong* (the other way) or

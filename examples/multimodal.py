@@ -19,8 +19,8 @@ Each is one registration of all N images in one frame, added to the population's
 (which lists each image's modality under ``groups`` and the true transforms as ``truth``).
 :func:`itk_nrreval.evaluate` scores them in one common frame with the specificity of a
 Gaussian mixture (one Gaussian per modality), and
-:func:`itk_nrreval.demo.correspondence_error` gives the true mean correspondence error. The
-last column is the part of that error the mixture cannot see: the distance between the T1
+:func:`itk_nrreval.correspondence.correspondence_error` gives the true mean correspondence
+error. The last column is the part of that error the mixture cannot see: the distance between the T1
 images' and the T2 images' mean correspondence (each Gaussian of the mixture sits around its
 own modality's mean, so moving all T2 images together changes nothing in it).
 """
@@ -37,7 +37,7 @@ from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval.demo import correspondence_error
+from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.frame import read_chains, resampling_transform
 from itk_nrreval.manifest import load_manifest
 from itk_nrreval.registration import ElastixWorker, register_multimodal
@@ -100,7 +100,7 @@ def _modality_gap(evaluation, manifest, truth, grid: sitk.Image, mask) -> dict[s
     """Per registration: mean over the head of ``|mean_T1 y_i - mean_T2 y_i|`` (mm).
 
     ``y_i(p)`` is the template point that image i's correspondence of common point p truly
-    is (as in :func:`~itk_nrreval.demo.correspondence_error`).
+    is (as in :func:`~itk_nrreval.correspondence.correspondence_error`).
     """
     m = load_manifest(manifest)
     groups = np.asarray(m.groups)

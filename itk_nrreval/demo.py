@@ -19,11 +19,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import SimpleITK as sitk
 from scipy import stats
 
-from ._images import Geometry, read_image
+from ._images import read_image
 from ._output import (
     atomic_path,
     check_output_folder,
@@ -31,12 +30,11 @@ from ._output import (
     write_json,
     write_text,
 )
+from .correspondence import correspondence_error
 from .evaluation import EvaluationResult, evaluate, higher_is_better, ranks, relative_ranks
-from .frame import read_chains, resampling_transform
 from .manifest import add_registration, load_manifest, write_manifest
-from .transforms import displacement_field
 
-__all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo", "correspondence_error"]
+__all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo"]
 
 #: (name, method, reference choice), in the order of the paper's Table 3.
 DEMO_REGISTRATIONS = (
@@ -59,7 +57,7 @@ class DemoResult:
         Specificity, generalization and overlaps of the five registrations (fluid frame).
     correspondence_error_mm : dict of str to float
         True mean correspondence error per registration (mm; lower is better): see
-        :func:`correspondence_error`.
+        :func:`itk_nrreval.correspondence.correspondence_error`.
     agreement : dict of str to float
         Spearman rank correlation, over the five registrations, between the specificity
         ranking and each other measure's ranking (+1: the same order).
@@ -77,70 +75,6 @@ class DemoResult:
     seconds: dict[str, float]
     table: str
     out: Path
-
-
-def correspondence_error(
-    evaluation: EvaluationResult,
-    manifest,
-    subject_to_template: list[sitk.Transform],
-    *,
-    mask: np.ndarray | None = None,
-) -> dict[str, float]:
-    """True mean correspondence error of each registration, in mm.
-
-    A registration puts the points ``x_i = T_i(F(p))`` of the N images in correspondence
-    for every point p of the common frame. The true correspondence sends each ``x_i`` to the
-    template point ``y_i = S_i(x_i)`` (``S_i``: subject -> template); a perfect registration
-    gives the same ``y_i`` for every i. The error is the mean over p (inside `mask`) and i
-    of ``|y_i - mean_j y_j|``: it does not depend on which frame is common.
-
-    Parameters
-    ----------
-    evaluation : EvaluationResult
-        Gives each registration's frame transform F.
-    manifest : Manifest or path
-        The manifest that was evaluated.
-    subject_to_template : list of sitk.Transform, length n_images
-        True transforms, subject points -> template points (mm, LPS).
-    mask : ndarray of bool, shape of the common grid (numpy order), optional
-        The points p to average over; default all.
-    """
-    m = load_manifest(manifest)
-    grid = Geometry.from_image(
-        read_image(m.registrations[m.common_frame].reference, what="reference image")
-    )
-    return {
-        name: spread_of_correspondence(
-            [resampling_transform(t, scores.frame.transform) for t in read_chains(m, name)],
-            subject_to_template,
-            grid,
-            mask=mask,
-        )
-        for name, scores in evaluation.scores.items()
-    }
-
-
-def spread_of_correspondence(
-    transforms: list[sitk.Transform],
-    subject_to_template: list[sitk.Transform],
-    grid: Geometry,
-    *,
-    mask: np.ndarray | None = None,
-) -> float:
-    """Mean distance (mm) of ``y_i = S_i(T_i(p))`` from ``mean_j y_j``, over p and i.
-
-    The true correspondence error of one registration (:func:`correspondence_error`) whose
-    transforms `transforms` map the points p of `grid` (the common frame) to image points;
-    ``S_i`` = `subject_to_template` [i], subject points -> template points. `mask` (bool,
-    the grid's numpy shape) selects the points p; default all.
-    """
-    points = []
-    for t, s in zip(transforms, subject_to_template, strict=True):
-        d = sitk.GetArrayFromImage(displacement_field(sitk.CompositeTransform([s, t]), grid))
-        points.append(d[mask] if mask is not None else d.reshape(-1, d.shape[-1]))
-    # The grid points themselves cancel in y_i - mean_j y_j.
-    y = np.stack(points)
-    return float(np.linalg.norm(y - y.mean(axis=0), axis=-1).mean())
 
 
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:

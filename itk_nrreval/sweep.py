@@ -521,7 +521,7 @@ def _affine_stage(images, folder: Path, reference_choice: str, seed: int, progre
 
 def _truth_error(evaluation, manifest, truth, truth_reference) -> dict[str, float]:
     from ._images import Geometry, mask_array, read_image
-    from .demo import correspondence_error
+    from .correspondence import correspondence_error
     from .transforms import invert
 
     grid = None

@@ -6,7 +6,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from data_synth import make_population, write_population
-from itk_nrreval.demo import correspondence_error
+from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.evaluation import evaluate
 from itk_nrreval.manifest import add_registration
 

@@ -22,7 +22,7 @@ import itk_nrreval as nr
 from data_synth import make_population, write_population
 from itk_nrreval import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.demo import correspondence_error
+from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.manifest import load_manifest, write_manifest
 from itk_nrreval.registration import (
     ElastixWorker,
