@@ -32,17 +32,15 @@ import math
 import numba
 import numpy as np
 
-from ._sampling import chunk_moments, fill_normals, finish_distances
+from ._sampling import chunk_moments, fill_normals, finish_distances, mixture_spans
 
 __all__ = [
     "draw_block",
     "draw_mixture_block",
+    "BlockedSearcher",
+    "TorchSearcher",
+    "search_chunks",
     "run_single_blocked",
-    "run_paired_blocked",
-    "run_single_torch",
-    "run_mixture_blocked",
-    "run_mixture_paired_blocked",
-    "run_mixture_torch",
 ]
 
 L1_BLOCK = 32  # samples per parallel task of the L1 kernel
@@ -365,7 +363,7 @@ def _l2_chunk(train, sq_train, norm_max, draw, start, stop, values, nearest, gen
 # ------------------------------------------------------------------------------- drivers
 
 
-class _Searcher:
+class BlockedSearcher:
     """One model's blocked nearest search, chunk by chunk (CPU).
 
     Samples are ``sd * z`` (a single Gaussian, `sd` its mode standard deviations) or, when
@@ -428,36 +426,68 @@ class _Searcher:
         return values, nearest, gen
 
 
-def _single_spans(n_samples: int, chunk: int) -> np.ndarray:
-    """Chunks ``(start, stop, 0)`` of samples 0 .. n_samples - 1 (one Gaussian)."""
-    starts = np.arange(0, n_samples, chunk, dtype=np.int64)
-    stops = np.minimum(starts + chunk, n_samples)
-    return np.stack([starts, stops, np.zeros_like(starts)], axis=1)
+def search_chunks(searchers, components, spans, key, l2, exponent, first, last):
+    """Chunks ``first .. last - 1`` of a batch of searchers on one sample stream.
 
+    Parameters
+    ----------
+    searchers : sequence of BlockedSearcher or TorchSearcher
+        One per model: one model, or a pair (the same samples' numbers and normals).
+    components : sequence, one per searcher, of None or a sequence of (centre, basis)
+        None: samples ``sd * z`` (a single Gaussian); else per group g its ``(centre,
+        basis)`` in joint parameters (a mixture).
+    spans : ndarray of int64, shape (n_chunks, 3)
+        Chunk c is samples ``spans[c, 0] .. spans[c, 1] - 1`` of group ``spans[c, 2]``
+        (:func:`._sampling.mixture_spans`).
+    key : np.uint64
+        Stream key of the seed (:func:`._sampling.stream_key`).
+    l2 : bool
+        Squared L2 (True) or L1 sums (False).
+    exponent : float
+        Each finished nearest distance is raised to this power.
+    first, last : int
+        The chunks to run.
 
-def _run(searcher, key, spans, l2: bool, exponent: float, wrap=None, components=None):
-    """Per-chunk (mean, M2), counts and gen minima; chunk c is ``spans[c] = (start, stop, g)``.
-
-    `components` is None (one Gaussian) or per group g its ``(centre, basis)``.
+    Returns
+    -------
+    per_model : list of (means, m2s, counts, gen), one per searcher
+        Per chunk (n = last - first): (mean, M2) of the finished nearest distances, (n,); the
+        nearest counts, int64 (n, n_images); each image's raw nearest-sample distance (n, n_images).
+    difference : ndarray of shape (n, 2), or None
+        For a pair, per chunk (mean, M2) of the per-sample differences a - b; else None.
     """
-    n_chunks = spans.shape[0]
-    n_images = searcher.n_images
-    means = np.empty(n_chunks)
-    m2s = np.empty(n_chunks)
-    counts = np.zeros((n_chunks, n_images), dtype=np.int64)
-    gen = np.empty((n_chunks, n_images))
-    for c in range(n_chunks) if wrap is None else wrap(range(n_chunks)):
-        start, stop, g = (int(v) for v in spans[c])
-        component = None if components is None else components[g]
-        values, nearest, gen[c] = searcher.chunk(key, start, stop, component)
-        finish_distances(values, stop - start, l2, exponent)
-        means[c], m2s[c] = chunk_moments(values, stop - start)
-        counts[c] = np.bincount(nearest, minlength=n_images)
-    return means, m2s, counts, gen
+    n = last - first
+    per_model = [
+        (
+            np.empty(n),
+            np.empty(n),
+            np.zeros((n, s.n_images), dtype=np.int64),
+            np.empty((n, s.n_images)),
+        )
+        for s in searchers
+    ]
+    difference = np.empty((n, 2)) if len(searchers) == 2 else None
+    for c in range(n):
+        start, stop, g = (int(v) for v in spans[first + c])
+        m = stop - start
+        finished = []
+        for searcher, comps, (means, m2s, counts, gen) in zip(
+            searchers, components, per_model, strict=True
+        ):
+            values, nearest, gen[c] = searcher.chunk(
+                key, start, stop, None if comps is None else comps[g]
+            )
+            finish_distances(values, m, l2, float(exponent))
+            means[c], m2s[c] = chunk_moments(values, m)
+            counts[c] = np.bincount(nearest, minlength=searcher.n_images)
+            finished.append(values)
+        if difference is not None:
+            difference[c] = chunk_moments(finished[0] - finished[1], m)
+    return per_model, difference
 
 
-def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk, wrap=None):
-    """As :func:`._sampling.run_single`, by blocks of samples; the same numbers.
+def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
+    """As :func:`._sampling.run_single` over every chunk, by blocks of samples; the same numbers.
 
     Parameters
     ----------
@@ -469,8 +499,6 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk, wrap=None
         Stream key of the seed (``_sampling.stream_key``).
     n_samples, l2, exponent, chunk
         As ``run_single``.
-    wrap : callable, optional
-        Wraps the iterable of chunk indices (a progress bar).
 
     Returns
     -------
@@ -479,78 +507,16 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk, wrap=None
     gen : ndarray of shape (n_chunks, n_images)
         Raw (L1 sum or squared L2) nearest-sample distance of each image, per chunk.
     """
-    searcher = _Searcher(train, sd, l2)
-    spans = _single_spans(int(n_samples), int(chunk))
-    return _run(searcher, key, spans, l2, float(exponent), wrap)
-
-
-def run_mixture_blocked(train, components, spans, key, l2, exponent, wrap=None):
-    """As :func:`._sampling.run_mixture`, by blocks of samples; the same numbers.
-
-    Parameters
-    ----------
-    train : ndarray of shape (n_images, n_modes)
-        The joint training parameters (rows: images).
-    components : sequence of (centre, basis)
-        Per group, its centre (n_modes,) and basis (n_group_modes, n_modes), joint parameters.
-    spans : ndarray of int64, shape (n_chunks, 3)
-        Chunks ``(start, stop, group)`` (:func:`._sampling.mixture_spans`).
-    key, l2, exponent, wrap
-        As :func:`run_single_blocked`.
-
-    Returns
-    -------
-    means, m2s, counts, gen
-        Per chunk, as :func:`run_single_blocked`.
-    """
-    searcher = _Searcher(train, None, l2)
-    return _run(searcher, key, spans, l2, float(exponent), wrap, components)
-
-
-def run_paired_blocked(train_a, sd_a, train_b, sd_b, key, n_samples, l2, exponent, chunk):
-    """As :func:`._sampling.run_paired` (same outputs), by blocks; ``train_*`` not transposed."""
-    spans = _single_spans(int(n_samples), int(chunk))
-    sa, sb = _Searcher(train_a, sd_a, l2), _Searcher(train_b, sd_b, l2)
-    return _run_paired(sa, sb, None, None, spans, key, l2, exponent)
-
-
-def run_mixture_paired_blocked(
-    train_a, components_a, train_b, components_b, spans, key, l2, exponent
-):
-    """As :func:`._sampling.run_mixture_paired` (same outputs), by blocks; ``train_*`` not
-    transposed, components as :func:`run_mixture_blocked`."""
-    sa, sb = _Searcher(train_a, None, l2), _Searcher(train_b, None, l2)
-    return _run_paired(sa, sb, components_a, components_b, spans, key, l2, exponent)
-
-
-def _run_paired(sa, sb, components_a, components_b, spans, key, l2, exponent):
-    n_chunks = spans.shape[0]
-    moments = np.empty((3, n_chunks, 2))
-    counts_a = np.zeros((n_chunks, sa.n_images), dtype=np.int64)
-    counts_b = np.zeros((n_chunks, sb.n_images), dtype=np.int64)
-    gen_a = np.empty((n_chunks, sa.n_images))
-    gen_b = np.empty((n_chunks, sb.n_images))
-    for c in range(n_chunks):
-        start, stop, g = (int(v) for v in spans[c])
-        m = stop - start
-        comp_a = None if components_a is None else components_a[g]
-        comp_b = None if components_b is None else components_b[g]
-        va, na, gen_a[c] = sa.chunk(key, start, stop, comp_a)
-        vb, nb, gen_b[c] = sb.chunk(key, start, stop, comp_b)
-        finish_distances(va, m, l2, float(exponent))
-        finish_distances(vb, m, l2, float(exponent))
-        moments[0, c] = chunk_moments(va, m)
-        moments[1, c] = chunk_moments(vb, m)
-        moments[2, c] = chunk_moments(va - vb, m)
-        counts_a[c] = np.bincount(na, minlength=sa.n_images)
-        counts_b[c] = np.bincount(nb, minlength=sb.n_images)
-    return moments, counts_a, counts_b, gen_a, gen_b
+    spans = mixture_spans([int(n_samples)], int(chunk))
+    searcher = BlockedSearcher(train, sd, l2)
+    (stats,), _ = search_chunks([searcher], [None], spans, key, l2, exponent, 0, spans.shape[0])
+    return stats
 
 
 # ------------------------------------------------------------------------------------ torch
 
 
-class _TorchSearcher:
+class TorchSearcher:
     """The blocked search with distances on a torch device (float64); normals from the CPU."""
 
     def __init__(self, train: np.ndarray, sd: np.ndarray | None, l2: bool, device):
@@ -600,16 +566,3 @@ class _TorchSearcher:
             values[s0 - start : s1 - start] = best.cpu().numpy()
             nearest[s0 - start : s1 - start] = idx.cpu().numpy()
         return values, nearest, gen.cpu().numpy()
-
-
-def run_single_torch(train, sd, key, n_samples, l2, exponent, chunk, device, wrap=None):
-    """As :func:`run_single_blocked`, with the distances computed by torch on `device`."""
-    searcher = _TorchSearcher(train, sd, l2, device)
-    spans = _single_spans(int(n_samples), int(chunk))
-    return _run(searcher, key, spans, l2, float(exponent), wrap)
-
-
-def run_mixture_torch(train, components, spans, key, l2, exponent, device, wrap=None):
-    """As :func:`run_mixture_blocked`, with the distances computed by torch on `device`."""
-    searcher = _TorchSearcher(train, None, l2, device)
-    return _run(searcher, key, spans, l2, float(exponent), wrap, components)

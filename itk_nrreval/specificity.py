@@ -25,16 +25,13 @@ to the nearest of *all* N training images, in the joint parameter space of the N
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
-from . import _blocked, _sampling
+from . import _sampling, _search
 from ._errors import InputError, readable
-from ._progress import progress
 from .model import MixtureModel, TextureModel
 
 __all__ = [
@@ -50,14 +47,9 @@ __all__ = [
 ]
 
 _DISTANCES = ("l1", "l2")
-_BACKENDS = ("auto", "cpu", "torch")
-# The blocked search (itk_nrreval._blocked) from this many training images on; below, the
-# per-sample search, whose training matrix still fits in cache. Measured crossovers (2-core
-# AMD EPYC, 8 MB L3, M = 8192, N - 1 modes; old / blocked time): L2 GEMM 0.95 at N = 120,
-# 1.08 at 150, 1.2 at 180, 2.5 at 600, 5.8 at 1000; L1 0.89 at 500, 1.12 at 600, 0.94 at 700,
-# 1.05 at 800, 1.4-1.6 at 1000, 1.9 at 1500 (the old path's 8 MB matrix leaves L3 near N = 1000).
-# Tests set these to 0 or to a huge number to force either path.
-_BLOCKED_MIN_IMAGES = {"l1": 800, "l2": 150}
+# From this many training images on, the blocked search serves "auto" and "cpu". The search's
+# own dict, not a copy: tests and benchmarks set its entries here to force either path.
+_BLOCKED_MIN_IMAGES = _search.BLOCKED_MIN_IMAGES
 
 
 @dataclass(frozen=True)
@@ -260,25 +252,54 @@ def _stderr(m2: float, n: int) -> float:
     return math.sqrt(m2 / n) / math.sqrt(n - 1)
 
 
-def _combine_groups(means, m2s, spans, group_samples):
-    """Per group (mean, M2) of the per-chunk moments over its chunks."""
+def _samples_per_group(n_samples: int, model: TextureModel | MixtureModel) -> np.ndarray:
+    """M_g for a mixture (:func:`_allocate`); (M,) for a single Gaussian."""
+    if isinstance(model, MixtureModel):
+        return _allocate(n_samples, model)
+    return np.asarray([n_samples], dtype=np.int64)
+
+
+def _weights(model: TextureModel | MixtureModel) -> np.ndarray:
+    return model.weights if isinstance(model, MixtureModel) else np.ones(1)
+
+
+def _combine_groups(means, m2s, found: _search.Search, group_samples):
+    """Per group (mean, M2) of the per-chunk moments (n_chunks,) over its chunks."""
+    groups = found.spans[:, 2]
     return [
-        _sampling.combine_moments(
-            means[spans[:, 2] == g], m2s[spans[:, 2] == g], int(m), _sampling.CHUNK
-        )
+        _sampling.combine_moments(means[groups == g], m2s[groups == g], int(m), found.chunk)
         for g, m in enumerate(group_samples)
     ]
 
 
-def _stratified(stats, mix: MixtureModel, group_samples) -> tuple[float, float, list[float]]:
+def _stratified(stats, weights, group_samples) -> tuple[float, float, list[float]]:
     """(value, stderr, per-group stderrs) from per-group (mean, M2); one group: as today."""
     stderrs = [_stderr(m2, int(m)) for (_, m2), m in zip(stats, group_samples, strict=True)]
     if len(stats) == 1:
         return stats[0][0], stderrs[0], stderrs
-    weights = mix.weights
     value = float(sum(w * mean for w, (mean, _) in zip(weights, stats, strict=True)))
     stderr = math.sqrt(sum((w * e) ** 2 for w, e in zip(weights, stderrs, strict=True)))
     return value, stderr, stderrs
+
+
+def _specificity_result(
+    model, stats: _search.ChunkStats, found: _search.Search, group_samples, common: dict
+) -> SpecificityResult:
+    """The SpecificityResult of one model from its per-chunk statistics in `found`."""
+    per_group = _combine_groups(stats.means, stats.m2s, found, group_samples)
+    value, stderr, stderrs = _stratified(per_group, _weights(model), group_samples)
+    mixture = None
+    if isinstance(model, MixtureModel):
+        mixture = _summary(model, group_samples, per_group, stderrs, stats.counts, found.spans)
+    return SpecificityResult(
+        value=value,
+        stderr=stderr,
+        n_images=_joint(model).n_images,
+        n_modes=_joint(model).n_modes,
+        nearest_counts=stats.counts.sum(axis=0),
+        mixture=mixture,
+        **common,
+    )
 
 
 def _summary(mix, group_samples, stats, stderrs, counts, spans) -> MixtureSummary:
@@ -301,145 +322,6 @@ def _summary(mix, group_samples, stats, stderrs, counts, spans) -> MixtureSummar
 def _check_modes(model: TextureModel) -> None:
     if model.n_modes >= _sampling.MAX_MODES:
         raise InputError(f"the model has {model.n_modes} modes; at most 262143 are supported")
-
-
-def _check_backend(backend: str) -> None:
-    if backend not in _BACKENDS:
-        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-    if backend == "torch" and importlib.util.find_spec("torch") is None:
-        raise ValueError(
-            "backend='torch' needs PyTorch, which is not installed: "
-            "pip install 'itk-nrreval[gpu]', or use backend='cpu'"
-        )
-
-
-def _torch_device(backend: str, n_images: int, distance: str):
-    """The torch device to use, or None for the CPU paths."""
-    if backend == "cpu":
-        return None
-    if backend == "auto":
-        # Only at large N, and only when torch is there already: never import torch (a
-        # second or more) just to find out that there is no GPU.
-        if n_images < _BLOCKED_MIN_IMAGES[distance] or importlib.util.find_spec("torch") is None:
-            return None
-    import torch
-
-    if torch.cuda.is_available():
-        return torch.device("cuda")
-    return torch.device("cpu") if backend == "torch" else None
-
-
-def _single_pass(
-    model: TextureModel,
-    n_samples: int,
-    distance: str,
-    exponent: float,
-    seed: int,
-    backend: str,
-    *,
-    show: bool = False,
-    desc: str = "specificity",
-):
-    """Per-chunk (means, m2s, counts, gen) of one model: per-sample, blocked or torch path."""
-    l2 = distance == "l2"
-    sd = np.sqrt(model.mode_variances)
-    key = _sampling.stream_key(seed)
-    chunk = _sampling.CHUNK
-    n_chunks = (n_samples + chunk - 1) // chunk
-
-    def wrap(chunks):
-        return progress(chunks, desc=desc, total=n_chunks, enabled=show)
-
-    device = _torch_device(backend, model.n_images, distance)
-    if device is not None:
-        return _blocked.run_single_torch(
-            model.training_params, sd, key, n_samples, l2, exponent, chunk, device, wrap
-        )
-    if model.n_images >= _BLOCKED_MIN_IMAGES[distance]:
-        return _blocked.run_single_blocked(
-            model.training_params, sd, key, n_samples, l2, exponent, chunk, wrap
-        )
-    train_t = np.ascontiguousarray(model.training_params.T)
-
-    def run(first, last):
-        return _sampling.run_single(train_t, sd, key, n_samples, l2, exponent, chunk, first, last)
-
-    return _by_chunk_groups(run, n_chunks, show=show, desc=desc)
-
-
-def _by_chunk_groups(run, n_chunks: int, *, show: bool, desc: str) -> tuple:
-    """``run(first, last)`` over chunks ``0 .. n_chunks - 1`` in groups of a few chunks per
-    thread, so that a progress bar can move between groups; the per-chunk arrays joined."""
-    group = 4 * numba.get_num_threads()
-    parts = [
-        run(c, min(c + group, n_chunks))
-        for c in progress(
-            range(0, n_chunks, group),
-            desc=desc,
-            total=(n_chunks + group - 1) // group,
-            enabled=show,
-        )
-    ]
-    return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
-
-
-def _mixture_pass(
-    mix: MixtureModel,
-    group_samples: np.ndarray,
-    n_samples: int,
-    distance: str,
-    exponent: float,
-    seed: int,
-    backend: str,
-    *,
-    show: bool = False,
-    desc: str = "specificity",
-):
-    """Per-chunk (means, m2s, counts, gen) of a mixture and its spans (start, stop, group).
-
-    One group is today's single Gaussian (the same kernels, the same numbers); from two
-    groups on, the mixture kernels of the per-sample, blocked or torch path.
-    """
-    spans = _sampling.mixture_spans(group_samples, _sampling.CHUNK)
-    if mix.n_groups == 1:
-        parts = _single_pass(
-            mix.joint, n_samples, distance, exponent, seed, backend, show=show, desc=desc
-        )
-        return (*parts, spans)
-    l2 = distance == "l2"
-    key = _sampling.stream_key(seed)
-    n_chunks = spans.shape[0]
-    train = mix.joint.training_params
-    components = list(zip(mix.centres, mix.bases, strict=True))
-
-    def wrap(chunks):
-        return progress(chunks, desc=desc, total=n_chunks, enabled=show)
-
-    device = _torch_device(backend, mix.n_images, distance)
-    if device is not None:
-        parts = _blocked.run_mixture_torch(
-            train, components, spans, key, l2, exponent, device, wrap
-        )
-        return (*parts, spans)
-    if mix.n_images >= _BLOCKED_MIN_IMAGES[distance]:
-        parts = _blocked.run_mixture_blocked(train, components, spans, key, l2, exponent, wrap)
-        return (*parts, spans)
-    train_t = np.ascontiguousarray(train.T)
-    rows, starts = _stacked_bases(mix)
-
-    def run(first, last):
-        return _sampling.run_mixture(
-            train_t, mix.centres, rows, starts, spans, key, l2, exponent, first, last
-        )
-
-    return (*_by_chunk_groups(run, n_chunks, show=show, desc=desc), spans)
-
-
-def _stacked_bases(mix: MixtureModel) -> tuple[np.ndarray, np.ndarray]:
-    """All groups' bases stacked (sum_g K_g, n_modes) and each group's first row (G + 1,)."""
-    rows = np.ascontiguousarray(np.concatenate(mix.bases, axis=0))
-    starts = np.concatenate([[0], np.cumsum([b.shape[0] for b in mix.bases])]).astype(np.int64)
-    return rows, starts
 
 
 def _generalization_values(gen_min: np.ndarray, distance: str, exponent: float) -> np.ndarray:
@@ -502,37 +384,27 @@ def texture_measures(
     single-Gaussian kernels.
     """
     _check_options(n_samples, distance, exponent)
-    _check_backend(backend)
+    _search.check_backend(backend)
     model = _fit(images, mask, groups)
     joint = _joint(model)
     _check_modes(joint)
-    chunk = _sampling.CHUNK
-    run = dict(show=progress, desc=desc)
-    args = (int(n_samples), distance, float(exponent), int(seed), backend)
-    mixture = None
-    if isinstance(model, TextureModel):
-        means, m2s, counts, gen = _single_pass(model, *args, **run)
-        mean, m2 = _sampling.combine_moments(means, m2s, int(n_samples), chunk)
-        value, stderr = mean, _stderr(m2, int(n_samples))
-    else:
-        group_samples = _allocate(int(n_samples), model)
-        means, m2s, counts, gen, spans = _mixture_pass(model, group_samples, *args, **run)
-        stats = _combine_groups(means, m2s, spans, group_samples)
-        value, stderr, stderrs = _stratified(stats, model, group_samples)
-        mixture = _summary(model, group_samples, stats, stderrs, counts, spans)
-    spec = SpecificityResult(
-        value=value,
-        stderr=stderr,
-        n_samples=int(n_samples),
-        n_images=joint.n_images,
-        n_modes=joint.n_modes,
+    group_samples = _samples_per_group(int(n_samples), model)
+    found = _search.search(
+        [model],
+        samples_per_group=group_samples,
+        seed=int(seed),
         distance=distance,
         exponent=float(exponent),
-        seed=int(seed),
-        nearest_counts=counts.sum(axis=0),
-        mixture=mixture,
+        backend=backend,
+        progress=progress,
+        desc=desc,
     )
-    values = _generalization_values(gen, distance, exponent)
+    common = dict(
+        n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed)
+    )
+    (stats,) = found.models
+    spec = _specificity_result(model, stats, found, group_samples, common)
+    values = _generalization_values(stats.gen, distance, exponent)
     gen_result = GeneralizationResult(
         value=float(values.mean()),
         stderr=float(values.std() / math.sqrt(joint.n_images - 1)),
@@ -542,7 +414,7 @@ def texture_measures(
         exponent=float(exponent),
         seed=int(seed),
         nearest_distances=values,
-        groups=None if mixture is None else mixture.groups,
+        groups=None if spec.mixture is None else spec.mixture.groups,
     )
     return spec, gen_result
 
@@ -714,59 +586,30 @@ def compare_specificity(
             f"got {_joint(ma).n_images} and {_joint(mb).n_images} images"
         )
     if isinstance(ma, MixtureModel) or isinstance(mb, MixtureModel):
-        return _compare_mixtures(ma, mb, int(n_samples), distance, float(exponent), int(seed))
-    l2 = distance == "l2"
-    chunk = _sampling.CHUNK
-    if ma.n_images >= _BLOCKED_MIN_IMAGES[distance]:
-        run, a_params, b_params = (
-            _blocked.run_paired_blocked,
-            ma.training_params,
-            mb.training_params,
-        )
-    else:
-        run = _sampling.run_paired
-        a_params = np.ascontiguousarray(ma.training_params.T)
-        b_params = np.ascontiguousarray(mb.training_params.T)
-    moments, counts_a, counts_b, gen_a, gen_b = run(
-        a_params,
-        np.sqrt(ma.mode_variances),
-        b_params,
-        np.sqrt(mb.mode_variances),
-        _sampling.stream_key(seed),
-        int(n_samples),
-        l2,
-        float(exponent),
-        chunk,
+        _check_same_groups(ma, mb)
+    group_samples = _samples_per_group(int(n_samples), ma)
+    found = _search.search(
+        [ma, mb],
+        samples_per_group=group_samples,
+        seed=int(seed),
+        distance=distance,
+        exponent=float(exponent),
+        backend="cpu",
     )
-    stats = [
-        _sampling.combine_moments(moments[j, :, 0], moments[j, :, 1], int(n_samples), chunk)
-        for j in range(3)
-    ]
-    stderr = [math.sqrt(m2 / n_samples) / math.sqrt(n_samples - 1) for _, m2 in stats]
     common = dict(
         n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed)
     )
-    ra = SpecificityResult(
-        value=stats[0][0],
-        stderr=stderr[0],
-        n_images=ma.n_images,
-        n_modes=ma.n_modes,
-        nearest_counts=counts_a.sum(axis=0),
-        **common,
+    ra, rb = (
+        _specificity_result(model, stats, found, group_samples, common)
+        for model, stats in zip((ma, mb), found.models, strict=True)
     )
-    rb = SpecificityResult(
-        value=stats[1][0],
-        stderr=stderr[1],
-        n_images=mb.n_images,
-        n_modes=mb.n_modes,
-        nearest_counts=counts_b.sum(axis=0),
-        **common,
-    )
-    return SpecificityComparison(ra, rb, difference=stats[2][0], difference_stderr=stderr[2])
+    paired = _combine_groups(found.difference[:, 0], found.difference[:, 1], found, group_samples)
+    difference, difference_stderr, _ = _stratified(paired, _weights(ma), group_samples)
+    return SpecificityComparison(ra, rb, difference=difference, difference_stderr=difference_stderr)
 
 
-def _compare_mixtures(ma, mb, n_samples: int, distance: str, exponent: float, seed: int):
-    """compare_specificity of two mixtures with the same groups (stratified, paired)."""
+def _check_same_groups(ma, mb) -> None:
+    """Two mixtures with the same groups, image by image, or a clear error."""
     if not (isinstance(ma, MixtureModel) and isinstance(mb, MixtureModel)):
         raise ValueError(
             "compare_specificity: both registrations must be mixtures (or neither); "
@@ -774,80 +617,6 @@ def _compare_mixtures(ma, mb, n_samples: int, distance: str, exponent: float, se
         )
     if ma.groups != mb.groups or not np.array_equal(ma.image_groups, mb.image_groups):
         raise InputError("compare_specificity: the two mixtures have different groups")
-    group_samples = _allocate(n_samples, ma)
-    spans = _sampling.mixture_spans(group_samples, _sampling.CHUNK)
-    l2 = distance == "l2"
-    key = _sampling.stream_key(seed)
-    if ma.n_groups == 1:
-        # One Gaussian: today's paired kernels, whose chunks are the spans of one group.
-        if ma.n_images >= _BLOCKED_MIN_IMAGES[distance]:
-            run, a_params, b_params = (
-                _blocked.run_paired_blocked,
-                ma.joint.training_params,
-                mb.joint.training_params,
-            )
-        else:
-            run = _sampling.run_paired
-            a_params = np.ascontiguousarray(ma.joint.training_params.T)
-            b_params = np.ascontiguousarray(mb.joint.training_params.T)
-        outputs = run(
-            a_params,
-            np.sqrt(ma.joint.mode_variances),
-            b_params,
-            np.sqrt(mb.joint.mode_variances),
-            key,
-            n_samples,
-            l2,
-            exponent,
-            _sampling.CHUNK,
-        )
-    elif ma.n_images >= _BLOCKED_MIN_IMAGES[distance]:
-        outputs = _blocked.run_mixture_paired_blocked(
-            ma.joint.training_params,
-            list(zip(ma.centres, ma.bases, strict=True)),
-            mb.joint.training_params,
-            list(zip(mb.centres, mb.bases, strict=True)),
-            spans,
-            key,
-            l2,
-            exponent,
-        )
-    else:
-        outputs = _sampling.run_mixture_paired(
-            np.ascontiguousarray(ma.joint.training_params.T),
-            ma.centres,
-            *_stacked_bases(ma),
-            np.ascontiguousarray(mb.joint.training_params.T),
-            mb.centres,
-            *_stacked_bases(mb),
-            spans,
-            key,
-            l2,
-            exponent,
-        )
-    moments, counts_a, counts_b, _, _ = outputs
-    results = []
-    for j in range(3):
-        stats = _combine_groups(moments[j, :, 0], moments[j, :, 1], spans, group_samples)
-        results.append((stats, *_stratified(stats, ma, group_samples)))
-    common = dict(n_samples=n_samples, distance=distance, exponent=exponent, seed=seed)
-    ra, rb = (
-        SpecificityResult(
-            value=value,
-            stderr=stderr,
-            n_images=mix.n_images,
-            n_modes=mix.n_modes,
-            nearest_counts=counts.sum(axis=0),
-            mixture=_summary(mix, group_samples, stats, stderrs, counts, spans),
-            **common,
-        )
-        for mix, counts, (stats, value, stderr, stderrs) in (
-            (ma, counts_a, results[0]),
-            (mb, counts_b, results[1]),
-        )
-    )
-    _, difference, difference_stderr, _ = results[2]
-    return SpecificityComparison(ra, rb, difference=difference, difference_stderr=difference_stderr)
 
 
 def loo_generalization(images, *, n_modes: int | None = None, mask=None) -> GeneralizationResult:
