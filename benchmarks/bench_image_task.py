@@ -1,0 +1,218 @@
+"""The per-image task at 1 mm: its parts, its floor, and its cache entry (issue 30).
+
+One 3D phantom subject at 1 mm (200 x 236 x 190 voxels, 9.0 M; 26 labels) and two
+registrations of it: ``field`` (its true template-to-subject transform, an affine map and a
+1 mm displacement field) and ``affine`` (the affine part alone). For each, the task the
+pipeline runs per image and registration (:func:`itk_nrreval.pipeline._resample_task`)
+runs on a cold cache, in a fresh process on one thread (SimpleITK and numba), with its
+parts timed by wrapping the functions it calls:
+
+- ``read``: the image and label map read from disk;
+- ``resample``: the image resampled onto the common grid;
+- ``memberships``: the label map's sparse memberships on the common grid;
+- ``plausibility``: folding, SDlogJ, the Jacobian histogram and inverse consistency, of
+  which ``invert`` (the numerical inverse) and ``round trip`` (``T^-1(T(p))`` sampled; the
+  plausibility call timed again without inverse consistency gives it);
+- ``affine fit``: the transform's closest affine map;
+- ``cache write``: the entry written (hashed and renamed into place);
+- ``other``: the rest of the task.
+
+The floor is SimpleITK's own ``sitk.Resample`` of the same float32 volume through the same
+composed transform onto the same grid (linear), timed in the same process; the task's cost
+is reported as a ratio to it. Times are CPU seconds of the one thread (``process_time``),
+which other processes on the machine do not inflate. The cache entry's size is its files'
+bytes on disk.
+
+``python benchmarks/run_all.py image_task`` runs it (about 2 minutes; the subject is
+generated once into ``benchmarks/out/image_task_1mm`` and reused).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "benchmarks" / "out" / "image_task_1mm"
+SPACING_MM = 1.0
+PARTS = (
+    "read",
+    "resample",
+    "memberships",
+    "plausibility",
+    "invert",
+    "round trip",
+    "affine fit",
+    "cache write",
+    "other",
+)
+
+
+def subject() -> dict:
+    """The subject's files (generated on first use): image, labels, the two transforms."""
+    info_path = DATA / "subject.json"
+    if info_path.exists():
+        return json.loads(info_path.read_text())
+    import SimpleITK as sitk
+    import yaml
+
+    from data_synth.population import make_population
+    from data_synth.writing import write_population
+
+    pop = make_population("phantom", dim=3, n=1, seed=30, spacing=SPACING_MM)
+    manifest = yaml.safe_load(
+        write_population(pop, DATA, montage=False, show_progress=False).read_text()
+    )
+    affine = sitk.AffineTransform(pop.subjects[0].template_to_subject.GetNthTransform(0))
+    mat = DATA / "affine" / "s00.mat"
+    mat.parent.mkdir(exist_ok=True)
+    sitk.WriteTransform(affine, str(mat))
+    truth = manifest["registrations"]["truth"]
+    info = {
+        "image": str(DATA / manifest["images"][0]),
+        "labels": str(DATA / manifest["labels"][0]),
+        "reference": str(DATA / truth["reference"]),
+        "transforms": {"field": str(DATA / truth["transforms"][0]), "affine": str(mat)},
+    }
+    info_path.write_text(json.dumps(info))
+    return info
+
+
+def _measure(info: dict, name: str) -> dict:
+    """One registration's task on a cold cache, its parts, and the floor (this process)."""
+    import tempfile
+
+    import numpy as np
+    import SimpleITK as sitk
+
+    from itk_nrreval import pipeline, plausibility
+    from itk_nrreval._images import Geometry, read_image
+    from itk_nrreval.cache import DiskCache
+    from itk_nrreval.frame import label_values, resampling_transform
+    from itk_nrreval.transforms import chain_transform
+
+    spent = dict.fromkeys(PARTS, 0.0)
+
+    def timed(part, fn):
+        def wrapper(*args, **kwargs):
+            t0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[part] += time.process_time() - t0
+
+        return wrapper
+
+    # the task's own calls, wrapped where it looks them up
+    pipeline.read_image = timed("read", pipeline.read_image)
+    pipeline.resample_images = timed("resample", pipeline.resample_images)
+    pipeline.resample_label_memberships = timed("memberships", pipeline.resample_label_memberships)
+    pipeline.deformation_measures = timed("plausibility", pipeline.deformation_measures)
+    plausibility.invert = timed("invert", plausibility.invert)
+    pipeline.affine_fit = timed("affine fit", pipeline.affine_fit)
+    DiskCache.put = timed("cache write", DiskCache.put)
+
+    grid = Geometry.from_image(read_image(info["reference"], what="reference image"))
+    labels = Path(info["labels"])
+    own = [int(v) for v in label_values([labels]) if v != 0]
+    item = Path(info["transforms"][name])
+    with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
+        ctx = pipeline._Context(root, grid, None, True)
+        args = (ctx, Path(info["image"]), labels, item, ("identity",), "identity", grid)
+        t0 = time.process_time()
+        key, reused, _meta = pipeline._resample_task(*args, "linear", None, own)
+        total = time.process_time() - t0
+        assert not reused
+        folder = DiskCache(root)._folder("resampled", key)
+        files = {p.name: p.stat().st_size for p in folder.iterdir()}
+
+    spent["other"] = total - sum(v for k, v in spent.items() if k not in ("invert", "other"))
+    # the round trip: plausibility with inverse consistency minus without (same call)
+    t = chain_transform(item)
+    t0 = time.process_time()
+    plausibility.deformation_measures(t, grid, inverse_consistency=False)  # not wrapped
+    without = time.process_time() - t0
+    spent["round trip"] = max(spent["plausibility"] - spent["invert"] - without, 0.0)
+    spent["plausibility"] -= spent["invert"] + spent["round trip"]  # the rest of it
+
+    # the floor: SimpleITK's Resample of the same volume through the same composed transform
+    image = sitk.ReadImage(info["image"])
+    full = resampling_transform(t, sitk.TranslationTransform(3))
+    t0 = time.process_time()
+    sitk.Resample(
+        image,
+        list(grid.size),
+        full,
+        sitk.sitkLinear,
+        list(grid.origin),
+        list(grid.spacing),
+        list(grid.direction),
+        0.0,
+        image.GetPixelID(),
+    )
+    floor = time.process_time() - t0
+    return {
+        "registration": name,
+        "voxels": int(np.prod(grid.shape)),
+        "total_s": total,
+        "parts_s": spent,
+        "floor_s": floor,
+        "ratio_to_floor": total / floor,
+        "cache_mb": sum(files.values()) / 2**20,
+        "cache_files_mb": {k: v / 2**20 for k, v in sorted(files.items())},
+    }
+
+
+def _one_thread_env() -> dict:
+    env = dict(os.environ)
+    env.update(
+        ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS="1",
+        NUMBA_NUM_THREADS="1",
+        OMP_NUM_THREADS="1",
+        OPENBLAS_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        PYTHONPATH=str(ROOT),
+    )
+    return env
+
+
+def run(name: str) -> dict:
+    """One registration, measured in a fresh single-threaded process."""
+    subject()  # generated here, once, not in every measuring process
+    cmd = [sys.executable, __file__, "--run", name]
+    out = subprocess.run(
+        cmd, check=True, capture_output=True, text=True, env=_one_thread_env()
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main() -> dict:
+    runs = [run(name) for name in ("field", "affine")]
+    print("| part (CPU s, one thread) | " + " | ".join(r["registration"] for r in runs) + " |")
+    print("|---|" + "---|" * len(runs))
+    for part in PARTS:
+        print(f"| {part} | " + " | ".join(f"{r['parts_s'][part]:.2f}" for r in runs) + " |")
+    print("| **task** | " + " | ".join(f"**{r['total_s']:.2f}**" for r in runs) + " |")
+    print("| sitk.Resample floor | " + " | ".join(f"{r['floor_s']:.2f}" for r in runs) + " |")
+    print("| task / floor | " + " | ".join(f"{r['ratio_to_floor']:.1f}x" for r in runs) + " |")
+    print("| cache entry (MB) | " + " | ".join(f"{r['cache_mb']:.0f}" for r in runs) + " |")
+    for r in runs:
+        files = ", ".join(f"{k} {v:.1f}" for k, v in r["cache_files_mb"].items())
+        print(f"\n{r['registration']}: cache files (MB): {files}")
+    return {"spacing_mm": SPACING_MM, "runs": runs}
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "--run":
+        import SimpleITK as sitk
+
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
+        print(json.dumps(_measure(subject(), sys.argv[2])))
+    else:
+        results = main()
+        out = ROOT / "benchmarks" / "out" / "image_task.json"
+        out.write_text(json.dumps(results, indent=2) + "\n")
