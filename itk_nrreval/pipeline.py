@@ -95,8 +95,9 @@ _TASK_VERSIONS = {
     "frame": 1,
     "frame_disp": 1,
     "reg_mask": 1,
-    "resampled": 3,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    "resampled": 4,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
+    # 4: inverse consistency from a coarse, refined inverse on every second voxel (issue 30)
     "label_sums": 1,
 }
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)

@@ -40,6 +40,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 import SimpleITK as sitk
 
@@ -513,6 +514,8 @@ def invert(
     max_iterations: int = 50,
     max_error: float = 0.01,
     mean_error: float = 1e-4,
+    field_step: int = 1,
+    refine_steps: int = 3,
 ) -> sitk.Transform:
     """The inverse mapping (image points to reference points).
 
@@ -534,6 +537,16 @@ def invert(
         Iterations of the field inversion.
     max_error, mean_error : float
         Stopping tolerances of the field inversion (voxels; the filter's units).
+    field_step : int
+        Invert each displacement field first on every `field_step`-th node of its grid along
+        each axis (its own values there; ``field_step**dim`` times fewer voxels to iterate
+        on), then refine that inverse on the field's own grid by `refine_steps` fixed-point
+        steps ``v(q) <- -u(q + v(q))`` (:func:`_fixed_point_steps`). 1 (the default) inverts
+        on the field's own grid alone.
+    refine_steps : int
+        Fixed-point steps on the field's own grid after a coarse inversion (`field_step` > 1;
+        each halves the coarse inverse's error or better where the field's Jacobian is
+        near the identity).
 
     Returns
     -------
@@ -546,13 +559,16 @@ def invert(
         A piece that is neither linear nor a displacement field, and no `grid`.
     """
     parts = leaves(chain_transform(transform))
-    inverted = [_invert_one(t, grid, max_iterations, max_error, mean_error) for t in parts]
+    inverted = [
+        _invert_one(t, grid, (max_iterations, max_error, mean_error), field_step, refine_steps)
+        for t in parts
+    ]
     # sitk list [a, b] means a(b(p)); its inverse is b^-1(a^-1(q)): list [b^-1, a^-1].
     inverted = list(reversed(inverted))
     return inverted[0] if len(inverted) == 1 else sitk.CompositeTransform(inverted)
 
 
-def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean_error: float):
+def _invert_one(t: sitk.Transform, grid, stopping: tuple, step: int, refine_steps: int):
     t = t.Downcast()
     if not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform):
         if grid is None:
@@ -562,13 +578,17 @@ def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean
             )
         t = field_transform(displacement_field(t, grid))
     if isinstance(t, sitk.DisplacementFieldTransform):
+        iterations, max_error, mean_error = stopping
+        own = t.GetDisplacementField()
         inverse = sitk.InvertDisplacementField(
-            _edge_padded(t.GetDisplacementField()),
+            _edge_padded(_every_nth_node(own, int(step))),
             maximumNumberOfIterations=int(iterations),
             maxErrorToleranceThreshold=float(max_error),
             meanErrorToleranceThreshold=float(mean_error),
             enforceBoundaryCondition=False,
         )
+        if step > 1:
+            inverse = _fixed_point_steps(own, inverse, int(refine_steps))
         return field_transform(inverse)
     if t.IsLinear():
         try:
@@ -576,6 +596,117 @@ def _invert_one(t: sitk.Transform, grid, iterations: int, max_error: float, mean
         except RuntimeError as exc:
             raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
     raise AssertionError("unreachable: every piece is linear or a field here")
+
+
+def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> sitk.Image:
+    """The inverse of `field` on its grid grown as :func:`_edge_padded` grows it: `inverse`
+    (on a coarser grid of the same direction) refined by `steps` fixed-point steps
+    ``v(q) <- -u(q + v(q))``.
+
+    This is the iteration ``sitk.InvertDisplacementField`` runs, started from the coarse
+    inverse instead of zero, with both fields interpolated linearly and extended by their
+    edge values beyond their grids (as :func:`_edge_padded` extends them; `field` itself is
+    never padded: sampling it clamped to its grid is the same).
+    """
+    dim = field.GetDimension()
+    u = sitk.GetArrayViewFromImage(field)  # `field` stays named: the view reads its buffer
+    spacing = np.asarray(field.GetSpacing())
+    direction = np.asarray(field.GetDirection()).reshape(dim, dim)
+    pad = _padding(u, spacing)  # voxels per ITK axis
+    origin = np.asarray(field.GetOrigin()) - direction @ (pad * spacing)
+    v = sitk.GetArrayFromImage(inverse)
+    if dim == 2:  # a 2D field as one plane of 3D
+        u, v = u[None], v[None]
+    grown = np.zeros(3, int)
+    grown[:dim] = 2 * pad  # ITK axis order
+    out_shape = (u.shape[0] + grown[2], u.shape[1] + grown[1], u.shape[2] + grown[0], dim)
+    to_index = direction.T / spacing[:, None]  # mm -> the field's index steps
+    # the grown grid's node i in the coarse inverse's continuous index: offset + ratio * i
+    ratio = spacing / np.asarray(inverse.GetSpacing())
+    coarse_to_index = direction.T / np.asarray(inverse.GetSpacing())[:, None]
+    offset = coarse_to_index @ (origin - np.asarray(inverse.GetOrigin()))
+    for _ in range(max(int(steps), 1)):
+        out = np.empty(out_shape)
+        _fixed_point_step(u, v, out, -pad.astype(np.float64), to_index, ratio, offset)
+        v, ratio, offset = out, np.ones(dim), np.zeros(dim)
+    result = sitk.GetImageFromArray(v[0] if dim == 2 else v, isVector=True)
+    result.SetSpacing(field.GetSpacing())
+    result.SetDirection(field.GetDirection())
+    result.SetOrigin(origin.tolist())
+    return result
+
+
+def _padding(u: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Voxels per ITK axis by which :func:`_edge_padded` grows a field `u` (mm, numpy order,
+    components last): its largest displacement and one voxel; 0 for a zero field."""
+    reach = float(np.sqrt((u * u).sum(axis=-1)).max()) if u.size else 0.0
+    if reach == 0.0:
+        return np.zeros(len(spacing), int)
+    return np.ceil(reach / spacing).astype(int) + 1
+
+
+@numba.njit(cache=True, inline="always")
+def _sample(a, x, y, z, out):  # pragma: no cover - compiled
+    """`a` (nz, ny, nx, d) interpolated linearly at ITK index (x, y, z), clamped to its grid."""
+    nz, ny, nx, d = a.shape
+    x = min(max(x, 0.0), nx - 1.0)
+    y = min(max(y, 0.0), ny - 1.0)
+    z = min(max(z, 0.0), nz - 1.0)
+    x0 = min(int(x), max(nx - 2, 0))
+    y0 = min(int(y), max(ny - 2, 0))
+    z0 = min(int(z), max(nz - 2, 0))
+    fx, fy, fz = x - x0, y - y0, z - z0
+    x1, y1, z1 = min(x0 + 1, nx - 1), min(y0 + 1, ny - 1), min(z0 + 1, nz - 1)
+    for c in range(d):
+        out[c] = (1 - fz) * (
+            (1 - fy) * ((1 - fx) * a[z0, y0, x0, c] + fx * a[z0, y0, x1, c])
+            + fy * ((1 - fx) * a[z0, y1, x0, c] + fx * a[z0, y1, x1, c])
+        ) + fz * (
+            (1 - fy) * ((1 - fx) * a[z1, y0, x0, c] + fx * a[z1, y0, x1, c])
+            + fy * ((1 - fx) * a[z1, y1, x0, c] + fx * a[z1, y1, x1, c])
+        )
+
+
+@numba.njit(cache=True)
+def _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset):  # pragma: no cover
+    """``out(q) = -u(q + v(q))`` on out's grid, whose node i is u's continuous index
+    ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order); `to_index` maps mm to
+    u's index steps. u and v are sampled linearly, clamped to their grids."""
+    nz, ny, nx, d = out.shape
+    idx = np.zeros(3)
+    vv = np.zeros(d)
+    uu = np.zeros(d)
+    for k in range(nz):
+        for j in range(ny):
+            for i in range(nx):
+                idx[0] = i + u_offset[0]
+                idx[1] = j + u_offset[1]
+                idx[2] = k + u_offset[2] if d == 3 else 0.0
+                vx = offset[0] + i * ratio[0]
+                vy = offset[1] + j * ratio[1]
+                vz = offset[2] + k * ratio[2] if d == 3 else 0.0
+                _sample(v, vx, vy, vz, vv)
+                for r in range(d):
+                    s = 0.0
+                    for c in range(d):
+                        s += to_index[r, c] * vv[c]
+                    idx[r] += s
+                _sample(u, idx[0], idx[1], idx[2], uu)
+                for c in range(d):
+                    out[k, j, i, c] = -uu[c]
+
+
+def _every_nth_node(field: sitk.Image, step: int) -> sitk.Image:
+    """`field` on every `step`-th node along each axis (from its origin): its own values there."""
+    if step == 1:
+        return field
+    dim = field.GetDimension()
+    arr = sitk.GetArrayViewFromImage(field)[(slice(None, None, step),) * dim]
+    out = sitk.GetImageFromArray(np.ascontiguousarray(arr), isVector=True)
+    out.SetSpacing([s * step for s in field.GetSpacing()])
+    out.SetOrigin(field.GetOrigin())
+    out.SetDirection(field.GetDirection())
+    return out
 
 
 def _edge_padded(field: sitk.Image) -> sitk.Image:
@@ -589,12 +720,11 @@ def _edge_padded(field: sitk.Image) -> sitk.Image:
     the grid for points that landed outside it.
     """
     arr = sitk.GetArrayFromImage(field)  # (*zyx, dim), mm
-    reach = float(np.sqrt((arr**2).sum(axis=-1)).max()) if arr.size else 0.0
-    if reach == 0.0:
+    spacing = np.array(field.GetSpacing())
+    pad = _padding(arr, spacing)  # voxels per ITK axis
+    if not pad.any():
         return field
     dim = field.GetDimension()
-    spacing = np.array(field.GetSpacing())
-    pad = np.ceil(reach / spacing).astype(int) + 1  # voxels per ITK axis
     padded = np.pad(arr, [*((k, k) for k in pad[::-1]), (0, 0)], mode="edge")
     out = sitk.GetImageFromArray(padded, isVector=True)
     direction = np.array(field.GetDirection()).reshape(dim, dim)

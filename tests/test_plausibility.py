@@ -314,3 +314,61 @@ def test_class_matching_cheat_matches_classes_but_is_implausible():
         assert bad.inverse_consistency_mm > 10 * good.inverse_consistency_mm
         out = flags({"cheat": bad, "truth": good})
         assert out["truth"] == [] and len(out["cheat"]) == 2
+
+
+def _full_resolution_round_trip(t: sitk.Transform, field: sitk.Image, g: Geometry) -> float:
+    """The reference: mean |T^-1(T(p)) - p| over every voxel, with the field inverted by ITK
+    on its own full grid (grown by its largest displacement, edge values beyond)."""
+    arr = sitk.GetArrayFromImage(field)
+    spacing = np.asarray(field.GetSpacing())
+    pad = np.ceil(np.sqrt((arr**2).sum(-1)).max() / spacing).astype(int) + 1
+    padded = sitk.GetImageFromArray(
+        np.pad(arr, [*((k, k) for k in pad[::-1]), (0, 0)], mode="edge"), isVector=True
+    )
+    direction = np.asarray(field.GetDirection()).reshape(3, 3)
+    padded.SetSpacing(field.GetSpacing())
+    padded.SetDirection(field.GetDirection())
+    padded.SetOrigin((np.asarray(field.GetOrigin()) - direction @ (pad * spacing)).tolist())
+    inverse = sitk.InvertDisplacementField(padded, 50, 0.01, 1e-4, False)
+    round_trip = sitk.CompositeTransform([sitk.DisplacementFieldTransform(inverse), t])
+    err = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            round_trip, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
+        )
+    )
+    return float(np.sqrt((err**2).sum(-1)).mean())
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_coarse_inverse_consistency_matches_the_full_resolution_one(smooth):
+    # Inverse consistency is measured with the field inverted on every second node, refined
+    # by three fixed-point steps on its own grid, and the round trip averaged over every
+    # second voxel (issue 30: 16 s -> 5 s at 1 mm). On a real 3D field on an oblique,
+    # anisotropic grid it stays within 0.01 mm of the full-resolution measure for a smooth
+    # field, and within 10 % for one that folds on 28 % of its voxels (~2.2 mm). (Measured
+    # on sines of period 14 mm: k = 0.5, 0.9, 1.1, 1.6 give 0.069, 0.229, 0.520, 2.17 mm
+    # against 0.068, 0.208, 0.517, 2.22 mm with every voxel and the full-grid inverse.)
+    g = _grid((40, 36, 30), (1.2, 0.9, 1.5), (-10.0, 4.0, 2.0), _rotation(3, [30, 20]))
+    if smooth:
+        rng = np.random.default_rng(30)
+        noise = rng.standard_normal((*g.shape, 3))
+        u = np.stack(
+            [
+                sitk.GetArrayFromImage(
+                    sitk.SmoothingRecursiveGaussian(sitk.GetImageFromArray(noise[..., c]), 5.0)
+                )
+                for c in range(3)
+            ],
+            axis=-1,
+        )
+        u *= 3.0 / np.sqrt((u**2).sum(-1)).max()  # up to 3 mm
+        t = _field(g, u)
+    else:
+        t, _ = _sine(g, k=1.6, period=14.0, axis=(0.3, 0.5, 1.0))
+    reference = _full_resolution_round_trip(t, t.GetDisplacementField(), g)
+    measured = deformation_plausibility(t, g).inverse_consistency_mm
+    if smooth:
+        assert measured == pytest.approx(reference, abs=0.01)
+    else:
+        assert reference > 1.0
+        assert measured == pytest.approx(reference, rel=0.1)
