@@ -97,10 +97,15 @@ _TASK_VERSIONS = {
     "reg_mask": 1,
     "resampled": 4,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
-    # 4: inverse consistency from a coarse, refined inverse on every second voxel (issue 30)
+    # 4: inverse consistency from a coarse, refined inverse on every second voxel; float32
+    # image, uint32 label indices (issue 30)
     "label_sums": 1,
 }
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
+#: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
+#: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
+#: tests/test_pipeline.py bounds it against float64 entries).
+_STORED_IMAGE = np.float32
 
 
 def _task_key(kind: str, *parts) -> str:
@@ -217,11 +222,12 @@ def _resample_task(
 ) -> tuple[str, bool, dict]:
     """Resample one image (and its label memberships) into the common frame; cache it.
 
-    The entry holds ``image`` (n,) float64 over the whole grid (0 outside the image's field
-    of view), ``covered`` (the voxels inside that field of view, ``np.packbits`` of a bool
-    (n,)), and for the labels the nonzero memberships of the image's own nonzero label
-    values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat voxel indices,
-    ascending per label), ``lab_val`` (float32). Its metadata holds the label values, the
+    The entry holds ``image`` (n,) over the whole grid (``_STORED_IMAGE``, float32; 0 outside
+    the image's field of view), ``covered`` (the voxels inside that field of view,
+    ``np.packbits`` of a bool (n,)), and for the labels the nonzero memberships of the image's
+    own nonzero label values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat
+    voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
+    (float32). Its metadata holds the label values, the
     fraction of the mask (or grid) the image covers, and the deformation's plausibility
     measures and the transform's closest affine map
     (:func:`~itk_nrreval.plausibility.affine_fit`) on the registration's reference grid
@@ -248,6 +254,7 @@ def _resample_task(
         reg_mask_key,
         ctx.inverse_consistency,
         list(label_resampling),
+        np.dtype(_STORED_IMAGE).str,
     )
     entry = cache.get("resampled", key)
     if entry is not None:
@@ -260,7 +267,7 @@ def _resample_task(
     )[0].reshape(-1)
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
     values[~covered] = 0.0
-    arrays = {"image": values, "covered": np.packbits(covered)}
+    arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
     reg_mask = None
@@ -284,7 +291,9 @@ def _resample_task(
         memb = resample_label_memberships(
             lab, full, g, values=own, method=method, sigma_mm=sigma_mm
         )
-        arrays.update(lab_ptr=memb.ptr, lab_idx=memb.index, lab_val=memb.weight)
+        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
+        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
+        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
         meta.update(labels=own)
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
@@ -964,7 +973,8 @@ def _save_resampled(
     folder.mkdir(parents=True, exist_ok=True)
     for i, key in enumerate(keys):
         entry = disk.open("resampled", key)
-        img = sitk.GetImageFromArray(entry.array("image").reshape(grid.shape))
+        # float64 as documented, whatever the cache holds
+        img = sitk.GetImageFromArray(entry.array("image").astype(np.float64).reshape(grid.shape))
         grid.apply_to(img)
         # ITK's NIfTI writer puts this key in the header's description (`descrip`)
         img.SetMetaData("ITK_FileNotes", "nrreval resampled image; 0 outside the field of view")

@@ -283,3 +283,27 @@ def test_progress_bars_on_stderr_unless_quiet(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "resampling" not in captured.err and "specificity" not in captured.err
     assert "| truth |" in captured.out  # results still printed
+
+
+def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
+    # Issue 30: resampled images are cached as float32 (half the bytes). The reductions add
+    # up in float64, so every score stays within 1e-5 (relative) of float64 entries', and
+    # the deformation measures, which never read the entries, are the same.
+    from itk_nrreval import pipeline
+
+    data = make_case(tmp_path)
+    manifest = tmp_path / "manifest.yaml"
+    manifest.write_text(yaml.safe_dump(data, sort_keys=False))
+    single = nr.evaluate(manifest, cache=tmp_path / "cache32", **KW)
+    monkeypatch.setattr(pipeline, "_STORED_IMAGE", np.float64)
+    double = nr.evaluate(manifest, cache=tmp_path / "cache64", **KW)
+    for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
+        stored = {np.load(p, mmap_mode="r").dtype for p in (tmp_path / cache).rglob("image.npy")}
+        assert stored == {np.dtype(dtype)}
+    assert list(single.scores) == list(double.scores)
+    for name, s64 in double.scores.items():
+        s32 = single.scores[name]
+        for key, v64 in s64.measures().items():
+            assert s32.measures()[key] == pytest.approx(v64, rel=1e-5, abs=1e-9), (name, key)
+        assert s32.plausibility == s64.plausibility
+        np.testing.assert_allclose(single.mean_images[name], double.mean_images[name], rtol=1e-6)
