@@ -414,10 +414,10 @@ def fit_appearance(
     chains = read_chains(manifest, name)
     affines = [affine_part(t, grid) for t in chains]
     raw = resample_images(
-        manifest.images, affines, grid, show_progress=progress, desc=f"{name}: affine"
+        manifest.scored_images, affines, grid, show_progress=progress, desc=f"{name}: affine"
     )
     textures = resample_images(
-        manifest.images, chains, grid, show_progress=progress, desc=f"{name}: texture"
+        manifest.scored_images, chains, grid, show_progress=progress, desc=f"{name}: texture"
     )
     fields = np.stack(
         [

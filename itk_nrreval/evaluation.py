@@ -760,6 +760,8 @@ def evaluate(
             "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),
             "thresholds": dataclasses.asdict(thresholds),
             "subject_thresholds": dataclasses.asdict(subject_thresholds),
+            # whose voxels are scored: the registered images, or the manifest's other scans
+            "scored_images": "images" if m.evaluation_images is None else "evaluation_images",
             # images off the common grid: in no registration's scores (manifest indices)
             "left_out_of_scores": [i for i in range(m.n_images) if i not in set(_scored(run))],
             # what frame_spread_fraction is a fraction of: the reports state the limit in mm

@@ -5,6 +5,7 @@ A manifest is a YAML (or JSON) file::
     images: [img/s00.nii.gz, img/s01.nii.gz]        # N training images, each in its own space
     labels: [lab/s00.nii.gz, lab/s01.nii.gz]        # optional integer label maps, same spaces
     groups: [t1, t1, t2, t2]                         # optional: each image's group (modality)
+    evaluation_images: [img/s00_t2.nii.gz, img/s01_t2.nii.gz]  # optional: scored in their place
     mask: mask.nii.gz                                # optional, on the common frame's grid
     common_frame: fluid                              # optional; default the first registration
     registrations:
@@ -24,6 +25,14 @@ A manifest is a YAML (or JSON) file::
         reference: v2/template.nii.gz
         frame_transform: identity     # the same template space as the common frame
         transforms: [...]
+
+``evaluation_images`` (optional) gives, per image, another scan of the same subject in the same
+physical space -- another contrast or a repeat, not seen by the registration -- which is
+resampled through the same transforms and scored in the image's place (the specificity,
+the appearance and the per-subject scores; labels, transforms and plausibility are the
+registration's own). Noise and bias that a registration fitted in the images it aligned do
+not carry over to another scan, so rougher fields gain less from fitting them (the verdict's
+known-truth benchmark, ``docs/verdict.md``, measures how much less).
 
 Every transform maps reference (fixed) points to image (moving) points. A chain is listed
 in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
@@ -67,6 +76,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import SimpleITK as sitk
 import yaml
 
@@ -101,7 +111,15 @@ __all__ = [
 ]
 
 
-_TOP_KEYS = ("images", "labels", "groups", "mask", "common_frame", "registrations")
+_TOP_KEYS = (
+    "images",
+    "labels",
+    "groups",
+    "evaluation_images",
+    "mask",
+    "common_frame",
+    "registrations",
+)
 _REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform", "parameters")
 
 ImageItem = "Path | InMemoryImage"
@@ -157,6 +175,9 @@ class Manifest:
         In the manifest's order.
     source : Path or None
         The manifest file, or None for a manifest built from a dict.
+    evaluation_images : tuple of (Path or InMemoryImage), length n_images, or None
+        Per image, another scan of the same subject in the same physical space, scored in
+        the image's place (module docstring); None: the images themselves are scored.
     """
 
     images: tuple[Any, ...]
@@ -166,10 +187,17 @@ class Manifest:
     registrations: Mapping[str, Registration] = field(default_factory=dict)
     source: Path | None = None
     groups: tuple[str, ...] | None = None
+    evaluation_images: tuple[Any, ...] | None = None
 
     @property
     def n_images(self) -> int:
         return len(self.images)
+
+    @property
+    def scored_images(self) -> tuple[Any, ...]:
+        """The images whose voxels are scored: `evaluation_images` where given, else
+        `images`."""
+        return self.evaluation_images if self.evaluation_images is not None else self.images
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -179,7 +207,7 @@ class Manifest:
     @property
     def in_memory(self) -> bool:
         """Whether any image or transform was given as an object rather than a file."""
-        items = [*self.images, *(self.labels or ()), self.mask]
+        items = [*self.images, *(self.labels or ()), *(self.evaluation_images or ()), self.mask]
         for r in self.registrations.values():
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
         return any(isinstance(item, _IN_MEMORY) for item in items)
@@ -188,7 +216,13 @@ class Manifest:
     def files(self) -> tuple[Path, ...]:
         """Every file the manifest reads (the manifest itself first, where it is a file):
         what an output folder must neither be nor hold."""
-        items = [self.source, *self.images, *(self.labels or ()), self.mask]
+        items = [
+            self.source,
+            *self.images,
+            *(self.labels or ()),
+            *(self.evaluation_images or ()),
+            self.mask,
+        ]
         for r in self.registrations.values():
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
         return tuple(Path(item) for item in items if isinstance(item, (str, os.PathLike)))
@@ -202,6 +236,9 @@ class Manifest:
             "images": [_describe_item(p) for p in self.images],
             "labels": None if self.labels is None else [_describe_item(p) for p in self.labels],
             "groups": None if self.groups is None else list(self.groups),
+            "evaluation_images": None
+            if self.evaluation_images is None
+            else [_describe_item(p) for p in self.evaluation_images],
             "mask": _describe_item(self.mask),
             "common_frame": self.common_frame,
             "registrations": {
@@ -370,6 +407,12 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
     )
     n = None if images is None else len(images)
     groups = _groups(data["groups"], n, problems) if data.get("groups") is not None else None
+    evaluation_images = None
+    if data.get("evaluation_images") is not None:
+        what = "evaluation_images"
+        evaluation_images = _path_list(data[what], base, what, problems)
+        if evaluation_images is not None and n is not None and len(evaluation_images) != n:
+            problems.append(f"{what}: {len(evaluation_images)} images for {n} images")
 
     regs: dict[str, Registration] = {}
     raw = data.get("registrations")
@@ -391,7 +434,15 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         )
     if images is None:
         return None
-    return Manifest(images, labels, mask, str(common), regs, groups=groups)
+    return Manifest(
+        images,
+        labels,
+        mask,
+        str(common),
+        regs,
+        groups=groups,
+        evaluation_images=evaluation_images,
+    )
 
 
 def _groups(value, n: int | None, problems: list[str]) -> tuple[str, ...] | None:
@@ -620,6 +671,45 @@ def _image_header(item, what: str, problems: list[str]) -> tuple[int, str] | Non
     return d, shown
 
 
+_SAME_SPACE = 0.5
+"""An evaluation image and its image must share at least this fraction of the smaller one's
+physical extent (bounding boxes in mm): a scan of the same subject in the same space."""
+
+
+def _shown(item) -> str:
+    return item.label if isinstance(item, InMemoryImage) else Path(item).name
+
+
+def _physical_box(item) -> tuple[np.ndarray, np.ndarray] | None:
+    """Axis-aligned bounding box (mm, LPS) of an image's voxels, corners included, from its
+    header; None when it cannot be read (another check reports that)."""
+    try:
+        if isinstance(item, InMemoryImage):
+            info = item.image
+        else:
+            info = sitk.ImageFileReader()
+            info.SetFileName(str(item))
+            info.ReadImageInformation()
+        size, spacing = np.asarray(info.GetSize()), np.asarray(info.GetSpacing())
+        origin, d = np.asarray(info.GetOrigin()), len(info.GetSize())
+        direction = np.asarray(info.GetDirection()).reshape(d, d)
+    except RuntimeError:
+        return None
+    corners = np.array(np.meshgrid(*[(-0.5, n - 0.5) for n in size])).reshape(d, -1)
+    points = origin[:, None] + direction @ (spacing[:, None] * corners)
+    return points.min(axis=1), points.max(axis=1)
+
+
+def _shared_extent(a, b) -> float | None:
+    """Volume of the intersection of two images' bounding boxes over the smaller box's."""
+    box_a, box_b = _physical_box(a), _physical_box(b)
+    if box_a is None or box_b is None or len(box_a[0]) != len(box_b[0]):
+        return None
+    inter = np.clip(np.minimum(box_a[1], box_b[1]) - np.maximum(box_a[0], box_b[0]), 0, None)
+    smaller = min(np.prod(box_a[1] - box_a[0]), np.prod(box_b[1] - box_b[0]))
+    return float(np.prod(inter) / smaller) if smaller > 0 else None
+
+
 def _check_image(item, what: str, dim: int | None, problems: list[str]) -> None:
     header = _image_header(item, what, problems)
     if header is not None and dim is not None and header[0] != dim:
@@ -663,6 +753,14 @@ def _check_files(m: Manifest, problems: list[str]) -> None:
     dim = _images_dimension(m.images, problems)
     for i, p in enumerate(m.labels or ()):
         _check_image(p, f"labels[{i}]", dim, problems)
+    for i, p in enumerate(m.evaluation_images or ()):
+        _check_image(p, f"evaluation_images[{i}]", dim, problems)
+        if (shared := _shared_extent(m.images[i], p)) is not None and shared < _SAME_SPACE:
+            problems.append(
+                f"evaluation_images[{i}]: {_shown(p)} shares {shared:.0%} of its physical "
+                f"extent with images[{i}] {_shown(m.images[i])}; it must be the same subject "
+                "in the same physical space (another contrast or scan, co-registered)"
+            )
     if m.mask is not None:
         _check_image(m.mask, "mask", dim, problems)
     for name, r in m.registrations.items():
@@ -761,6 +859,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
         out["labels"] = [_rel(p, folder) for p in m.labels]
     if m.groups is not None:
         out["groups"] = list(m.groups)
+    if m.evaluation_images is not None:
+        out["evaluation_images"] = [_rel(p, folder) for p in m.evaluation_images]
     if m.mask is not None:
         out["mask"] = _rel(m.mask, folder)
     out["common_frame"] = m.common_frame

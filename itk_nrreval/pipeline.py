@@ -479,7 +479,7 @@ def _region(
         warnings.warn(
             f"the scores are taken on the {evaluated:.0%} of the voxels {where} that every "
             f"image covers under every registration; least: registration {name!r} "
-            f"({frac:.0%}), its image {m.images[i]} ({per_image[i]:.0%})",
+            f"({frac:.0%}), its image {m.scored_images[i]} ({per_image[i]:.0%})",
             UserWarning,
             stacklevel=4,
         )
@@ -680,7 +680,7 @@ def run_pipeline(
             calls = [
                 (
                     ctx,
-                    m.images[i],
+                    m.scored_images[i],
                     m.labels[i] if m.labels is not None else None,
                     reg.transforms[i],
                     frame_spec,
@@ -702,7 +702,7 @@ def run_pipeline(
                 counts.add(reused)
                 if meta.get("label_like") and i not in warned:
                     warned.add(i)
-                    warn_label_like(str(m.images[i]), meta["label_like"], stacklevel=3)
+                    warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=3)
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
             resampled[name] = (keys, metas, frame)

@@ -505,7 +505,7 @@ def _manifest_arrays(manifest, section, show_progress: bool):
         )
     chains = read_chains(m, m.common_frame)
     images = resample_images(
-        m.images,
+        m.scored_images,
         chains,
         grid,
         desc="resampling images",

@@ -288,8 +288,8 @@ BAD = [
     (
         "unknown key",
         lambda tp: lambda d: d.update(lables=[]),
-        r"bad\.yaml: unknown key 'lables' \(expected images, labels, groups, mask, common_frame, "
-        r"registrations\)$",
+        r"bad\.yaml: unknown key 'lables' \(expected images, labels, groups, "
+        r"evaluation_images, mask, common_frame, registrations\)$",
     ),
     (
         "common frame",

@@ -91,7 +91,7 @@ def _warn_label_like_images(manifest) -> None:
     """Warn about each image that looks like a label map, as ``evaluate`` does."""
     from .._images import label_like_values, read_image, warn_label_like
 
-    for item in manifest.images:
+    for item in manifest.scored_images:
         if (n_values := label_like_values(read_image(item))) is not None:
             warn_label_like(str(item), n_values)
 
