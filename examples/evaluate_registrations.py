@@ -23,7 +23,7 @@ import SimpleITK as sitk
 from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
-from itk_nrreval.reports import summary_table
+from itk_nrreval.report import summary_table
 
 SIZE = 48
 

@@ -78,7 +78,7 @@ class DemoResult:
 
 
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
-    from .reports import format_number, format_percent, format_rank
+    from .report import format_number, format_percent, format_rank
 
     names = list(evaluation.scores)
     err_rank = ranks(error, higher_is_better=False)

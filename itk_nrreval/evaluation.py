@@ -50,7 +50,7 @@ from .plausibility import (
     flags,
     smallest_extent_mm,
 )
-from .reports import FLAGGED_SUBJECTS_SHOWN
+from .report import FLAGGED_SUBJECTS_SHOWN, write_evaluation
 from .specificity import GeneralizationResult, SpecificityResult
 from .subject_qc import SubjectQC, across_registrations, assess_subjects
 from .verdict import Decision, OpenPair, Verdict, verdict
@@ -255,29 +255,22 @@ class EvaluationResult:
 
         ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict,
         the paper's Table 3 layout and the flagged subjects), ``subjects.csv`` (every
-        subject's quality control, :func:`itk_nrreval.reports.subjects_csv`) and, with
-        `figures`, ``specificity.png``, ``specificity_vs_overlap.png``, ``mean_images.png``,
-        ``subjects.png`` (every subject's z-score, :func:`itk_nrreval.reports.figure_pngs`)
-        and ``report.html`` (one self-contained page to read: the verdict, the scores with
-        their legend, per registration its flagged subjects with their pictures, its
-        images, deformation and frame, the inputs and
-        options; it embeds the same figures; :func:`itk_nrreval.html_report.report_html`), through
-        :func:`itk_nrreval.reports.write_reports`. Each file is written under a temporary
-        name and renamed when complete; files of other names in `out_dir` are left alone
-        (``evaluate(..., out=DIR)`` swaps a whole folder in instead).
+        subject's quality control) and, with `figures`, ``specificity.png``,
+        ``specificity_vs_overlap.png``, ``mean_images.png``, ``subjects.png`` (every
+        subject's z-score) and ``report.html`` (one self-contained page to read: the
+        verdict, the scores with their legend, per registration its flagged subjects with
+        their pictures, its images, deformation and frame, the inputs and options; it
+        embeds the same figures), through :func:`itk_nrreval.report.write_evaluation`. Each
+        file is written under a temporary name and renamed when complete; files of other
+        names in `out_dir` are left alone (``evaluate(..., out=DIR)`` swaps a whole folder
+        in instead).
 
         Returns
         -------
         list of Path
             The files written.
         """
-        from .html_report import report_html
-        from .reports import figure_pngs, write_reports
-
-        if not figures:
-            return write_reports(self, out_dir, figures=False)
-        pngs = figure_pngs(self)
-        return write_reports(self, out_dir, figures=pngs, html=report_html(self, figures=pngs))
+        return write_evaluation(self, out_dir, figures=figures)
 
     def to_dict(self) -> dict:
         """The content of ``results.json``."""

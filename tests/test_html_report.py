@@ -25,7 +25,9 @@ from itk_nrreval.plausibility import (
     deformation_measures,
     deformation_plausibility,
 )
-from itk_nrreval.reports import FLAGGED_SUBJECTS_SHOWN, figure_pngs, format_number, thumbnail
+from itk_nrreval.report import FLAGGED_SUBJECTS_SHOWN, format_number
+from itk_nrreval.report._plot import thumbnail
+from itk_nrreval.report.evaluation_figures import figure_pngs
 from itk_nrreval.transforms import field_transform
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -253,7 +255,7 @@ def test_jacobian_map_and_histogram_match_numpy(case2d):
 def test_specificity_figure_says_when_monte_carlo_bars_hide(tmp_path):
     import dataclasses
 
-    from itk_nrreval.reports import _specificity_figure
+    from itk_nrreval.report.evaluation_figures import _specificity_figure
 
     make_case(tmp_path, with_labels=False)
     result = nr.evaluate(
@@ -450,7 +452,7 @@ def test_png_bytes_keep_the_picture():
     from matplotlib.figure import Figure
     from PIL import Image
 
-    from itk_nrreval.reports import png_bytes
+    from itk_nrreval.report._plot import png_bytes
 
     fig = Figure(figsize=(3, 2))
     ax = fig.subplots()
@@ -470,7 +472,7 @@ def test_png_bytes_keep_the_picture():
 def test_label_contours_have_a_legend_naming_the_values():
     from matplotlib.figure import Figure
 
-    from itk_nrreval.reports import LEGEND_LABELS, draw_label_contours
+    from itk_nrreval.report._plot import LEGEND_LABELS, draw_label_contours
 
     lab = np.zeros((40, 40), int)
     lab[5:15, 5:15], lab[20:30, 20:35], lab[2:4, 30:38] = 3, 7, 12
@@ -509,8 +511,7 @@ def _legend_labels(legend) -> list[str]:
 
 def test_label_contour_legends_list_every_label_present(case2d):
     tmp, _, result = case2d
-    from itk_nrreval.html_report import _images_figure
-    from itk_nrreval.reports import _mean_images_figure
+    from itk_nrreval.report.evaluation_figures import _mean_images_figure, images_figure
 
     # the labels of subject 0, read from its file: the values any resampling can show
     on_disk = {
@@ -524,7 +525,7 @@ def test_label_contour_legends_list_every_label_present(case2d):
         }
         shown.discard(0)
         assert shown == on_disk, name  # no label lost at this size
-        fig = _images_figure(result, name)
+        fig = images_figure(result, name)
         legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
         assert len(legends) == 1
         assert _legend_labels(legends[0]) == [str(v) for v in sorted(shown)]

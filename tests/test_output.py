@@ -39,14 +39,14 @@ def test_reports_leave_the_matplotlib_backend_alone(tmp_path):
     from test_evaluate import make_case
 
     import itk_nrreval as nr
-    from itk_nrreval.reports import write_reports
+    from itk_nrreval.report import write_evaluation
 
     before = matplotlib.get_backend()
     matplotlib.use("svg")  # a backend a user might have chosen
     try:
         make_case(tmp_path)
         result = nr.evaluate(tmp_path / "manifest.yaml", n_samples=500, progress=False)
-        written = write_reports(result, tmp_path / "out")
+        written = write_evaluation(result, tmp_path / "out")
         assert any(p.suffix == ".png" for p in written)
         assert matplotlib.get_backend() == "svg"
     finally:

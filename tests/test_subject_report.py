@@ -22,8 +22,9 @@ from test_report_browser import measure_layout, needs_browser, overflows
 import itk_nrreval as nr
 from data_synth import make_population
 from data_synth.damage import write_damaged
-from itk_nrreval import html_report
-from itk_nrreval.reports import middle_slice, thumbnail
+from itk_nrreval.report import evaluation_page
+from itk_nrreval.report._plot import middle_slice, thumbnail
+from itk_nrreval.report.evaluation_figures import subject_figure
 
 N = 16
 DAMAGES = {2: "mirrored", 7: "duplicated", 15: "off_grid"}
@@ -98,7 +99,7 @@ def test_the_subjects_picture_is_its_resampled_image_beside_the_mean(damaged):
     expected = sitk.GetArrayFromImage(
         sitk.Resample(image, template, transform, sitk.sitkLinear, 0.0)
     )
-    fig = html_report._subject_figure(result, name, i)
+    fig = subject_figure(result, name, i)
     subject, mean, checker = (np.asarray(ax.images[0].get_array()) for ax in fig.axes[:3])
     inside = np.isfinite(subject)
     assert inside.mean() > 0.5
@@ -119,7 +120,7 @@ def test_resampled_slices_are_kept_for_flagged_subjects_only(damaged):
 
 
 def test_subjects_png_plots_every_z_score_with_the_threshold(damaged):
-    from itk_nrreval.reports import _subjects_figure
+    from itk_nrreval.report.evaluation_figures import _subjects_figure
 
     _, out, result = damaged
     png = (out / "subjects.png").read_bytes()
@@ -158,8 +159,8 @@ def test_the_verdict_area_names_the_subjects_left_off_the_grid(damaged):
 
 def test_flagged_subjects_beyond_the_shown_ones_are_counted(damaged, monkeypatch):
     _, _, result = damaged
-    monkeypatch.setattr(html_report, "FLAGGED_SUBJECTS_SHOWN", 2)
-    raw = html_report.report_html(result)
+    monkeypatch.setattr(evaluation_page, "FLAGGED_SUBJECTS_SHOWN", 2)
+    raw = evaluation_page.report_html(result)
     section = _section(raw, "reg-damaged")
     text = _words(section)
     assert len(section.srcs) == 2 + 2

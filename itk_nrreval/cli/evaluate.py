@@ -161,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder
     from ..evaluation import evaluate
     from ..plausibility import Thresholds
-    from ..reports import summary_table
+    from ..report import summary_table
 
     if (args.label_interpolation == "gaussian") != (args.label_sigma is not None):
         raise InputError(

@@ -1,0 +1,64 @@
+"""Writing an :class:`~itk_nrreval.evaluation.EvaluationResult`: figures, ``report.html``,
+then ``results.json``, ``results.csv``, ``summary.md`` and ``subjects.csv``.
+
+Every file is written under a temporary name and renamed when complete; figures are written
+first, then ``report.html``, and the ``results.*`` files last, so an interrupted run leaves no
+partial ``results.*``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .._output import atomic_path, write_text
+from .evaluation_figures import figure_pngs
+from .evaluation_page import report_html
+from .evaluation_text import results_csv, results_json, subjects_csv, summary_table
+
+__all__ = ["write_evaluation"]
+
+
+def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) -> list[Path]:
+    """Write the figures, then ``report.html``, then ``results.json``, ``results.csv``,
+    ``summary.md`` and ``subjects.csv`` (per-subject quality control, when subjects were
+    assessed) into `out`.
+
+    Parameters
+    ----------
+    result : EvaluationResult
+    out : path
+        Created if needed; files of other names in it are left alone.
+    figures : bool
+        Render and write the PNG figures (:func:`~.evaluation_figures.figure_pngs`) and
+        ``report.html`` (:func:`~.evaluation_page.report_html`, embedding the same bytes);
+        False: the text files only.
+
+    Returns
+    -------
+    list of Path
+        The files written.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    pngs = figure_pngs(result) if figures else {}
+    written = []
+    for fname, data in pngs.items():
+        with atomic_path(out / fname) as tmp:
+            tmp.write_bytes(data)
+        written.append(out / fname)
+    if figures:
+        write_text(out / "report.html", report_html(result, figures=pngs))
+        written.append(out / "report.html")
+    # build everything before writing any results.* file
+    texts = {
+        "results.json": results_json(result),
+        "results.csv": results_csv(result),
+        "summary.md": summary_table(result),
+    }
+    if any(s.subjects for s in result.scores.values()):
+        texts["subjects.csv"] = subjects_csv(result)
+    for fname, text in texts.items():
+        write_text(out / fname, text)
+        written.append(out / fname)
+    return written

@@ -1,0 +1,362 @@
+"""The text files of an evaluation -- ``summary.md``, ``results.csv``, ``subjects.csv``,
+``results.json`` -- and the words and limits its figures and ``report.html`` share with them.
+
+``summary.md`` is laid out like the paper's Table 3: per registration, the generalized
+overlap (inverse-volume, and inverse-volume & complexity weighting) and the specificity with
+its standard error, each with its rank and quantitative relative rank.
+
+The functions take an :class:`~itk_nrreval.evaluation.EvaluationResult` without importing its
+class (:mod:`itk_nrreval.evaluation` calls this package to write: that import would be a
+cycle).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ._format import format_number, format_percent
+
+__all__ = [
+    "FLAGGED_SUBJECTS_SHOWN",
+    "TABLE_OVERLAPS",
+    "TIES_WORDS",
+    "format_rank",
+    "frame_spread_words",
+    "frame_spread_flagged",
+    "specificity_units",
+    "summary_table",
+    "subjects_summary",
+    "subjects_csv",
+    "results_csv",
+    "results_json",
+]
+
+
+#: How many flagged subjects per registration the HTML report shows with pictures (in
+#: manifest order; how many more there are is said): the pipeline keeps a resampled slice of
+#: these only, so the report stays light whatever the number of subjects.
+FLAGGED_SUBJECTS_SHOWN = 6
+
+TABLE_OVERLAPS = (
+    ("overlap.inverse_volume", "Overlap (inverse volume)"),
+    ("overlap.inverse_volume_complexity", "Overlap (inverse volume & complexity)"),
+)
+
+
+def format_rank(result, measure: str, name: str) -> str:
+    """The rank of `name` by `measure` for a reader: ``"2"``, ``"1 (tied)"``, or a dash."""
+    rank = result.ranks[measure][name]
+    if rank is None:
+        return "–"
+    return f"{rank} (tied)" if result.tied_with(measure, name) else str(rank)
+
+
+#: How the reports explain the relative rank and its ties (summary.md and report.html).
+TIES_WORDS = (
+    "Scores not told apart from noise are tied: in score order, neighbours whose difference "
+    "is within 1.96 combined standard errors (the Monte-Carlo s.e. for specificity; the "
+    "s.e. for generalization when no subject-level interval was computed) or whose "
+    "subject-level 95% interval of the difference includes 0 (not separable, as in the "
+    "verdict). Tied scores share the better rank, marked (tied), and one relative rank, "
+    "that of their mean, so a spread within the noise is never shown as the whole 0-100% "
+    "range; when every score is tied, all are 100%."
+)
+
+
+def frame_spread_words(result) -> tuple[float | None, str]:
+    """The mean frame spread (mm) that is flagged, and the reports' sentence saying so.
+
+    The limit is :func:`itk_nrreval.plausibility.frame_spread_limit_mm` of the run's
+    thresholds and field of view, the number :func:`~itk_nrreval.plausibility.flags` used;
+    None (and a sentence without a number) for a result that does not record them.
+    """
+    from ..plausibility import Thresholds, frame_spread_limit_mm
+
+    o = result.options
+    fov = o.get("field_of_view_mm")
+    fraction = o.get("thresholds", {}).get("frame_spread_fraction")
+    if fov is None or fraction is None:
+        return None, (
+            "A mean spread above the flag threshold (frame_spread_fraction of the field "
+            "of view) is flagged: comparing that registration in the common frame is doubtful."
+        )
+    limit = frame_spread_limit_mm(fov, Thresholds(frame_spread_fraction=fraction))
+    return limit, (
+        f"A mean spread above {format_number(limit, 3)} mm ({format_number(100 * fraction, 3)}% "
+        f"of the {format_number(fov, 4)} mm field of view, the flag threshold) is flagged: the "
+        "images do not agree where that registration's frame sits, and comparing it in the "
+        "common frame is doubtful. Below it the spread is not judged. The max spread, the "
+        "farthest estimate at a single voxel of a single image, is shown for context and "
+        "not judged."
+    )
+
+
+def frame_spread_flagged(result, name: str) -> bool:
+    """Whether `name`'s mean frame spread is above the limit of :func:`frame_spread_words`."""
+    limit, _ = frame_spread_words(result)
+    spread = result.scores[name].frame.spread_mean_mm
+    return limit is not None and math.isfinite(spread) and spread > limit
+
+
+def specificity_units(result) -> str:
+    """The unit of specificity and generalization, e.g. ``"L1 distance, intensity units"``."""
+    o = result.options
+    exponent = next(iter(result.scores.values())).specificity.exponent
+    unit = "intensity units" if exponent == 1 else f"(intensity units)^{exponent:g}"
+    return f"{o['distance'].upper()} distance, {unit}"
+
+
+def _ci(s, measure: str) -> str:
+    iv = s.intervals.get(measure)
+    if iv is None or not math.isfinite(iv.lo):
+        return "–"
+    return f"[{format_number(iv.lo)}, {format_number(iv.hi)}]"
+
+
+def summary_table(result) -> str:
+    """The verdict in words, then a Markdown table like the paper's Table 3.
+
+    Columns: for each overlap weighting present among inverse volume and inverse volume &
+    complexity, then specificity and generalization: score, subject-level 95% interval,
+    rank and relative rank (specificity also its Monte-Carlo standard error); then the
+    plausibility flags. Lower is better for specificity and generalization, higher for
+    overlap. A second table gives each registration's frame and deformation plausibility.
+    """
+    cols = [(m, title) for m, title in TABLE_OVERLAPS if m in result.ranks]
+    header = ["Registration"]
+    for _, title in cols:
+        header += [f"{title}", "95% CI", "Rank", "Rel. rank"]
+    header += ["Specificity", "95% CI", "MC s.e.", "Rank", "Rel. rank"]
+    header += ["Generalization", "95% CI", "Rank", "Rel. rank", "Flags"]
+    order = list(result.verdict.ranking) if result.verdict is not None else list(result.scores)
+    rows = []
+    for name in order:
+        s = result.scores[name]
+        row = [name]
+        for m, _ in cols:
+            row += [
+                format_number(s.measures()[m]),
+                _ci(s, m),
+                format_rank(result, m, name),
+                format_percent(result.relative_ranks[m][name]),
+            ]
+        row += [
+            format_number(s.specificity.value),
+            _ci(s, "specificity"),
+            format_number(s.specificity.stderr, 2),
+            format_rank(result, "specificity", name),
+            format_percent(result.relative_ranks["specificity"][name]),
+        ]
+        row += [
+            format_number(s.generalization.value),
+            _ci(s, "generalization"),
+            format_rank(result, "generalization", name),
+            format_percent(result.relative_ranks["generalization"][name]),
+            "; ".join(s.flags) if s.flags else "–",
+        ]
+        rows.append(row)
+    head = []
+    if result.verdict is not None:
+        head = [*result.verdict.text, ""]
+    lines = head + [
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join("---" if i == 0 else "--:" for i in range(len(header))) + "|",
+    ]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    o = result.options
+    notes = [
+        "",
+        f"Rows in the verdict's order (by level of its decisions, by specificity within a "
+        f"level: only the decided pairs listed in results.json are claims). Common "
+        f"frame: {result.common_frame}. Specificity and generalization: lower is better "
+        f"({o['distance'].upper()} distance in the model's parameter space, in the images' "
+        f"intensity units; M = {o['n_samples']} samples, seed {o['seed']}); overlap: higher "
+        "is better. 95% CI: subject-level interval (jackknife over the subjects: would the "
+        "score hold for other subjects?). MC s.e.: Monte-Carlo standard error of the "
+        "specificity estimate only (it shrinks as M grows). Rank: 1 is best. Rel. rank: "
+        "100% for the best score, 0% for the worst, linear between, (worst - x) / "
+        f"(worst - best). {TIES_WORDS}",
+        "",
+        "| Registration | Frame from | Spread mean (mm) | Spread flagged | Spread max (mm) | "
+        "Folded (mean) | Folded (worst image) | SDlogJ | det J min | det J max | "
+        "Inverse consistency (mm) |",
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|",
+    ]
+    for name in order:
+        s = result.scores[name]
+        pl = s.plausibility
+        notes.append(
+            f"| {name} | {s.frame.method} | {format_number(s.frame.spread_mean_mm, 3)} | "
+            f"{'yes' if frame_spread_flagged(result, name) else 'no'} | "
+            f"{format_number(s.frame.spread_max_mm, 3)} | {pl.folded_fraction:.2%} | "
+            f"{pl.folded_max:.2%} | {format_number(pl.sdlogj, 3)} | "
+            f"{format_number(pl.jacobian_min, 3)} | {format_number(pl.jacobian_max, 3)} | "
+            f"{format_number(pl.inverse_consistency_mm, 3)} |"
+        )
+    notes += [
+        "",
+        "Frame spread: how far the per-image estimates of the transform into the common "
+        "frame lie from it. " + frame_spread_words(result)[1],
+    ]
+    return "\n".join(lines + notes + subjects_summary(result)) + "\n"
+
+
+def subjects_summary(result) -> list[str]:
+    """The lines of ``summary.md`` that name the flagged subjects of every registration.
+
+    Per registration, each flagged subject (manifest index and image) with its diagnosis
+    and flags, or that none is flagged; and the subjects left out of every score.
+    """
+    if not any(s.subjects for s in result.scores.values()):
+        return []
+    lines = [
+        "",
+        "## Flagged subjects",
+        "",
+        "Each subject compared with the rest of its cohort under the same registration "
+        "(robust z-scores, z = (x - median) / (1.4826 MAD)): its distance to the texture "
+        "model of the others, its deformation, its label overlap with the others, its "
+        "coverage of the common grid (per-subject values in subjects.csv).",
+        "",
+    ]
+    left_out = result.options.get("left_out_of_scores") or []
+    if left_out:
+        first = next(iter(result.scores.values()))
+        names = ", ".join(f"{i} ({first.subjects[i].image})" for i in left_out)
+        lines += [
+            f"Left out of every registration's scores (off the common grid): subject {names}.",
+            "",
+        ]
+    for name, s in result.scores.items():
+        flagged = [q for q in s.subjects if q.flags]
+        if not flagged:
+            lines.append(f"- {name}: none of the {len(s.subjects)} subjects is flagged.")
+            continue
+        lines.append(f"- {name}: {len(flagged)} of the {len(s.subjects)} subjects flagged:")
+        for q in flagged:
+            cause = q.diagnosis if q.diagnosis is not None else "no common cause recognised"
+            lines.append(f"  - subject {q.index} ({q.image}): {cause}. {'; '.join(q.flags)}.")
+    return lines
+
+
+def _missing(v) -> bool:
+    return v is None or (isinstance(v, float) and math.isnan(v))
+
+
+#: The columns of ``subjects.csv`` taken from a subject's deformation, in order.
+_SUBJECT_DEFORMATION = (
+    "folded_fraction",
+    "sdlogj",
+    "sdlogj_z",
+    "jacobian_min",
+    "jacobian_max",
+    "inverse_consistency_mm",
+    "inverse_consistency_z",
+    "linear_det",
+    "nonlinear_rms_mm",
+    "nonlinear_rms_z",
+    "displacement_rms_mm",
+)
+
+
+def subjects_csv(result) -> str:
+    """One row per registration and subject (manifest order): the subject's quality control.
+
+    Columns: registration, index, image, in_scores, score (distance to the model of the
+    others, intensity units), z, overlap, overlap_z, coverage, the deformation measures
+    (mm where a length) and their z, flags (joined by "; "), diagnosis. Empty cells: not
+    computed.
+    """
+    fields = ["registration", "index", "image", "in_scores", "score", "z"]
+    fields += ["overlap", "overlap_z", "coverage", *_SUBJECT_DEFORMATION, "flags", "diagnosis"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for name, s in result.scores.items():
+        for q in s.subjects:
+            row = {
+                "registration": name,
+                "index": q.index,
+                "image": q.image,
+                "in_scores": q.in_scores,
+                "score": q.score,
+                "z": q.z,
+                "overlap": q.overlap,
+                "overlap_z": q.overlap_z,
+                "coverage": q.coverage,
+                **{k: q.deformation.get(k) for k in _SUBJECT_DEFORMATION},
+                "flags": "; ".join(q.flags),
+                "diagnosis": q.diagnosis or "",
+            }
+            w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
+    return buf.getvalue()
+
+
+def results_csv(result) -> str:
+    """One row per registration: scores, standard errors, ranks, relative ranks, frame."""
+    fields = ["registration", "specificity", "specificity_stderr"]
+    fields += ["specificity_ci95_lo", "specificity_ci95_hi"]
+    fields += ["generalization", "generalization_stderr"]
+    fields += ["generalization_ci95_lo", "generalization_ci95_hi"]
+    overlaps = [m for m in result.measures if m.startswith("overlap.")]
+    fields += overlaps
+    fields += [f"{m}_ci95_{e}" for m in overlaps for e in ("lo", "hi")]
+    fields += [f"rank.{m}" for m in result.measures]
+    fields += [f"relative_rank.{m}" for m in result.measures]
+    fields += [f"tied_with.{m}" for m in result.measures]
+    fields += ["frame_method", "frame_spread_mean_mm", "frame_spread_max_mm"]
+    fields += ["folded_fraction", "folded_max", "sdlogj", "jacobian_min", "jacobian_max"]
+    fields += ["inverse_consistency_mm", "flags"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for name, s in result.scores.items():
+        row = {
+            "registration": name,
+            "specificity": s.specificity.value,
+            "specificity_stderr": s.specificity.stderr,
+            "generalization": s.generalization.value,
+            "generalization_stderr": s.generalization.stderr,
+            "frame_method": s.frame.method,
+            "frame_spread_mean_mm": s.frame.spread_mean_mm,
+            "frame_spread_max_mm": s.frame.spread_max_mm,
+            "folded_fraction": s.folded_fraction,
+            "folded_max": s.folded_max,
+            "sdlogj": s.plausibility.sdlogj,
+            "jacobian_min": s.plausibility.jacobian_min,
+            "jacobian_max": s.plausibility.jacobian_max,
+            "inverse_consistency_mm": s.plausibility.inverse_consistency_mm,
+            "flags": "; ".join(s.flags),
+        }
+        for m in ["specificity", "generalization", *overlaps]:
+            iv = s.intervals.get(m)
+            row[f"{m}_ci95_lo"] = iv.lo if iv is not None else None
+            row[f"{m}_ci95_hi"] = iv.hi if iv is not None else None
+        row.update({m: s.measures()[m] for m in overlaps})
+        row.update({f"rank.{m}": result.ranks[m][name] for m in result.measures})
+        row.update({f"relative_rank.{m}": result.relative_ranks[m][name] for m in result.measures})
+        row.update({f"tied_with.{m}": ";".join(result.tied_with(m, name)) for m in result.measures})
+        w.writerow(row)
+    return buf.getvalue()
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def results_json(result) -> str:
+    """The text of ``results.json``: :meth:`EvaluationResult.to_dict
+    <itk_nrreval.evaluation.EvaluationResult.to_dict>`, indented, numpy values as Python's."""
+    return json.dumps(result.to_dict(), indent=2, default=_json_default) + "\n"
