@@ -32,9 +32,10 @@ import numpy as np
 
 from ._errors import InputError
 from ._images import image_stack, mask_array
-from ._output import atomic_path, json_number, write_json, write_text
+from ._output import json_number, write_json, write_text
 from ._progress import progress as _progress
 from .overlap import WEIGHTINGS, overlap_table
+from .report.validation import OUTPUT_FILES, write_validation
 from .specificity import specificity
 from .warps import MEMBERSHIP_TOLERANCE, FoldingError, random_cps, warp_stack
 
@@ -52,24 +53,12 @@ __all__ = [
     "validate_manifest",
     "parse_section",
     "take_section",
-    "plot_fig2",
-    "plot_vs_d",
-    "fig2_figure",
-    "vs_d_figure",
 ]
 
 #: The mean displacements (pixels) of the default run: 12 values from 0 to the paper's 3.0.
 DEFAULT_DISPLACEMENTS = (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
 #: The straight-line fit and the correlations use ``d >= FIT_FROM`` (the paper's 0.375).
 FIT_FROM = 0.375
-#: The files :meth:`ValidationResult.write` writes, in order.
-OUTPUT_FILES = (
-    "validation.csv",
-    "validation.json",
-    "validation_fig2.png",
-    "validation_vs_d.png",
-    "report.html",
-)
 _KINDS = ("phantom", "mni")
 _AXES = ("x", "y", "z")
 _Z975 = 1.959963984540054  # standard normal 97.5 % quantile
@@ -268,12 +257,12 @@ class ValidationResult:
         """Write :data:`OUTPUT_FILES` into `out_dir` (created if needed).
 
         ``validation.csv`` (:meth:`to_csv`), ``validation.json`` (the package version and
-        :meth:`to_dict`), ``validation_fig2.png`` (:func:`plot_fig2`, the first weighting),
-        ``validation_vs_d.png`` (:func:`plot_vs_d`) and ``report.html`` (one self-contained
-        page: the verdict in words, the table by ``d``, the figures embedded, Fig. 2 for
-        every weighting; :func:`itk_nrreval.html_report.validation_report_html`). Each file
-        is written under a temporary name and renamed into place, so a file is complete or
-        absent; other files in `out_dir` are left alone.
+        :meth:`to_dict`), ``validation_fig2.png`` (the paper's Fig. 2, the first weighting),
+        ``validation_vs_d.png`` (specificity and overlap against d) and ``report.html`` (one
+        self-contained page: the verdict in words, the table by ``d``, the figures embedded,
+        Fig. 2 for every weighting; :func:`itk_nrreval.report.validation.write_validation`).
+        Each file is written under a temporary name and renamed into place, so a file is
+        complete or absent; other files in `out_dir` are left alone.
 
         Returns
         -------
@@ -281,24 +270,12 @@ class ValidationResult:
             The files written, in :data:`OUTPUT_FILES` order.
         """
         from ._version import __version__
-        from .html_report import validation_report_html
-        from .reports import png_bytes
 
         out = Path(out_dir)
-        paths = [out / name for name in OUTPUT_FILES]
+        paths = [out / name for name in OUTPUT_FILES[:2]]
         write_text(paths[0], self.to_csv())
         write_json(paths[1], {"version": __version__, **self.to_dict()})
-        # every figure rendered once: the files and the page hold the same bytes
-        figures = {f"fig2_{w}": png_bytes(fig2_figure(self, weighting=w)) for w in self.weightings}
-        figures["vs_d"] = png_bytes(vs_d_figure(self))
-        for path, key in ((paths[2], f"fig2_{self.weightings[0]}"), (paths[3], "vs_d")):
-            with atomic_path(path) as tmp:
-                tmp.write_bytes(figures[key])
-        write_text(
-            paths[4],
-            validation_report_html(self, figures=figures, units=_UNITS, version=__version__),
-        )
-        return paths
+        return paths + write_validation(self, out, version=__version__)
 
 
 # ----------------------------------------------------------------------------------------
@@ -974,156 +951,3 @@ def summarize(rows: Sequence[ValidationRow], weightings: Sequence[str]) -> Valid
         sensitivity_mm=slope_mm / mean_se if mean_se > 0 else nan,
         n_fit=n_fit,
     )
-
-
-# ----------------------------------------------------------------------------------------
-# Figures
-# ----------------------------------------------------------------------------------------
-
-
-def _d_label(result) -> str:
-    sp = result.spacing
-    if sp is not None and np.allclose(sp, sp[0]) and sp[0] != 1.0:
-        return f"mean displacement d (pixels; 1 px = {sp[0]:g} mm)"
-    return "mean displacement d (pixels)"
-
-
-_UNITS = "L1 distance, intensity units"  # validate's specificity: the paper's L1, lambda 1
-
-
-def fig2_figure(result: ValidationResult, *, weighting: str | None = None):
-    """The paper's Fig. 2: specificity against overlap, coloured by d.
-
-    Error bars: one Monte-Carlo standard error of each specificity (model sampling only),
-    with a note in the title when they are smaller than the markers. The grey line is the
-    least-squares fit over ``d >= 0.375`` (with Pearson r and its 95 % interval); the
-    dashed line is the unperturbed specificity (d = 0). 2D and 3D runs alike.
-
-    Parameters
-    ----------
-    result : ValidationResult
-    weighting : str, optional
-        The overlap's label weighting (default: the first of the run).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    import matplotlib
-    from matplotlib.figure import Figure  # no pyplot: the process's backend is left alone
-
-    from .reports import HIDDEN_BARS, bars_hidden
-
-    w = weighting or result.weightings[0]
-    d = result.column("displacement")
-    s = result.column("specificity")
-    se = result.column("specificity_stderr")
-    o = result.column(f"overlap_{w}")
-    fig = Figure(figsize=(6.4, 4.8), dpi=120)
-    ax = fig.subplots()
-    levels = np.unique(d)
-    cmap = matplotlib.colormaps["viridis"].resampled(max(len(levels), 1))
-    for k, v in enumerate(levels):
-        sel = d == v
-        ax.errorbar(o[sel], s[sel], yerr=se[sel], fmt="o", ms=5, color=cmap(k), label=f"{v:g}")
-    fit = d >= FIT_FROM
-    a, b = result.summary.fit.get(w, (math.nan, math.nan))
-    if math.isfinite(a) and math.isfinite(b) and fit.any():
-        xs = np.linspace(np.nanmin(o[fit]), np.nanmax(o[fit]), 2)
-        r = result.summary.pearson_r[w]
-        lo, hi = result.summary.pearson_ci.get(w, (math.nan, math.nan))
-        ci = f", 95% CI {lo:.3f} to {hi:.3f}" if math.isfinite(lo) else ""
-        ax.plot(
-            xs,
-            a * xs + b,
-            color="0.5",
-            lw=2,
-            zorder=0,
-            label=f"fit d>={FIT_FROM:g} (r={r:.3f}{ci})",
-        )
-    if result.summary.unperturbed is not None:
-        ax.axhline(result.summary.unperturbed, ls="--", color="k", lw=1, label="d = 0")
-    ax.set_xlabel(
-        f"generalized Tanimoto overlap ({w.replace('_', '-')} weighted, 0..1; higher: "
-        "better aligned)",
-        fontsize=9,
-    )
-    ax.set_ylabel(f"specificity ({_UNITS})\nlower is better", fontsize=9)
-    grid = " x ".join(map(str, result.shape[::-1]))
-    bars = "error bars: ±1 Monte-Carlo s.e. (model sampling only)"
-    if bars_hidden(ax, se, markersize=5):
-        bars += f", {HIDDEN_BARS}"
-    ax.set_title(
-        f"N = {result.n_images} images of {grid}, {len(result.rows)} perturbed sets; "
-        f"M = {result.n_samples:,} samples\n{bars}",
-        fontsize=9,
-    )
-    ax.legend(title="d (pixels)", fontsize=7, title_fontsize=8, ncol=2, loc="best")
-    fig.tight_layout()
-    return fig
-
-
-def vs_d_figure(result: ValidationResult):
-    """Specificity and overlap against d: mean over repeats, error bars one SD over repeats.
-
-    A note in each title when the bars are smaller than the markers (or when one repeat
-    leaves no spread to show).
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    from matplotlib.figure import Figure
-
-    from .reports import HIDDEN_BARS, bars_hidden
-
-    m = result.means()
-    repeats = result.parameters.get("repeats")
-    fig = Figure(figsize=(10, 4), dpi=120)
-    a1, a2 = fig.subplots(1, 2)
-
-    def bars(ax, sds) -> str:
-        if repeats == 1:
-            return "one repeat per d: no spread to show"
-        note = f"error bars: ±1 SD over the {f'{repeats} ' if repeats else ''}repeats"
-        return note + (f", {HIDDEN_BARS}" if bars_hidden(ax, sds, markersize=6) else "")
-
-    a1.errorbar(m["displacement"], m["specificity"], yerr=m["specificity_sd"], fmt="o-", capsize=3)
-    a1.set_xlabel(_d_label(result))
-    a1.set_ylabel(f"specificity ({_UNITS})\nlower is better")
-    sens = result.summary.sensitivity_mm
-    extra = f"\n{sens:.3g} Monte-Carlo s.e. per mm of d" if math.isfinite(sens) else ""
-    a1.set_title(
-        f"Specificity, M = {result.n_samples:,}; {bars(a1, m['specificity_sd'])}{extra}",
-        fontsize=9,
-    )
-    for w in result.weightings:
-        a2.errorbar(
-            m["displacement"],
-            m[f"overlap_{w}"],
-            yerr=m[f"overlap_{w}_sd"],
-            fmt="o-",
-            capsize=3,
-            label=w.replace("_", " "),
-        )
-    a2.set_xlabel(_d_label(result))
-    a2.set_ylabel("generalized Tanimoto overlap (0..1)\nhigher is better")
-    sds = np.concatenate([m[f"overlap_{w}_sd"] for w in result.weightings])
-    a2.set_title(f"Overlap; {bars(a2, sds)}", fontsize=9)
-    a2.legend(title="label weighting", fontsize=8, title_fontsize=8)
-    fig.tight_layout()
-    return fig
-
-
-def plot_fig2(result: ValidationResult, path, *, weighting: str | None = None) -> None:
-    """Write :func:`fig2_figure` to `path` (PNG)."""
-    from .reports import png_bytes
-
-    Path(path).write_bytes(png_bytes(fig2_figure(result, weighting=weighting)))
-
-
-def plot_vs_d(result: ValidationResult, path) -> None:
-    """Write :func:`vs_d_figure` to `path` (PNG)."""
-    from .reports import png_bytes
-
-    Path(path).write_bytes(png_bytes(vs_d_figure(result)))

@@ -181,14 +181,14 @@ def _num(value, spec: str = ".4f") -> str:
 
 
 def plot_fig2(result, path, *, weighting: str | None = None) -> None:
-    """:func:`itk_nrreval.validation.plot_fig2` (the figures now live with the result)."""
-    from ..validation import plot_fig2 as draw
+    """:func:`itk_nrreval.report.validation.plot_fig2`."""
+    from ..report.validation import plot_fig2 as draw
 
     draw(result, path, weighting=weighting)
 
 
 def plot_vs_d(result, path) -> None:
-    """:func:`itk_nrreval.validation.plot_vs_d` (the figures now live with the result)."""
-    from ..validation import plot_vs_d as draw
+    """:func:`itk_nrreval.report.validation.plot_vs_d`."""
+    from ..report.validation import plot_vs_d as draw
 
     draw(result, path)
