@@ -45,6 +45,7 @@ from ._output import (
 )
 from .evaluation import EvaluationResult, evaluate
 from .manifest import add_registration, load_manifest, write_manifest
+from .report.sweep import write_sweep
 from .transforms import file_stem
 
 __all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter"]
@@ -322,7 +323,7 @@ def sweep(
         (every setting), ``cache/`` (the evaluation's per-image cache), ``evaluation/``
         (the evaluation's reports, its ``report.html`` included) and ``sweep.json`` /
         ``sweep.csv`` / ``sweep.png`` / ``report.html`` (the sweep's page: the verdict in
-        words, every setting, the figures; :func:`itk_nrreval.html_report.sweep_report_html`).
+        words, every setting, the figures; :func:`itk_nrreval.report.sweep.sweep_report_html`).
     labels : sequence of path, optional
         Label maps of the images: the overlap is reported beside specificity.
     mask : path, optional
@@ -598,127 +599,8 @@ def _cell(v) -> str:
 
 
 def _write(result: SweepResult, out: Path) -> None:
-    """``sweep.png``, ``report.html``, then ``sweep.csv`` and ``sweep.json``, each under a
-    temporary name renamed when complete; the evaluation's ``mean_images.png`` (already
-    written in ``evaluation/``) is embedded in the page as it is."""
-    from ._output import atomic_path
-    from .html_report import sweep_report_html
-    from .reports import png_bytes
-
-    figures = {"sweep.png": png_bytes(_figure(result), dpi=110)}
-    with atomic_path(out / "sweep.png") as tmp:
-        tmp.write_bytes(figures["sweep.png"])
-    means = out / "evaluation" / "mean_images.png"
-    if means.is_file():
-        figures["mean_images.png"] = means.read_bytes()
-    html = sweep_report_html(result, figures=figures, truth_measure=_TRUTH_MEASURE)
-    write_text(out / "report.html", html)
+    """``sweep.png`` and ``report.html`` (:func:`itk_nrreval.report.sweep.write_sweep`), then
+    ``sweep.csv`` and ``sweep.json``, each under a temporary name renamed when complete."""
+    write_sweep(result, out, truth_measure=_TRUTH_MEASURE)
     write_text(out / "sweep.csv", _csv(result))
     write_json(out / "sweep.json", result.to_dict())
-
-
-def _figure(result: SweepResult):
-    """One panel per measure against the first swept option; other options as lines.
-
-    Subject-level 95% intervals as error bars (when computed; each title says when they are
-    smaller than the markers or missing), flagged settings as red crosses, each measure's
-    best setting ringed, specificity's recommendation starred.
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
-    from matplotlib.figure import Figure
-
-    from .reports import HIDDEN_BARS, bars_hidden, specificity_units
-
-    first, *others = list(result.parameters)
-    xs = list(result.parameters[first])
-    numeric = all(isinstance(x, numbers.Real) and not isinstance(x, bool) for x in xs)
-    position = {repr(x): (float(x) if numeric else k) for k, x in enumerate(xs)}
-    found = list(result.evaluation.scores[result.settings[0].name].measures())
-    overlaps = [m for m in found if m.startswith("overlap.")]
-    # one overlap weighting is enough to read: inverse volume (every label counts alike)
-    overlap = "overlap.inverse_volume" if "overlap.inverse_volume" in overlaps else overlaps[:1]
-    measures = ["specificity", *([overlap] if isinstance(overlap, str) else overlap)]
-    if result.truth_error_mm is not None:
-        measures.append(_TRUTH_MEASURE)
-    fig = Figure(figsize=(4.2 * len(measures), 3.6), layout="constrained")
-    axes = fig.subplots(1, len(measures), squeeze=False)[0]
-    lines: dict[tuple, list[SweepSetting]] = {}
-    for s in result.settings:
-        lines.setdefault(tuple(repr(s.values[o]) for o in others), []).append(s)
-    for ax, measure in zip(axes, measures, strict=True):
-        halves = []  # every bar's longer side, to say whether any shows
-        for key, group in lines.items():
-            x = [position[repr(s.values[first])] for s in group]
-            y, err = [], [[], []]
-            for s in group:
-                v, iv = _value(result, s.name, measure)
-                y.append(v)
-                err[0].append(v - iv[0] if iv else 0.0)
-                err[1].append(iv[1] - v if iv else 0.0)
-                halves.append(max(err[0][-1], err[1][-1]) if iv else math.nan)
-            label = ", ".join(f"{o}={s}" for o, s in zip(others, key, strict=True)) or None
-            ax.errorbar(x, y, yerr=err, marker="o", ms=4, capsize=3, label=label)
-            for s, xv, yv in zip(group, x, y, strict=True):
-                if result.evaluation.scores[s.name].flags:
-                    ax.plot(xv, yv, "x", color="red", ms=10, mew=2)
-                if result.best_by.get(measure) == s.name:
-                    ax.plot(xv, yv, "o", mfc="none", mec="black", ms=13, mew=1.5)
-                if measure == "specificity" and s.name == result.recommended:
-                    ax.plot(xv, yv, "*", color="gold", mec="black", ms=15)
-        ax.set_xlabel(first)
-        if numeric and min(xs) > 0 and max(xs) / min(xs) >= 8:
-            ax.set_xscale("log")
-            ax.minorticks_off()
-        if numeric:
-            ax.set_xticks([float(x) for x in xs], [f"{x:g}" for x in xs])
-        else:
-            ax.set_xticks(range(len(xs)), [str(x) for x in xs])
-        if measure == "specificity":
-            unit = f"\n{specificity_units(result.evaluation)}"
-        else:
-            unit = _unit(measure)
-        if all(math.isnan(h) for h in halves):
-            bars = "no interval" if measure == _TRUTH_MEASURE else "no interval computed"
-        elif bars_hidden(ax, halves, markersize=4):
-            bars = f"95% CI bars {HIDDEN_BARS}"
-        else:
-            bars = "bars: subject-level 95% CI"
-        ax.set_title(f"{_TITLES.get(measure.split('.')[0], measure)}{unit}\n{bars}", fontsize=8)
-        if len(lines) > 1 and ax is axes[0]:
-            ax.legend(fontsize=7)
-    o = result.evaluation.options
-    fig.suptitle(
-        f"{result.method} sweep (M = {o['n_samples']:,} specificity samples, N = "
-        f"{result.evaluation.scores[result.settings[0].name].specificity.n_images} images): "
-        "ringed = best by each measure, star = specificity's choice, red x = flagged "
-        "implausible",
-        fontsize=8,
-    )
-    return fig
-
-
-_TITLES = {
-    "specificity": "specificity (lower is better)",
-    "overlap": "overlap (higher is better)",
-    _TRUTH_MEASURE: "true correspondence error (lower is better)",
-}
-
-
-def _unit(measure: str) -> str:
-    if measure == _TRUTH_MEASURE:
-        return ", mm"
-    if measure.startswith("overlap."):
-        return f"\n{measure.split('.', 1)[1].replace('_', ' ')} weighting, 0..1"
-    return ", intensity units"
-
-
-def _value(result: SweepResult, name: str, measure: str):
-    if measure == _TRUTH_MEASURE:
-        return result.truth_error_mm[name], None
-    sc = result.evaluation.scores[name]
-    iv = sc.intervals.get(measure)
-    ok = iv is not None and math.isfinite(iv.lo) and math.isfinite(iv.hi)
-    return sc.measures()[measure], ((iv.lo, iv.hi) if ok else None)
