@@ -1,5 +1,5 @@
 """The package's structure: no reaching into another module's private names, no import
-cycle, and no Dask unless a scheduler is asked for."""
+cycle, no Dask unless a scheduler is asked for, and matplotlib only in the report package."""
 
 from __future__ import annotations
 
@@ -109,3 +109,33 @@ def test_evaluation_imports_no_dask():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def _imports_matplotlib(path: Path) -> list[int]:
+    """The lines of `path` that import matplotlib (or a submodule of it), at any depth."""
+    lines = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        else:
+            continue
+        if any(n == "matplotlib" or n.startswith("matplotlib.") for n in names):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_only_the_report_package_imports_matplotlib():
+    """Presentation is kept apart from the measures: every figure is drawn in
+    itk_nrreval.report; the domain modules call it to write."""
+    modules = _modules()
+    offences = [
+        f"{name}:{line}"
+        for name, path in modules.items()
+        if name != "itk_nrreval.report" and not name.startswith("itk_nrreval.report.")
+        for line in _imports_matplotlib(path)
+    ]
+    assert offences == []
+    # the check sees imports inside functions, where the report's are
+    assert _imports_matplotlib(modules["itk_nrreval.report._plot"])

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from .._errors import InputError
 from .._output import check_output_folder, staged_folder
-from ..diagnostics import DiagnosticsResult, save_cell_figure, table1_csv, table1_markdown
+from ..diagnostics import DiagnosticsResult
+from ..report.diagnostics import save_cell_figure, table1_csv, table1_markdown
 from ._options import add_quiet_option, samples, seed
 
 __all__ = [

@@ -1,13 +1,18 @@
-"""Everything a person looks at: figures, pages, tables and the text files of every result.
+"""Everything a person looks at: the figures, pages, tables and text files of every result.
 
-The domain modules compute; to write they call the functions here (``result.write(folder)``
-comes here), and only the modules of this package import matplotlib (inside their functions,
-without pyplot: the process's backend is left alone).
+The domain modules compute; to write they call this package (``result.write(folder)`` comes
+here), and only its modules import matplotlib (inside their functions, without pyplot: the
+process's backend is left alone). Its modules take the results without importing their
+classes, since the domain modules import them to write.
 
-* :mod:`.evaluation` (with :mod:`.evaluation_text`, :mod:`.evaluation_figures` and
-  :mod:`.evaluation_page`): ``evaluate``'s figures, ``report.html``, ``summary.md`` and CSV;
+* :mod:`.evaluation` (:func:`write_evaluation`), with :mod:`.evaluation_text` (summary.md,
+  results.csv/json, subjects.csv), :mod:`.evaluation_figures` and :mod:`.evaluation_page`
+  (report.html): ``evaluate``;
+* :mod:`.validation`: ``validate``'s Fig. 2, specificity against d and report.html;
+* :mod:`.sweep`: ``sweep``'s figure and report.html;
+* :mod:`.diagnostics`: ``diagnose``'s Table 1 and cell-population bars;
 * :mod:`._plot`, :mod:`._html`, :mod:`._format`: the plot helpers, HTML pieces and number
-  formats every page shares.
+  formats they share.
 """
 
 from ._format import format_number, format_percent
