@@ -77,6 +77,7 @@ footer{font-size:.8em;color:#666;margin-top:40px}
 
 
 def escape(text) -> str:
+    """`text` (any value, as ``str``) safe inside HTML and in attribute values."""
     return html.escape(str(text), quote=True)
 
 
@@ -86,6 +87,8 @@ def _img(png: bytes, alt: str) -> str:
 
 
 def figure_html(png: bytes, alt: str, caption: str, *, css: str = "") -> str:
+    """A ``<figure>``: the PNG embedded as a ``data:`` URI, `alt` (plain text), `caption`
+    (HTML), and an optional CSS class (``"half"``: two side by side)."""
     cls = f' class="{css}"' if css else ""
     return f"<figure{cls}>{_img(png, alt)}<figcaption>{caption}</figcaption></figure>"
 
@@ -212,6 +215,7 @@ def slug_ids(names: Sequence[str], prefix: str = "reg-") -> dict[str, str]:
 
 
 def interval_text(iv) -> str:
+    """A subject-level interval as ``[lo, hi]``; a dash when there is none or it is not finite."""
     if iv is None or not math.isfinite(iv.lo) or not math.isfinite(iv.hi):
         return "–"
     return f"[{format_number(iv.lo)}, {format_number(iv.hi)}]"
