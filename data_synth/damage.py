@@ -11,7 +11,11 @@ the way registration pipelines fail. Each damage acts on the subject's true tran
 * ``"duplicated"``: the subject's image and labels are a copy of another subject's (the
   one before it), with that subject's transform;
 * ``"off_grid"``: ``Shift o T``, shifted 10 fields of view away: the image lands outside
-  the common grid.
+  the common grid;
+* ``"inverted"``: ``T^-1 = phi^-1 o A^-1`` (the population's own ``subject_to_template``),
+  the transform of the wrong direction (subject points to template points);
+* ``"swapped"``: the subject and the one before it exchange their true transforms (a mix-up
+  of two subjects' files): both are registered with the other's transform.
 """
 
 from __future__ import annotations
@@ -32,7 +36,9 @@ from .writing import write_population
 
 __all__ = ["DAMAGES", "DIAGNOSES", "damaged_transform", "write_damaged"]
 
-DAMAGES = ("mirrored", "affine_only", "scaled", "duplicated", "off_grid")
+DAMAGES = ("mirrored", "affine_only", "scaled", "duplicated", "off_grid", "inverted", "swapped")
+#: The damages that need a subject before the damaged one (its copy, its swap partner).
+_PAIRED = ("duplicated", "swapped")
 
 #: The words each damage's diagnosis holds (:func:`itk_nrreval.subject_qc.assess_subjects`):
 #: what the tests and the benchmark count as a right diagnosis.
@@ -42,6 +48,8 @@ DIAGNOSES = {
     "scaled": "displacements scaled",
     "duplicated": "duplicated image",
     "off_grid": "off the common grid",
+    "inverted": "inverted transform",
+    "swapped": "looks like another subject's",
 }
 
 
@@ -54,7 +62,8 @@ def _centre(image: sitk.Image) -> np.ndarray:
 def damaged_transform(
     pop: Population, index: int, damage: str, *, scale: float = 3.0
 ) -> sitk.Transform:
-    """Subject `index`'s true transform, damaged (module docstring); not ``"duplicated"``."""
+    """Subject `index`'s true transform, damaged (module docstring); not a paired damage
+    (``"duplicated"``, ``"swapped"``: :func:`write_damaged` makes those)."""
     true = pop.subjects[index].template_to_subject
     dim = pop.template.GetDimension()
     pose, warp = true.GetNthTransform(0), true.GetNthTransform(1)
@@ -74,7 +83,10 @@ def damaged_transform(
         size = np.asarray(pop.template.GetSize()) * np.asarray(pop.template.GetSpacing())
         shift = sitk.TranslationTransform(dim, (10 * size).tolist())
         return sitk.CompositeTransform([shift, true])
-    raise ValueError(f"damage: {damage!r} is not one of {DAMAGES[:3] + DAMAGES[4:]}")
+    if damage == "inverted":
+        return pop.subjects[index].subject_to_template
+    single = tuple(d for d in DAMAGES if d not in _PAIRED)
+    raise ValueError(f"damage: {damage!r} is not one of {single}")
 
 
 def write_damaged(
@@ -89,7 +101,8 @@ def write_damaged(
     ``manifest.yaml`` has the true registration ``truth`` alone; ``damaged.yaml`` has one
     registration ``damaged``: every subject's true transform except those in `damages`
     (subject index -> damage, one of :data:`DAMAGES`), damaged as the module docstring says.
-    A ``"duplicated"`` subject cannot be subject 0.
+    A ``"duplicated"`` or ``"swapped"`` subject cannot be subject 0; the subject before a
+    ``"swapped"`` one gets its true transform (the subject before it must not be damaged).
 
     Returns
     -------
@@ -104,14 +117,21 @@ def write_damaged(
     labels = [(out / f"lab/{n}.nii.gz").absolute() for n in names]
     transforms = [(out / f"truth/{n}.h5").absolute() for n in names]
     for i, damage in damages.items():
+        if damage in _PAIRED and (i == 0 or i - 1 in damages):
+            raise ValueError(
+                f"damages: subject {i} ({damage}) needs an undamaged subject before it"
+            )
         if damage == "duplicated":
-            if i == 0:
-                raise ValueError("damages: subject 0 has no subject before it to duplicate")
             images[i] = out / f"damaged/{names[i]}_copy.nii.gz"
             labels[i] = out / f"damaged/{names[i]}_copy_labels.nii.gz"
             shutil.copyfile(out / f"img/{names[i - 1]}.nii.gz", images[i])
             shutil.copyfile(out / f"lab/{names[i - 1]}.nii.gz", labels[i])
             transforms[i] = transforms[i - 1]
+        elif damage == "swapped":
+            # copies, so that each file's name says what it holds in this registration
+            for mine, theirs in ((i, i - 1), (i - 1, i)):
+                transforms[mine] = out / f"damaged/{names[mine]}_swapped_with_{names[theirs]}.h5"
+                shutil.copyfile(out / f"truth/{names[theirs]}.h5", transforms[mine])
         else:
             t = damaged_transform(pop, i, damage, scale=scale)
             transforms[i] = write_transform(t, out / f"damaged/{names[i]}_{damage}.h5")

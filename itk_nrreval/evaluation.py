@@ -52,7 +52,7 @@ from .plausibility import (
 )
 from .report import FLAGGED_SUBJECTS_SHOWN, write_evaluation
 from .specificity import GeneralizationResult, SpecificityResult
-from .subject_qc import SubjectQC, across_registrations, assess_subjects
+from .subject_qc import SubjectQC, across_registrations, assess_subjects, transform_mixups
 from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
@@ -652,8 +652,19 @@ def evaluate(
         # cache: the report pictures the flagged ones it shows, read from there
         assessed: dict[str, tuple[SubjectQC, ...]] = {}
 
-        def pictured(r) -> list[int]:
-            assessed[r.name] = _subjects(m, r, subject_thresholds)
+        def pictured(r, products) -> list[int]:
+            first = _subjects(m, r, subject_thresholds)
+            # an inverted or another subject's transform is looked for among the flagged
+            # subjects only: it takes resampling them through changed transforms
+            mixups = transform_mixups(
+                first,
+                images=[str(p) for p in m.images],
+                scored=r.scored,
+                gram=r.gram,
+                products=products,
+                thresholds=subject_thresholds,
+            )
+            assessed[r.name] = _subjects(m, r, subject_thresholds, mixups) if mixups else first
             return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
 
         options["pictured_subjects"] = pictured
@@ -785,8 +796,11 @@ def _scored(run) -> tuple[int, ...]:
     return next(iter(run.registrations.values())).scored
 
 
-def _subjects(m: Manifest, r, thresholds: SubjectThresholds) -> tuple[SubjectQC, ...]:
-    """Every subject's quality control under registration run `r`."""
+def _subjects(
+    m: Manifest, r, thresholds: SubjectThresholds, mixups: dict[int, str] | None = None
+) -> tuple[SubjectQC, ...]:
+    """Every subject's quality control under registration run `r` (`mixups`: causes found
+    by :func:`itk_nrreval.subject_qc.transform_mixups`)."""
     fits = [f.to_dict() for f in r.affine_fits]
     plaus = [p.to_dict() for p in r.plausibility]
     deformation = {
@@ -806,6 +820,7 @@ def _subjects(m: Manifest, r, thresholds: SubjectThresholds) -> tuple[SubjectQC,
         overlap_volume=None if sums is None else sums["volume"],
         overlap_target_sums=None if sums is None else sums["target_sums"],
         overlap_weights=None if r.overlap is None else r.overlap.weights("volume"),
+        mixups=mixups,
         thresholds=thresholds,
     )
 

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import os
 import tempfile
@@ -603,7 +604,7 @@ def run_pipeline(
     label_interpolation: str = "linear",
     label_sigma_mm: float | None = None,
     off_grid_coverage: float = 0.5,
-    pictured_subjects: Callable[[RegistrationRun], Sequence[int]] | None = None,
+    pictured_subjects: Callable[[RegistrationRun, Callable], Sequence[int]] | None = None,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -632,7 +633,10 @@ def run_pipeline(
         fraction of the median image, under any registration (:func:`off_grid_subjects`);
         they are named in a warning.
     pictured_subjects : callable, optional
-        Given a registration's finished :class:`RegistrationRun` (without these pictures),
+        Given a registration's finished :class:`RegistrationRun` (without these pictures)
+        and a function that resamples images through changed transforms and returns their
+        inner products with the scored images (:func:`_alternative_products`, its first
+        arguments bound; for the subject QC's :func:`itk_nrreval.subject_qc.transform_mixups`),
         the subjects (manifest indices) whose resampled middle slice its thumbnails should
         also hold (``image_<i>``), e.g. the subjects its quality control flags: read from
         the cache before it goes, a few slices rather than all N.
@@ -669,6 +673,9 @@ def run_pipeline(
             values = [0, *sorted(found)]  # index 0: background
 
         resampled: dict[str, tuple] = {}
+        # what resampling through a changed transform needs, per registration
+        frame_specs: dict[str, tuple] = {}
+        reference_grids: dict[str, Geometry] = {}
         thumbnails: dict[str, dict[str, np.ndarray]] = {}
         warned: set[int] = set()
         for name, reg in m.registrations.items():
@@ -706,6 +713,7 @@ def run_pipeline(
             if save_resampled is not None:
                 _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
             resampled[name] = (keys, metas, frame)
+            frame_specs[name], reference_grids[name] = frame_spec, reg_grid
             thumbnails[name] = _thumbnails(disk, grid, reg_grid, keys, metas)
 
         left_out = off_grid_subjects(resampled, off_grid_coverage)
@@ -766,15 +774,103 @@ def run_pipeline(
                 scored=scored,
             )
             if pictured_subjects is not None:
+                products = functools.partial(
+                    _alternative_products,
+                    region_ctx,
+                    m,
+                    name,
+                    frame_specs[name],
+                    reference_grids[name],
+                    [keys[i] for i in scored],
+                    runs[name].mean_image,
+                    interpolation,
+                )
                 extra = {
                     f"image_{i}": _image_slice(disk, grid, keys[i])
-                    for i in pictured_subjects(runs[name])
+                    for i in pictured_subjects(runs[name], products)
                     if f"image_{i}" not in thumbnails[name]
                 }
                 runs[name] = dataclasses.replace(
                     runs[name], thumbnails={**thumbnails[name], **extra}
                 )
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
+
+
+def _alternative_products(
+    ctx: _Context,
+    m: Manifest,
+    name: str,
+    frame_spec: tuple,
+    reg_grid: Geometry,
+    keys: Sequence[str],
+    mean_image: np.ndarray,
+    interpolation: str,
+    alternatives: Sequence,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Resample images through changed transforms; their inner products with the scores'.
+
+    On the driver, after the per-image tasks, for the few subjects the quality control asks
+    about (:func:`itk_nrreval.subject_qc.transform_mixups`).
+
+    Parameters
+    ----------
+    ctx : _Context
+        The run's context with the evaluated region as its mask.
+    m : Manifest
+    name : str
+        The registration.
+    frame_spec : tuple
+        Its frame F (:func:`_frame_transform`).
+    reg_grid : Geometry
+        Its reference grid (where a transform that is neither linear nor a displacement
+        field is sampled to be inverted).
+    keys : sequence of str, length n
+        The cache entries of the scored subjects' resampled images.
+    mean_image : ndarray of shape (*spatial_zyx,)
+        Their mean, which centred the Gram matrix.
+    interpolation : str
+        As the resampled entries.
+    alternatives : sequence of Alternative
+        ``image`` resampled through subject ``transform``'s transform of registration
+        `name` (its inverse with ``inverse``: :func:`itk_nrreval.transforms.invert`, exact
+        for linear maps), as the per-image task resamples (0 outside the field of view).
+
+    Returns
+    -------
+    cross : ndarray of shape (n_alternatives, n)
+        Inner products of the centred alternatives with the centred scored images, inside
+        the region (squared intensity units, as the Gram matrix).
+    squared : ndarray of shape (n_alternatives,)
+        Each centred alternative's squared norm there.
+    """
+    cache = ctx.cache()
+    grid = ctx.grid
+    region = ctx.mask_flat()
+    frame = _frame_transform(frame_spec, grid, cache)
+    transforms = m.registrations[name].transforms
+    centre = mean_image.reshape(-1)
+    centre = centre[region] if region is not None else centre
+    changed = np.empty((len(alternatives), centre.size))
+    raw: dict[int, sitk.Image] = {}
+    for c, alt in enumerate(alternatives):
+        t = chain_transform(transforms[alt.transform])
+        if alt.inverse:
+            t = invert(t, grid=reg_grid)
+        if alt.image not in raw:
+            raw[alt.image] = read_image(m.images[alt.image], what="image")
+        values = resample_images(
+            [raw[alt.image]],
+            [resampling_transform(t, frame)],
+            grid,
+            interpolation=interpolation,
+            show_progress=False,
+        )[0].reshape(-1)
+        changed[c] = (values[region] if region is not None else values) - centre
+    cross = np.empty((len(alternatives), len(keys)))
+    for k, key in enumerate(keys):  # one scored image in memory at a time
+        x = np.asarray(cache.open("resampled", key).array("image", mmap=True))
+        cross[:, k] = changed @ ((x[region] if region is not None else x) - centre)
+    return cross, np.einsum("ij,ij->i", changed, changed)
 
 
 def _reduce(

@@ -643,6 +643,12 @@ class SubjectThresholds:
         Diagnose scaled displacements when a subject flagged for its deformation moves
         more than this many times the cohort's median non-linear displacement (default
         1.5).
+    better_fit_ratio : float
+        Diagnose an inverted transform, or another subject's transform, when a flagged
+        subject's image resampled through the inverse of its transform, or another flagged
+        subject's image resampled through its transform, is this many times closer to the
+        model of the others than its own resampled image (default 2;
+        :func:`itk_nrreval.subject_qc.transform_mixups`).
     """
 
     outlier_z: float = 3.5
@@ -654,6 +660,7 @@ class SubjectThresholds:
     duplicate_distance: float = 0.01
     affine_only_ratio: float = 0.1
     scaled_ratio: float = 1.5
+    better_fit_ratio: float = 2.0
 
 
 def frame_spread_limit_mm(extent_mm: float, thresholds: Thresholds = Thresholds()) -> float:  # noqa: B008

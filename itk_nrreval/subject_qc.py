@@ -30,12 +30,19 @@ their spread is about symmetric. :class:`itk_nrreval.plausibility.SubjectThresho
 when a subject is flagged, and a common cause of failure that explains the flags is named
 in words (the diagnosis): left off the common grid, duplicated image, mirrored, stopped
 early / affine only, scaled displacements.
+
+Two causes need images resampled through changed transforms, and are looked for among the
+flagged subjects only (:func:`transform_mixups`, at most :data:`MAX_MIXUP_SUBJECTS` of them,
+on the driver after the per-image work): an **inverted transform** (the subject's image
+through the inverse of its transform is much closer to the model of the others) and
+**another subject's transform** (another flagged subject's image fits it much better than
+its own: two subjects' transforms swapped or mixed up).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
@@ -50,6 +57,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "SubjectQC",
+    "Alternative",
+    "transform_mixups",
+    "MAX_MIXUP_SUBJECTS",
     "robust_z",
     "leave_one_out_distances",
     "pair_distances",
@@ -275,6 +285,7 @@ def assess_subjects(
     overlap_volume: np.ndarray | None = None,
     overlap_target_sums: np.ndarray | None = None,
     overlap_weights: np.ndarray | None = None,
+    mixups: Mapping[int, str] | None = None,
     thresholds: SubjectThresholds,
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under one registration: scores, z, flags, diagnosis.
@@ -298,6 +309,9 @@ def assess_subjects(
         The scored subjects' per-label sums (:func:`subject_overlaps`); None without labels.
     overlap_weights : ndarray of shape (n_labels,), optional
         The label weights of the overlap.
+    mixups : mapping of int to str, optional
+        Causes found by resampling flagged subjects through changed transforms (subject
+        index -> words; :func:`transform_mixups` on this function's first answer).
     thresholds : SubjectThresholds
 
     Returns
@@ -324,8 +338,9 @@ def assess_subjects(
     * its overlap has z < ``-th.overlap_z``.
 
     The diagnosis is the first that applies of: off the common grid; duplicated image;
-    mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
-    non-linear displacement above ``th.scaled_ratio`` times the median).
+    mirrored; `mixups` (inverted transform, another subject's transform); stopped early or
+    affine only; scaled displacements (a deformation flag with a non-linear displacement
+    above ``th.scaled_ratio`` times the median).
     """
     th = thresholds
     n_all = len(images)
@@ -404,6 +419,8 @@ def assess_subjects(
         if det < 0 and median_det > 0:
             flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
             causes.append("mirrored: its transform flips an axis (left-right swapped?)")
+        if mixups and i in mixups:
+            causes.append(mixups[i])
         if z[i] > th.outlier_z:
             flags.append(
                 f"far from the model of the others: distance {_fmt(score[i])} ({_z_words(z[i])})"
@@ -464,6 +481,121 @@ def assess_subjects(
             )
         )
     return tuple(out)
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """One subject's image resampled through a changed transform (:func:`transform_mixups`).
+
+    Attributes
+    ----------
+    image : int
+        Whose image (manifest index).
+    transform : int
+        Through whose transform under the same registration (manifest index).
+    inverse : bool
+        Through the inverse of that transform.
+    """
+
+    image: int
+    transform: int
+    inverse: bool = False
+
+
+#: At most this many flagged subjects (the farthest from the model first) are resampled
+#: through changed transforms: k subjects cost k inversions and k (k - 1) resamplings.
+MAX_MIXUP_SUBJECTS = 8
+
+
+def _distance_to_span(gram: np.ndarray, cross: np.ndarray, squared: float) -> float:
+    """The distance (intensity units) of one more image to the affine span of the images of
+    `gram` (n, n), from its inner products with them `cross` (n,) and with itself."""
+    n = gram.shape[0]
+    extended = np.empty((n + 1, n + 1))
+    extended[:n, :n] = gram
+    extended[:n, n] = extended[n, :n] = cross
+    extended[n, n] = squared
+    return float(leave_one_out_distances(extended)[n])
+
+
+def transform_mixups(
+    subjects: Sequence[SubjectQC],
+    *,
+    images: Sequence[str],
+    scored: Sequence[int],
+    gram: np.ndarray,
+    products: Callable[[Sequence[Alternative]], tuple[np.ndarray, np.ndarray]],
+    thresholds: SubjectThresholds,
+) -> dict[int, str]:
+    """Name the flagged subjects whose transform is inverted, or is another subject's.
+
+    For each flagged subject i in the scores (at most :data:`MAX_MIXUP_SUBJECTS`, largest
+    z first), its image is resampled through the inverse of its transform, and every other
+    such subject j's image through i's transform. Each is measured as the leave-one-out
+    score is: its distance to the affine span of the other subjects' resampled images, the
+    others being all scored subjects but i (and j). When one of them is closer than i's own
+    resampled image by ``thresholds.better_fit_ratio`` or more (the same model, the same
+    units), the best such is named.
+
+    Parameters
+    ----------
+    subjects : sequence of SubjectQC
+        Every subject under one registration, in manifest order (:func:`assess_subjects`).
+    images : sequence of str
+        Every subject's image, as the manifest names it.
+    scored, gram
+        As :func:`assess_subjects`: the subjects in the scores and the Gram matrix (n, n) of
+        their centred resampled images.
+    products : callable
+        Given alternatives, their resampled images' inner products (centred as `gram`,
+        inside the same region) with every scored subject's, shape (n_alternatives, n), and
+        with themselves, shape (n_alternatives,).
+    thresholds : SubjectThresholds
+
+    Returns
+    -------
+    dict of int to str
+        Subject index -> the cause in words (``mixups=`` of :func:`assess_subjects`); empty
+        when none is found, or fewer than 5 subjects are in the scores.
+    """
+    row = {int(i): r for r, i in enumerate(scored)}
+    if len(row) < 5:
+        return {}
+    gram = np.asarray(gram, np.float64)
+    flagged = [q for q in subjects if q.flags and q.index in row and q.z is not None]
+    flagged.sort(key=lambda q: -q.z)
+    chosen = [q.index for q in flagged[:MAX_MIXUP_SUBJECTS]]
+    alternatives = [Alternative(i, i, inverse=True) for i in chosen]
+    alternatives += [Alternative(j, i) for i in chosen for j in chosen if j != i]
+    if not alternatives:
+        return {}
+    cross, squared = products(alternatives)
+    best: dict[int, tuple[float, Alternative]] = {}
+    for c, alt in enumerate(alternatives):
+        i = alt.transform
+        others = [r for k, r in row.items() if k not in (alt.image, i)]
+        block = gram[np.ix_(others, others)]
+        own = _distance_to_span(block, gram[others, row[i]], gram[row[i], row[i]])
+        changed = _distance_to_span(block, cross[c, others], float(squared[c]))
+        ratio = own / changed if changed > 0 else math.inf
+        if ratio >= thresholds.better_fit_ratio and ratio > best.get(i, (0.0, alt))[0]:
+            best[i] = (ratio, alt)
+    out = {}
+    for i, (ratio, alt) in best.items():
+        if alt.inverse:
+            out[i] = (
+                f"inverted transform: its inverse brings the image {ratio:.1f}x closer to the "
+                "model of the others (a transform of the wrong direction: image to reference "
+                "points?)"
+            )
+        else:
+            j = alt.image
+            out[i] = (
+                f"its transform looks like another subject's: subject {j}'s image "
+                f"({images[j]}) fits it {ratio:.1f}x better than its own (transforms swapped "
+                "or mixed up?)"
+            )
+    return out
 
 
 def across_registrations(

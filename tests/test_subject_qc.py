@@ -126,6 +126,80 @@ def test_a_clean_cohort_flags_no_one(clean):
     assert result.options["left_out_of_scores"] == []
 
 
+#: Transforms mixed up: subject 5's inverted, subjects 11 and 12 each with the other's.
+MIXUPS = {5: "inverted", 12: "swapped"}
+
+
+@pytest.fixture(scope="module")
+def mixed_up(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("mixups")
+    pop = make_population("phantom", dim=2, n=N, seed=4, size=40)
+    _, manifest = write_damaged(pop, folder, MIXUPS)
+    out = folder / "out"
+    return _evaluate(manifest, out), out, folder
+
+
+@pytest.mark.parametrize("index, damage", [(5, "inverted"), (11, "swapped"), (12, "swapped")])
+def test_an_inverted_or_swapped_transform_is_flagged_and_diagnosed(mixed_up, index, damage):
+    q = mixed_up[0].scores["damaged"].subjects[index]
+    assert q.flags
+    assert DIAGNOSES[damage] in q.diagnosis
+
+
+def test_a_swap_names_the_other_subject_and_only_the_mixed_up_ones_are_flagged(mixed_up):
+    subjects = mixed_up[0].scores["damaged"].subjects
+    assert {q.index for q in subjects if q.flags} == {5, 11, 12}
+    assert "subject 12's image" in subjects[11].diagnosis
+    assert "subject 11's image" in subjects[12].diagnosis
+
+
+def _distance_to_span(x: np.ndarray, others: np.ndarray) -> float:
+    """The Euclidean distance of `x` to the affine span of the rows of `others` (SVD)."""
+    mean = others.mean(axis=0)
+    _, sv, vt = np.linalg.svd(others - mean, full_matrices=False)
+    basis = vt[sv > sv[0] * 1e-10]
+    r = x - mean
+    return float(np.linalg.norm(r - basis.T @ (basis @ r)))
+
+
+def _ratio_in(diagnosis: str) -> float:
+    import re
+
+    return float(re.search(r"(\d+(?:\.\d+)?)x (?:better|closer)", diagnosis).group(1))
+
+
+def test_the_swap_and_inversion_ratios_are_brute_force_fits_in_image_space(mixed_up):
+    """Independent of the Gram matrix and of the toolkit's inversion: the images resampled
+    by SimpleITK through the population's own true transforms (subject 11's for subject 12's
+    transform, which it is; subject 5's true one for the inverse of its inverted one),
+    against a PCA of the others' saved resampled images inside the evaluated region."""
+    result, out, folder = mixed_up
+    subjects = result.scores["damaged"].subjects
+    region = sitk.GetArrayFromImage(sitk.ReadImage(str(out / "resampled/region.nii.gz")))
+    region = region.astype(bool)
+    saved = out / "resampled/damaged"
+    x = {
+        i: sitk.GetArrayFromImage(sitk.ReadImage(str(saved / f"image_{i:03d}.nii.gz")))[region]
+        for i in range(N)
+    }
+    template = sitk.ReadImage(str(folder / "truth/template.nii.gz"))
+
+    def through(image: int, truth_of: int) -> np.ndarray:
+        moving = sitk.ReadImage(str(folder / f"img/s{image:02d}.nii.gz"), sitk.sitkFloat64)
+        t = sitk.ReadTransform(str(folder / f"truth/s{truth_of:02d}.h5"))
+        return sitk.GetArrayFromImage(sitk.Resample(moving, template, t, sitk.sitkLinear))[region]
+
+    # subject 12's transform is subject 11's true one: subject 11's image fits it
+    others = np.stack([x[k] for k in range(N) if k not in (11, 12)])
+    expected = _distance_to_span(x[12], others) / _distance_to_span(through(11, 11), others)
+    assert _ratio_in(subjects[12].diagnosis) == pytest.approx(expected, rel=0.05)
+    # the inverse of subject 5's inverted transform is (numerically) its true transform
+    others = np.stack([x[k] for k in range(N) if k != 5])
+    expected = _distance_to_span(x[5], others) / _distance_to_span(through(5, 5), others)
+    assert expected > 2
+    assert _ratio_in(subjects[5].diagnosis) == pytest.approx(expected, rel=0.1)
+
+
 def test_results_json_csv_and_summary_name_the_subjects(damaged):
     result, out = damaged
     entries = json.loads((out / "results.json").read_text())["registrations"]["damaged"]["subjects"]
