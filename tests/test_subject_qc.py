@@ -8,6 +8,7 @@ image space, from the resampled images evaluate saves.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import warnings
@@ -216,6 +217,38 @@ def test_results_json_csv_and_summary_name_the_subjects(damaged):
     summary = (out / "summary.md").read_text()
     assert "6 of the 36 subjects flagged" in summary
     assert "Left out of every registration's scores (off the common grid): subject 35" in summary
+
+
+def test_every_subject_threshold_has_an_evaluate_option_with_its_default():
+    from itk_nrreval.cli import build_parser
+
+    args = build_parser().parse_args(["evaluate", "m.yaml", "--out", "o"])
+    fields = [f.name for f in dataclasses.fields(nr.SubjectThresholds)]
+    assert {f: getattr(args, f"subject_{f}") for f in fields} == dataclasses.asdict(
+        nr.SubjectThresholds()
+    )
+
+
+def test_subject_thresholds_from_the_command_line_decide_the_flags(cohort, tmp_path, capsys):
+    """--subject-z 1 flags the subjects of the clean cohort whose model distance has z > 1,
+    which the default 3.5 leaves alone; a ratio below 1 is refused in one line."""
+    from itk_nrreval.cli import main
+
+    out = tmp_path / "out"
+    args = ["evaluate", str(cohort[0]), "--out", str(out), "--samples", "200", "--quiet"]
+    args += ["--no-figures", "--no-confidence"]
+    assert main([*args, "--subject-z", "1", "--subject-better-fit", "3"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["options"]["subject_thresholds"]["outlier_z"] == 1.0
+    assert res["options"]["subject_thresholds"]["better_fit_ratio"] == 3.0
+    subjects = res["registrations"]["truth"]["subjects"]
+    far = {e["index"] for e in subjects if e["z"] > 1}
+    assert far and {e["index"] for e in subjects if e["flags"]} >= far
+    capsys.readouterr()
+    assert main([*args, "--subject-better-fit", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "--subject-better-fit: expected a number >= 1, got '0.5'" in err
 
 
 # ----------------------------------------------------------------------------- the numerics

@@ -17,6 +17,7 @@ __all__ = [
     "seed",
     "fraction",
     "positive",
+    "at_least_one",
     "MAX_SAMPLES",
 ]
 
@@ -92,6 +93,11 @@ def fraction(text: str) -> float:
 def positive(text: str) -> float:
     """A finite number > 0."""
     return _number(text, lambda v: 0 < v < math.inf, "a positive number")
+
+
+def at_least_one(text: str) -> float:
+    """A finite number >= 1 (a ratio of 'better than')."""
+    return _number(text, lambda v: 1 <= v < math.inf, "a number >= 1")
 
 
 def add_quiet_option(parser: argparse.ArgumentParser) -> None:

@@ -6,11 +6,19 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._options import add_quiet_option, fraction, integer, positive, samples, seed
+from ._options import (
+    add_quiet_option,
+    at_least_one,
+    fraction,
+    integer,
+    positive,
+    samples,
+    seed,
+)
 
 
 def add_parser(sub) -> None:
-    from ..plausibility import Thresholds
+    from ..plausibility import SubjectThresholds, Thresholds
 
     p = sub.add_parser(
         "evaluate",
@@ -153,14 +161,110 @@ def add_parser(sub) -> None:
         action="store_true",
         help="skip the inverse-consistency error (one numerical inversion per image)",
     )
+    q = p.add_argument_group(
+        "subject flags (which subjects of a registration stand out from its cohort; robust "
+        "z-scores over the subjects)"
+    )
+    for option, field_name, parse, metavar, words in SUBJECT_OPTIONS:
+        default = getattr(SubjectThresholds(), field_name)
+        q.add_argument(
+            option,
+            dest=f"subject_{field_name}",
+            type=parse,
+            default=default,
+            metavar=metavar,
+            help=f"{words} (default {default:g})",
+        )
     p.set_defaults(func=run)
+
+
+#: ``--subject-*`` options: option, SubjectThresholds field, parser, metavar, help.
+SUBJECT_OPTIONS = (
+    (
+        "--subject-z",
+        "outlier_z",
+        positive,
+        "Z",
+        "flag a subject whose log distance to the model of the others has z above Z",
+    ),
+    (
+        "--subject-deformation-z",
+        "deformation_z",
+        positive,
+        "Z",
+        "flag a subject whose log SDlogJ, non-linear displacement or inverse-consistency "
+        "error has z above Z and is above --subject-deformation-ratio x the cohort's median",
+    ),
+    (
+        "--subject-deformation-ratio",
+        "deformation_ratio",
+        positive,
+        "R",
+        "see --subject-deformation-z",
+    ),
+    (
+        "--subject-overlap-z",
+        "overlap_z",
+        positive,
+        "Z",
+        "flag a subject whose label overlap with the others has z below -Z",
+    ),
+    (
+        "--subject-folded",
+        "folded",
+        fraction,
+        "F",
+        "flag a subject whose transform folds more than F of its voxels",
+    ),
+    (
+        "--subject-off-grid",
+        "off_grid_coverage",
+        fraction,
+        "F",
+        "flag, and leave out of every score, a subject covering less of the common grid "
+        "than F x the median subject",
+    ),
+    (
+        "--subject-duplicate",
+        "duplicate_distance",
+        fraction,
+        "F",
+        "flag two subjects whose resampled images are closer than F x the median pairwise "
+        "distance as duplicates",
+    ),
+    (
+        "--subject-affine-only",
+        "affine_only_ratio",
+        fraction,
+        "F",
+        "flag a subject whose non-linear displacement is below F x the cohort's median "
+        "(stopped early, affine only)",
+    ),
+    (
+        "--subject-scaled-ratio",
+        "scaled_ratio",
+        positive,
+        "R",
+        "diagnose scaled displacements when a subject flagged for its deformation moves "
+        "more than R x the cohort's median",
+    ),
+    (
+        "--subject-better-fit",
+        "better_fit_ratio",
+        at_least_one,
+        "R",
+        "diagnose an inverted transform, or another subject's transform, when the image "
+        "through the inverse, or another flagged subject's image through it, is R x closer "
+        "to the model of the others",
+    ),
+)
 
 
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
     from ..evaluation import evaluate
-    from ..plausibility import Thresholds
+    from ..plausibility import SubjectThresholds, Thresholds
     from ..report import summary_table
 
     if (args.label_interpolation == "gaussian") != (args.label_sigma is not None):
@@ -199,6 +303,9 @@ def run(args: argparse.Namespace) -> int:
             sdlogj_ratio=args.flag_sdlogj_ratio,
             sdlogj_floor=args.flag_sdlogj_floor,
             frame_spread_fraction=args.flag_frame_spread,
+        ),
+        subject_thresholds=SubjectThresholds(
+            **{field: getattr(args, f"subject_{field}") for _, field, *_ in SUBJECT_OPTIONS}
         ),
     )
     print(summary_table(result), end="")
