@@ -1,18 +1,23 @@
 """Per-subject quality control (issue 27): are failed subjects found, and clean ones left alone?
 
-Generated 2D phantom cohorts (data_synth, N = 36, 64 x 64 pixels), one per seed, evaluated
-twice with ``nrreval evaluate``: with their true registration (clean: every flag is a false
-positive), and with one subject per damage broken (:mod:`data_synth.damage`: mirrored,
-affine only, displacements scaled 3x, duplicated image, shifted off the common grid; the
-damaged subjects rotate with the seed). Reported: per damage, the recall (damaged subjects
-flagged) and the diagnosis accuracy (flagged with the right cause named); the false
-positives among the undamaged subjects of the damaged cohorts (the subject a duplicate
-copies is flagged with it, and is counted apart: either of the two may be the copy); and on
-the clean cohorts the fraction of subjects flagged and the spread of each robust z-score
-(quantiles and the share beyond the default thresholds), which is what the thresholds of
-:class:`itk_nrreval.plausibility.SubjectThresholds` were set from.
+Generated phantom cohorts (data_synth), one per seed, in two settings: 2D, N = 36, 64 x 64
+pixels; 3D, N = 12, 32^3 voxels of 2 mm. Each is evaluated with ``nrreval evaluate``: with
+its true registration (clean: every flag is a false positive), and with some subjects'
+registrations broken (:mod:`data_synth.damage`: mirrored, affine only, displacements
+scaled 3x, duplicated image, shifted off the common grid, inverted transform, two subjects'
+transforms swapped), a few damages per damaged cohort (``GROUPS``) at positions that move
+with the seed. Reported per damage: the recall (damaged subjects flagged; both subjects of
+a swap are damaged), the right diagnoses (flagged with the right cause named), and the
+diagnosis accuracy where one is named; the false positives among the undamaged subjects of
+the damaged cohorts (the subject a duplicate copies is flagged with it, and is counted
+apart: either of the two may be the copy) and of the clean cohorts; how many times better
+the alternatives of :func:`itk_nrreval.subject_qc.transform_mixups` fit (``better_fit``),
+which ``SubjectThresholds.better_fit_ratio`` was set from; and on the clean 2D cohorts the
+spread of each robust z-score (quantiles and the share beyond the default thresholds),
+which the other thresholds of :class:`itk_nrreval.plausibility.SubjectThresholds` were set
+from.
 
-Run with ``nice -n 5`` on a shared machine; ``SEEDS`` sets the cost (about 5 s per seed).
+Run with ``nice -n 5`` on a shared machine; ``SETTINGS`` sets the cost (about 4 minutes).
 """
 
 from __future__ import annotations
@@ -28,17 +33,46 @@ import itk_nrreval as nr
 from data_synth import make_population
 from data_synth.damage import DAMAGES, DIAGNOSES, write_damaged
 
-N = 36
-SIZE = 64
-SEEDS = tuple(range(1, 13))
 SCALE = 3.0
 Z_NAMES = ("z", "overlap_z", "sdlogj_z", "nonlinear_rms_z", "inverse_consistency_z")
+#: The mix-ups that transform_mixups names; every other damage's better_fit should be low.
+MIXUPS = ("inverted", "swapped")
+
+#: Per setting: dimension, N, voxels per side, seeds, and the damages of each damaged
+#: cohort of a seed (one subject per damage; a swap and a duplicate also take the subject
+#: before it). Fewer damages per cohort at N = 12, where each damaged subject is 8%.
+SETTINGS = {
+    "2D": {
+        "dim": 2,
+        "n": 36,
+        "size": 64,
+        "seeds": tuple(range(1, 13)),
+        "groups": (
+            ("mirrored", "affine_only", "scaled", "duplicated", "off_grid"),
+            ("inverted", "swapped"),
+        ),
+    },
+    "3D": {
+        "dim": 3,
+        "n": 12,
+        "size": 32,
+        "seeds": tuple(range(1, 9)),
+        "groups": (
+            ("mirrored", "inverted"),
+            ("affine_only", "scaled"),
+            ("swapped",),
+            ("duplicated", "off_grid"),
+        ),
+    },
+}
 
 
-def _damages(seed: int) -> dict[int, str]:
-    """One subject per damage, at positions that move with the seed (never subject 0)."""
-    start = 1 + (seed * 7) % (N - 6 * len(DAMAGES))
-    return {start + 6 * k: damage for k, damage in enumerate(DAMAGES)}
+def _damages(seed: int, damages: tuple[str, ...], n: int) -> dict[int, str]:
+    """One subject per damage, evenly spaced from a start that moves with the seed (never
+    subject 0; the subject before each is undamaged)."""
+    spacing = n // len(damages)
+    start = 1 + (seed * 7) % (spacing - 1)
+    return {start + spacing * k: damage for k, damage in enumerate(damages)}
 
 
 def _z_values(q) -> dict[str, float]:
@@ -59,41 +93,72 @@ def _evaluate(manifest: Path):
     return next(iter(result.scores.values())).subjects
 
 
-def main() -> dict:
+def _setting(dim: int, n: int, size: int, seeds, groups, tmp: Path) -> dict:
+    """Evaluate every seed's clean and damaged cohorts of one setting; count."""
+    total = {d: 0 for d in DAMAGES}
+    found = {d: 0 for d in DAMAGES}
+    named = {d: 0 for d in DAMAGES}
+    right = {d: 0 for d in DAMAGES}
+    better_fit: dict[str, list[float]] = {}  # damage (or "undamaged") -> checked subjects'
+    false_pos, partners, n_partners, others = 0, 0, 0, 0
     clean_flagged, clean_total = 0, 0
     clean_reasons: dict[str, int] = {}
     zs: dict[str, list[float]] = {k: [] for k in Z_NAMES}
-    found = {d: 0 for d in DAMAGES}
-    diagnosed = {d: 0 for d in DAMAGES}
-    false_pos, partners, others = 0, 0, 0
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="bench-subject-qc-") as tmp:
-        for seed in SEEDS:
-            pop = make_population("phantom", dim=2, n=N, seed=seed, size=SIZE)
-            damages = _damages(seed)
-            clean, damaged = write_damaged(pop, Path(tmp) / f"s{seed}", damages, scale=SCALE)
-            for q in _evaluate(clean):
-                clean_total += 1
-                clean_flagged += bool(q.flags)
-                for flag in q.flags:
-                    key = flag.split(" ")[0]
-                    clean_reasons[key] = clean_reasons.get(key, 0) + 1
-                for k, v in _z_values(q).items():
-                    if v is not None:
-                        zs[k].append(v)
+    for seed in seeds:
+        pop = make_population("phantom", dim=dim, n=n, seed=seed, size=size)
+        for g, group in enumerate(groups):
+            damages = _damages(seed, group, n)
+            folder = tmp / f"{dim}d-s{seed}-g{g}"
+            clean, damaged = write_damaged(pop, folder, damages, scale=SCALE)
+            if g == 0:  # the clean cohort is the same for every group
+                for q in _evaluate(clean):
+                    clean_total += 1
+                    clean_flagged += bool(q.flags)
+                    for flag in q.flags:
+                        key = flag.split(" ")[0]
+                        clean_reasons[key] = clean_reasons.get(key, 0) + 1
+                    for k, v in _z_values(q).items():
+                        if v is not None:
+                            zs[k].append(v)
+            damage_of = dict(damages)
+            damage_of.update({i - 1: "swapped" for i, d in damages.items() if d == "swapped"})
             copied = {i - 1 for i, d in damages.items() if d == "duplicated"}
             for q in _evaluate(damaged):
-                if q.index in damages:
-                    damage = damages[q.index]
-                    found[damage] += bool(q.flags)
-                    diagnosed[damage] += bool(q.diagnosis and DIAGNOSES[damage] in q.diagnosis)
+                kind = damage_of.get(q.index)
+                if q.better_fit is not None:
+                    key = kind if kind is not None else "undamaged"
+                    better_fit.setdefault(key, []).append(q.better_fit)
+                if kind is not None:
+                    total[kind] += 1
+                    found[kind] += bool(q.flags)
+                    named[kind] += q.diagnosis is not None
+                    right[kind] += bool(q.diagnosis and DIAGNOSES[kind] in q.diagnosis)
                 elif q.index in copied:
+                    n_partners += 1
                     partners += bool(q.flags)
                 else:
                     others += 1
                     false_pos += bool(q.flags)
-    seconds = time.perf_counter() - t0
-    n_seeds = len(SEEDS)
+    return {
+        "dim": dim,
+        "n": n,
+        "size": size,
+        "seeds": list(seeds),
+        "groups": [list(g) for g in groups],
+        "total": total,
+        "flagged": found,
+        "named": named,
+        "right": right,
+        "damaged_cohort_false_positives": [false_pos, others],
+        "duplicate_partners_flagged": [partners, n_partners],
+        "clean_flagged": [clean_flagged, clean_total],
+        "clean_flag_reasons": clean_reasons,
+        "better_fit": {k: sorted(v) for k, v in better_fit.items()},
+        "clean_z": zs,
+    }
+
+
+def _spread(zs: dict[str, list[float]]) -> dict[str, dict]:
     th = nr.SubjectThresholds()
     limits = {
         "z": th.outlier_z,
@@ -118,45 +183,58 @@ def main() -> dict:
             "beyond_threshold": float(beyond),
             "threshold": limits[k],
         }
+    return spread
+
+
+def _print(name: str, r: dict, seconds: float) -> None:
+    side = " x ".join([str(r["size"])] * r["dim"])
     print(
-        f"2D phantom cohorts, N = {N} ({SIZE} x {SIZE} pixels), {n_seeds} seeds, one subject "
-        f"per damage per seed (displacements scaled {SCALE:g}x); {seconds:.0f} s\n"
+        f"\n{name} phantom cohorts, N = {r['n']} ({side} voxels), {len(r['seeds'])} seeds, "
+        f"damaged cohorts per seed: {r['groups']} (displacements scaled {SCALE:g}x); "
+        f"{seconds:.0f} s\n"
     )
-    print("| damage | flagged (recall) | right diagnosis |")
-    print("|---|--:|--:|")
+    print("| damage | flagged (recall) | right diagnosis | right where one is named |")
+    print("|---|--:|--:|--:|")
     for d in DAMAGES:
-        print(f"| {d} | {found[d]}/{n_seeds} | {diagnosed[d]}/{n_seeds} |")
+        t, f, nm, ok = r["total"][d], r["flagged"][d], r["named"][d], r["right"][d]
+        where = f"{ok}/{nm}" if nm else "-"
+        print(f"| {d} | {f}/{t} ({f / t:.0%}) | {ok}/{t} | {where} |")
+    fp, others = r["damaged_cohort_false_positives"]
+    cf, ct = r["clean_flagged"]
+    p, np_ = r["duplicate_partners_flagged"]
     print(
-        f"\nDamaged cohorts: {false_pos} of {others} undamaged subjects flagged "
-        f"({false_pos / others:.1%}); the subject a duplicate copies: {partners}/{n_seeds} "
-        "flagged with it (expected: the pair is the finding)."
+        f"\nFalse positives: damaged cohorts {fp} of {others} undamaged subjects flagged "
+        f"({fp / others:.1%}); clean cohorts {cf} of {ct} ({cf / ct:.1%}), flags by first "
+        f"word: {r['clean_flag_reasons']}. The subject a duplicate copies: {p}/{np_} flagged "
+        "with it (expected: the pair is the finding)."
     )
-    print(
-        f"Clean cohorts: {clean_flagged} of {clean_total} subjects flagged "
-        f"({clean_flagged / clean_total:.1%}); flags by first word: {clean_reasons}\n"
-    )
-    print("| robust z on clean cohorts | 1% | median | 99% | min | max | SD | beyond threshold |")
+    fits = r["better_fit"]
+    words = [
+        f"{k}: {len(v)} checked, {min(v):.2f}-{max(v):.2f}" for k, v in sorted(fits.items()) if v
+    ]
+    print(f"better_fit of the flagged subjects checked (min-max): {'; '.join(words)}")
+
+
+def main() -> dict:
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="bench-subject-qc-") as tmp:
+        for name, s in SETTINGS.items():
+            t0 = time.perf_counter()
+            r = _setting(s["dim"], s["n"], s["size"], s["seeds"], s["groups"], Path(tmp))
+            seconds = time.perf_counter() - t0
+            r["seconds"] = seconds
+            r["clean_z"] = _spread(r["clean_z"])
+            _print(name, r, seconds)
+            out[name] = r
+    print("\n| robust z on clean 2D cohorts | 1% | median | 99% | min | max | SD | beyond |")
     print("|---|--:|--:|--:|--:|--:|--:|--:|")
-    for k, s in spread.items():
+    for k, z in out["2D"]["clean_z"].items():
         print(
-            f"| {k} | {s['q01']:.2f} | {s['median']:.2f} | {s['q99']:.2f} | {s['min']:.2f} | "
-            f"{s['max']:.2f} | {s['sd']:.2f} | {s['beyond_threshold']:.2%} "
-            f"({s['threshold']:+g}) |"
+            f"| {k} | {z['q01']:.2f} | {z['median']:.2f} | {z['q99']:.2f} | {z['min']:.2f} | "
+            f"{z['max']:.2f} | {z['sd']:.2f} | {z['beyond_threshold']:.2%} "
+            f"({z['threshold']:+g}) |"
         )
-    return {
-        "n": N,
-        "size": SIZE,
-        "seeds": list(SEEDS),
-        "scale": SCALE,
-        "seconds": seconds,
-        "recall": {d: found[d] / n_seeds for d in DAMAGES},
-        "diagnosis_accuracy": {d: diagnosed[d] / n_seeds for d in DAMAGES},
-        "damaged_cohort_false_positives": [false_pos, others],
-        "duplicate_partners_flagged": [partners, n_seeds],
-        "clean_flagged": [clean_flagged, clean_total],
-        "clean_flag_reasons": clean_reasons,
-        "clean_z": spread,
-    }
+    return out
 
 
 if __name__ == "__main__":

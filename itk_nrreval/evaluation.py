@@ -662,7 +662,6 @@ def evaluate(
                 scored=r.scored,
                 gram=r.gram,
                 products=products,
-                thresholds=subject_thresholds,
             )
             assessed[r.name] = _subjects(m, r, subject_thresholds, mixups) if mixups else first
             return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
@@ -797,10 +796,14 @@ def _scored(run) -> tuple[int, ...]:
 
 
 def _subjects(
-    m: Manifest, r, thresholds: SubjectThresholds, mixups: dict[int, str] | None = None
+    m: Manifest,
+    r,
+    thresholds: SubjectThresholds,
+    mixups: dict[int, tuple[float, str]] | None = None,
 ) -> tuple[SubjectQC, ...]:
-    """Every subject's quality control under registration run `r` (`mixups`: causes found
-    by :func:`itk_nrreval.subject_qc.transform_mixups`)."""
+    """Every subject's quality control under registration run `r` (`mixups`: flagged
+    subjects resampled through changed transforms,
+    :func:`itk_nrreval.subject_qc.transform_mixups`)."""
     fits = [f.to_dict() for f in r.affine_fits]
     plaus = [p.to_dict() for p in r.plausibility]
     deformation = {

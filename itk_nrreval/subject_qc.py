@@ -2,8 +2,8 @@
 
 The verdict (:func:`itk_nrreval.evaluation.verdict`) says which registration of a group is
 best; this module asks, per registration, which of its subjects stand out from the rest of
-the cohort, and why. Everything here is computed from numbers the evaluation already has --
-nothing is resampled again:
+the cohort, and why. The measures are computed from numbers the evaluation already has --
+nothing is resampled again for them:
 
 * **model distance** (``score``, the images' intensity units): the subject's leave-one-out
   reconstruction error, the Euclidean distance of its resampled image (inside the evaluated
@@ -112,6 +112,11 @@ class SubjectQC:
         False when it was left out of every registration's scores (off the common grid).
     flags : tuple of str
         Why it stands out, in words; empty when it does not.
+    better_fit : float or None
+        For a flagged subject checked by :func:`transform_mixups`: how many times closer to
+        the model of the others its image through the inverse of its transform, or another
+        flagged subject's image through its transform, is than its own resampled image (the
+        best of them); None when not checked.
     diagnosis : str or None
         A common cause of failure that explains the flags, in words; None when none is
         recognised (or nothing is flagged).
@@ -128,6 +133,7 @@ class SubjectQC:
     in_scores: bool = True
     flags: tuple[str, ...] = ()
     diagnosis: str | None = None
+    better_fit: float | None = None
 
     @property
     def flagged(self) -> bool:
@@ -150,6 +156,7 @@ class SubjectQC:
             "in_scores": self.in_scores,
             "flags": list(self.flags),
             "diagnosis": self.diagnosis,
+            "better_fit": json_number(self.better_fit),
         }
 
 
@@ -285,7 +292,7 @@ def assess_subjects(
     overlap_volume: np.ndarray | None = None,
     overlap_target_sums: np.ndarray | None = None,
     overlap_weights: np.ndarray | None = None,
-    mixups: Mapping[int, str] | None = None,
+    mixups: Mapping[int, tuple[float, str]] | None = None,
     thresholds: SubjectThresholds,
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under one registration: scores, z, flags, diagnosis.
@@ -309,9 +316,10 @@ def assess_subjects(
         The scored subjects' per-label sums (:func:`subject_overlaps`); None without labels.
     overlap_weights : ndarray of shape (n_labels,), optional
         The label weights of the overlap.
-    mixups : mapping of int to str, optional
-        Causes found by resampling flagged subjects through changed transforms (subject
-        index -> words; :func:`transform_mixups` on this function's first answer).
+    mixups : mapping of int to (float, str), optional
+        Flagged subjects resampled through changed transforms (:func:`transform_mixups` on
+        this function's first answer): subject index -> (how many times closer the best
+        alternative fits, the cause it points to in words).
     thresholds : SubjectThresholds
 
     Returns
@@ -338,9 +346,10 @@ def assess_subjects(
     * its overlap has z < ``-th.overlap_z``.
 
     The diagnosis is the first that applies of: off the common grid; duplicated image;
-    mirrored; `mixups` (inverted transform, another subject's transform); stopped early or
-    affine only; scaled displacements (a deformation flag with a non-linear displacement
-    above ``th.scaled_ratio`` times the median).
+    mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
+    non-linear displacement above ``th.scaled_ratio`` times the median); an inverted
+    transform or another subject's transform (a `mixups` ratio of ``th.better_fit_ratio``
+    or more).
     """
     th = thresholds
     n_all = len(images)
@@ -419,8 +428,6 @@ def assess_subjects(
         if det < 0 and median_det > 0:
             flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
             causes.append("mirrored: its transform flips an axis (left-right swapped?)")
-        if mixups and i in mixups:
-            causes.append(mixups[i])
         if z[i] > th.outlier_z:
             flags.append(
                 f"far from the model of the others: distance {_fmt(score[i])} ({_z_words(z[i])})"
@@ -455,6 +462,11 @@ def assess_subjects(
                 f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
                 "median non-linear displacement (a unit or scale mix-up?)"
             )
+        # after the causes read off the transform itself: the inverse of an affine-only or a
+        # scaled transform can fit somewhat better too (up to 1.5x on generated cohorts)
+        better_fit = mixups[i][0] if mixups and i in mixups else None
+        if better_fit is not None and better_fit >= th.better_fit_ratio:
+            causes.append(mixups[i][1])
         if overlap_z[i] < -th.overlap_z:
             flags.append(
                 f"label overlap with the others {overlap[i]:.3f} (cohort median "
@@ -478,6 +490,7 @@ def assess_subjects(
                 in_scores=i in in_scores,
                 flags=tuple(flags),
                 diagnosis=causes[0] if causes and flags else None,
+                better_fit=better_fit,
             )
         )
     return tuple(out)
@@ -525,17 +538,16 @@ def transform_mixups(
     scored: Sequence[int],
     gram: np.ndarray,
     products: Callable[[Sequence[Alternative]], tuple[np.ndarray, np.ndarray]],
-    thresholds: SubjectThresholds,
-) -> dict[int, str]:
-    """Name the flagged subjects whose transform is inverted, or is another subject's.
+) -> dict[int, tuple[float, str]]:
+    """How much better flagged subjects fit with their transform inverted or exchanged.
 
     For each flagged subject i in the scores (at most :data:`MAX_MIXUP_SUBJECTS`, largest
     z first), its image is resampled through the inverse of its transform, and every other
     such subject j's image through i's transform. Each is measured as the leave-one-out
     score is: its distance to the affine span of the other subjects' resampled images, the
-    others being all scored subjects but i (and j). When one of them is closer than i's own
-    resampled image by ``thresholds.better_fit_ratio`` or more (the same model, the same
-    units), the best such is named.
+    others being all scored subjects but i (and j), and compared with i's own resampled
+    image's distance to the same model (the same units). :func:`assess_subjects` names the
+    cause when the best of them is ``thresholds.better_fit_ratio`` times closer or more.
 
     Parameters
     ----------
@@ -550,13 +562,13 @@ def transform_mixups(
         Given alternatives, their resampled images' inner products (centred as `gram`,
         inside the same region) with every scored subject's, shape (n_alternatives, n), and
         with themselves, shape (n_alternatives,).
-    thresholds : SubjectThresholds
 
     Returns
     -------
-    dict of int to str
-        Subject index -> the cause in words (``mixups=`` of :func:`assess_subjects`); empty
-        when none is found, or fewer than 5 subjects are in the scores.
+    dict of int to (float, str)
+        Per subject checked: own distance / the best alternative's distance, and the cause
+        that alternative points to, in words (``mixups=`` of :func:`assess_subjects`); empty
+        when no subject is flagged, or fewer than 5 subjects are in the scores.
     """
     row = {int(i): r for r, i in enumerate(scored)}
     if len(row) < 5:
@@ -578,22 +590,28 @@ def transform_mixups(
         own = _distance_to_span(block, gram[others, row[i]], gram[row[i], row[i]])
         changed = _distance_to_span(block, cross[c, others], float(squared[c]))
         ratio = own / changed if changed > 0 else math.inf
-        if ratio >= thresholds.better_fit_ratio and ratio > best.get(i, (0.0, alt))[0]:
+        if i not in best or ratio > best[i][0]:
             best[i] = (ratio, alt)
     out = {}
     for i, (ratio, alt) in best.items():
         if alt.inverse:
             out[i] = (
-                f"inverted transform: its inverse brings the image {ratio:.1f}x closer to the "
-                "model of the others (a transform of the wrong direction: image to reference "
-                "points?)"
+                ratio,
+                (
+                    f"inverted transform: its inverse brings the image {ratio:.1f}x closer to the "
+                    "model of the others (a transform of the wrong direction: image to reference "
+                    "points?)"
+                ),
             )
         else:
             j = alt.image
             out[i] = (
-                f"its transform looks like another subject's: subject {j}'s image "
-                f"({images[j]}) fits it {ratio:.1f}x better than its own (transforms swapped "
-                "or mixed up?)"
+                ratio,
+                (
+                    f"its transform looks like another subject's: subject {j}'s image "
+                    f"({images[j]}) fits it {ratio:.1f}x better than its own (transforms swapped "
+                    "or mixed up?)"
+                ),
             )
     return out
 

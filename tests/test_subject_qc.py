@@ -150,6 +150,7 @@ def test_an_inverted_or_swapped_transform_is_flagged_and_diagnosed(mixed_up, ind
 def test_a_swap_names_the_other_subject_and_only_the_mixed_up_ones_are_flagged(mixed_up):
     subjects = mixed_up[0].scores["damaged"].subjects
     assert {q.index for q in subjects if q.flags} == {5, 11, 12}
+    assert {q.index for q in subjects if q.better_fit is not None} == {5, 11, 12}
     assert "subject 12's image" in subjects[11].diagnosis
     assert "subject 11's image" in subjects[12].diagnosis
 
@@ -161,12 +162,6 @@ def _distance_to_span(x: np.ndarray, others: np.ndarray) -> float:
     basis = vt[sv > sv[0] * 1e-10]
     r = x - mean
     return float(np.linalg.norm(r - basis.T @ (basis @ r)))
-
-
-def _ratio_in(diagnosis: str) -> float:
-    import re
-
-    return float(re.search(r"(\d+(?:\.\d+)?)x (?:better|closer)", diagnosis).group(1))
 
 
 def test_the_swap_and_inversion_ratios_are_brute_force_fits_in_image_space(mixed_up):
@@ -193,12 +188,13 @@ def test_the_swap_and_inversion_ratios_are_brute_force_fits_in_image_space(mixed
     # subject 12's transform is subject 11's true one: subject 11's image fits it
     others = np.stack([x[k] for k in range(N) if k not in (11, 12)])
     expected = _distance_to_span(x[12], others) / _distance_to_span(through(11, 11), others)
-    assert _ratio_in(subjects[12].diagnosis) == pytest.approx(expected, rel=0.05)
+    assert subjects[12].better_fit == pytest.approx(expected, rel=1e-3)
+    assert f"fits it {expected:.1f}x better" in subjects[12].diagnosis
     # the inverse of subject 5's inverted transform is (numerically) its true transform
     others = np.stack([x[k] for k in range(N) if k != 5])
     expected = _distance_to_span(x[5], others) / _distance_to_span(through(5, 5), others)
     assert expected > 2
-    assert _ratio_in(subjects[5].diagnosis) == pytest.approx(expected, rel=0.1)
+    assert subjects[5].better_fit == pytest.approx(expected, rel=0.1)
 
 
 def test_results_json_csv_and_summary_name_the_subjects(damaged):
