@@ -857,7 +857,7 @@ def _alternative_products(
         if alt.inverse:
             t = invert(t, grid=reg_grid)
         if alt.image not in raw:
-            raw[alt.image] = read_image(m.images[alt.image], what="image")
+            raw[alt.image] = read_image(m.scored_images[alt.image], what="image")
         values = resample_images(
             [raw[alt.image]],
             [resampling_transform(t, frame)],
