@@ -17,6 +17,9 @@ Cases (2D, N = 12, M = ``N_SAMPLES``):
   (:func:`bench_cheat.add_cheat`);
 * ``sweep_<case>``: the 2D sweeps of ``bench_sweeps.CASES`` (demons field / update smoothing,
   B-spline grid spacing, bending weight; phantom and MNI);
+* ``unseen_<case>``: the registrations of ``sweep_<case>`` (made on T1 images) scored on
+  each subject's T2 image, another scan with its own noise and bias (the manifest's
+  ``evaluation_images``);
 * ``overfit``: demons with little field smoothing (0.25-5 mm) at the default and at five
   times the iterations;
 * ``bspline_grids``: B-spline grids from 2 mm (very fine) to 64 mm;
@@ -141,6 +144,40 @@ def _sweep(
     return res.evaluation, dict(res.truth_error_mm)
 
 
+def _unseen(folder: Path, *, sweep_case: str, kind: str):
+    """The registrations of `sweep_case` (made on the T1 images), scored on each subject's
+    T2 image: another scan with its own noise and bias, which the registration did not see
+    (the manifest's ``evaluation_images``). Same seed, so the T1 images are the sweep's."""
+    import dataclasses
+
+    import itk_nrreval as nr
+    from data_synth import make_population, write_population
+    from itk_nrreval.manifest import load_manifest, write_manifest
+
+    swept = OUT / sweep_case / "sweep" / "manifest.yaml"
+    if not swept.exists():
+        _run_case(sweep_case)
+    data = OUT / f"data_{kind}2d_n{N}_t1t2" / "manifest.yaml"
+    if not data.exists():
+        pop = make_population(kind, dim=2, n=N, seed=SEED, contrasts=("t1", "t2"))
+        write_population(pop, data.parent, montage=False, show_progress=False)
+    both = load_manifest(data)
+    t1 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t1"]
+    t2 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t2"]
+    m = load_manifest(swept)
+    for a, b in zip(m.images, t1, strict=True):  # the registered images are these T1 images
+        same = sitk.GetArrayFromImage(sitk.ReadImage(str(a))) == sitk.GetArrayFromImage(
+            sitk.ReadImage(str(b))
+        )
+        assert same.all(), (a, b)
+    manifest = write_manifest(
+        dataclasses.replace(m, evaluation_images=tuple(t2)), folder / "manifest.yaml"
+    )
+    ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
+    errors = json.loads((OUT / sweep_case / "truth.json").read_text())["true_error_mm"]
+    return ev, errors
+
+
 def _population(kind: str, *, dim: int = 2, n: int = N, spacing: float | None = None) -> Path:
     from data_synth import make_population, write_population
 
@@ -253,6 +290,12 @@ def _cases() -> dict:
             n=10,
             spacing=s,
         )
+    # the 2D sweeps' registrations scored on images they did not see (hypothesis a)
+    for case, kind, dim, *_ in sweeps.CASES:
+        if dim == 2 and case != "phantom2d_fluid_update":
+            cases[f"unseen_{case}"] = lambda folder, c=case, k=kind: _unseen(
+                folder, sweep_case=f"sweep_{c}", kind=k
+            )
     cases["overfit"] = lambda folder: _sweep(
         folder,
         kind="phantom",

@@ -75,8 +75,9 @@ def test_specificity_is_taken_where_every_image_has_a_value(tmp_path, distance):
             np.nan_to_num(stack), mask=region, n_samples=2000, seed=5, distance=distance
         )
         got = res.scores[name].specificity
-        assert got.value == pytest.approx(expected.value, rel=1e-9), name
-        assert got.stderr == pytest.approx(expected.stderr, rel=1e-9), name
+        # evaluate's cache holds the resampled images in float32 (relative rounding 6e-8)
+        assert got.value == pytest.approx(expected.value, rel=1e-6), name
+        assert got.stderr == pytest.approx(expected.stderr, rel=1e-6), name
 
 
 def test_coverage_reported_per_registration(tmp_path):
