@@ -9,6 +9,8 @@ registration's reference -> image transform).
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import sys
 
 import numpy as np
@@ -19,7 +21,7 @@ from scipy.ndimage import gaussian_filter
 from itk_nrreval import InputError, RegistrationResult, register
 from itk_nrreval.cli import main
 from itk_nrreval.manifest import load_manifest
-from itk_nrreval.registration import EngineError, FluidOptions
+from itk_nrreval.registration import AffineOptions, EngineError, FluidOptions
 from itk_nrreval.registration._elastix_worker import ElastixWorker
 from itk_nrreval.registration.bspline import sitk_bspline
 from itk_nrreval.registration.fluid import ants_syn, demons_register, seeded_ants_registration
@@ -234,6 +236,54 @@ def test_an_earlier_affine_stage_is_reused(population, affine_result):
         register(images, method="fluid", affine=affine_result, reference=0, progress=False)
     with pytest.raises(InputError, match="affine: expected an affine registration"):
         register(images, method="pairwise", affine=fluid, progress=False)
+
+
+def test_out_writes_the_result_and_its_settings(population, tmp_path):
+    """``register(out=...)`` writes what ``result.write`` does; registration.json holds the
+    settings (in this order: the file's layout), the reference index, time and file names."""
+    images, _ = population
+    paths = []
+    for i, img in enumerate(images[:3]):
+        paths.append(str(tmp_path / f"s{i}.nii.gz"))
+        sitk.WriteImage(img, paths[-1])
+    out = tmp_path / "affine"
+    result = register(
+        paths, method="affine", reference_choice="far-from-mean", seed=5, out=out, progress=False
+    )
+    defaults = dataclasses.asdict(AffineOptions())
+    settings = {
+        "method": "affine",
+        "engine": "simpleitk",
+        "seed": 5,
+        "n_images": 3,
+        "images": paths,
+        "reference_choice": "far-from-mean",
+        "affine_options": defaults,
+        "affine_stage": "computed",
+        "options": defaults,
+    }
+    assert list(result.settings.items()) == list(settings.items())
+    transforms = [f"{i:03d}_image{i:03d}.h5" for i in range(3)]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["reference.nii.gz", "registration.json", *transforms]
+    )
+    log = json.loads((out / "registration.json").read_text())
+    assert list(log) == [
+        *settings,
+        "reference_index",
+        "seconds",
+        "reference",
+        "transforms",
+        "convention",
+    ]
+    assert {k: log[k] for k in settings} == json.loads(json.dumps(settings))
+    assert log["reference_index"] == result.reference_index is not None
+    assert log["transforms"] == transforms and log["reference"] == "reference.nii.gz"
+    # A reused affine stage records the affine's reference choice, and that it was reused.
+    reused = register(paths, method="affine", affine=result, progress=False)
+    assert reused.settings["reference_choice"] == "far-from-mean"
+    assert reused.settings["affine_stage"] == "reused"
+    assert reused.reference_index == result.reference_index
 
 
 def test_pairwise_simpleitk_improves_over_affine(population, affine_result, tmp_path):

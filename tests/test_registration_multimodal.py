@@ -31,7 +31,7 @@ from itk_nrreval.registration import (
     register_multimodal,
 )
 from itk_nrreval.registration.affine import AffineOptions, affine_register
-from itk_nrreval.registration.bspline import sitk_bspline
+from itk_nrreval.registration.bspline import BSplineOptions, sitk_bspline
 from itk_nrreval.transforms import displacement_field
 
 N_SUBJECTS = 3
@@ -324,6 +324,57 @@ def test_the_same_seed_gives_the_same_transforms(images):
     for a, b in zip(runs[0].transforms, runs[1].transforms, strict=True):
         np.testing.assert_array_equal(a.GetParameters(), b.GetParameters())
     assert runs[0].engine == "simpleitk"  # no B-spline stage: no elastix
+
+
+def test_out_writes_the_result_links_and_settings(images, tmp_path):
+    """``register_multimodal(out=...)`` writes the transforms, reference and links;
+    registration.json holds the settings (in this order: the file's layout)."""
+    out = tmp_path / "per-group"
+    result = register_multimodal(
+        images,
+        GROUPS,
+        strategy="per-group",
+        deformable=False,
+        affine_options={"iterations": 50},
+        seed=4,
+        out=out,
+        progress=False,
+    )
+    t1, t2 = result.group_references["t1"], result.group_references["t2"]
+    assert result.reference_index == t1 and GROUPS[t1] == "t1" and GROUPS[t2] == "t2"
+    affine = {k: v for k, v in dataclasses.asdict(AffineOptions()).items() if k != "metric"}
+    pairwise = {k: v for k, v in dataclasses.asdict(BSplineOptions()).items() if k != "metric"}
+    settings = {
+        "method": "multimodal",
+        "strategy": "per-group",
+        "engine": "elastix",
+        "seed": 4,
+        "n_images": len(images),
+        "images": None,
+        "groups": GROUPS,
+        "reference_group": "t1",
+        "reference_choice": "near-mean of the reference group",
+        "group_references": {"t1": t1, "t2": t2},
+        "metric": "correlation",
+        "cross_metric": "mattes",
+        "deformable": False,
+        "affine_options": {**affine, "sampling": 1.0, "iterations": 50},
+        "options": pairwise,
+    }
+    assert list(result.settings.items()) == list(settings.items())
+    assert result.engine == "simpleitk"  # no B-spline stage
+    transforms = [f"{i:03d}_image{i:03d}.h5" for i in range(len(images))]
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["reference.nii.gz", "registration.json", "link_t2.h5", *transforms]
+    )
+    log = json.loads((out / "registration.json").read_text())
+    after = ["reference_index", "seconds", "reference", "transforms", "convention", "links"]
+    assert list(log) == [*settings, *after]
+    assert {k: log[k] for k in settings} == json.loads(json.dumps(settings))
+    assert log["links"] == {"t2": "link_t2.h5"} and log["transforms"] == transforms
+    link = sitk.ReadTransform(str(out / "link_t2.h5"))
+    p = result.reference.TransformIndexToPhysicalPoint((30, 41))
+    np.testing.assert_allclose(link.TransformPoint(p), result.links["t2"].TransformPoint(p))
 
 
 def test_simpleitk_bspline_with_mutual_information_aligns_t2_to_t1(population, truth):
