@@ -22,7 +22,7 @@ from itk_nrreval import InputError, RegistrationResult, register
 from itk_nrreval.cli import main
 from itk_nrreval.manifest import load_manifest
 from itk_nrreval.registration import AffineOptions, EngineError, FluidOptions
-from itk_nrreval.registration._elastix_worker import ElastixWorker
+from itk_nrreval.registration._elastix_worker import ElastixWorker, elastix_worker_for
 from itk_nrreval.registration.bspline import sitk_bspline
 from itk_nrreval.registration.fluid import ants_syn, demons_register, seeded_ants_registration
 from itk_nrreval.transforms import chain_transform, read_transform
@@ -397,6 +397,21 @@ def test_elastix_crash_gives_a_clear_error(population):
             register(
                 images[:2], method="pairwise", reference=0, elastix_worker=crashing, progress=False
             )
+
+
+def test_a_worker_is_started_for_the_block_only_when_none_is_given(worker):
+    """elastix_worker_for: the caller's worker is used and left running; without one, a
+    worker is started and stopped (its folder removed) when the block ends, also on error."""
+    with elastix_worker_for(worker) as used:
+        assert used is worker
+    assert worker.alive
+    with elastix_worker_for(None, needed=False) as used:
+        assert used is None
+    with pytest.raises(EngineError, match="the job failed"):
+        with elastix_worker_for(None) as started:
+            assert isinstance(started, ElastixWorker) and started.alive
+            raise EngineError("the job failed")
+    assert not started.alive and not started.directory.exists()
 
 
 def test_missing_ants_is_a_clear_input_error(population, monkeypatch):

@@ -17,7 +17,9 @@ from .._images import read_image
 
 __all__ = [
     "EngineError",
+    "check_choice",
     "check_engine_options",
+    "input_settings",
     "engine_seed",
     "with_options",
     "load_images",
@@ -69,6 +71,12 @@ def with_options(defaults: S, options: Mapping[str, Any] | None, *, what: str) -
     return dataclasses.replace(defaults, **clean)
 
 
+def check_choice(name: str, value: Any, accepted: Sequence) -> None:
+    """Refuse `value` unless it is one of `accepted` (InputError naming `name`)."""
+    if value not in accepted:
+        raise InputError(f"{name}: {value!r} is not one of {', '.join(map(repr, accepted))}")
+
+
 def load_images(images: Sequence) -> tuple[list[sitk.Image], list[str | None]]:
     """Float32 SimpleITK images from images or paths; also each one's path (or None).
 
@@ -100,6 +108,29 @@ def load_images(images: Sequence) -> tuple[list[sitk.Image], list[str | None]]:
     if len(dims) > 1:
         raise InputError("images: mixed 2D and 3D images")
     return out, paths
+
+
+def input_settings(*, seed: int, paths: Sequence[str | None]) -> dict[str, Any]:
+    """The settings every registration records about its input: seed, images and their paths.
+
+    Parameters
+    ----------
+    seed : int, keyword-only
+        The registration's seed.
+    paths : sequence of (str or None), length n_images, keyword-only
+        Each image's path as :func:`load_images` returns it (None: given as an image).
+
+    Returns
+    -------
+    dict
+        ``{"seed", "n_images", "images"}``; ``"images"`` is None unless every image was
+        given as a path (the record then names the files a rerun needs).
+    """
+    return {
+        "seed": seed,
+        "n_images": len(paths),
+        "images": paths if all(p is not None for p in paths) else None,
+    }
 
 
 def resample(image: sitk.Image, reference: sitk.Image, transform: sitk.Transform) -> sitk.Image:

@@ -47,7 +47,7 @@ from .._errors import InputError
 from ..elastix_files import bspline_from_parameter_map
 from ._common import EngineError
 
-__all__ = ["ElastixWorker", "elastix_available"]
+__all__ = ["ElastixWorker", "elastix_available", "elastix_worker_for"]
 
 
 class ElastixWorker:
@@ -265,6 +265,29 @@ class ElastixWorker:
                     pass
         self._log.close()
         shutil.rmtree(self.directory, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def elastix_worker_for(
+    given: ElastixWorker | None, *, needed: bool = True
+) -> Iterator[ElastixWorker | None]:
+    """The worker a registration uses: `given`, else one started for the block.
+
+    A worker started here is stopped when the block ends, also when it raises; `given` is
+    left running for the caller to reuse.
+
+    Parameters
+    ----------
+    given : ElastixWorker or None
+        The caller's running worker.
+    needed : bool, keyword-only
+        False: start none (the registration runs no elastix job); yields `given`, maybe None.
+    """
+    if given is not None or not needed:
+        yield given
+        return
+    with ElastixWorker() as started:
+        yield started
 
 
 def _bspline_transform(pm: dict[str, list[str]]) -> sitk.BSplineTransform:

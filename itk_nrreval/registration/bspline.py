@@ -32,7 +32,13 @@ from ._common import (
     set_metric,
 )
 
-__all__ = ["BSplineOptions", "sitk_bspline", "bspline_to_reference", "ELASTIX_METRICS"]
+__all__ = [
+    "BSplineOptions",
+    "sitk_bspline",
+    "bspline_register",
+    "bspline_to_reference",
+    "ELASTIX_METRICS",
+]
 
 #: elastix's metric for each of :data:`METRICS`.
 ELASTIX_METRICS = {
@@ -197,6 +203,66 @@ def elastix_parameters(options: BSplineOptions, *, seed: int) -> dict[str, list[
     return params
 
 
+def bspline_register(
+    reference: sitk.Image,
+    image: sitk.Image,
+    initial: sitk.Transform,
+    *,
+    options: BSplineOptions,
+    engine: str,
+    seed: int,
+    worker=None,
+    what: str,
+) -> tuple[sitk.Transform, sitk.Image | None]:
+    """One image's B-spline transform reference -> image, the affine `initial` included.
+
+    Parameters
+    ----------
+    reference, image : sitk.Image
+        The fixed and the moving image.
+    initial : sitk.Transform
+        The affine stage, reference points -> image points (mm, LPS).
+    options : BSplineOptions, keyword-only
+    engine : {"elastix", "simpleitk"}, keyword-only
+    seed : int, keyword-only
+        The seed of this image's registration.
+    worker : ElastixWorker, keyword-only
+        A running worker (engine ``"elastix"``; not used by ``"simpleitk"``).
+    what : str, keyword-only
+        The job's name in elastix's error messages (e.g. ``"image 3"``).
+
+    Returns
+    -------
+    transform : sitk.Transform
+        Reference points -> image points: SimpleITK ``CompositeTransform([initial, B])``;
+        elastix its own result (module docstring).
+    resampled : sitk.Image or None
+        elastix: the image as elastix resampled it on the reference grid; SimpleITK: None.
+    """
+    if engine == "simpleitk":
+        b = sitk_bspline(
+            reference,
+            image,
+            initial=initial,
+            grid_spacing=options.grid_spacing,
+            levels=options.levels,
+            iterations=options.iterations,
+            sampling=options.sampling,
+            seed=seed,
+            metric=options.metric,
+        )
+        return sitk.CompositeTransform([initial, b]), None
+    return worker.bspline(
+        reference,
+        image,
+        initial=initial,
+        levels=options.levels,
+        grid_spacing=options.grid_spacing,
+        parameters=elastix_parameters(options, seed=seed),
+        what=what,
+    )
+
+
 def bspline_to_reference(
     images: Sequence[sitk.Image],
     reference: sitk.Image,
@@ -217,59 +283,37 @@ def bspline_to_reference(
     The reference image itself (`reference_index`, an index into `images`) keeps its
     identity affine. Image ``i`` uses the seed ``seed + numbers[i]`` and is called
     ``image numbers[i]`` in messages (`numbers`: the images' numbers in a larger group,
-    default ``0 .. n-1``).
+    default ``0 .. n-1``). Without a `worker`, elastix runs in one started for this call.
     """
     numbers = list(range(len(images))) if numbers is None else [int(k) for k in numbers]
     items = list(enumerate(zip(images, affines, strict=True)))
     bar = progress(items, desc=f"{desc} ({engine})", total=len(items), enabled=show_progress)
-    if engine == "simpleitk":
-        if options.bending_weight > 0:
-            raise InputError(
-                "pairwise options: bending_weight needs the elastix engine (SimpleITK's "
-                "B-spline registration has no bending-energy term)"
-            )
-        out = []
-        for i, (img, aff) in bar:
-            if i == reference_index:
-                out.append(aff)
-                continue
-            b = sitk_bspline(
-                reference,
-                img,
-                initial=aff,
-                grid_spacing=options.grid_spacing,
-                levels=options.levels,
-                iterations=options.iterations,
-                sampling=options.sampling,
-                seed=seed + numbers[i],
-                metric=options.metric,
-            )
-            out.append(sitk.CompositeTransform([aff, b]))
-        return out, None
+    by_elastix = engine != "simpleitk"
+    if not by_elastix and options.bending_weight > 0:
+        raise InputError(
+            "pairwise options: bending_weight needs the elastix engine (SimpleITK's "
+            "B-spline registration has no bending-energy term)"
+        )
+    from ._elastix_worker import elastix_worker_for  # noqa: PLC0415
 
-    from ._elastix_worker import ElastixWorker  # noqa: PLC0415
-
-    own = worker is None
-    worker = ElastixWorker() if own else worker
-    try:
-        transforms, resampled = [], []
+    transforms, resampled = [], []
+    with elastix_worker_for(worker, needed=by_elastix) as running:
         for i, (img, aff) in bar:
             if i == reference_index:
                 transforms.append(aff)
-                resampled.append(resample(img, reference, aff))
+                # elastix resampled the others; the reference itself is resampled here
+                resampled.append(resample(img, reference, aff) if by_elastix else None)
                 continue
-            transform, result = worker.bspline(
+            transform, result = bspline_register(
                 reference,
                 img,
-                initial=aff,
-                levels=options.levels,
-                grid_spacing=options.grid_spacing,
-                parameters=elastix_parameters(options, seed=seed + numbers[i]),
+                aff,
+                options=options,
+                engine=engine,
+                seed=seed + numbers[i],
+                worker=running,
                 what=f"image {numbers[i]}",
             )
             transforms.append(transform)
             resampled.append(result)
-        return transforms, resampled
-    finally:
-        if own:
-            worker.close()
+    return transforms, resampled if by_elastix else None

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,6 +15,7 @@ import SimpleITK as sitk
 from .._errors import InputError
 from .._output import atomic_path, write_json
 from ..transforms import write_transform
+from ._common import resample
 
 __all__ = ["RegistrationResult"]
 
@@ -59,6 +62,63 @@ class RegistrationResult:
     resampled: tuple[sitk.Image, ...]
     settings: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+
+    @classmethod
+    def from_transforms(
+        cls,
+        images: Sequence[sitk.Image],
+        transforms: Sequence[sitk.Transform],
+        *,
+        reference: sitk.Image,
+        reference_index: int | None,
+        settings: dict[str, Any],
+        started: float,
+        resampled: Sequence[sitk.Image] | None = None,
+        **fields: Any,
+    ):
+        """The result of registering `images`: one transform each, reference -> image.
+
+        Parameters
+        ----------
+        images : sequence of sitk.Image, length n_images
+            The registered images.
+        transforms : sequence of sitk.Transform, length n_images
+            Reference points -> image ``i`` points (mm, LPS).
+        reference : sitk.Image, keyword-only
+            The reference; its grid is the frame.
+        reference_index : int or None, keyword-only
+            As the attribute.
+        settings : dict, keyword-only
+            As the attribute; refused (TypeError) here unless JSON-ready, not at write time.
+        started : float, keyword-only
+            ``time.perf_counter()`` when the registration started: `seconds` runs from it to
+            now, after the resampling.
+        resampled : sequence of sitk.Image, length n_images, optional
+            The engine's own resampled images; default each image resampled through its
+            transform on the reference grid (linear, 0 outside).
+        **fields
+            The other fields of `cls` (``method``, ``engine``, and a subclass's own).
+
+        Returns
+        -------
+        RegistrationResult
+            Of type `cls`, ``seconds`` the wall time since `started`.
+        """
+        if resampled is None:
+            resampled = [
+                resample(im, reference, t) for im, t in zip(images, transforms, strict=True)
+            ]
+        seconds = time.perf_counter() - started
+        json.dumps(settings)  # settings must stay JSON-ready
+        return cls(
+            transforms=tuple(transforms),
+            reference=reference,
+            reference_index=reference_index,
+            resampled=tuple(resampled),
+            settings=settings,
+            seconds=seconds,
+            **fields,
+        )
 
     @property
     def n_images(self) -> int:
