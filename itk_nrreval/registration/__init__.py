@@ -42,9 +42,7 @@ by one mutual-information registration (``strategy="per-group"``); see
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import json
 import os
 import time
 from collections.abc import Mapping, Sequence
@@ -55,8 +53,15 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from ..transforms import flatten
-from ._common import EngineError, check_engine_options, load_images, resample, with_options
-from ._elastix_worker import ElastixWorker
+from ._common import (
+    EngineError,
+    check_choice,
+    check_engine_options,
+    input_settings,
+    load_images,
+    with_options,
+)
+from ._elastix_worker import ElastixWorker, elastix_worker_for
 from .affine import AffineOptions, affine_to_reference, choose_reference
 from .bspline import BSplineOptions, bspline_to_reference
 from .fluid import FluidOptions, fluid_to_reference, import_ants
@@ -102,11 +107,6 @@ _OPTIONS = {
     "groupwise": GroupwiseOptions(),
 }
 REFERENCE_CHOICES = ("near-mean", "far-from-mean")
-
-
-def _check_choice(name: str, value, accepted) -> None:
-    if value not in accepted:
-        raise InputError(f"{name}: {value!r} is not one of {', '.join(map(repr, accepted))}")
 
 
 def register(
@@ -175,142 +175,257 @@ def register(
     EngineError
         The engine failed or its worker process crashed (the message says which image).
     """
-    _check_choice("method", method, tuple(ENGINES))
+    engine = _check_method(method, engine, reference=reference, reference_choice=reference_choice)
+    imgs, paths = load_images(images)
+    _check_images(
+        imgs, engine=engine, affine=affine, reference=reference, reference_choice=reference_choice
+    )
+    plan = _plan(method, engine, options=options, affine_options=affine_options)
+    started = time.perf_counter()
+    stage = _affine_stage(
+        imgs,
+        paths,
+        plan.affine_options,
+        reference=reference,
+        reference_choice=reference_choice,
+        affine=affine,
+        seed=seed,
+        progress=progress,
+    )
+    registered = _run_method(
+        imgs, stage, plan, seed=seed, progress=progress, elastix_worker=elastix_worker
+    )
+    result = RegistrationResult.from_transforms(
+        imgs,
+        [flatten(t) for t in registered.transforms],
+        reference=registered.reference,
+        reference_index=registered.reference_index,
+        resampled=registered.resampled,
+        settings=_settings(plan, stage, seed=seed, paths=paths),
+        started=started,
+        method=method,
+        engine=engine,
+    )
+    if out is not None:
+        result.write(out)
+    return result
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """What one :func:`register` call runs: the method, its engine and their options."""
+
+    method: str
+    engine: str
+    affine_options: AffineOptions
+    #: The method's own options (:class:`AffineOptions` again for ``"affine"``).
+    options: AffineOptions | FluidOptions | BSplineOptions | GroupwiseOptions
+
+
+@dataclasses.dataclass(frozen=True)
+class _AffineStage:
+    """The reference and every image's affine to it (reference points -> image points)."""
+
+    reference: sitk.Image
+    #: The reference's index among the images, or None (an image given by the caller).
+    reference_index: int | None
+    affines: list[sitk.Transform]
+    #: How the reference was chosen ("near-mean", "far-from-mean"), None when given.
+    reference_choice: str | None
+    #: Taken from an earlier affine registration rather than computed.
+    reused: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class _Registered:
+    """A method's transforms (reference -> image) and its frame, before they are flattened."""
+
+    transforms: list[sitk.Transform]
+    reference: sitk.Image
+    reference_index: int | None
+    #: The engine's own resampled images; None: resampled through the transforms.
+    resampled: list[sitk.Image] | None = None
+
+
+def _check_method(method: str, engine: str | None, *, reference, reference_choice) -> str:
+    """The engine (default: the method's first) once the arguments that need no image are
+    checked; InputError before any image is read."""
+    check_choice("method", method, tuple(ENGINES))
     engine = ENGINES[method][0] if engine is None else engine
-    _check_choice(f"engine for method {method!r}", engine, ENGINES[method])
+    check_choice(f"engine for method {method!r}", engine, ENGINES[method])
     if reference_choice is not None:
-        _check_choice("reference_choice", reference_choice, REFERENCE_CHOICES)
+        check_choice("reference_choice", reference_choice, REFERENCE_CHOICES)
     if reference is not None and reference_choice is not None:
         raise InputError("give either reference or reference_choice, not both")
     if method == "groupwise" and reference is not None:
         raise InputError("groupwise registers to the evolving group mean: do not give a reference")
     if method == "fluid" and engine == "ants":
         import_ants()  # fail before any work when antspyx is missing
-    imgs, paths = load_images(images)
-    n = len(imgs)
+    return engine
+
+
+def _check_images(
+    imgs: list[sitk.Image],
+    *,
+    engine: str,
+    affine: RegistrationResult | None,
+    reference,
+    reference_choice: str | None,
+) -> None:
+    """Refuse images the engine cannot take, and an `affine` stage that is not theirs."""
     if engine == "elastix-stack" and imgs[0].GetDimension() != 2:
         raise InputError(
             f"elastix-stack supports 2D images only, got {imgs[0].GetDimension()}D images"
         )
-    if affine is not None:
-        if affine.method != "affine" or affine.n_images != n:
-            raise InputError(
-                f"affine: expected an affine registration of these {n} images, got a "
-                f"{affine.method} registration of {affine.n_images}"
-            )
-        if reference is not None or reference_choice is not None:
-            raise InputError("affine: its reference is used; do not give reference or choice")
-    aff_opts = with_options(
+    if affine is None:
+        return
+    if affine.method != "affine" or affine.n_images != len(imgs):
+        raise InputError(
+            f"affine: expected an affine registration of these {len(imgs)} images, got a "
+            f"{affine.method} registration of {affine.n_images}"
+        )
+    if reference is not None or reference_choice is not None:
+        raise InputError("affine: its reference is used; do not give reference or choice")
+
+
+def _plan(
+    method: str,
+    engine: str,
+    *,
+    options: Mapping[str, Any] | None,
+    affine_options: Mapping[str, Any] | None,
+) -> _Plan:
+    """The affine stage's options and the method's, checked (InputError before any work)."""
+    affine_stage = with_options(
         AffineOptions(), options if method == "affine" else affine_options, what="affine"
     )
-    aff_opts.check()
-    opts = aff_opts if method == "affine" else with_options(_OPTIONS[method], options, what=method)
-    if hasattr(opts, "check"):
-        opts.check()
-    check_engine_options(method, engine, opts)
-    t0 = time.perf_counter()
+    affine_stage.check()
+    if method == "affine":
+        own = affine_stage
+    else:
+        own = with_options(_OPTIONS[method], options, what=method)
+    own.check()
+    check_engine_options(method, engine, own)
+    return _Plan(method, engine, affine_stage, own)
 
-    # The reference, and the affines to it.
-    ref_index: int | None = None
-    initial = None
+
+def _affine_stage(
+    imgs: list[sitk.Image],
+    paths: list[str | None],
+    options: AffineOptions,
+    *,
+    reference,
+    reference_choice: str | None,
+    affine: RegistrationResult | None,
+    seed: int,
+    progress: bool,
+) -> _AffineStage:
+    """The reference and the affines to it: those of `affine`, else computed to `reference`,
+    else to the training image `reference_choice` picks (default near-mean)."""
     if affine is not None:
-        choice = affine.settings.get("reference_choice")
-        ref_index, ref_image = affine.reference_index, affine.reference
-        affines = [sitk.AffineTransform(t) for t in affine.transforms]
-    elif reference is None:
+        return _AffineStage(
+            reference=affine.reference,
+            reference_index=affine.reference_index,
+            affines=[sitk.AffineTransform(t) for t in affine.transforms],
+            reference_choice=affine.settings.get("reference_choice"),
+            reused=True,
+        )
+    initial = None  # the reference choice's affines, a start for the final ones
+    if reference is None:
         choice = reference_choice or "near-mean"
         ref_index, initial, _ = choose_reference(
-            imgs, choice, options=aff_opts, seed=seed, show_progress=progress
+            imgs, choice, options=options, seed=seed, show_progress=progress
         )
         ref_image = imgs[ref_index]
     else:
         choice = None
         ref_index, ref_image = _resolve_reference(reference, imgs, paths)
-    if affine is None:
-        affines = affine_to_reference(
-            imgs,
-            ref_image,
-            options=aff_opts,
-            seed=seed,
-            reference_index=ref_index,
-            initial=initial,
-            show_progress=progress,
-        )
-
-    engine_resampled = None
-    if method == "affine":
-        transforms: list[sitk.Transform] = list(affines)
-    elif method == "fluid":
-        transforms = fluid_to_reference(
-            imgs,
-            ref_image,
-            affines,
-            options=opts,
-            engine=engine,
-            seed=seed,
-            reference_index=ref_index,
-            show_progress=progress,
-        )
-    elif method == "pairwise":
-        transforms, engine_resampled = bspline_to_reference(
-            imgs,
-            ref_image,
-            affines,
-            options=opts,
-            engine=engine,
-            seed=seed,
-            reference_index=ref_index,
-            show_progress=progress,
-            worker=elastix_worker,
-        )
-    elif engine == "elastix-stack":
-        with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
-            transforms, ref_image, engine_resampled = groupwise_register_elastix_stack(
-                imgs, ref_image, affines, options=opts, seed=seed, worker=w
-            )
-        ref_index = None
-    elif engine == "elastix":
-        with contextlib.nullcontext(elastix_worker) if elastix_worker else ElastixWorker() as w:
-            transforms, ref_image = groupwise_register_elastix(
-                imgs, ref_image, affines, options=opts, seed=seed, worker=w, show_progress=progress
-            )
-        ref_index = None
-    else:
-        transforms, ref_image = groupwise_register(
-            imgs, ref_image, affines, options=opts, seed=seed, show_progress=progress
-        )
-        ref_index = None
-    transforms = [flatten(t) for t in transforms]
-    if engine_resampled is None:
-        engine_resampled = [
-            resample(im, ref_image, t) for im, t in zip(imgs, transforms, strict=True)
-        ]
-    seconds = time.perf_counter() - t0
-    settings = {
-        "method": method,
-        "engine": engine,
-        "seed": seed,
-        "n_images": n,
-        "images": paths if all(p is not None for p in paths) else None,
-        "reference_choice": choice if method != "groupwise" else "group mean (near-mean frame)",
-        "affine_options": dataclasses.asdict(aff_opts),
-        "affine_stage": "reused" if affine is not None else "computed",
-        "options": dataclasses.asdict(opts),
-    }
-    json.dumps(settings)  # settings must stay JSON-ready
-    result = RegistrationResult(
-        method=method,
-        engine=engine,
-        transforms=tuple(transforms),
-        reference=ref_image,
+    affines = affine_to_reference(
+        imgs,
+        ref_image,
+        options=options,
+        seed=seed,
         reference_index=ref_index,
-        resampled=tuple(engine_resampled),
-        settings=settings,
-        seconds=seconds,
+        initial=initial,
+        show_progress=progress,
     )
-    if out is not None:
-        result.write(out)
-    return result
+    return _AffineStage(ref_image, ref_index, affines, choice, reused=False)
+
+
+def _run_method(
+    imgs: list[sitk.Image],
+    stage: _AffineStage,
+    plan: _Plan,
+    *,
+    seed: int,
+    progress: bool,
+    elastix_worker: ElastixWorker | None,
+) -> _Registered:
+    """The method's transforms, each starting from the image's affine of `stage`."""
+    if plan.method == "affine":
+        return _Registered(list(stage.affines), stage.reference, stage.reference_index)
+    to_reference = {
+        "seed": seed,
+        "reference_index": stage.reference_index,
+        "show_progress": progress,
+        "options": plan.options,
+        "engine": plan.engine,
+    }
+    if plan.method == "fluid":
+        transforms = fluid_to_reference(imgs, stage.reference, stage.affines, **to_reference)
+        return _Registered(transforms, stage.reference, stage.reference_index)
+    if plan.method == "pairwise":
+        transforms, resampled = bspline_to_reference(
+            imgs, stage.reference, stage.affines, **to_reference, worker=elastix_worker
+        )
+        return _Registered(transforms, stage.reference, stage.reference_index, resampled)
+    return _groupwise(imgs, stage, plan, seed=seed, progress=progress, worker=elastix_worker)
+
+
+def _groupwise(
+    imgs: list[sitk.Image],
+    stage: _AffineStage,
+    plan: _Plan,
+    *,
+    seed: int,
+    progress: bool,
+    worker: ElastixWorker | None,
+) -> _Registered:
+    """Groupwise registration from the affine stage; the final group mean is the reference
+    (on the grid of the affine stage's reference)."""
+    start = (imgs, stage.reference, stage.affines)
+    if plan.engine == "simpleitk":
+        transforms, mean = groupwise_register(
+            *start, options=plan.options, seed=seed, show_progress=progress
+        )
+        return _Registered(transforms, mean, None)
+    with elastix_worker_for(worker) as running:
+        if plan.engine == "elastix-stack":
+            transforms, mean, resampled = groupwise_register_elastix_stack(
+                *start, options=plan.options, seed=seed, worker=running
+            )
+            return _Registered(transforms, mean, None, resampled)
+        transforms, mean = groupwise_register_elastix(
+            *start, options=plan.options, seed=seed, worker=running, show_progress=progress
+        )
+        return _Registered(transforms, mean, None)
+
+
+def _settings(plan: _Plan, stage: _AffineStage, *, seed: int, paths) -> dict[str, Any]:
+    """The result's settings (JSON-ready): method, engine, input, reference, options."""
+    if plan.method == "groupwise":
+        reference_choice = "group mean (near-mean frame)"
+    else:
+        reference_choice = stage.reference_choice
+    return {
+        "method": plan.method,
+        "engine": plan.engine,
+        **input_settings(seed=seed, paths=paths),
+        "reference_choice": reference_choice,
+        "affine_options": dataclasses.asdict(plan.affine_options),
+        "affine_stage": "reused" if stage.reused else "computed",
+        "options": dataclasses.asdict(plan.options),
+    }
 
 
 def _resolve_reference(reference, imgs, paths) -> tuple[int | None, sitk.Image]:
