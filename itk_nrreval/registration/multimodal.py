@@ -61,10 +61,10 @@ from .._errors import InputError
 from .._output import write_json
 from .._progress import progress as progress_bar
 from ..transforms import flatten, write_transform
-from ._common import check_engine_options, load_images, resample, with_options
-from ._elastix_worker import ElastixWorker
+from ._common import check_choice, check_engine_options, input_settings, load_images, with_options
+from ._elastix_worker import ElastixWorker, elastix_worker_for
 from .affine import AffineOptions, affine_register, affine_to_reference, choose_reference
-from .bspline import BSplineOptions, bspline_to_reference, elastix_parameters, sitk_bspline
+from .bspline import BSplineOptions, bspline_register, bspline_to_reference
 from .result import RegistrationResult
 
 __all__ = ["STRATEGIES", "MULTIMODAL_ENGINES", "MultimodalResult", "register_multimodal"]
@@ -329,13 +329,105 @@ def register_multimodal(
     ... # doctest: +SKIP
     >>> result.add_to_manifest("manifest.yaml", "per-group", out="per-group") # doctest: +SKIP
     """
-    if strategy not in STRATEGIES:
-        raise InputError(f"strategy: {strategy!r} is not one of {', '.join(map(repr, STRATEGIES))}")
-    engine = MULTIMODAL_ENGINES[0] if engine is None else engine
-    if engine not in MULTIMODAL_ENGINES:
-        raise InputError(
-            f"engine: {engine!r} is not one of {', '.join(map(repr, MULTIMODAL_ENGINES))}"
+    engine = _check_strategy_and_engine(strategy, engine)
+    within, cross = _stage_options(
+        engine,
+        metric=metric,
+        cross_metric=cross_metric,
+        options=options,
+        affine_options=affine_options,
+    )
+    imgs, paths = load_images(images)
+    labels = check_groups(groups, len(imgs))
+    ref_group, members = _group_members(labels, reference_group)
+    needs_elastix = deformable and engine == "elastix"
+    with elastix_worker_for(elastix_worker, needed=needs_elastix) as worker:
+        started = time.perf_counter()
+        run = _Run(
+            imgs, seed=seed, engine=engine, worker=worker, progress=progress, deformable=deformable
         )
+        # "joint" registers every image to the reference group's reference; "per-group"
+        # each group to its own.
+        chosen_for = [ref_group] if strategy == "joint" else list(members)
+        references = run.references(members, chosen_for, within)
+        if strategy == "joint":
+            transforms, links = run.joint(members[ref_group], references[ref_group], cross), {}
+        else:
+            transforms, links = run.per_group(members, references, ref_group, within, cross)
+    r0 = references[ref_group].index
+    group_refs = {g: chosen.index for g, chosen in references.items()}
+    settings = {
+        "method": "multimodal",
+        "strategy": strategy,
+        "engine": engine,
+        **input_settings(seed=seed, paths=paths),
+        "groups": [str(g) for g in labels],
+        "reference_group": str(ref_group),
+        "reference_choice": "near-mean of the reference group",
+        "group_references": {str(g): i for g, i in group_refs.items()},
+        "metric": metric,
+        "cross_metric": cross_metric,
+        "deformable": bool(deformable),
+        "affine_options": _without_metric(within.affine),
+        "options": _without_metric(within.bspline),
+    }
+    result = MultimodalResult.from_transforms(
+        imgs,
+        transforms,
+        reference=imgs[r0],
+        reference_index=r0,
+        settings=settings,
+        started=started,
+        method="multimodal",
+        engine=engine if deformable else "simpleitk",
+        strategy=strategy,
+        groups=labels,
+        reference_group=ref_group,
+        group_references=group_refs,
+        links=links,
+    )
+    if out is not None:
+        result.write(out)
+    return result
+
+
+@dataclass(frozen=True)
+class _StageOptions:
+    """The options of one metric's stages: the affine, then the B-spline."""
+
+    affine: AffineOptions
+    bspline: BSplineOptions
+
+
+@dataclass(frozen=True)
+class _GroupReference:
+    """A group's reference image and the affines that chose it."""
+
+    #: The reference's index among all images.
+    index: int
+    #: Per image of the group (in the group's order), reference -> image affine: a start
+    #: for the registrations to the reference.
+    affines: list[sitk.Transform]
+
+
+def _check_strategy_and_engine(strategy: str, engine: str | None) -> str:
+    """The engine (default elastix) once `strategy` and `engine` are known ones (InputError)."""
+    check_choice("strategy", strategy, STRATEGIES)
+    engine = MULTIMODAL_ENGINES[0] if engine is None else engine
+    check_choice("engine", engine, MULTIMODAL_ENGINES)
+    return engine
+
+
+def _stage_options(
+    engine: str,
+    *,
+    metric: str,
+    cross_metric: str,
+    options: Mapping[str, Any] | None,
+    affine_options: Mapping[str, Any] | None,
+) -> tuple[_StageOptions, _StageOptions]:
+    """The within-group (`metric`) and the cross-contrast (`cross_metric`) stage options,
+    checked (InputError before any work)."""
     for what, given in (("options", options), ("affine_options", affine_options)):
         if given and "metric" in given:
             raise InputError(f"{what}: give the metric as metric= or cross_metric=")
@@ -351,107 +443,21 @@ def register_multimodal(
     bs_cross = dataclasses.replace(bs_within, metric=cross_metric)
     bs_cross.check()
     check_engine_options("multimodal", engine, bs_within)
-    imgs, paths = load_images(images)
-    n = len(imgs)
-    labels = check_groups(groups, n)
+    return _StageOptions(aff_within, bs_within), _StageOptions(aff_cross, bs_cross)
+
+
+def _group_members(
+    labels: tuple, reference_group: Hashable | None
+) -> tuple[Hashable, dict[Hashable, list[int]]]:
+    """The reference group (default the first image's) and each group's image indices, the
+    groups in order of first appearance."""
     order = list(dict.fromkeys(labels))
     ref_group = labels[0] if reference_group is None else reference_group
     if ref_group not in order:
         raise InputError(
             f"reference_group: {ref_group!r} is not one of the groups {', '.join(map(repr, order))}"
         )
-    members = {g: [i for i, lab in enumerate(labels) if lab == g] for g in order}
-    needs_elastix = deformable and engine == "elastix"
-    own_worker = needs_elastix and elastix_worker is None
-    worker = ElastixWorker() if own_worker else elastix_worker
-    t0 = time.perf_counter()
-    try:
-        run = _Run(imgs, seed=seed, engine=engine, worker=worker, progress=progress)
-        # The reference groups' near-mean images (within-group metric), and their affines.
-        chosen: dict[Hashable, tuple[int, list[sitk.Transform]]] = {}
-        for g in [ref_group] if strategy == "joint" else order:
-            local, initial, _ = choose_reference(
-                [imgs[i] for i in members[g]],
-                "near-mean",
-                options=aff_within,
-                seed=seed,
-                show_progress=progress,
-            )
-            chosen[g] = (members[g][local], initial)
-        r0 = chosen[ref_group][0]
-        links: dict[Hashable, sitk.Transform] = {}
-        if strategy == "joint":
-            start: list[sitk.Transform | None] = [None] * n
-            for i, t in zip(members[ref_group], chosen[ref_group][1], strict=True):
-                start[i] = t
-            transforms = run.stage(
-                list(range(n)), r0, aff_cross, bs_cross, start, deformable, desc="joint"
-            )
-        else:
-            transforms = [sitk.Transform()] * n
-            for g in order:
-                ref_g, initial = chosen[g]
-                mine = run.stage(
-                    members[g], ref_g, aff_within, bs_within, initial, deformable, desc=f"{g}"
-                )
-                for i, t in zip(members[g], mine, strict=True):
-                    transforms[i] = t
-            others = [g for g in order if g != ref_group]
-            for k, g in enumerate(progress_bar(others, desc="links", enabled=progress)):
-                links[g] = run.link(
-                    r0,
-                    chosen[g][0],
-                    aff_cross,
-                    bs_cross,
-                    deformable,
-                    n + k,
-                    what=f"the link of group {g!r} (image {chosen[g][0]} to image {r0})",
-                )
-                for i in members[g]:
-                    transforms[i] = flatten(sitk.CompositeTransform([transforms[i], links[g]]))
-    finally:
-        if own_worker:
-            worker.close()
-    ref_image = imgs[r0]
-    resampled = [resample(im, ref_image, t) for im, t in zip(imgs, transforms, strict=True)]
-    seconds = time.perf_counter() - t0
-    group_refs = {g: chosen[g][0] for g in chosen}
-    settings = {
-        "method": "multimodal",
-        "strategy": strategy,
-        "engine": engine,
-        "seed": seed,
-        "n_images": n,
-        "images": paths if all(p is not None for p in paths) else None,
-        "groups": [str(g) for g in labels],
-        "reference_group": str(ref_group),
-        "reference_choice": "near-mean of the reference group",
-        "group_references": {str(g): i for g, i in group_refs.items()},
-        "metric": metric,
-        "cross_metric": cross_metric,
-        "deformable": bool(deformable),
-        "affine_options": _without_metric(aff_within),
-        "options": _without_metric(bs_within),
-    }
-    json.dumps(settings)  # settings must stay JSON-ready
-    result = MultimodalResult(
-        method="multimodal",
-        engine=engine if deformable else "simpleitk",
-        transforms=tuple(transforms),
-        reference=ref_image,
-        reference_index=r0,
-        resampled=tuple(resampled),
-        settings=settings,
-        seconds=seconds,
-        strategy=strategy,
-        groups=labels,
-        reference_group=ref_group,
-        group_references=group_refs,
-        links=links,
-    )
-    if out is not None:
-        result.write(out)
-    return result
+    return ref_group, {g: [i for i, lab in enumerate(labels) if lab == g] for g in order}
 
 
 def _without_metric(options) -> dict[str, Any]:
@@ -460,20 +466,87 @@ def _without_metric(options) -> dict[str, Any]:
 
 
 class _Run:
-    """The images and engine of one :func:`register_multimodal` call."""
+    """The images, engine and seed of one :func:`register_multimodal` call, and its steps."""
 
-    def __init__(self, imgs, *, seed: int, engine: str, worker, progress: bool) -> None:
+    def __init__(
+        self, imgs, *, seed: int, engine: str, worker, progress: bool, deformable: bool
+    ) -> None:
         self.imgs, self.seed, self.engine = imgs, seed, engine
-        self.worker, self.progress = worker, progress
+        self.worker, self.progress, self.deformable = worker, progress, deformable
+
+    def references(
+        self,
+        members: Mapping[Hashable, list[int]],
+        groups: Sequence[Hashable],
+        within: _StageOptions,
+    ) -> dict[Hashable, _GroupReference]:
+        """Each of `groups`' near-mean image, after affine alignment within the group with
+        the within-group metric (seeded with ``seed``)."""
+        chosen = {}
+        for g in groups:
+            local, affines, _ = choose_reference(
+                [self.imgs[i] for i in members[g]],
+                "near-mean",
+                options=within.affine,
+                seed=self.seed,
+                show_progress=self.progress,
+            )
+            chosen[g] = _GroupReference(members[g][local], affines)
+        return chosen
+
+    def joint(
+        self, reference_members: list[int], reference: _GroupReference, cross: _StageOptions
+    ) -> list[sitk.Transform]:
+        """ "joint": every image registered to `reference` with the cross-contrast metric; the
+        reference group's images (`reference_members`) start from the reference choice's
+        affines."""
+        start: list[sitk.Transform | None] = [None] * len(self.imgs)
+        for i, t in zip(reference_members, reference.affines, strict=True):
+            start[i] = t
+        return self.stage(list(range(len(self.imgs))), reference.index, cross, start, desc="joint")
+
+    def per_group(
+        self,
+        members: Mapping[Hashable, list[int]],
+        references: Mapping[Hashable, _GroupReference],
+        reference_group: Hashable,
+        within: _StageOptions,
+        cross: _StageOptions,
+    ) -> tuple[list[sitk.Transform], dict[Hashable, sitk.Transform]]:
+        """ "per-group": each group registered to its reference (within-group metric), then
+        each other group's reference linked to the reference group's (cross-contrast metric).
+
+        Returns the transforms, reference group's reference -> image (``T_j o L_g``), and
+        the links ``L_g`` per other group (the k-th seeded with ``seed + n_images + k``).
+        """
+        transforms = [sitk.Transform()] * len(self.imgs)
+        for g, indices in members.items():
+            ref_g = references[g]
+            mine = self.stage(indices, ref_g.index, within, ref_g.affines, desc=f"{g}")
+            for i, t in zip(indices, mine, strict=True):
+                transforms[i] = t
+        r0 = references[reference_group].index
+        links: dict[Hashable, sitk.Transform] = {}
+        others = [g for g in members if g != reference_group]
+        for k, g in enumerate(progress_bar(others, desc="links", enabled=self.progress)):
+            rg = references[g].index
+            links[g] = self.link(
+                r0,
+                rg,
+                cross,
+                len(self.imgs) + k,
+                what=f"the link of group {g!r} (image {rg} to image {r0})",
+            )
+            for i in members[g]:
+                transforms[i] = flatten(sitk.CompositeTransform([transforms[i], links[g]]))
+        return transforms, links
 
     def stage(
         self,
         indices: list[int],
         reference: int,
-        aff: AffineOptions,
-        bspline: BSplineOptions,
+        options: _StageOptions,
         initial: Sequence[sitk.Transform | None],
-        deformable: bool,
         *,
         desc: str,
     ) -> list[sitk.Transform]:
@@ -488,7 +561,7 @@ class _Run:
         affines = affine_to_reference(
             imgs,
             ref,
-            options=aff,
+            options=options.affine,
             seed=self.seed,
             reference_index=local,
             initial=initial,
@@ -496,13 +569,13 @@ class _Run:
             numbers=indices,
             desc=f"affine {desc}",
         )
-        if not deformable:
+        if not self.deformable:
             return list(affines)
         transforms, _ = bspline_to_reference(
             imgs,
             ref,
             affines,
-            options=bspline,
+            options=options.bspline,
             engine=self.engine,
             seed=self.seed,
             reference_index=local,
@@ -514,44 +587,24 @@ class _Run:
         return [flatten(t) for t in transforms]
 
     def link(
-        self,
-        reference: int,
-        other: int,
-        aff: AffineOptions,
-        bspline: BSplineOptions,
-        deformable: bool,
-        number: int,
-        *,
-        what: str,
+        self, reference: int, other: int, options: _StageOptions, number: int, *, what: str
     ) -> sitk.Transform:
         """Image `reference`'s points -> image `other`'s points (affine, B-spline).
 
         Seeded with ``seed + number``; `what` names the job in error messages.
         """
         ref, img = self.imgs[reference], self.imgs[other]
-        a = affine_register(ref, img, options=aff, seed=self.seed + number)
-        if not deformable:
+        a = affine_register(ref, img, options=options.affine, seed=self.seed + number)
+        if not self.deformable:
             return a
-        if self.engine == "simpleitk":
-            b = sitk_bspline(
-                ref,
-                img,
-                initial=a,
-                grid_spacing=bspline.grid_spacing,
-                levels=bspline.levels,
-                iterations=bspline.iterations,
-                sampling=bspline.sampling,
-                seed=self.seed + number,
-                metric=bspline.metric,
-            )
-            return flatten(sitk.CompositeTransform([a, b]))
-        transform, _ = self.worker.bspline(
+        transform, _ = bspline_register(
             ref,
             img,
-            initial=a,
-            levels=bspline.levels,
-            grid_spacing=bspline.grid_spacing,
-            parameters=elastix_parameters(bspline, seed=self.seed + number),
+            a,
+            options=options.bspline,
+            engine=self.engine,
+            seed=self.seed + number,
+            worker=self.worker,
             what=what,
         )
         return flatten(transform)
