@@ -626,6 +626,8 @@ def evaluate(
         _check_positive("resamples", resamples, 2)
     if isinstance(save_resampled, bool) and save_resampled and out is None:
         raise ValueError("save_resampled=True: only with out= (it means out/resampled)")
+    if scheduler is None and workers is not None:
+        raise ValueError("workers: only with a scheduler (local or an address)")
     m = load_manifest(manifest)
     if out is not None:
         out = check_output_folder(out, inputs=m.files, option="out")
@@ -635,7 +637,11 @@ def evaluate(
         if stage is not None:
             cache = out / "cache" if cache is None else cache
             save_resampled = stage / "resampled" if save_resampled is True else save_resampled
-        options = dict(
+        assessed: dict[str, tuple[SubjectQC, ...]] = {}
+        run, run_info = _execute(
+            m,
+            scheduler=scheduler,
+            workers=workers,
             inverse_consistency=inverse_consistency,
             cache=cache,
             n_samples=int(n_samples),
@@ -647,115 +653,30 @@ def evaluate(
             show_progress=progress,
             save_resampled=save_resampled or None,
             off_grid_coverage=subject_thresholds.off_grid_coverage,
+            pictured_subjects=_subject_assessor(m, subject_thresholds, assessed),
         )
-        # each registration's subjects are assessed once, while the pipeline still has the
-        # cache: the report pictures the flagged ones it shows, read from there
-        assessed: dict[str, tuple[SubjectQC, ...]] = {}
-
-        def pictured(r, products) -> list[int]:
-            first = _subjects(m, r, subject_thresholds)
-            # an inverted or another subject's transform is looked for among the flagged
-            # subjects only: it takes resampling them through changed transforms
-            mixups = transform_mixups(
-                first,
-                images=[str(p) for p in m.images],
-                scored=r.scored,
-                gram=r.gram,
-                products=products,
-            )
-            assessed[r.name] = _subjects(m, r, subject_thresholds, mixups) if mixups else first
-            return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
-
-        options["pictured_subjects"] = pictured
-        if scheduler is None:
-            if workers is not None:
-                raise ValueError("workers: only with a scheduler (local or an address)")
-            executor = InProcessExecutor()
-            run = run_pipeline(m, executor, **options)
-            run_info = {"scheduler": None, "workers": 1}
-        else:
-            from .scaleout import DaskExecutor, check_scheduler, cluster_client
-
-            check_scheduler(scheduler, workers)
-            with cluster_client(scheduler, workers=workers) as client:
-                executor = DaskExecutor(client)
-                run = run_pipeline(m, executor, **options)
-            run_info = {"scheduler": scheduler, "workers": executor.n_workers}
-        run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
         regs = run.registrations
-        plaus = {name: combine(r.plausibility) for name, r in regs.items()}
-        extent = smallest_extent_mm(run.grid)
-        reg_flags = flags(
-            plaus,
-            frame_spread_mm={name: r.frame.spread_mean_mm for name, r in regs.items()},
-            extent_mm=extent,
-            thresholds=thresholds,
-        )
-        values = {
-            name: {
-                "specificity": r.specificity.value,
-                "generalization": r.generalization.value,
-                **{
-                    f"overlap.{w}": r.overlap.generalized(w)
-                    for w in (weightings if r.overlap is not None else ())
-                },
-            }
-            for name, r in regs.items()
-        }
-        intervals: dict[str, dict] = {name: {} for name in regs}
-        best_p: dict[str, dict] = {name: {} for name in regs}
-        comparisons: list[Comparison] = []
-        if confidence and m.groups is not None:
-            # Leaving out images is not leaving out subjects when a subject has one image per
-            # group (modality), and it can leave a group with fewer than 2 images.
-            warnings.warn(
-                "subject-level intervals are not computed for a manifest with groups (the "
-                "jackknife would leave out images, not subjects); the specificity's standard "
-                "error is Monte-Carlo error only",
-                UserWarning,
-                stacklevel=2,
-            )
-            confidence = False
+        values = {name: _values(r, weightings) for name, r in regs.items()}
         n_scored = len(_scored(run))  # the jackknife runs over the subjects in the scores
-        if confidence and n_scored >= 4:
-            reps = _replicates(
-                run, weightings, resamples, confidence_samples, distance, seed, progress
+        confidence = _confidence_possible(m, confidence) and n_scored >= 4
+        level = _SubjectLevel.empty(regs)
+        if confidence:
+            level = _subject_level(
+                run, values, weightings, resamples, confidence_samples, distance, seed, progress
             )
-            for measure, by_name in reps.items():
-                vals = {name: values[name][measure] for name in regs}
-                for name in regs:
-                    intervals[name][measure] = jackknife_interval(
-                        vals[name], by_name[name], bounds=measure_bounds(measure)
-                    )
-                comparisons += compare(measure, vals, by_name)
-                pb = probability_best(
-                    vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
-                )
-                for name in regs:
-                    best_p[name][measure] = pb[name]
-        assessed = across_registrations(assessed, thresholds=subject_thresholds)
-        scores = {}
-        for name, r in regs.items():
-            subjects = assessed[name]
-            overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
-            scores[name] = RegistrationScores(
-                name,
-                r.specificity,
-                r.generalization,
-                overlap,
-                r.frame,
-                plaus[name],
-                tuple(reg_flags[name]),
-                intervals[name],
-                best_p[name],
-                r.coverage,
-                subjects,
-            )
+        extent = smallest_extent_mm(run.grid)
+        scores = _registration_scores(
+            run,
+            values,
+            level,
+            across_registrations(assessed, thresholds=subject_thresholds),
+            weightings=weightings,
+            thresholds=thresholds,
+            extent_mm=extent,
+        )
         _warn_if_flagged(scores)
-        means = {name: r.mean_image for name, r in regs.items()}
-        thumbnails = {name: r.thumbnails for name, r in regs.items()}
         options = {
-            "confidence": bool(confidence and n_scored >= 4),
+            "confidence": confidence,
             "confidence_samples": int(confidence_samples),
             "resamples": len(jackknife_groups(n_scored, resamples)) if n_scored >= 4 else None,
             "inverse_consistency": bool(inverse_consistency),
@@ -773,7 +694,7 @@ def evaluate(
         result = _result(
             m,
             scores,
-            means,
+            {name: r.mean_image for name, r in regs.items()},
             run.label_values,
             weightings,
             n_samples,
@@ -781,13 +702,151 @@ def evaluate(
             distance,
             interpolation,
             run=run_info,
-            comparisons=comparisons,
+            comparisons=level.comparisons,
             extra_options=options,
-            thumbnails=thumbnails,
+            thumbnails={name: r.thumbnails for name, r in regs.items()},
         )
         if stage is not None:
             result.write(stage, figures=figures)
     return result
+
+
+def _confidence_possible(m: Manifest, confidence: bool) -> bool:
+    """Whether subject-level confidence can be computed for `m` (asked for, and no groups:
+    a warning says why not)."""
+    if confidence and m.groups is not None:
+        # Leaving out images is not leaving out subjects when a subject has one image per
+        # group (modality), and it can leave a group with fewer than 2 images.
+        warnings.warn(
+            "subject-level intervals are not computed for a manifest with groups (the "
+            "jackknife would leave out images, not subjects); the specificity's standard "
+            "error is Monte-Carlo error only",
+            UserWarning,
+            stacklevel=3,
+        )
+        return False
+    return bool(confidence)
+
+
+def _execute(m: Manifest, *, scheduler, workers, **options):
+    """Run the per-image tasks and their reductions, in this process or on Dask: the
+    pipeline's run, and what ran it (``{"scheduler", "workers", "cache_reused",
+    "cache_computed"}``)."""
+    if scheduler is None:
+        executor = InProcessExecutor()
+        run = run_pipeline(m, executor, **options)
+        run_info = {"scheduler": None, "workers": 1}
+    else:
+        from .scaleout import DaskExecutor, check_scheduler, cluster_client
+
+        check_scheduler(scheduler, workers)
+        with cluster_client(scheduler, workers=workers) as client:
+            executor = DaskExecutor(client)
+            run = run_pipeline(m, executor, **options)
+        run_info = {"scheduler": scheduler, "workers": executor.n_workers}
+    run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
+    return run, run_info
+
+
+def _subject_assessor(m: Manifest, thresholds: SubjectThresholds, assessed: dict):
+    """The pipeline's ``pictured_subjects`` callback: it assesses each registration's
+    subjects once, while the pipeline still has the cache, into `assessed`, and returns the
+    flagged subjects the report pictures (read from the cache)."""
+
+    def pictured(r, products) -> list[int]:
+        first = _subjects(m, r, thresholds)
+        # an inverted or another subject's transform is looked for among the flagged
+        # subjects only: it takes resampling them through changed transforms
+        mixups = transform_mixups(
+            first,
+            images=[str(p) for p in m.images],
+            scored=r.scored,
+            gram=r.gram,
+            products=products,
+        )
+        assessed[r.name] = _subjects(m, r, thresholds, mixups) if mixups else first
+        return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
+
+    return pictured
+
+
+def _values(r, weightings) -> dict[str, float]:
+    """One registration run's scores by measure name."""
+    overlap = {}
+    if r.overlap is not None:
+        overlap = {f"overlap.{w}": r.overlap.generalized(w) for w in weightings}
+    return {
+        "specificity": r.specificity.value,
+        "generalization": r.generalization.value,
+        **overlap,
+    }
+
+
+@dataclass(frozen=True)
+class _SubjectLevel:
+    """Subject-level confidence: per registration and measure the 95% interval and the
+    probability of being best, and the paired comparisons."""
+
+    intervals: dict[str, dict]
+    best_p: dict[str, dict]
+    comparisons: tuple[Comparison, ...]
+
+    @classmethod
+    def empty(cls, names) -> _SubjectLevel:
+        return cls({n: {} for n in names}, {n: {} for n in names}, ())
+
+
+def _subject_level(
+    run, values, weightings, resamples, n_samples, distance, seed, show
+) -> _SubjectLevel:
+    """Jackknife intervals, paired comparisons and probabilities of being best, for every
+    measure and registration of `run`."""
+    regs = run.registrations
+    level = _SubjectLevel.empty(regs)
+    comparisons: list[Comparison] = []
+    reps = _replicates(run, weightings, resamples, n_samples, distance, seed, show)
+    for measure, by_name in reps.items():
+        vals = {name: values[name][measure] for name in regs}
+        for name in regs:
+            level.intervals[name][measure] = jackknife_interval(
+                vals[name], by_name[name], bounds=measure_bounds(measure)
+            )
+        comparisons += compare(measure, vals, by_name)
+        pb = probability_best(vals, by_name, higher_is_better=higher_is_better(measure), seed=seed)
+        for name in regs:
+            level.best_p[name][measure] = pb[name]
+    return dataclasses.replace(level, comparisons=tuple(comparisons))
+
+
+def _registration_scores(
+    run, values, level: _SubjectLevel, subjects, *, weightings, thresholds, extent_mm
+) -> dict[str, RegistrationScores]:
+    """Every registration's scores, plausibility, flags and subjects."""
+    regs = run.registrations
+    plaus = {name: combine(r.plausibility) for name, r in regs.items()}
+    reg_flags = flags(
+        plaus,
+        frame_spread_mm={name: r.frame.spread_mean_mm for name, r in regs.items()},
+        extent_mm=extent_mm,
+        thresholds=thresholds,
+    )
+    scores = {}
+    for name, r in regs.items():
+        overlap = {w: values[name][f"overlap.{w}"] for w in weightings} if r.overlap else {}
+        scores[name] = RegistrationScores(
+            name,
+            r.specificity,
+            r.generalization,
+            overlap,
+            r.frame,
+            plaus[name],
+            tuple(reg_flags[name]),
+            level.intervals[name],
+            level.best_p[name],
+            r.coverage,
+            subjects[name],
+        )
+    return scores
 
 
 def _scored(run) -> tuple[int, ...]:
