@@ -18,8 +18,6 @@ from ._options import (
 
 
 def add_parser(sub) -> None:
-    from ..plausibility import SubjectThresholds, Thresholds
-
     p = sub.add_parser(
         "evaluate",
         help="rank registrations of the same images by specificity and overlap",
@@ -82,6 +80,15 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_quiet_option(p)
+    _add_execution_options(p)
+    _add_confidence_options(p)
+    _add_flag_options(p)
+    _add_subject_options(p)
+    p.set_defaults(func=run)
+
+
+def _add_execution_options(p) -> None:
+    """Where the work runs, and the per-image cache."""
     p.add_argument(
         "--scheduler",
         metavar="local|ADDRESS",
@@ -100,6 +107,10 @@ def add_parser(sub) -> None:
         help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
         "with more images or registrations, computes only what is new",
     )
+
+
+def _add_confidence_options(p) -> None:
+    """Subject-level confidence (jackknife over the subjects)."""
     c = p.add_argument_group("subject-level confidence (jackknife over the subjects)")
     c.add_argument(
         "--no-confidence", action="store_true", help="skip the intervals and comparisons"
@@ -116,9 +127,15 @@ def add_parser(sub) -> None:
         metavar="G",
         help="jackknife groups for specificity (default min(N, 50); N: leave one out)",
     )
+
+
+def _add_flag_options(p) -> None:
+    """Plausibility flags of a registration."""
     f = p.add_argument_group(
         "plausibility flags (a warning in the verdict, not a decision against the registration)"
     )
+    from ..plausibility import Thresholds
+
     d = Thresholds()
     f.add_argument(
         "--flag-folded-mean",
@@ -161,6 +178,12 @@ def add_parser(sub) -> None:
         action="store_true",
         help="skip the inverse-consistency error (one numerical inversion per image)",
     )
+
+
+def _add_subject_options(p) -> None:
+    """Subject flags: one option per field of SubjectThresholds."""
+    from ..plausibility import SubjectThresholds
+
     q = p.add_argument_group(
         "subject flags (which subjects of a registration stand out from its cohort; robust "
         "z-scores over the subjects)"
@@ -175,7 +198,6 @@ def add_parser(sub) -> None:
             metavar=metavar,
             help=f"{words} (default {default:g})",
         )
-    p.set_defaults(func=run)
 
 
 #: ``--subject-*`` options: option, SubjectThresholds field, parser, metavar, help.
