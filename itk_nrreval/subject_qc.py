@@ -49,8 +49,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ._output import json_number
-from .model import TextureModel
-from .specificity import loo_generalization
 
 if TYPE_CHECKING:  # pragma: no cover
     from .plausibility import SubjectThresholds
@@ -218,8 +216,11 @@ def leave_one_out_distances(gram: np.ndarray) -> np.ndarray:
     # n points span at most n - 1 dimensions: the centred Gram matrix has one zero
     # eigenvalue, and n - 1 positive ones where the points are affinely independent
     kept = values[1:]
-    if kept[0] <= kept[-1] * n * 1e-12:  # a duplicate or a degenerate cohort: exactly, slowly
-        return loo_generalization(TextureModel.from_gram(gram)).nearest_distances
+    if kept[0] <= kept[-1] * n * 1e-12:
+        # a duplicate or a degenerate cohort: the images in an affine dependency are at
+        # distance 0 (refitting each model instead cost n SVDs, O(n^4): hours at n = 1,000)
+        spans = _AffineSpans(gram)
+        return np.array([spans.member_distance(k, [k]) for k in range(n)])
     # the distance from point k to the affine span of the others is 1 / sqrt(G+_kk), G+ the
     # pseudo-inverse of the centred Gram matrix: one eigendecomposition for all k, where
     # refitting n models costs n of them
@@ -554,6 +555,7 @@ class _AffineSpans:
         self._row_means = g.mean(axis=0)
         self._mean = float(self._row_means.mean())
         centred = g - self._row_means[:, None] - self._row_means[None, :] + self._mean
+        self._centred = centred
         values, vectors = np.linalg.eigh(centred)
         kept = values > values[-1] * n * 1e-12
         self._pinv = (vectors[:, kept] / values[kept]) @ vectors[:, kept].T
@@ -572,6 +574,16 @@ class _AffineSpans:
         own = squared - 2 * c_mean + self._mean
         dual = self._pinv @ c
         outside = max(own - float(c @ dual), 0.0)  # round-off below 0: in the span
+        return self._distance(dual, outside, left_out)
+
+    def member_distance(self, k: int, left_out: Sequence[int]) -> float:
+        """The distance (intensity units) of image (row) `k` to the affine span of the
+        images but rows `left_out` (which may hold k)."""
+        # it lies in the span of all images: nothing outside it (|a|^2 - c^T Gc^+ c would
+        # leave round-off whose square root is 1e-8 |a|)
+        return self._distance(self._pinv @ self._centred[:, k], 0.0, left_out)
+
+    def _distance(self, dual: np.ndarray, outside: float, left_out: Sequence[int]) -> float:
         rows = sorted(set(left_out))
         # combinations of the left-out images' normals that no affine dependency involves
         normals = np.eye(len(rows))
@@ -641,7 +653,7 @@ def transform_mixups(
     for c, alt in enumerate(alternatives):
         i = alt.transform
         left_out = [row[alt.image], row[i]]
-        own = spans.distance(gram[:, row[i]], gram[row[i], row[i]], left_out)
+        own = spans.member_distance(row[i], left_out)
         changed = spans.distance(cross[c], float(squared[c]), left_out)
         ratio = own / changed if changed > 0 else math.inf
         if i not in best or ratio > best[i][0]:

@@ -122,3 +122,35 @@ def test_mixups_cost_about_one_eigendecomposition_of_the_gram_matrix():
     seconds = time.perf_counter() - t0
     assert len(mixups) == 8
     assert seconds < 10 * one_pass + 0.2, (seconds, one_pass)
+
+
+def test_leave_one_out_distances_with_a_duplicate_are_brute_force_affine_fits():
+    """Subject 9 is a copy of subject 3 (the images are affinely dependent): both are at
+    distance 0 from the others' span, every other subject at its least-squares distance."""
+    images = np.random.default_rng(11).normal(size=(24, 60))
+    images[9] = images[3]
+    centred = images - images.mean(axis=0)
+    distances = leave_one_out_distances(centred @ centred.T)
+    reference = [
+        _distance_to_affine_span(images[k], np.delete(images, k, axis=0)) for k in range(24)
+    ]
+    np.testing.assert_allclose(distances, reference, rtol=1e-7, atol=1e-9)
+
+
+def test_leave_one_out_distances_with_a_duplicate_cost_about_one_eigendecomposition():
+    """N = 200 with one duplicated image: the distances take less than 10 times those of the
+    same cohort without it, where refitting each subject's model (an SVD of N - 1 images
+    each, O(N^4)) took about N times."""
+    images = np.random.default_rng(5).normal(size=(200, 300))
+    centred = images - images.mean(axis=0)
+    t0 = time.perf_counter()
+    for _ in range(3):
+        leave_one_out_distances(centred @ centred.T)
+    one_pass = (time.perf_counter() - t0) / 3
+    images[150] = images[40]
+    centred = images - images.mean(axis=0)
+    t0 = time.perf_counter()
+    distances = leave_one_out_distances(centred @ centred.T)
+    seconds = time.perf_counter() - t0
+    assert max(distances[[40, 150]]) < 1e-6 < min(np.delete(distances, [40, 150]))
+    assert seconds < 10 * one_pass + 0.2, (seconds, one_pass)
