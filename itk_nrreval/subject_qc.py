@@ -218,7 +218,8 @@ def leave_one_out_distances(gram: np.ndarray) -> np.ndarray:
     kept = values[1:]
     if kept[0] <= kept[-1] * n * 1e-12:
         # a duplicate or a degenerate cohort: the images in an affine dependency are at
-        # distance 0 (refitting each model instead cost n SVDs, O(n^4): hours at n = 1,000)
+        # distance 0 (refitting each model instead cost n SVDs, O(n^4): half an hour or more at
+        # n = 1,000)
         spans = _AffineSpans(gram)
         return np.array([spans.member_distance(k, [k]) for k in range(n)])
     # the distance from point k to the affine span of the others is 1 / sqrt(G+_kk), G+ the
