@@ -20,6 +20,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``):
 * ``unseen_<case>``: the registrations of ``sweep_<case>`` (made on T1 images) scored on
   each subject's T2 image, another scan with its own noise and bias (the manifest's
   ``evaluation_images``);
+* ``multimodal``: the phantom in T1 and T2 (two groups), registered jointly and per group,
+  with their affine stages, scored by the mixture specificity;
 * ``overfit``: demons with little field smoothing (0.25-5 mm) at the default and at five
   times the iterations;
 * ``bspline_grids``: B-spline grids from 2 mm (very fine) to 64 mm;
@@ -178,6 +180,41 @@ def _unseen(folder: Path, *, sweep_case: str, kind: str):
     return ev, errors
 
 
+def _multimodal(folder: Path):
+    """The phantom imaged in T1 and T2 (one group each), registered by
+    :func:`itk_nrreval.registration.register_multimodal` (joint, per-group, and their affine
+    stages) and scored with the mixture specificity (:mod:`bench_multimodal`'s runs)."""
+    import itk_nrreval as nr
+    from data_synth import make_population, write_population
+    from itk_nrreval.correspondence import correspondence_error
+    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.registration import ElastixWorker, register_multimodal
+
+    runs = _bench("multimodal").RUNS
+    contrasts = ("t1", "t2")
+    pop = make_population("phantom", dim=2, n=N, seed=SEED, contrasts=contrasts)
+    manifest = write_population(pop, folder / "data", montage=False, show_progress=False)
+    m = load_manifest(manifest)
+    images = [str(p) for p in m.images]
+    names = [Path(p).name.removesuffix(".nii.gz") for p in images]
+    with ElastixWorker() as worker:
+        for name, kwargs in runs.items():
+            result = _quiet(
+                register_multimodal,
+                images,
+                m.groups,
+                **kwargs,
+                seed=SEED,
+                progress=False,
+                elastix_worker=worker,
+            )
+            result.add_to_manifest(manifest, name, out=folder / name, names=names)
+    ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
+    head = sitk.GetArrayFromImage(pop.template_labels) > 0
+    truth = [s.subject_to_template for _ in contrasts for s in pop.subjects]
+    return ev, correspondence_error(ev, manifest, truth, mask=head)
+
+
 def _population(kind: str, *, dim: int = 2, n: int = N, spacing: float | None = None) -> Path:
     from data_synth import make_population, write_population
 
@@ -296,6 +333,7 @@ def _cases() -> dict:
             cases[f"unseen_{case}"] = lambda folder, c=case, k=kind: _unseen(
                 folder, sweep_case=f"sweep_{c}", kind=k
             )
+    cases["multimodal"] = _multimodal
     cases["overfit"] = lambda folder: _sweep(
         folder,
         kind="phantom",
