@@ -17,13 +17,14 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def main() -> dict:
+    from data_synth import perfectly_registered_arrays
     from itk_nrreval.cli.validate import plot_fig2, plot_vs_d
     from itk_nrreval.specificity import specificity
-    from itk_nrreval.validation import DEFAULT_DISPLACEMENTS, synthetic_set, validate
+    from itk_nrreval.validation import DEFAULT_DISPLACEMENTS, validate
     from itk_nrreval.warps import random_cps
 
     t0 = time.perf_counter()
-    images, labels = synthetic_set("phantom", n_images=10, seed=0)
+    images, labels = perfectly_registered_arrays("phantom", n=10, seed=0)
     t_data = time.perf_counter() - t0
 
     t0 = time.perf_counter()

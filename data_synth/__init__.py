@@ -2,7 +2,9 @@
 
 ``make_population(kind="phantom" | "mni", dim=2 | 3, n=36, seed=0)`` returns a template and N
 subjects, each with its image, label map and true ITK transforms to and from the template
-frame; ``perfect_registration`` resamples every subject into the template frame through them.
+frame; ``perfect_registration`` resamples every subject into the template frame through them
+(``perfectly_registered_arrays``: the same as numpy arrays, the set ``nrreval validate``
+perturbs).
 ``contrasts=("t1", "t2")`` images every subject in a second, T2-like contrast of the same
 anatomy (a two-modality population with known correspondence).
 See :mod:`data_synth.population` for the transform conventions.
@@ -16,6 +18,7 @@ from .population import (
     Subject,
     make_population,
     perfect_registration,
+    perfectly_registered_arrays,
     velocity_exponential,
 )
 from .writing import write_population
@@ -32,6 +35,7 @@ __all__ = [
     "make_phantom",
     "make_mni",
     "perfect_registration",
+    "perfectly_registered_arrays",
     "velocity_exponential",
     "write_population",
 ]

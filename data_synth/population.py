@@ -51,6 +51,7 @@ __all__ = [
     "PerfectRegistration",
     "make_population",
     "perfect_registration",
+    "perfectly_registered_arrays",
     "velocity_exponential",
 ]
 
@@ -301,6 +302,48 @@ def perfect_registration(
             )
         )
     return PerfectRegistration(tuple(images), tuple(labels))
+
+
+def perfectly_registered_arrays(
+    kind: str = "phantom",
+    *,
+    n: int = 10,
+    seed: int = 0,
+    dim: int = 2,
+    with_spacing: bool = False,
+):
+    """A generated population's :func:`perfect_registration` as numpy arrays.
+
+    The registered, labelled set the paper perturbs in Section IV
+    (:func:`itk_nrreval.validation.validate`): :func:`make_population` (2D 141 x 141, or 3D
+    at 2 mm), every subject resampled into the template frame through its true transform.
+
+    Parameters
+    ----------
+    kind : {"phantom", "mni"}
+    n : int
+        Number of subjects, >= 1.
+    seed : int
+        Seed of the population (as :func:`make_population`).
+    dim : {2, 3}
+    with_spacing : bool
+        Also return the template grid's voxel size.
+
+    Returns
+    -------
+    images : ndarray of shape (n, *spatial), float64
+        Numpy order ``(z, y, x)``; intensities as the population's.
+    labels : ndarray of int64 of shape (n, *spatial)
+    spacing : tuple of float
+        Only with `with_spacing`: the voxel size, mm, ITK order ``(x, y[, z])``.
+    """
+    population = make_population(kind, dim=dim, n=n, seed=seed)
+    registered = perfect_registration(population)
+    images = np.stack([sitk.GetArrayFromImage(i) for i in registered.images]).astype(np.float64)
+    labels = np.stack([sitk.GetArrayFromImage(i) for i in registered.labels]).astype(np.int64)
+    if with_spacing:
+        return images, labels, tuple(float(s) for s in population.template.GetSpacing())
+    return images, labels
 
 
 # --------------------------------------------------------------------------------------------

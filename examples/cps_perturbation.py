@@ -17,11 +17,11 @@ import SimpleITK as sitk
 from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
-from itk_nrreval.validation import synthetic_set
+from data_synth import perfectly_registered_arrays
 
 
 def draw(out: Path) -> None:
-    images, labels = synthetic_set("phantom", n_images=1, seed=0)
+    images, labels = perfectly_registered_arrays("phantom", n=1, seed=0)
     image, label = images[0], labels[0]
 
     warp = nr.random_cps(image.shape, 3.0, n_knots=25, seed=1)

@@ -48,7 +48,6 @@ __all__ = [
     "ValidationResult",
     "validate",
     "summarize",
-    "synthetic_set",
     "manifest_set",
     "validate_manifest",
     "parse_section",
@@ -59,7 +58,6 @@ __all__ = [
 DEFAULT_DISPLACEMENTS = (0.0, 0.125, 0.25, 0.375, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
 #: The straight-line fit and the correlations use ``d >= FIT_FROM`` (the paper's 0.375).
 FIT_FROM = 0.375
-_KINDS = ("phantom", "mni")
 _AXES = ("x", "y", "z")
 _Z975 = 1.959963984540054  # standard normal 97.5 % quantile
 
@@ -367,41 +365,6 @@ def take_section(images, labels, spacing, section, *, mask=None):
     if spacing is not None:
         spacing = tuple(float(s) for k, s in enumerate(spacing) if k != a)
     return images, labels, spacing, mask, (_AXES[a], index)
-
-
-def synthetic_set(
-    kind: str = "phantom",
-    *,
-    n_images: int = 10,
-    seed: int = 0,
-    dim: int = 2,
-    with_spacing: bool = False,
-):
-    """Generated brain-like images and crisp labels in one frame (perfect registration).
-
-    Uses :func:`data_synth.make_population` (2D 141 x 141, or 3D at 2 mm) and resamples
-    every subject into the template frame through its true transform.
-
-    Returns
-    -------
-    images : ndarray of shape (n_images, *spatial), float64
-    labels : ndarray of int of shape (n_images, *spatial)
-    spacing : tuple of float
-        Only with `with_spacing`: the voxel size, mm, ITK order.
-    """
-    if kind not in _KINDS:
-        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
-    import SimpleITK as sitk
-
-    from data_synth import make_population, perfect_registration
-
-    pop = make_population(kind, dim=dim, n=n_images, seed=seed)
-    reg = perfect_registration(pop)
-    images = np.stack([sitk.GetArrayFromImage(i) for i in reg.images]).astype(np.float64)
-    labels = np.stack([sitk.GetArrayFromImage(i) for i in reg.labels]).astype(np.int64)
-    if with_spacing:
-        return images, labels, tuple(float(s) for s in pop.template.GetSpacing())
-    return images, labels
 
 
 def manifest_set(manifest, *, section=None, show_progress: bool = True):

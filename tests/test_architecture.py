@@ -28,9 +28,9 @@ def _is_package(name: str, modules: dict[str, Path]) -> bool:
     return modules[name].name == "__init__.py"
 
 
-def _imports(name: str, modules: dict[str, Path]):
-    """(line, imported module, imported names) of every import of a package module in
-    `name`, at any depth (function-level imports included)."""
+def _all_imports(name: str, modules: dict[str, Path]):
+    """(line, imported module, imported names) of every import in `name`, of the package or
+    not, at any depth (function-level imports included); relative imports resolved."""
     tree = ast.parse(modules[name].read_text())
     here = name if _is_package(name, modules) else name.rpartition(".")[0]
     for node in ast.walk(tree):
@@ -42,12 +42,17 @@ def _imports(name: str, modules: dict[str, Path]):
                 target = f"{base}.{node.module}" if node.module else base
             else:
                 target = node.module or ""
-            if target in modules:
-                yield node.lineno, target, [a.name for a in node.names]
+            yield node.lineno, target, [a.name for a in node.names]
         elif isinstance(node, ast.Import):
             for a in node.names:
-                if a.name in modules:
-                    yield node.lineno, a.name, []
+                yield node.lineno, a.name, []
+
+
+def _imports(name: str, modules: dict[str, Path]):
+    """:func:`_all_imports` of the package's own modules."""
+    for line, target, names in _all_imports(name, modules):
+        if target in modules:
+            yield line, target, names
 
 
 def test_no_module_imports_a_private_name_of_a_sibling():
@@ -139,3 +144,44 @@ def test_only_the_report_package_imports_matplotlib():
     assert offences == []
     # the check sees imports inside functions, where the report's are
     assert _imports_matplotlib(modules["itk_nrreval.report._plot"])
+
+
+def _imported_names(name: str, modules: dict[str, Path]):
+    """(line, dotted name) of everything `name` imports: ``from a import b`` gives both
+    ``a`` and ``a.b`` (b may be a module)."""
+    for line, target, names in _all_imports(name, modules):
+        yield line, target
+        for imported in names:
+            yield line, f"{target}.{imported}"
+
+
+# The demo and the commands that generate data sit at the edge: they make populations with
+# data_synth (and the demo command runs the demo). The library itself measures registrations
+# of the user's images and must work without either.
+EDGE_MODULES = {
+    "itk_nrreval.demo",
+    "itk_nrreval.cli.demo",
+    "itk_nrreval.cli.synth",
+    "itk_nrreval.cli.validate",
+}
+_DEMO_AND_DATA = ("itk_nrreval.demo", "data_synth")
+
+
+def _is_demo_or_data_synth(target: str) -> bool:
+    return any(target == top or target.startswith(top + ".") for top in _DEMO_AND_DATA)
+
+
+def test_the_library_needs_neither_the_demo_nor_data_synth():
+    modules = _modules()
+    assert EDGE_MODULES <= set(modules)  # a renamed edge module is noticed here
+    offences = {}  # (module, line) -> what it imports
+    for name in sorted(set(modules) - EDGE_MODULES):
+        for line, target in _imported_names(name, modules):
+            if _is_demo_or_data_synth(target):
+                offences.setdefault((name, line), target)
+    assert [f"{name}:{line} imports {target}" for (name, line), target in offences.items()] == []
+    # the check sees the edge's imports, inside functions and relative ones
+    seen = {t for _, t in _imported_names("itk_nrreval.cli.demo", modules)}
+    assert "itk_nrreval.demo" in seen
+    seen = {t for _, t in _imported_names("itk_nrreval.cli.synth", modules)}
+    assert "data_synth.population" in seen

@@ -11,13 +11,14 @@ import math
 import numpy as np
 import pytest
 
+from data_synth import perfectly_registered_arrays
 from itk_nrreval.cli import main
-from itk_nrreval.validation import summarize, synthetic_set, validate
+from itk_nrreval.validation import summarize, validate
 
 
 @pytest.fixture(scope="module")
 def brain():
-    return synthetic_set("phantom", n_images=10, seed=0)
+    return perfectly_registered_arrays("phantom", n=10, seed=0)
 
 
 @pytest.fixture(scope="module")

@@ -114,7 +114,7 @@ def _section(text: str):
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
     from ..manifest import load_manifest
-    from ..validation import FIT_FROM, synthetic_set, validate, validate_manifest
+    from ..validation import FIT_FROM, validate, validate_manifest
 
     if args.n_images < 3:
         raise InputError(f"--n-images must be at least 3, got {args.n_images}")
@@ -140,8 +140,10 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet,
     )
     if args.synthetic:
-        images, labels, spacing = synthetic_set(
-            args.synthetic, n_images=args.n_images, seed=args.seed, dim=args.dim or 2,
+        from data_synth import perfectly_registered_arrays
+
+        images, labels, spacing = perfectly_registered_arrays(
+            args.synthetic, n=args.n_images, seed=args.seed, dim=args.dim or 2,
             with_spacing=True,
         )  # fmt: skip
         source = f"synthetic:{args.synthetic}" + (":3d" if args.dim == 3 else "")
