@@ -21,9 +21,10 @@ one that is reachable.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -37,7 +38,7 @@ from ._progress import progress as _progress
 from .overlap import WEIGHTINGS, overlap_table
 from .report.validation import OUTPUT_FILES, write_validation
 from .specificity import specificity
-from .warps import MEMBERSHIP_TOLERANCE, FoldingError, random_cps, warp_stack
+from .warps import MEMBERSHIP_TOLERANCE, CPSWarp, FoldingError, random_cps, warp_stack
 
 __all__ = [
     "DEFAULT_DISPLACEMENTS",
@@ -330,6 +331,11 @@ def _section_index(section, size_itk: Sequence[int]) -> tuple[int, int]:
     return a, index
 
 
+def _without_axis(spacing: Sequence[float], axis: int) -> tuple[float, ...]:
+    """The spacing (mm, ITK order) of a slice across ITK axis `axis`."""
+    return tuple(float(s) for k, s in enumerate(spacing) if k != axis)
+
+
 def take_section(images, labels, spacing, section, *, mask=None):
     """The 2D slice of 3D arrays at one level of their common grid.
 
@@ -363,7 +369,7 @@ def take_section(images, labels, spacing, section, *, mask=None):
     if mask is not None:
         mask = np.take(np.asarray(mask), index, axis=np_axis)
     if spacing is not None:
-        spacing = tuple(float(s) for k, s in enumerate(spacing) if k != a)
+        spacing = _without_axis(spacing, a)
     return images, labels, spacing, mask, (_AXES[a], index)
 
 
@@ -515,12 +521,12 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
         )
     spacing = grid.spacing
     if taken is not None:
-        spacing = tuple(s for k, s in enumerate(spacing) if k != _AXES.index(taken[0]))
+        spacing = _without_axis(spacing, _AXES.index(taken[0]))
     options.setdefault("source", str(manifest))
     result = validate(images, members, spacing=spacing, mask=region, **options)
     if taken is None:
         return result
-    parameters = {**result.parameters, "section": {"axis": taken[0], "index": int(taken[1])}}
+    parameters = {**result.parameters, "section": _section_record(taken)}
     return replace(result, parameters=parameters)
 
 
@@ -631,6 +637,87 @@ def validate(
     (Crum et al.). Twining et al., IEEE TMI, Section IV.
     """
     ds, weightings = _check(displacements, repeats, n_samples, weightings, n_knots)
+    inputs = _read_inputs(images, labels, mask=mask, spacing=spacing, section=section)
+    perturbation = _Perturbation(inputs, n_knots=n_knots, seed=seed, max_tries=max_tries)
+    if ds[-1] > 0:  # the largest d first: an unreachable request fails before any work
+        perturbation.warp(ds[-1], 0, 0)
+    todo = [(d, r) for d in ds for r in range(repeats)]
+    rows = []
+    with _threads(n_jobs) as pool:
+        for d, r in _progress(todo, desc="validate", total=len(todo), enabled=progress):
+            instance = perturbation.instance(d, r, pool)
+            rows.append(
+                _measure(instance, inputs, n_samples=n_samples, seed=seed, weightings=weightings)
+            )
+    return ValidationResult(
+        rows=tuple(rows),
+        summary=summarize(rows, weightings),
+        weightings=weightings,
+        n_images=inputs.n_images,
+        shape=inputs.spatial,
+        n_samples=int(n_samples),
+        n_knots=int(n_knots),
+        seed=int(seed),
+        source=source,
+        parameters={
+            "repeats": int(repeats),
+            "displacements": ds,
+            "fit_from": FIT_FROM,
+            "section": _section_record(inputs.section),
+        },
+        spacing=None if inputs.spacing is None else tuple(float(s) for s in inputs.spacing),
+    )
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The registered set to perturb, checked (and sliced when a section was asked for).
+
+    Attributes
+    ----------
+    images : ndarray of shape (n_images, *spatial)
+    labels : ndarray
+        Channel codes, int32 of shape (n_images, *spatial) (:func:`_compact`), or
+        memberships, float of shape (n_images, n_labels, *spatial) (:func:`_drop_absent`).
+    n_labels : int
+        Channels of the memberships, the background 0 included.
+    spacing : tuple of float or None
+        mm, ITK order; None for bare arrays given without one.
+    mask : ndarray of bool of shape spatial, or None
+    section : (str, int) or None
+        The slice taken (axis, index).
+    """
+
+    images: np.ndarray
+    labels: np.ndarray
+    n_labels: int
+    spacing: tuple[float, ...] | None
+    mask: np.ndarray | None
+    section: tuple[str, int] | None
+
+    @property
+    def n_images(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def spatial(self) -> tuple[int, ...]:
+        return tuple(self.images.shape[1:])
+
+    @property
+    def fuzzy(self) -> bool:
+        """Whether the labels are memberships (warped as given) rather than channel codes."""
+        return np.issubdtype(self.labels.dtype, np.floating)
+
+
+def _read_inputs(images, labels, *, mask, spacing, section) -> _Inputs:
+    """:func:`validate`'s images, labels, mask and spacing read and checked, the section taken.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 images, not 2D or 3D, a bad spacing, labels or mask, a mask empty on
+        the section, or fewer than 3 voxels along an axis.
+    """
     stack = image_stack(images, what="image")
     data = stack.data
     n, spatial = data.shape[0], data.shape[1:]
@@ -658,97 +745,132 @@ def validate(
             raise InputError(f"mask: empty on slice {taken[0]}:{taken[1]}")
     if min(spatial) < 3:
         raise InputError(f"images must have at least 3 voxels per axis, got {spatial}")
-    fuzzy = np.issubdtype(lab.dtype, np.floating)
-    if fuzzy:
+    if np.issubdtype(lab.dtype, np.floating):
         lab = _drop_absent(lab)
         n_labels = lab.shape[1]
     else:
         lab, n_labels = _compact(lab)
+    return _Inputs(data, lab, n_labels, spacing, mask_arr, taken)
 
-    def draw(d: float, r: int, i: int):
+
+@dataclass(frozen=True)
+class _Instance:
+    """One perturbed set: its mean pixel displacement ``d`` and repeat, the warped images
+    (n_images, *spatial), their memberships (n_images, n_labels, *spatial), the smallest
+    Jacobian determinant of the N warps and their mean displacement in mm."""
+
+    displacement: float
+    repeat: int
+    images: np.ndarray
+    memberships: np.ndarray
+    min_jacobian: float
+    displacement_mm: float
+
+
+@dataclass(frozen=True)
+class _Perturbation:
+    """The random CPS warps of a validation run: image i's warp in repeat r at displacement
+    d, and the perturbed set of (d, r)."""
+
+    inputs: _Inputs
+    n_knots: int
+    seed: int
+    max_tries: int
+
+    def warp(self, d: float, r: int, i: int) -> CPSWarp:
+        """Image i's warp from its own seed (independent of the other values of d).
+
+        Raises
+        ------
+        InputError
+            No warp of mean displacement `d` without folding (:func:`_unreachable`).
+        """
+        spatial = self.inputs.spatial
         try:
             return random_cps(
                 spatial,
                 d,
-                spacing=spacing,
-                n_knots=n_knots,
-                seed=np.random.default_rng([seed, round(d * 1e6), r, i]),
-                max_tries=max_tries,
+                spacing=self.inputs.spacing,
+                n_knots=self.n_knots,
+                seed=np.random.default_rng([self.seed, round(d * 1e6), r, i]),
+                max_tries=self.max_tries,
             )
         except FoldingError as exc:
-            raise _unreachable(d, exc, spatial, max_tries) from None
+            raise _unreachable(d, exc, spatial, self.max_tries) from None
 
-    def perturb(d: float, r: int, i: int):
-        warp = draw(d, r, i)
+    def image(self, d: float, r: int, i: int):
+        """Image i and its memberships warped: (image, memberships, min Jacobian, mm)."""
+        inputs = self.inputs
+        warp = self.warp(d, r, i)
         try:
             img, mem = warp_stack(
-                data[i : i + 1], [warp], labels=lab[i : i + 1], n_labels=None if fuzzy else n_labels
+                inputs.images[i : i + 1],
+                [warp],
+                labels=inputs.labels[i : i + 1],
+                n_labels=None if inputs.fuzzy else inputs.n_labels,
             )
         except FoldingError as exc:
-            raise _unreachable(d, exc, spatial, max_tries) from None
+            raise _unreachable(d, exc, inputs.spatial, self.max_tries) from None
         return img[0], mem[0], warp.min_jacobian, warp.mean_displacement_mm
 
-    if ds[-1] > 0:  # the largest d first: an unreachable request fails before any work
-        draw(ds[-1], 0, 0)
-    # memberships are stored as float32 (N x labels x voxels: the largest array here);
-    # their overlap sums accumulate in float64
-    m_dtype = np.float32
-    rows = []
-    todo = [(d, r) for d in ds for r in range(repeats)]
-    pool = ThreadPoolExecutor(n_jobs) if n_jobs > 1 else None
+    def instance(self, d: float, r: int, pool: ThreadPoolExecutor | None) -> _Instance:
+        """The whole set perturbed at `d` in repeat `r` (its images warped on `pool`)."""
+        inputs = self.inputs
+        if d == 0.0:  # the identity: no resampling at all
+            members = _onehot(inputs.labels, inputs.n_labels)
+            return _Instance(d, r, inputs.images, members, 1.0, 0.0)
+        done = (pool.map if pool else map)(lambda i: self.image(d, r, i), range(inputs.n_images))
+        warped = np.empty(inputs.images.shape)
+        # memberships are stored as float32 (N x labels x voxels: the largest array here);
+        # their overlap sums accumulate in float64
+        members = np.empty((inputs.n_images, inputs.n_labels, *inputs.spatial), dtype=np.float32)
+        jacobians, mms = [], []
+        for i, (img, mem, jacobian, mm) in enumerate(done):
+            warped[i], members[i] = img, mem
+            jacobians.append(jacobian)
+            mms.append(mm)
+        return _Instance(d, r, warped, members, min(jacobians), float(np.mean(mms)))
+
+
+@contextlib.contextmanager
+def _threads(n_jobs: int) -> Iterator[ThreadPoolExecutor | None]:
+    """`n_jobs` threads (None for one: work in the caller's), not waited for on an error."""
+    if n_jobs <= 1:
+        yield None
+        return
+    pool = ThreadPoolExecutor(n_jobs)
     try:
-        for d, r in _progress(todo, desc="validate", total=len(todo), enabled=progress):
-            if d == 0.0:  # the identity: no resampling at all
-                warped, members, min_jac, d_mm = data, _onehot(lab, n_labels), 1.0, 0.0
-            else:
-                jobs = [(d, r, i) for i in range(n)]
-                done = (
-                    pool.map(lambda a: perturb(*a), jobs)
-                    if pool
-                    else map(lambda a: perturb(*a), jobs)
-                )
-                warped = np.empty(data.shape)
-                members = np.empty((n, n_labels, *spatial), dtype=m_dtype)
-                jacs, mms = [], []
-                for i, (img, mem, jac, mm) in enumerate(done):
-                    warped[i], members[i] = img, mem
-                    jacs.append(jac)
-                    mms.append(mm)
-                min_jac, d_mm = min(jacs), float(np.mean(mms))
-            spec = specificity(warped, n_samples=n_samples, seed=seed, mask=mask_arr)
-            table = overlap_table(members, spacing=spacing)
-            rows.append(
-                ValidationRow(
-                    displacement=d,
-                    repeat=r,
-                    specificity=spec.value,
-                    specificity_stderr=spec.stderr,
-                    overlap={w: table.generalized(w) for w in weightings},
-                    min_jacobian=min_jac,
-                    displacement_mm=d_mm,
-                )
-            )
+        yield pool
     finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
-    return ValidationResult(
-        rows=tuple(rows),
-        summary=summarize(rows, weightings),
-        weightings=weightings,
-        n_images=n,
-        shape=tuple(spatial),
-        n_samples=int(n_samples),
-        n_knots=int(n_knots),
-        seed=int(seed),
-        source=source,
-        parameters={
-            "repeats": int(repeats),
-            "displacements": ds,
-            "fit_from": FIT_FROM,
-            "section": None if taken is None else {"axis": taken[0], "index": int(taken[1])},
-        },
-        spacing=None if spacing is None else tuple(float(s) for s in spacing),
+        pool.shutdown(cancel_futures=True)
+
+
+def _measure(
+    instance: _Instance,
+    inputs: _Inputs,
+    *,
+    n_samples: int,
+    seed: int,
+    weightings: tuple[str, ...],
+) -> ValidationRow:
+    """Specificity (inside the mask, seeded by `seed`: common random numbers) and the
+    overlaps of one perturbed set: its row of the table."""
+    spec = specificity(instance.images, n_samples=n_samples, seed=seed, mask=inputs.mask)
+    table = overlap_table(instance.memberships, spacing=inputs.spacing)
+    return ValidationRow(
+        displacement=instance.displacement,
+        repeat=instance.repeat,
+        specificity=spec.value,
+        specificity_stderr=spec.stderr,
+        overlap={w: table.generalized(w) for w in weightings},
+        min_jacobian=instance.min_jacobian,
+        displacement_mm=instance.displacement_mm,
     )
+
+
+def _section_record(section: tuple[str, int] | None) -> dict | None:
+    """A section taken as ``ValidationResult.parameters["section"]`` records it."""
+    return None if section is None else {"axis": section[0], "index": int(section[1])}
 
 
 def _unreachable(d: float, exc: FoldingError, spatial, max_tries: int) -> InputError:
