@@ -261,19 +261,44 @@ def _checked(method: str, parameters: Mapping[str, Sequence], engine: str) -> di
     return out
 
 
-def _previous(folder: Path, settings: dict) -> dict | None:
-    """The registration log in `folder` when it was made with these settings, else None."""
-    log = folder / "registration.json"
+def _previous(
+    folder: Path,
+    *,
+    method: str,
+    engine: str,
+    seed: int,
+    images: list[str],
+    options,
+    reference_choice: str,
+) -> dict | None:
+    """The registration log in `folder` when it was made with these settings (`options` the
+    method's options dataclass), else None (also when a transform it lists is missing)."""
+    expected = _json(
+        {
+            "method": method,
+            "engine": engine,
+            "seed": seed,
+            "images": images,
+            "options": dataclasses.asdict(options),
+            "reference_choice": reference_choice,
+        }
+    )
     try:
-        found = json.loads(log.read_text())
+        found = json.loads((folder / "registration.json").read_text())
     except (OSError, ValueError):
         return None
-    keys = ("method", "engine", "seed", "images", "options", "reference_choice")
-    if any(found.get(k) != settings.get(k) for k in keys):
+    if any(found.get(k) != v for k, v in expected.items()):
         return None
     if not all((folder / t).is_file() for t in found.get("transforms", [])):
         return None
     return found
+
+
+def _write_registration(result, folder: Path, images: Sequence[str]) -> dict:
+    """Write a registration into `folder` (transforms named after the images); its log as
+    read back (what :func:`_previous` finds on a rerun)."""
+    result.write(folder, names=[file_stem(p) for p in images])
+    return json.loads((folder / "registration.json").read_text())
 
 
 SWEEP_OUTPUTS = (
@@ -355,7 +380,48 @@ def sweep(
         An unknown option name, a value the method refuses, fewer than 4 images, before
         any registration runs.
     """
-    from .registration import ENGINES, register
+    images, engine, parameters = _check_request(images, method, parameters, engine)
+    inputs = [*images, *(labels or ()), mask, truth_reference]
+    inputs = [p for p in inputs if isinstance(p, (str, os.PathLike))]
+    out = claim_output_folder(
+        check_output_folder(out, inputs=inputs, option="out"), entries=SWEEP_OUTPUTS
+    )
+    registrations = _Registrations(
+        out / "registrations", images, method, engine, seed, reference_choice
+    )
+    settings, logs = registrations.plan(parameters)
+    logs.update(registrations.register_missing(settings, progress=progress))
+    manifest = _write_manifest(
+        out, settings, logs, method=method, images=images, labels=labels, mask=mask
+    )
+    evaluation = evaluate(
+        manifest, n_samples=n_samples, seed=seed, cache=out / "cache", progress=progress
+    )
+    truth_error = None
+    if truth is not None:
+        truth_error = _truth_error(evaluation, manifest, truth, truth_reference)
+    result = _summarise(method, parameters, settings, manifest, evaluation, truth_error)
+    evaluation.write(out / "evaluation")  # figures, report.html, results.*
+    _write(result, out)
+    return result
+
+
+def _check_request(
+    images: Sequence[str | os.PathLike],
+    method: str,
+    parameters: Mapping[str, Sequence],
+    engine: str | None,
+) -> tuple[list[str], str, dict[str, tuple]]:
+    """The images as strings, the engine (the method's default for None) and the swept
+    values (:func:`_checked`), every setting checked before any work.
+
+    Raises
+    ------
+    InputError
+        An unknown method or engine, no parameter, fewer than 4 images, or a setting
+        :func:`_checked` refuses.
+    """
+    from .registration import ENGINES
 
     if method not in ENGINES:
         raise InputError(f"--method {method!r}: not one of {', '.join(ENGINES)}")
@@ -367,99 +433,124 @@ def sweep(
     engine = ENGINES[method][0] if engine is None else engine
     if engine not in ENGINES[method]:
         raise InputError(f"--engine {engine!r}: not one of {', '.join(ENGINES[method])}")
-    parameters = _checked(method, parameters, engine)
-    grid = _grid(parameters)
-    inputs = [*images, *(labels or ()), mask, truth_reference]
-    inputs = [p for p in inputs if isinstance(p, (str, os.PathLike))]
-    out = claim_output_folder(
-        check_output_folder(out, inputs=inputs, option="out"), entries=SWEEP_OUTPUTS
-    )
-    stems = [file_stem(p) for p in images]
+    return images, engine, _checked(method, parameters, engine)
 
-    method_defaults = _defaults(method)
-    choice = reference_choice if method != "groupwise" else "group mean (near-mean frame)"
-    todo, found = [], {}
-    for values in grid:
-        name = _setting_name(method, values)
-        opts = dataclasses.replace(method_defaults, **values)
-        expected = _json(
-            {
-                "method": method,
-                "engine": engine,
-                "seed": seed,
-                "images": images,
-                "options": dataclasses.asdict(opts),
-                "reference_choice": choice,
-            }
-        )
-        log = _previous(out / "registrations" / name, expected)
-        if log is None:
-            todo.append((name, values))
-        else:
-            found[name] = log
 
-    if todo:
-        from .registration._elastix_worker import ElastixWorker
+@dataclass(frozen=True)
+class _Registrations:
+    """The sweep's registrations, one per setting in ``folder/<name>`` (``out/registrations``):
+    the same images, method, engine, seed and reference choice, the options varied."""
 
+    folder: Path
+    images: list[str]
+    method: str
+    engine: str
+    seed: int
+    reference_choice: str
+
+    def plan(
+        self, parameters: Mapping[str, tuple]
+    ) -> tuple[tuple[SweepSetting, ...], dict[str, dict]]:
+        """Every setting of the grid, in grid order, and the logs of those registered already.
+
+        A setting is ``reused`` when ``folder/<name>`` holds its registration made with the
+        same method, engine, seed, images, options and reference choice (:func:`_previous`).
+        """
+        defaults = _defaults(self.method)
+        # groupwise registers to its group mean whatever the reference choice; its log says so
+        choice = self.reference_choice
+        if self.method == "groupwise":
+            choice = "group mean (near-mean frame)"
+        settings, logs = [], {}
+        for values in _grid(parameters):
+            name = _setting_name(self.method, values)
+            log = _previous(
+                self.folder / name,
+                method=self.method,
+                engine=self.engine,
+                seed=self.seed,
+                images=self.images,
+                options=dataclasses.replace(defaults, **values),
+                reference_choice=choice,
+            )
+            if log is not None:
+                logs[name] = log
+            settings.append(SweepSetting(name, values, reused=log is not None))
+        return tuple(settings), logs
+
+    def register_missing(
+        self, settings: Sequence[SweepSetting], *, progress: bool
+    ) -> dict[str, dict]:
+        """Register every setting not reused into ``folder/<name>``, from the affine stage
+        they share (``folder/_affine``, computed once); their logs by name.
+
+        One elastix worker serves every registration of an elastix engine.
+        """
+        from .registration import register
+        from .registration._elastix_worker import elastix_worker_for
+
+        todo = [s for s in settings if not s.reused]
+        if not todo:
+            return {}
         affine = _affine_stage(
-            images, out / "registrations" / "_affine", reference_choice, seed, progress
+            self.images, self.folder / "_affine", self.reference_choice, self.seed, progress
         )
-        uses_elastix = engine.startswith("elastix")
-        with ElastixWorker() if uses_elastix else contextlib.nullcontext() as worker:
-            for name, values in todo:
-                folder = out / "registrations" / name
+        logs = {}
+        with elastix_worker_for(None, needed=self.engine.startswith("elastix")) as worker:
+            for setting in todo:
                 result = register(
-                    images,
-                    method=method,
-                    engine=engine,
-                    options=values,
+                    self.images,
+                    method=self.method,
+                    engine=self.engine,
+                    options=setting.values,
                     affine=affine,
-                    seed=seed,
+                    seed=self.seed,
                     progress=progress,
                     elastix_worker=worker,
                 )
-                result.write(folder, names=stems)
-                found[name] = json.loads((folder / "registration.json").read_text())
+                folder = self.folder / setting.name
+                logs[setting.name] = _write_registration(result, folder, self.images)
+        return logs
 
+
+def _write_manifest(
+    out: Path,
+    settings: Sequence[SweepSetting],
+    logs: Mapping[str, dict],
+    *,
+    method: str,
+    images: list[str],
+    labels: Sequence[str | os.PathLike] | None,
+    mask: str | os.PathLike | None,
+) -> Path:
+    """``out/manifest.yaml`` (rewritten): every setting's registration with its values, in
+    grid order, the labels and the mask; ``out/identity.tfm`` its frame transforms."""
     manifest = out / "manifest.yaml"
     with contextlib.suppress(FileNotFoundError):
         manifest.unlink()  # rewritten from this grid's registrations only
     identity = out / "identity.tfm"
     dim = sitk.ReadImage(images[0]).GetDimension()
     sitk.WriteTransform(sitk.TranslationTransform(dim), str(identity))
-    settings = []
-    for i, values in enumerate(grid):
-        name = _setting_name(method, values)
-        log = found[name]
-        folder = out / "registrations" / name
+    for i, setting in enumerate(settings):
+        log = logs[setting.name]
+        folder = out / "registrations" / setting.name
         # Every setting but groupwise registers to the same reference image: F is the identity.
         same_frame = i > 0 and method != "groupwise"
         add_registration(
             manifest,
-            name,
+            setting.name,
             reference=folder / log["reference"],
             transforms=[folder / t for t in log["transforms"]],
             reference_index=log["reference_index"],
             frame_transform=identity if same_frame else None,
             images=images,
             labels=list(labels) if labels is not None else None,
-            parameters=values,
+            parameters=setting.values,
         )
-        settings.append(SweepSetting(name, values, reused=name not in dict(todo)))
     if mask is not None:
         m = load_manifest(manifest)
         write_manifest(dataclasses.replace(m, mask=Path(mask).absolute()), manifest)
-
-    evaluation = evaluate(
-        manifest, n_samples=n_samples, seed=seed, cache=out / "cache", progress=progress
-    )
-    truth_error = None
-    if truth is not None:
-        truth_error = _truth_error(evaluation, manifest, truth, truth_reference)
-    result = _summarise(method, parameters, tuple(settings), manifest, evaluation, truth_error)
-    evaluation.write(out / "evaluation")  # figures, report.html, results.*
-    _write(result, out)
-    return result
+    return manifest
 
 
 def _defaults(method: str):
@@ -487,17 +578,15 @@ def _affine_stage(images, folder: Path, reference_choice: str, seed: int, progre
     from .registration import RegistrationResult, register
     from .transforms import read_transform
 
-    expected = _json(
-        {
-            "method": "affine",
-            "engine": "simpleitk",
-            "seed": seed,
-            "images": images,
-            "options": dataclasses.asdict(_defaults("affine")),
-            "reference_choice": reference_choice,
-        }
+    log = _previous(
+        folder,
+        method="affine",
+        engine="simpleitk",
+        seed=seed,
+        images=images,
+        options=_defaults("affine"),
+        reference_choice=reference_choice,
     )
-    log = _previous(folder, expected)
     if log is None:
         result = register(
             images,
@@ -506,8 +595,7 @@ def _affine_stage(images, folder: Path, reference_choice: str, seed: int, progre
             seed=seed,
             progress=progress,
         )
-        result.write(folder, names=[file_stem(p) for p in images])
-        log = json.loads((folder / "registration.json").read_text())
+        log = _write_registration(result, folder, images)
     transforms = tuple(read_transform(folder / t) for t in log["transforms"])
     return RegistrationResult(
         method="affine",
