@@ -353,15 +353,59 @@ def assess_subjects(
     transform or another subject's transform (a `mixups` ratio of ``th.better_fit_ratio``
     or more).
     """
-    th = thresholds
-    n_all = len(images)
-    scored = [int(i) for i in scored]
+    cohort = _cohort(
+        n_all=len(images),
+        scored=[int(i) for i in scored],
+        gram=gram,
+        deformation=deformation,
+        coverage=coverage,
+        overlap_sums=None
+        if overlap_volume is None
+        else (overlap_volume, overlap_target_sums, overlap_weights),
+    )
+    out = []
+    for i in range(len(images)):
+        flags, causes = _flags_and_causes(i, cohort, images, thresholds)
+        # after the causes read off the transform itself: the inverse of an affine-only or a
+        # scaled transform can fit somewhat better too (up to 1.5x on generated cohorts)
+        better_fit = mixups[i][0] if mixups and i in mixups else None
+        if better_fit is not None and better_fit >= thresholds.better_fit_ratio:
+            causes.append(mixups[i][1])
+        out.append(_subject_qc(i, cohort, images, flags, causes, better_fit))
+    return tuple(out)
+
+
+_DEFORMATION_FLAGS = (
+    ("sdlogj", "SDlogJ"),
+    ("nonlinear_rms_mm", "non-linear displacement (mm RMS)"),
+    ("inverse_consistency_mm", "inverse-consistency error (mm)"),
+)
+
+
+@dataclass(frozen=True)
+class _Cohort:
+    """One registration's cohort statistics, every array of length N (manifest order; NaN
+    for a subject not in the scores)."""
+
+    scored: frozenset[int]
+    coverage: np.ndarray
+    deformation: dict[str, np.ndarray]
+    score: np.ndarray
+    z: np.ndarray
+    nearest: dict[int, tuple[int, float]]  # subject -> (nearest other, distance / median)
+    deformation_z: dict[str, np.ndarray]
+    medians: dict[str, float]
+    overlap: np.ndarray | None
+    overlap_z: np.ndarray
+
+
+def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Cohort:
+    """The statistics every subject is judged against (see :func:`assess_subjects`)."""
     cov = np.asarray(coverage, np.float64)
     defo = {
         k: np.array([math.nan if v is None else float(v) for v in vals], np.float64)
         for k, vals in deformation.items()
     }
-
     score = np.full(n_all, np.nan)
     z = np.full(n_all, np.nan)
     if len(scored) >= 4:
@@ -370,8 +414,7 @@ def assess_subjects(
         tiny = max(float(np.max(dist)), 1.0) * 1e-12
         score[scored] = dist
         z[scored] = robust_z(dist, log=True, floor=tiny)
-
-    nearest = {}  # scored subject -> (nearest other subject, its distance / median distance)
+    nearest = {}
     if len(scored) >= 3:
         pairs = pair_distances(gram)
         off = pairs[~np.eye(len(scored), dtype=bool)]
@@ -381,121 +424,119 @@ def assess_subjects(
             j = int(np.argmin(pairs[row]))
             ratio = pairs[row, j] / median_pair if median_pair > 0 else math.nan
             nearest[i] = (scored[j], ratio)
-
-    zs = {
+    deformation_z = {
         name: robust_z(defo[name], log=True, floor=_LOG_FLOORS[name])
-        for name in ("sdlogj", "nonlinear_rms_mm", "inverse_consistency_mm")
+        for name, _ in _DEFORMATION_FLAGS
     }
-    median_cov = float(np.median(cov))
-    median_det = _median(defo["linear_det"])
-    median_nonlinear = _median(defo["nonlinear_rms_mm"])
-
-    overlap = np.full(n_all, np.nan)
+    medians = {name: _median(defo[name]) for name in defo}
+    medians["coverage"] = float(np.median(cov))
+    overlap = None
     overlap_z = np.full(n_all, np.nan)
-    has_overlap = overlap_volume is not None
-    if has_overlap:
-        values = subject_overlaps(overlap_volume, overlap_target_sums, overlap_weights)
+    if overlap_sums is not None:
+        overlap = np.full(n_all, np.nan)
+        values = subject_overlaps(*overlap_sums)
         overlap[scored] = values
         overlap_z[scored] = robust_z(values)
+        medians["overlap"] = _median(overlap)
+    return _Cohort(
+        frozenset(scored), cov, defo, score, z, nearest, deformation_z, medians, overlap, overlap_z
+    )
 
-    out = []
-    in_scores = set(scored)
-    for i in range(n_all):
-        flags: list[str] = []
-        causes: list[str] = []
-        if i not in in_scores and cov[i] < th.off_grid_coverage * median_cov:
-            flags.append(
-                f"covers {cov[i]:.0%} of the common grid (cohort median {median_cov:.0%}): "
-                "left out of the scores"
-            )
-            causes.append(
-                "its transform maps the image (almost) off the common grid: wrong transform, "
-                "wrong reference or a unit/axis mix-up"
-            )
-        elif i not in in_scores:  # the scores of every registration share one region
-            flags.append(
-                f"left out of the scores: another registration maps it off the common grid "
-                f"(it covers {cov[i]:.0%} here)"
-            )
-        if i in nearest and nearest[i][1] < th.duplicate_distance:
-            j, ratio = nearest[i]
-            flags.append(
-                f"its resampled image is identical to subject {j}'s"
-                if ratio < 1e-6  # "0x the median distance" says it less plainly
-                else f"its resampled image is {ratio:.2g}x the median pairwise distance from "
-                f"subject {j}'s"
-            )
-            causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")
-        det = defo["linear_det"][i]
-        if det < 0 and median_det > 0:
-            flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
-            causes.append("mirrored: its transform flips an axis (left-right swapped?)")
-        if z[i] > th.outlier_z:
-            flags.append(
-                f"far from the model of the others: distance {_fmt(score[i])} ({_z_words(z[i])})"
-            )
-        folded = defo["folded_fraction"][i]
-        if folded > th.folded:
-            flags.append(f"{folded:.1%} of its voxels fold (det J <= 0)")
-        rough = False
-        for name, words in (
-            ("sdlogj", "SDlogJ"),
-            ("nonlinear_rms_mm", "non-linear displacement (mm RMS)"),
-            ("inverse_consistency_mm", "inverse-consistency error (mm)"),
-        ):
-            median = _median(defo[name])
-            if zs[name][i] > th.deformation_z and defo[name][i] > th.deformation_ratio * median:
-                rough = True
-                flags.append(
-                    f"{words} {_fmt(defo[name][i])} against the cohort's median "
-                    f"{_fmt(median)} ({_z_words(zs[name][i])})"
-                )
-        nonlinear = defo["nonlinear_rms_mm"][i]
-        if median_nonlinear > _AFFINE_COHORT_MM and nonlinear < th.affine_only_ratio * (
-            median_nonlinear
-        ):
-            flags.append(
-                f"almost no non-linear displacement: {_fmt(nonlinear, 2)} mm RMS beyond "
-                f"the best affine map (cohort median {_fmt(median_nonlinear)} mm)"
-            )
-            causes.append("stopped early or affine only: no non-linear deformation")
-        if (rough or folded > th.folded) and nonlinear > th.scaled_ratio * median_nonlinear:
-            causes.append(
-                f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
-                "median non-linear displacement (a unit or scale mix-up?)"
-            )
-        # after the causes read off the transform itself: the inverse of an affine-only or a
-        # scaled transform can fit somewhat better too (up to 1.5x on generated cohorts)
-        better_fit = mixups[i][0] if mixups and i in mixups else None
-        if better_fit is not None and better_fit >= th.better_fit_ratio:
-            causes.append(mixups[i][1])
-        if overlap_z[i] < -th.overlap_z:
-            flags.append(
-                f"label overlap with the others {overlap[i]:.3f} (cohort median "
-                f"{_median(overlap):.3f}, {_z_words(overlap_z[i])})"
-            )
-        out.append(
-            SubjectQC(
-                index=i,
-                image=str(images[i]),
-                score=None if math.isnan(score[i]) else float(score[i]),
-                z=None if math.isnan(z[i]) else float(z[i]),
-                deformation={
-                    **{k: (None if math.isnan(v[i]) else float(v[i])) for k, v in defo.items()},
-                    "sdlogj_z": float(zs["sdlogj"][i]),
-                    "nonlinear_rms_z": float(zs["nonlinear_rms_mm"][i]),
-                    "inverse_consistency_z": float(zs["inverse_consistency_mm"][i]),
-                },
-                overlap=None if not has_overlap or math.isnan(overlap[i]) else float(overlap[i]),
-                overlap_z=None if math.isnan(overlap_z[i]) else float(overlap_z[i]),
-                coverage=float(cov[i]),
-                in_scores=i in in_scores,
-                flags=tuple(flags),
-                diagnosis=causes[0] if causes and flags else None,
-                better_fit=better_fit,
-            )
+
+def _flags_and_causes(i: int, c: _Cohort, images, th: SubjectThresholds):
+    """Subject `i`'s flags and the causes that would explain them, in order."""
+    flags: list[str] = []
+    causes: list[str] = []
+    cov, median_cov = c.coverage[i], c.medians["coverage"]
+    if i not in c.scored and cov < th.off_grid_coverage * median_cov:
+        flags.append(
+            f"covers {cov:.0%} of the common grid (cohort median {median_cov:.0%}): "
+            "left out of the scores"
         )
-    return tuple(out)
+        causes.append(
+            "its transform maps the image (almost) off the common grid: wrong transform, "
+            "wrong reference or a unit/axis mix-up"
+        )
+    elif i not in c.scored:  # the scores of every registration share one region
+        flags.append(
+            f"left out of the scores: another registration maps it off the common grid "
+            f"(it covers {cov:.0%} here)"
+        )
+    if i in c.nearest and c.nearest[i][1] < th.duplicate_distance:
+        j, ratio = c.nearest[i]
+        flags.append(
+            f"its resampled image is identical to subject {j}'s"
+            if ratio < 1e-6  # "0x the median distance" says it less plainly
+            else f"its resampled image is {ratio:.2g}x the median pairwise distance from "
+            f"subject {j}'s"
+        )
+        causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")
+    defo = c.deformation
+    det = defo["linear_det"][i]
+    if det < 0 and c.medians["linear_det"] > 0:
+        flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
+        causes.append("mirrored: its transform flips an axis (left-right swapped?)")
+    if c.z[i] > th.outlier_z:
+        flags.append(
+            f"far from the model of the others: distance {_fmt(c.score[i])} ({_z_words(c.z[i])})"
+        )
+    folded = defo["folded_fraction"][i]
+    if folded > th.folded:
+        flags.append(f"{folded:.1%} of its voxels fold (det J <= 0)")
+    rough = False
+    for name, words in _DEFORMATION_FLAGS:
+        median, zi = c.medians[name], c.deformation_z[name][i]
+        if zi > th.deformation_z and defo[name][i] > th.deformation_ratio * median:
+            rough = True
+            flags.append(
+                f"{words} {_fmt(defo[name][i])} against the cohort's median "
+                f"{_fmt(median)} ({_z_words(zi)})"
+            )
+    nonlinear, median_nonlinear = defo["nonlinear_rms_mm"][i], c.medians["nonlinear_rms_mm"]
+    if median_nonlinear > _AFFINE_COHORT_MM and nonlinear < th.affine_only_ratio * (
+        median_nonlinear
+    ):
+        flags.append(
+            f"almost no non-linear displacement: {_fmt(nonlinear, 2)} mm RMS beyond "
+            f"the best affine map (cohort median {_fmt(median_nonlinear)} mm)"
+        )
+        causes.append("stopped early or affine only: no non-linear deformation")
+    if (rough or folded > th.folded) and nonlinear > th.scaled_ratio * median_nonlinear:
+        causes.append(
+            f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
+            "median non-linear displacement (a unit or scale mix-up?)"
+        )
+    if c.overlap_z[i] < -th.overlap_z:
+        flags.append(
+            f"label overlap with the others {c.overlap[i]:.3f} (cohort median "
+            f"{c.medians['overlap']:.3f}, {_z_words(c.overlap_z[i])})"
+        )
+    return flags, causes
+
+
+def _subject_qc(i: int, c: _Cohort, images, flags, causes, better_fit) -> SubjectQC:
+    def number(v: float) -> float | None:
+        return None if math.isnan(v) else float(v)
+
+    return SubjectQC(
+        index=i,
+        image=str(images[i]),
+        score=number(c.score[i]),
+        z=number(c.z[i]),
+        deformation={
+            **{k: number(v[i]) for k, v in c.deformation.items()},
+            "sdlogj_z": float(c.deformation_z["sdlogj"][i]),
+            "nonlinear_rms_z": float(c.deformation_z["nonlinear_rms_mm"][i]),
+            "inverse_consistency_z": float(c.deformation_z["inverse_consistency_mm"][i]),
+        },
+        overlap=None if c.overlap is None else number(c.overlap[i]),
+        overlap_z=number(c.overlap_z[i]),
+        coverage=float(c.coverage[i]),
+        in_scores=i in c.scored,
+        flags=tuple(flags),
+        diagnosis=causes[0] if causes and flags else None,
+        better_fit=better_fit,
+    )
 
 
 @dataclass(frozen=True)
