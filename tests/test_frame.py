@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from test_plausibility import OBLIQUE_GRID, full_grid_inverse, smooth_random_field
 
 from itk_nrreval.frame import (
     frame_estimates,
@@ -197,3 +198,32 @@ def test_frame_estimates_when_the_reference_is_not_co_located_with_the_images(di
     err = np.linalg.norm(est - s, axis=-1)
     # Linear interpolation of the inverse field on a 10-voxel grid: ~0.1 mm at worst.
     assert err.max() < 0.15 and np.percentile(err, 90) < 0.05, err.max()
+
+
+def test_frame_estimates_within_a_hundredth_of_a_mm_of_the_full_grid_inverse():
+    # Issue 30: each estimate F_i = (T_i^R)^-1 o T_i^C inverts T_i^R's displacement field on
+    # every second node of its grid and refines that inverse by three fixed-point steps on
+    # the field's own grid (at 1 mm: 5.3 s of one core instead of 13.2 s). On a smooth field of up
+    # to 3 mm on an oblique, anisotropic 3D grid, behind an affine map, every voxel's
+    # estimate stays within 0.01 mm of the one from ITK's inverse on the full grid (measured:
+    # 0.0065 mm at worst, 1e-5 mm on average; one refinement step gives 0.14 mm at worst).
+    g = OBLIQUE_GRID
+    field = smooth_random_field(g, max_mm=3.0)
+    pose = sitk.AffineTransform(3)
+    pose.SetMatrix((1.05, 0.02, 0.0, -0.03, 0.97, 0.01, 0.0, 0.02, 1.02))
+    pose.SetTranslation((2.0, -1.0, 3.0))
+    pose.SetCenter((0.0, 10.0, 10.0))
+    common = sitk.TranslationTransform(3, (1.5, -0.5, 2.0))
+    other = sitk.CompositeTransform([pose, field])  # the field acts first, then the pose
+    est = frame_estimates([common], [other], g)[0]
+    # F(p) = field^-1(pose^-1(common(p))), with ITK's full-grid inverse of the field
+    reference = sitk.CompositeTransform(
+        [full_grid_inverse(field.GetDisplacementField()), pose.GetInverse(), common]
+    )
+    expected = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            reference, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
+        )
+    )
+    err = np.linalg.norm(est - expected, axis=-1)
+    assert err.max() < 0.01 and err.mean() < 1e-4, (err.max(), err.mean())

@@ -286,9 +286,10 @@ def test_progress_bars_on_stderr_unless_quiet(tmp_path, capsys):
 
 
 def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
-    # Issue 30: resampled images are cached as float32 (half the bytes). The reductions add
-    # up in float64, so every score stays within 1e-5 (relative) of float64 entries', and
-    # the deformation measures, which never read the entries, are the same.
+    # Issue 30: resampled images and frame estimates are cached as float32 (half the bytes).
+    # The reductions add up in float64, so every score and frame spread stays within 1e-5
+    # (relative) of float64 entries', and the deformation measures, which never read the
+    # entries, are the same.
     from itk_nrreval import pipeline
 
     data = make_case(tmp_path)
@@ -296,14 +297,19 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
     single = nr.evaluate(manifest, cache=tmp_path / "cache32", **KW)
     monkeypatch.setattr(pipeline, "_STORED_IMAGE", np.float64)
+    monkeypatch.setattr(pipeline, "_STORED_ESTIMATE", np.float64)
     double = nr.evaluate(manifest, cache=tmp_path / "cache64", **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
-        stored = {np.load(p, mmap_mode="r").dtype for p in (tmp_path / cache).rglob("image.npy")}
-        assert stored == {np.dtype(dtype)}
+        for kind, name in (("resampled", "image.npy"), ("estimate", "disp.npy")):
+            entries = (tmp_path / cache / kind).rglob(name)
+            assert {np.load(p, mmap_mode="r").dtype for p in entries} == {np.dtype(dtype)}
     assert list(single.scores) == list(double.scores)
     for name, s64 in double.scores.items():
         s32 = single.scores[name]
         for key, v64 in s64.measures().items():
             assert s32.measures()[key] == pytest.approx(v64, rel=1e-5, abs=1e-9), (name, key)
         assert s32.plausibility == s64.plausibility
+        for spread in ("spread_mean_mm", "spread_max_mm"):
+            value = getattr(s64.frame, spread)
+            assert getattr(s32.frame, spread) == pytest.approx(value, rel=1e-5, abs=1e-9)
         np.testing.assert_allclose(single.mean_images[name], double.mean_images[name], rtol=1e-6)

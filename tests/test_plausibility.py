@@ -316,9 +316,9 @@ def test_class_matching_cheat_matches_classes_but_is_implausible():
         assert out["truth"] == [] and len(out["cheat"]) == 2
 
 
-def _full_resolution_round_trip(t: sitk.Transform, field: sitk.Image, g: Geometry) -> float:
-    """The reference: mean |T^-1(T(p)) - p| over every voxel, with the field inverted by ITK
-    on its own full grid (grown by its largest displacement, edge values beyond)."""
+def full_grid_inverse(field: sitk.Image) -> sitk.Transform:
+    """The reference inverse of a 3D field: ITK's on the field's own full grid (grown by its
+    largest displacement, edge values beyond)."""
     arr = sitk.GetArrayFromImage(field)
     spacing = np.asarray(field.GetSpacing())
     pad = np.ceil(np.sqrt((arr**2).sum(-1)).max() / spacing).astype(int) + 1
@@ -330,7 +330,33 @@ def _full_resolution_round_trip(t: sitk.Transform, field: sitk.Image, g: Geometr
     padded.SetDirection(field.GetDirection())
     padded.SetOrigin((np.asarray(field.GetOrigin()) - direction @ (pad * spacing)).tolist())
     inverse = sitk.InvertDisplacementField(padded, 50, 0.01, 1e-4, False)
-    round_trip = sitk.CompositeTransform([sitk.DisplacementFieldTransform(inverse), t])
+    return sitk.DisplacementFieldTransform(inverse)
+
+
+def smooth_random_field(g: Geometry, *, max_mm: float, seed: int = 30) -> sitk.Transform:
+    """A smooth random 3D displacement field on `g`: Gaussian-smoothed noise (sigma 5 voxels)
+    scaled to a largest displacement of `max_mm`."""
+    noise = np.random.default_rng(seed).standard_normal((*g.shape, 3))
+    u = np.stack(
+        [
+            sitk.GetArrayFromImage(
+                sitk.SmoothingRecursiveGaussian(sitk.GetImageFromArray(noise[..., c]), 5.0)
+            )
+            for c in range(3)
+        ],
+        axis=-1,
+    )
+    return _field(g, u * (max_mm / np.sqrt((u**2).sum(-1)).max()))
+
+
+#: An oblique, anisotropic 3D grid for the coarse inverses' tests.
+OBLIQUE_GRID = _grid((40, 36, 30), (1.2, 0.9, 1.5), (-10.0, 4.0, 2.0), _rotation(3, [30, 20]))
+
+
+def _full_resolution_round_trip(t: sitk.Transform, field: sitk.Image, g: Geometry) -> float:
+    """The reference: mean |T^-1(T(p)) - p| over every voxel, with the field inverted by ITK
+    on its own full grid (:func:`full_grid_inverse`)."""
+    round_trip = sitk.CompositeTransform([full_grid_inverse(field), t])
     err = sitk.GetArrayFromImage(
         sitk.TransformToDisplacementField(
             round_trip, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
@@ -348,21 +374,9 @@ def test_coarse_inverse_consistency_matches_the_full_resolution_one(smooth):
     # field, and within 10 % for one that folds on 28 % of its voxels (~2.2 mm). (Measured
     # on sines of period 14 mm: k = 0.5, 0.9, 1.1, 1.6 give 0.069, 0.229, 0.520, 2.17 mm
     # against 0.068, 0.208, 0.517, 2.22 mm with every voxel and the full-grid inverse.)
-    g = _grid((40, 36, 30), (1.2, 0.9, 1.5), (-10.0, 4.0, 2.0), _rotation(3, [30, 20]))
+    g = OBLIQUE_GRID
     if smooth:
-        rng = np.random.default_rng(30)
-        noise = rng.standard_normal((*g.shape, 3))
-        u = np.stack(
-            [
-                sitk.GetArrayFromImage(
-                    sitk.SmoothingRecursiveGaussian(sitk.GetImageFromArray(noise[..., c]), 5.0)
-                )
-                for c in range(3)
-            ],
-            axis=-1,
-        )
-        u *= 3.0 / np.sqrt((u**2).sum(-1)).max()  # up to 3 mm
-        t = _field(g, u)
+        t = smooth_random_field(g, max_mm=3.0)
     else:
         t, _ = _sine(g, k=1.6, period=14.0, axis=(0.3, 0.5, 1.0))
     reference = _full_resolution_round_trip(t, t.GetDisplacementField(), g)
