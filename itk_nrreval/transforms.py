@@ -667,16 +667,19 @@ def _sample(a, x, y, z, out):  # pragma: no cover - compiled
         )
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset):  # pragma: no cover
     """``out(q) = -u(q + v(q))`` on out's grid, whose node i is u's continuous index
     ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order); `to_index` maps mm to
-    u's index steps. u and v are sampled linearly, clamped to their grids."""
+    u's index steps. u and v are sampled linearly, clamped to their grids.
+
+    Slices run in parallel; each node is computed alone by the same operations, so the
+    numbers do not depend on the number of threads."""
     nz, ny, nx, d = out.shape
-    idx = np.zeros(3)
-    vv = np.zeros(d)
-    uu = np.zeros(d)
-    for k in range(nz):
+    for k in numba.prange(nz):
+        idx = np.zeros(3)  # per slice: the threads' own scratch
+        vv = np.zeros(d)
+        uu = np.zeros(d)
         for j in range(ny):
             for i in range(nx):
                 idx[0] = i + u_offset[0]

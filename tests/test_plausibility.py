@@ -386,3 +386,24 @@ def test_coarse_inverse_consistency_matches_the_full_resolution_one(smooth):
     else:
         assert reference > 1.0
         assert measured == pytest.approx(reference, rel=0.1)
+
+
+def test_refined_inverse_does_not_depend_on_the_number_of_threads():
+    # Issue 30: the fixed-point refinement of a coarse inverse runs its slices in parallel
+    # (numba prange); every node is computed alone by the same operations, so one thread and
+    # every thread give the same bits.
+    import numba
+
+    from itk_nrreval.transforms import invert
+
+    t = smooth_random_field(OBLIQUE_GRID, max_mm=3.0)
+    threads = numba.get_num_threads()
+    inverses = []
+    try:
+        for n in (1, numba.config.NUMBA_NUM_THREADS):
+            numba.set_num_threads(n)
+            inverse = invert(t, field_step=2, refine_steps=3).GetDisplacementField()
+            inverses.append(sitk.GetArrayFromImage(inverse))
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(inverses[0], inverses[1])
