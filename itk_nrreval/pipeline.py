@@ -72,7 +72,6 @@ from .plausibility import (
     LOG_JACOBIAN_RANGE,
     AffineFit,
     Plausibility,
-    affine_fit,
     deformation_measures,
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
@@ -239,7 +238,8 @@ def _resample_task(
     (float32). Its metadata holds the label values, the
     fraction of the mask (or grid) the image covers, and the deformation's plausibility
     measures and the transform's closest affine map
-    (:func:`~itk_nrreval.plausibility.affine_fit`) on the registration's reference grid
+    (:func:`~itk_nrreval.plausibility.affine_fit`, from the same sampling of the transform:
+    ``deformation_measures(..., affine=True)``) on the registration's reference grid
     `reg_grid` (inside the mask mapped there, `reg_mask_key`). `own_values` are the label
     map's own nonzero values (found once by the driver); `label_resampling` is
     ``(method, sigma_mm)`` of :func:`~itk_nrreval.memberships.resample_label_memberships`.
@@ -282,13 +282,14 @@ def _resample_task(
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
-    plaus, jac = deformation_measures(
-        t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency
+    # the affine fit from the measures' own sampling of the transform (one pass, not two)
+    plaus, jac, fit = deformation_measures(
+        t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency, affine=True
     )
     arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
     meta: dict = {
         "plausibility": plaus.to_dict(),
-        "affine_fit": affine_fit(t, reg_grid, mask=reg_mask).to_dict(),
+        "affine_fit": fit.to_dict(),
         "log_jacobian_histogram": jac.histogram(),
         "label_like": label_like_values(raw),
         "coverage": float(inside.mean()) if inside.size else 0.0,

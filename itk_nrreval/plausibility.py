@@ -23,6 +23,7 @@ import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass
 
+import numba
 import numpy as np
 import SimpleITK as sitk
 
@@ -239,12 +240,15 @@ def deformation_measures(
     mask: np.ndarray | None = None,
     inverse_consistency: bool = True,
     max_slab_voxels: int = SLAB_VOXELS,
-) -> tuple[Plausibility, JacobianSummary]:
+    affine: bool = False,
+) -> tuple[Plausibility, JacobianSummary] | tuple[Plausibility, JacobianSummary, AffineFit]:
     """Plausibility of a transform on a grid, and its Jacobian's histogram and middle slice.
 
     One pass over the grid gives both: folding, SDlogJ, Jacobian range and inverse
     consistency (:class:`Plausibility`), and the histogram of ``log det J`` on fixed bins
-    with ``det J`` on the middle slice (:class:`JacobianSummary`, for reports).
+    with ``det J`` on the middle slice (:class:`JacobianSummary`, for reports); with
+    `affine`, also the closest affine map (:func:`affine_fit`) from the same sampling of the
+    transform.
 
     Parameters
     ----------
@@ -265,6 +269,10 @@ def deformation_measures(
     max_slab_voxels : int
         Grids larger than this are processed in slabs along the last axis (z in 3D) so that
         memory stays bounded; the result does not depend on it.
+    affine : bool
+        Also return :func:`affine_fit`'s fit over the evaluated voxels, from the
+        displacement sampled here (its numbers to rounding, without sampling the transform
+        a second time).
 
     Returns
     -------
@@ -272,6 +280,8 @@ def deformation_measures(
         ``folded_max`` equals ``folded_fraction`` (one image).
     JacobianSummary
         Over the same evaluated voxels.
+    AffineFit
+        Only with `affine`.
 
     Raises
     ------
@@ -329,13 +339,16 @@ def deformation_measures(
     below = above = 0
     mid = g.shape[0] // 2  # the middle slice of a 3D grid (numpy axis 0: the slab axis)
     middle = np.full(g.shape[1:] if g.dimension == 3 else g.shape, np.nan, np.float32)
-    for rows, halo_grid, _slab_grid, inner in _slabs(g, max(int(max_slab_voxels), 1)):
+    fit = _AffineSums(g) if affine else None
+    for rows, halo_grid, slab_grid, inner in _slabs(g, max(int(max_slab_voxels), 1)):
+        # An array view does not keep its image alive: `field` stays named while `u` is used.
         field = displacement_field(t, halo_grid)
-        det = jacobian_determinant(
-            sitk.GetArrayViewFromImage(field), spacing=g.spacing, direction=g.direction
-        )[inner]
-        del field
+        u = sitk.GetArrayViewFromImage(field)
+        det = jacobian_determinant(u, spacing=g.spacing, direction=g.direction)[inner]
         sel = None if mask is None else mask[rows]
+        if fit is not None:
+            fit.add(u[inner], slab_grid, sel)
+        del u, field
         if g.dimension != 3:
             middle[rows] = np.where(sel, det, np.nan) if sel is not None else det
         elif rows.start <= mid < rows.stop:
@@ -375,7 +388,8 @@ def deformation_measures(
         jacobian_max=jmax,
         inverse_consistency_mm=consistency,
     )
-    return plausibility, JacobianSummary(hist, below, above, folded, middle)
+    summary = JacobianSummary(hist, below, above, folded, middle)
+    return (plausibility, summary) if fit is None else (plausibility, summary, fit.fit())
 
 
 def _mean_round_trip(
@@ -475,39 +489,95 @@ def affine_fit(
     """
     g = _geometry(grid)
     t = chain_transform(transform)
-    d = g.dimension
-    if t.GetDimension() != d:
-        raise InputError(f"transform: {t.GetDimension()}D transform on a {d}D grid {g.size}")
-    direction = np.asarray(g.direction, np.float64).reshape(d, d)
-    spacing = np.asarray(g.spacing, np.float64)
-    centre = np.asarray(g.origin) + direction @ (spacing * (np.asarray(g.size) - 1) / 2)
-    s_qq = np.zeros((d + 1, d + 1))
-    s_qu = np.zeros((d + 1, d))
-    s_uu = 0.0
-    count = 0
+    if t.GetDimension() != g.dimension:
+        raise InputError(
+            f"transform: {t.GetDimension()}D transform on a {g.dimension}D grid {g.size}"
+        )
+    sums = _AffineSums(g)
     for rows, _halo, slab_grid, _inner in _slabs(g, max(int(max_slab_voxels), 1)):
         field = displacement_field(t, slab_grid)
-        u = sitk.GetArrayFromImage(field).reshape(-1, d)
-        # ITK index (x, y[, z]) of every voxel of the slab, in numpy order of the voxels
-        index = np.indices(slab_grid.shape).reshape(d, -1)[::-1].T
-        q = np.asarray(slab_grid.origin) + (index * spacing) @ direction.T - centre
-        if mask is not None:
-            sel = np.asarray(mask, bool)[rows].reshape(-1)
-            u, q = u[sel], q[sel]
-        q1 = np.hstack([q, np.ones((q.shape[0], 1))])
-        s_qq += q1.T @ q1
-        s_qu += q1.T @ u
-        s_uu += float(np.sum(u * u))
-        count += u.shape[0]
-    if count <= d or np.linalg.matrix_rank(s_qq) < d + 1:
-        return NAN_FIT
-    b = np.linalg.solve(s_qq, s_qu)
-    residual = max(s_uu - float(np.sum(b * s_qu)), 0.0)
-    return AffineFit(
-        linear_det=float(np.linalg.det(np.eye(d) + b[:d].T)),
-        displacement_rms_mm=math.sqrt(s_uu / count),
-        nonlinear_rms_mm=math.sqrt(residual / count),
-    )
+        sums.add(sitk.GetArrayViewFromImage(field), slab_grid, None if mask is None else mask[rows])
+        del field
+    return sums.fit()
+
+
+class _AffineSums:
+    """The normal equations of :func:`affine_fit` (see its notes), accumulated slab by slab
+    over the grid `g`: ``S_qq``, ``S_qu``, ``sum |u|^2`` and the voxel count."""
+
+    def __init__(self, g: Geometry):
+        d = g.dimension
+        self.direction = np.asarray(g.direction, np.float64).reshape(d, d)
+        self.spacing = np.asarray(g.spacing, np.float64)
+        size = np.asarray(g.size)
+        self.centre = np.asarray(g.origin) + self.direction @ (self.spacing * (size - 1) / 2)
+        self.s_qq = np.zeros((d + 1, d + 1))
+        self.s_qu = np.zeros((d + 1, d))
+        self.s_uu = 0.0
+        self.count = 0
+
+    def add(self, u: np.ndarray, slab_grid: Geometry, sel: np.ndarray | None) -> None:
+        """Add one slab: `u` its displacement (mm, shape ``(*slab_grid.shape, d)``), `sel` its
+        evaluated voxels (bool, ``slab_grid.shape``) or None for all."""
+        d = len(self.spacing)
+        u = np.asarray(u, np.float64)
+        # q of voxel index x (ITK order): (origin - centre) + step @ x
+        step = self.direction * self.spacing
+        start = np.asarray(slab_grid.origin) - self.centre
+        if d == 2:  # one plane of 3D
+            u, sel = u[None], None if sel is None else np.asarray(sel)[None]
+        every = sel is None
+        sel = np.ones((1, 1, 1), bool) if every else np.asarray(sel, bool)
+        # per slice of the slab (compiled, in parallel), then added up in slice order: the
+        # numbers do not depend on the number of threads
+        parts = np.zeros((u.shape[0], d + 1, 2 * d + 2))  # [S_qq | S_qu | sum |u|^2]
+        _affine_sums(u, sel, every, start, step, parts)
+        total = parts.sum(axis=0)
+        self.s_qq += total[:, : d + 1]
+        self.s_qu += total[:, d + 1 : 2 * d + 1]
+        self.s_uu += float(total[0, 2 * d + 1])
+        self.count += int(round(total[d, d]))  # the sum of 1 * 1 over the voxels
+
+    def fit(self) -> AffineFit:
+        d = len(self.spacing)
+        if self.count <= d or np.linalg.matrix_rank(self.s_qq) < d + 1:
+            return NAN_FIT
+        b = np.linalg.solve(self.s_qq, self.s_qu)
+        residual = max(self.s_uu - float(np.sum(b * self.s_qu)), 0.0)
+        return AffineFit(
+            linear_det=float(np.linalg.det(np.eye(d) + b[:d].T)),
+            displacement_rms_mm=math.sqrt(self.s_uu / self.count),
+            nonlinear_rms_mm=math.sqrt(residual / self.count),
+        )
+
+
+@numba.njit(cache=True, parallel=True)
+def _affine_sums(u, sel, every, start, step, parts):  # pragma: no cover - compiled
+    """For each slice k of `u` (nz, ny, nx, d; d 2 or 3, a 2D slab as nz = 1): with
+    ``q1 = [start + step @ (i, j[, k]), 1]`` at every voxel selected by `sel` (all when
+    `every`), ``parts[k, :, :d+1] = sum q1 q1^T``, ``parts[k, :, d+1:2d+1] = sum q1 u^T`` and
+    ``parts[k, 0, 2d+1] = sum |u|^2``."""
+    nz, ny, nx, d = u.shape
+    for slice_ in numba.prange(nz):
+        k = np.int64(slice_)  # prange's index is unsigned
+        q1 = np.ones(d + 1)
+        acc = parts[k]
+        for j in range(ny):
+            for i in range(nx):
+                if not every and not sel[k, j, i]:
+                    continue
+                for r in range(d):
+                    q = start[r] + step[r, 0] * i + step[r, 1] * j
+                    if d == 3:
+                        q += step[r, 2] * k
+                    q1[r] = q
+                for r in range(d + 1):
+                    for c in range(d + 1):
+                        acc[r, c] += q1[r] * q1[c]
+                    for c in range(d):
+                        acc[r, d + 1 + c] += q1[r] * u[k, j, i, c]
+                for c in range(d):
+                    acc[0, 2 * d + 1] += u[k, j, i, c] * u[k, j, i, c]
 
 
 #: The fit of a transform whose voxels determine no affine map.

@@ -407,3 +407,48 @@ def test_refined_inverse_does_not_depend_on_the_number_of_threads():
     finally:
         numba.set_num_threads(threads)
     np.testing.assert_array_equal(inverses[0], inverses[1])
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_affine_fit_from_the_measures_sampling_equals_affine_fit(masked):
+    # Issue 30: the per-image task fits the closest affine map to the displacement that the
+    # deformation measures sample anyway, instead of sampling the transform once more; on a
+    # field behind an affine map on an oblique, anisotropic grid, in slabs and inside a
+    # mask, it is affine_fit's fit to rounding, and the measures are unchanged.
+    from itk_nrreval.plausibility import affine_fit, deformation_measures
+
+    g = OBLIQUE_GRID
+    pose = sitk.AffineTransform(3)
+    pose.SetMatrix((1.05, 0.02, 0.0, -0.03, 0.97, 0.01, 0.0, 0.02, 1.02))
+    pose.SetTranslation((2.0, -1.0, 3.0))
+    t = sitk.CompositeTransform([pose, smooth_random_field(g, max_mm=3.0)])
+    mask = None
+    if masked:
+        mask = np.zeros(g.shape, bool)
+        mask[3:25, 5:30, 2:33] = True
+    slab = 36 * 40 * 7  # seven rows of the last axis per slab
+    plaus, summary = deformation_measures(t, g, mask=mask, max_slab_voxels=slab)
+    plaus_fit, summary_fit, fit = deformation_measures(
+        t, g, mask=mask, max_slab_voxels=slab, affine=True
+    )
+    alone = affine_fit(t, g, mask=mask, max_slab_voxels=slab).to_dict()
+    for key, value in fit.to_dict().items():  # its own sampling rounds differently
+        assert value == pytest.approx(alone[key], rel=1e-12), key
+    assert plaus_fit == plaus
+    assert summary_fit.histogram() == summary.histogram()
+    # the reference: numpy's least squares on the displacement over the evaluated voxels
+    p = _points(g).reshape(-1, 3)
+    u = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            t, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
+        )
+    ).reshape(-1, 3)
+    if mask is not None:
+        p, u = p[mask.reshape(-1)], u[mask.reshape(-1)]
+    design = np.hstack([p, np.ones((len(p), 1))])
+    coef, *_ = np.linalg.lstsq(design, u, rcond=None)
+    residual = u - design @ coef
+    assert fit.nonlinear_rms_mm > 0.1
+    assert fit.nonlinear_rms_mm == pytest.approx(np.sqrt((residual**2).sum(1).mean()), rel=1e-9)
+    assert fit.displacement_rms_mm == pytest.approx(np.sqrt((u**2).sum(1).mean()), rel=1e-12)
+    assert fit.linear_det == pytest.approx(np.linalg.det(np.eye(3) + coef[:3].T), rel=1e-12)
