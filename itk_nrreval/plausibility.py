@@ -328,7 +328,9 @@ def deformation_measures(
     if inverse_consistency:
         try:
             inverse = invert(t, grid=g, field_step=INVERSE_CONSISTENCY_STEP)
-            round_trip = chain_transform([t, inverse])  # p -> T^-1(T(p))
+            # p -> T^-1(T(p)), nested as it is (SimpleITK applies its list from the back):
+            # flattening would copy every displacement field two more times
+            round_trip = sitk.CompositeTransform([inverse, t])
         except (InputError, RuntimeError):
             round_trip = None
 

@@ -313,3 +313,17 @@ def test_field_inverse_is_right_where_the_field_maps_points_off_its_own_grid(dim
         back = np.array(ti.TransformPoint(q))
         assert np.linalg.norm(back - p) < 0.05, (p, q, back)
     assert far > len(idx) // 5  # many of the checked points did leave the grid
+
+
+def test_inverting_a_field_leaves_it_as_it_was():
+    # Issue 30: invert() hands the inverse it computes to its transform without a copy; the
+    # field it inverts, which the caller still holds, must keep its values.
+    ref = grid(3, 8)
+    t = field_transform(field_image(smooth_field(ref, amplitude=1.0), ref))
+    before = sitk.GetArrayFromImage(t.GetDisplacementField())
+    for step in (1, 2):
+        inverse = invert(t, field_step=step)
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(t.GetDisplacementField()), before)
+        p = physical_points(ref).reshape(-1, 3)[40]
+        back = inverse.TransformPoint(t.TransformPoint(p.tolist()))
+        np.testing.assert_allclose(back, p, atol=0.05)
