@@ -18,6 +18,11 @@ parts timed by wrapping the functions it calls:
 - ``cache write``: the entry written (hashed and renamed into place);
 - ``other``: the rest of the task.
 
+A third run times the frame-estimate task (:func:`itk_nrreval.pipeline._estimate_task`) of
+the ``field`` registration with ``affine`` as the common frame -- ``F = T_field^-1 o
+T_affine`` sampled on the common grid, the task a registration whose frame is not the
+common one runs per image -- with its inversion apart, and its cache entry's size.
+
 The floor is SimpleITK's own ``sitk.Resample`` of the same float32 volume through the same
 composed transform onto the same grid (linear), timed in the same process; the task's cost
 is reported as a ratio to it. Times are CPU seconds of the one thread (``process_time``),
@@ -29,7 +34,7 @@ their disk cache is cold and brings the files into the page cache. The round tri
 directly where the code has it apart (``plausibility._mean_round_trip``), otherwise as the
 plausibility timed again without inverse consistency, subtracted.
 
-``python benchmarks/run_all.py image_task`` runs it (about 3 minutes; the subject is
+``python benchmarks/run_all.py image_task`` runs it (about 4 minutes; the subject is
 generated once into ``benchmarks/out/image_task_1mm`` and reused).
 """
 
