@@ -661,148 +661,218 @@ def run_pipeline(
             cache = stack.enter_context(tempfile.TemporaryDirectory(prefix="nrreval-cache-"))
         disk = DiskCache(cache)
         disk.remove_stale()
-        mask_key = None
-        if mask is not None:
-            flat_mask = mask.reshape(-1).astype(np.bool_)
-            mask_key = digest_of(["mask", flat_mask])
-            if disk.get("mask", mask_key) is None:
-                disk.put("mask", mask_key, {"mask": flat_mask})
+        mask_key = None if mask is None else _stored_mask(disk, mask)
         ctx = _Context(str(Path(cache).resolve()), grid, mask_key, inverse_consistency)
         counts = _Counts()
-
-        values = None
-        own_values: list[list[int] | None] = [None] * m.n_images
-        if m.labels is not None:
-            calls = [([p],) for p in m.labels]
-            for i, vals in executor.map(
-                label_values, calls, desc="label values", show=show_progress
-            ):
-                own_values[i] = [int(v) for v in vals if v != 0]  # background: not evaluated
-            found = {v for vals in own_values for v in vals}
-            values = [0, *sorted(found)]  # index 0: background
-
-        resampled: dict[str, tuple] = {}
-        # what resampling through a changed transform needs, per registration
-        frame_specs: dict[str, tuple] = {}
-        reference_grids: dict[str, Geometry] = {}
-        thumbnails: dict[str, dict[str, np.ndarray]] = {}
+        values, own_values = _label_values(m, executor, show_progress)
+        resampled: dict[str, _Resampled] = {}
         warned: set[int] = set()
-        for name, reg in m.registrations.items():
-            reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
-            frame_spec, frame_digest, frame = _frame(
-                executor, ctx, disk, m, name, reg_grid, counts, show_progress
+        for name in m.registrations:
+            resampled[name] = _resample_registration(
+                executor,
+                ctx,
+                disk,
+                m,
+                name,
+                mask=mask,
+                counts=counts,
+                warned=warned,
+                own_values=own_values,
+                interpolation=interpolation,
+                labels=(label_interpolation, label_sigma_mm),
+                show_progress=show_progress,
             )
-            reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
-            calls = [
-                (
-                    ctx,
-                    m.scored_images[i],
-                    m.labels[i] if m.labels is not None else None,
-                    reg.transforms[i],
-                    frame_spec,
-                    frame_digest,
-                    reg_grid,
-                    interpolation,
-                    reg_mask_key,
-                    own_values[i],
-                    (label_interpolation, label_sigma_mm),
-                )
-                for i in range(m.n_images)
-            ]
-            keys: list[str] = [""] * m.n_images
-            metas: list[dict] = [{}] * m.n_images
-            for i, (key, reused, meta) in executor.map(
-                _resample_task, calls, desc=f"{name}: resampling", show=show_progress
-            ):
-                keys[i], metas[i] = key, meta
-                counts.add(reused)
-                if meta.get("label_like") and i not in warned:
-                    warned.add(i)
-                    warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=3)
             if save_resampled is not None:
-                _save_resampled(disk, keys, metas, grid, Path(save_resampled) / name, values)
-            resampled[name] = (keys, metas, frame)
-            frame_specs[name], reference_grids[name] = frame_spec, reg_grid
-            thumbnails[name] = _thumbnails(disk, grid, reg_grid, keys, metas)
-
-        left_out = off_grid_subjects(resampled, off_grid_coverage)
-        if left_out and m.n_images - len(left_out) >= 3:
-            warnings.warn(
-                f"{len(left_out)} of {m.n_images} images cover (almost) none of the common "
-                f"grid under some registration and are left out of every score: "
-                f"{readable([str(m.images[i]) for i in left_out])}",
-                UserWarning,
-                stacklevel=3,
-            )
-        else:
-            left_out = ()  # too few images would be left: the region check reports it
-        scored = tuple(i for i in range(m.n_images) if i not in left_out)
-        region, coverage = _region(disk, grid, mask, m, resampled, left_out)
+                r = resampled[name]
+                _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
+        scored = _scored_subjects(m, resampled, off_grid_coverage)
+        left_out = tuple(i for i in range(m.n_images) if i not in scored)
+        region, coverage = _region(
+            disk, grid, mask, m, {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()},
+            left_out,
+        )  # fmt: skip
         if save_resampled is not None:
             _save_region(Path(save_resampled), grid, region)
         region_ctx = ctx
         if region is not None and (mask is None or not np.array_equal(region, mask)):
-            flat = region.reshape(-1)
-            region_key = digest_of(["mask", flat])
-            if disk.get("mask", region_key) is None:
-                disk.put("mask", region_key, {"mask": flat})
-            region_ctx = dataclasses.replace(ctx, mask_key=region_key)
-
-        runs = {}
-        for name, (keys, metas, frame) in resampled.items():
-            if values is not None:
-                calls = [(region_ctx, k) for k in keys]
-                metas = [dict(meta) for meta in metas]
-                # cheap and derived from the resampled entries: not in the counts
-                for i, (sums, _reused) in executor.map(
-                    _label_sums_task, calls, desc=f"{name}: label sums", show=show_progress
-                ):
-                    metas[i].update(sums)
-            runs[name] = _reduce(
+            region_ctx = dataclasses.replace(ctx, mask_key=_stored_mask(disk, region))
+        runs = {
+            name: _reduce_registration(
                 executor,
                 region_ctx,
+                disk,
+                m,
                 name,
-                [keys[i] for i in scored],
-                [metas[i] for i in scored],
-                frame,
-                values,
-                region,
-                coverage[name],
-                groups=None if m.groups is None else [m.groups[i] for i in scored],
+                r,
+                scored=scored,
+                values=values,
+                region=region,
+                coverage=coverage[name],
                 n_samples=n_samples,
                 seed=seed,
                 distance=distance,
-                show=show_progress,
+                interpolation=interpolation,
+                show_progress=show_progress,
+                pictured_subjects=pictured_subjects,
             )
-            runs[name] = dataclasses.replace(
-                runs[name],
-                thumbnails=thumbnails[name],
-                # every image's deformation, those left out of the scores too
-                plausibility=[Plausibility.from_dict(meta["plausibility"]) for meta in metas],
-                affine_fits=[AffineFit.from_dict(meta["affine_fit"]) for meta in metas],
-                scored=scored,
-            )
-            if pictured_subjects is not None:
-                products = functools.partial(
-                    _alternative_products,
-                    region_ctx,
-                    m,
-                    name,
-                    frame_specs[name],
-                    reference_grids[name],
-                    [keys[i] for i in scored],
-                    runs[name].mean_image,
-                    interpolation,
-                )
-                extra = {
-                    f"image_{i}": _image_slice(disk, grid, keys[i])
-                    for i in pictured_subjects(runs[name], products)
-                    if f"image_{i}" not in thumbnails[name]
-                }
-                runs[name] = dataclasses.replace(
-                    runs[name], thumbnails={**thumbnails[name], **extra}
-                )
+            for name, r in resampled.items()
+        }
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
+
+
+def _stored_mask(disk: DiskCache, mask: np.ndarray) -> str:
+    """The cache key of a mask (bool, any shape), stored under it once."""
+    flat = mask.reshape(-1).astype(np.bool_)
+    key = digest_of(["mask", flat])
+    if disk.get("mask", key) is None:
+        disk.put("mask", key, {"mask": flat})
+    return key
+
+
+def _label_values(m: Manifest, executor: Executor, show_progress: bool):
+    """The label values of every label map (index 0: background), and each image's own
+    non-background values; (None, [None] * N) without labels."""
+    own_values: list[list[int] | None] = [None] * m.n_images
+    if m.labels is None:
+        return None, own_values
+    calls = [([p],) for p in m.labels]
+    for i, vals in executor.map(label_values, calls, desc="label values", show=show_progress):
+        own_values[i] = [int(v) for v in vals if v != 0]  # background: not evaluated
+    found = {v for vals in own_values for v in vals}
+    return [0, *sorted(found)], own_values
+
+
+@dataclass(frozen=True)
+class _Resampled:
+    """One registration's per-image cache entries and what resampling it again needs."""
+
+    keys: list[str]
+    metas: list[dict]
+    frame: Any
+    frame_spec: tuple
+    reference_grid: Geometry
+    thumbnails: dict[str, np.ndarray]
+
+
+def _resample_registration(
+    executor, ctx, disk, m, name, *, mask, counts, warned, own_values, interpolation, labels,
+    show_progress,
+) -> _Resampled:  # fmt: skip
+    """Every image of registration `name` resampled into the common frame (cached), with
+    its labels' memberships and deformation measures; label-like images warned once."""
+    reg = m.registrations[name]
+    reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
+    frame_spec, frame_digest, frame = _frame(
+        executor, ctx, disk, m, name, reg_grid, counts, show_progress
+    )
+    reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
+    calls = [
+        (
+            ctx,
+            m.scored_images[i],
+            m.labels[i] if m.labels is not None else None,
+            reg.transforms[i],
+            frame_spec,
+            frame_digest,
+            reg_grid,
+            interpolation,
+            reg_mask_key,
+            own_values[i],
+            labels,
+        )
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    metas: list[dict] = [{}] * m.n_images
+    for i, (key, reused, meta) in executor.map(
+        _resample_task, calls, desc=f"{name}: resampling", show=show_progress
+    ):
+        keys[i], metas[i] = key, meta
+        counts.add(reused)
+        if meta.get("label_like") and i not in warned:
+            warned.add(i)
+            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=4)
+    thumbnails = _thumbnails(disk, ctx.grid, reg_grid, keys, metas)
+    return _Resampled(keys, metas, frame, frame_spec, reg_grid, thumbnails)
+
+
+def _scored_subjects(m: Manifest, resampled, off_grid_coverage: float) -> tuple[int, ...]:
+    """The images in the scores: all but those off the common grid under some registration
+    (a warning names them), unless too few would be left (the region check reports it)."""
+    left_out = off_grid_subjects(
+        {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()}, off_grid_coverage
+    )
+    if left_out and m.n_images - len(left_out) >= 3:
+        warnings.warn(
+            f"{len(left_out)} of {m.n_images} images cover (almost) none of the common "
+            f"grid under some registration and are left out of every score: "
+            f"{readable([str(m.images[i]) for i in left_out])}",
+            UserWarning,
+            stacklevel=4,
+        )
+    else:
+        left_out = ()
+    return tuple(i for i in range(m.n_images) if i not in left_out)
+
+
+def _reduce_registration(
+    executor, region_ctx, disk, m, name, r: _Resampled, *, scored, values, region, coverage,
+    n_samples, seed, distance, interpolation, show_progress, pictured_subjects,
+) -> RegistrationRun:  # fmt: skip
+    """Registration `name`'s scores from its cache entries inside the region, with every
+    image's deformation, and the thumbnails of the subjects the report pictures."""
+    metas = r.metas
+    if values is not None:
+        calls = [(region_ctx, k) for k in r.keys]
+        metas = [dict(meta) for meta in metas]
+        # cheap and derived from the resampled entries: not in the counts
+        for i, (sums, _reused) in executor.map(
+            _label_sums_task, calls, desc=f"{name}: label sums", show=show_progress
+        ):
+            metas[i].update(sums)
+    run = _reduce(
+        executor,
+        region_ctx,
+        name,
+        [r.keys[i] for i in scored],
+        [metas[i] for i in scored],
+        r.frame,
+        values,
+        region,
+        coverage,
+        groups=None if m.groups is None else [m.groups[i] for i in scored],
+        n_samples=n_samples,
+        seed=seed,
+        distance=distance,
+        show=show_progress,
+    )
+    run = dataclasses.replace(
+        run,
+        thumbnails=r.thumbnails,
+        # every image's deformation, those left out of the scores too
+        plausibility=[Plausibility.from_dict(meta["plausibility"]) for meta in metas],
+        affine_fits=[AffineFit.from_dict(meta["affine_fit"]) for meta in metas],
+        scored=scored,
+    )
+    if pictured_subjects is None:
+        return run
+    products = functools.partial(
+        _alternative_products,
+        region_ctx,
+        m,
+        name,
+        r.frame_spec,
+        r.reference_grid,
+        [r.keys[i] for i in scored],
+        run.mean_image,
+        interpolation,
+    )
+    extra = {
+        f"image_{i}": _image_slice(disk, region_ctx.grid, r.keys[i])
+        for i in pictured_subjects(run, products)
+        if f"image_{i}" not in r.thumbnails
+    }
+    return dataclasses.replace(run, thumbnails={**r.thumbnails, **extra})
 
 
 def _alternative_products(

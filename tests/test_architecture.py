@@ -187,10 +187,6 @@ def test_the_library_needs_neither_the_demo_nor_data_synth():
     assert "data_synth.population" in seen
 
 
-#: Functions still longer than the limit, to be split (issue 28); none may be added.
-_LONG_FUNCTIONS_TO_SPLIT = {"itk_nrreval.pipeline.run_pipeline"}
-
-
 def test_no_function_outside_the_numba_kernels_is_longer_than_120_lines():
     """A function a newcomer can read in one screen or two: at most 120 lines of code, its
     docstring not counted; numba kernels (decorated with a ``*jit``) are exempt."""
@@ -209,4 +205,4 @@ def test_no_function_outside_the_numba_kernels_is_longer_than_120_lines():
                 lines -= first.end_lineno - first.lineno + 1
             if lines > limit:
                 too_long[f"{name}.{node.name}"] = lines
-    assert set(too_long) <= _LONG_FUNCTIONS_TO_SPLIT, too_long
+    assert too_long == {}
