@@ -685,12 +685,10 @@ def run_pipeline(
             if save_resampled is not None:
                 r = resampled[name]
                 _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
-        scored = _scored_subjects(m, resampled, off_grid_coverage)
-        left_out = tuple(i for i in range(m.n_images) if i not in scored)
-        region, coverage = _region(
-            disk, grid, mask, m, {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()},
-            left_out,
-        )  # fmt: skip
+        entries = {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()}
+        left_out = _left_out_of_scores(m, entries, off_grid_coverage)
+        scored = tuple(i for i in range(m.n_images) if i not in left_out)
+        region, coverage = _region(disk, grid, mask, m, entries, left_out)
         if save_resampled is not None:
             _save_region(Path(save_resampled), grid, region)
         region_ctx = ctx
@@ -796,23 +794,21 @@ def _resample_registration(
     return _Resampled(keys, metas, frame, frame_spec, reg_grid, thumbnails)
 
 
-def _scored_subjects(m: Manifest, resampled, off_grid_coverage: float) -> tuple[int, ...]:
-    """The images in the scores: all but those off the common grid under some registration
-    (a warning names them), unless too few would be left (the region check reports it)."""
-    left_out = off_grid_subjects(
-        {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()}, off_grid_coverage
+def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple[int, ...]:
+    """The images left out of every score: those off the common grid under some
+    registration (a warning names them), unless too few would be left (the region check
+    reports it). `entries`: per registration (keys, metas, frame)."""
+    left_out = off_grid_subjects(entries, off_grid_coverage)
+    if not left_out or m.n_images - len(left_out) < 3:
+        return ()
+    warnings.warn(
+        f"{len(left_out)} of {m.n_images} images cover (almost) none of the common "
+        f"grid under some registration and are left out of every score: "
+        f"{readable([str(m.images[i]) for i in left_out])}",
+        UserWarning,
+        stacklevel=4,
     )
-    if left_out and m.n_images - len(left_out) >= 3:
-        warnings.warn(
-            f"{len(left_out)} of {m.n_images} images cover (almost) none of the common "
-            f"grid under some registration and are left out of every score: "
-            f"{readable([str(m.images[i]) for i in left_out])}",
-            UserWarning,
-            stacklevel=4,
-        )
-    else:
-        left_out = ()
-    return tuple(i for i in range(m.n_images) if i not in left_out)
+    return tuple(left_out)
 
 
 def _reduce_registration(
