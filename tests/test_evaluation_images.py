@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import yaml
+from test_in_memory import oblique_3d_direction
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
@@ -78,12 +79,10 @@ def test_a_written_manifest_keeps_its_evaluation_images(two_contrasts, tmp_path)
 
 
 def _oblique_copy(path, out, *, shift_mm: float = 0.0) -> str:
-    """The image resampled onto an oblique (20 degrees about z), anisotropic grid covering the
-    same physical space, then moved by `shift_mm` along x."""
+    """The image resampled onto an oblique (rotated about all three axes), anisotropic grid
+    covering its physical space, then moved by `shift_mm` along x."""
     image = sitk.ReadImage(str(path))
-    rotation = sitk.Euler3DTransform()
-    rotation.SetRotation(0.0, 0.0, np.deg2rad(20.0))
-    direction = np.asarray(rotation.GetMatrix()).reshape(3, 3)
+    direction = oblique_3d_direction()
     spacing = np.asarray(image.GetSpacing()) * np.array([1.0, 1.5, 0.75])
     # 1.5x the extent: the rotated grid covers the whole of the original
     size = [
