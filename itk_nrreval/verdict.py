@@ -73,6 +73,7 @@ folding rule)."""
 
 _SPECIFICITY = "specificity"
 _OVERLAP = "overlap.inverse_volume"
+_WORD = {_SPECIFICITY: "specificity", _OVERLAP: "overlap"}  # in a decision's basis
 
 
 @dataclass(frozen=True)
@@ -284,9 +285,6 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
     details = [f"separable: {', '.join(gains)}", _roughness(w, l, rough)]
     details += [_discounted(m, p, rough) for m, p in evidence.items() if p.discount]
     return Decision(w, l, f"{' and '.join(_WORD[m] for m in used)} ({'; '.join(details)})")
-
-
-_WORD = {_SPECIFICITY: "specificity", _OVERLAP: "overlap"}
 
 
 def _discounted(measure: str, p: _Preference, rough) -> str:
