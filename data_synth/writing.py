@@ -19,7 +19,9 @@ in the first contrast, then in the second); each image's label map and true tran
 subject's (listed once per image), and the `truth` reference is the first contrast's
 template. With more than one contrast the manifest also records each image's contrast,
 in image order, under ``groups`` (``[t1, t1, ..., t2, t2, ...]``: the ``groups`` of
-:func:`itk_nrreval.specificity`).
+:func:`itk_nrreval.specificity`), and each image's subject under ``subjects``
+(``[s00, s01, ..., s00, s01, ...]``: the subject-level jackknife leaves a subject out with
+all its contrasts).
 
 Every file is written under a temporary name and renamed when complete.
 """
@@ -95,6 +97,8 @@ def write_population(
         "images": [str(p) for c in contrasts for p in images[c]],
         "labels": [str(p) for _ in contrasts for p in labels],
         **({"groups": [c for c in contrasts for _ in names]} if len(contrasts) > 1 else {}),
+        # a subject's contrasts are one subject: the jackknife leaves them out together
+        **({"subjects": [n for _ in contrasts for n in names]} if len(contrasts) > 1 else {}),
         "registrations": {
             "truth": {
                 "reference": str(templates[contrasts[0]]),

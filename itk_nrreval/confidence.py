@@ -21,6 +21,10 @@ out keeps every replicate a set of distinct subjects, costs exactly one model pe
 - **Overlap**: leave-one-subject-out, exact and free from the per-image sums: leaving
   subject k out removes ``target_sums[k]`` from the pair sums of minima and
   ``(N - 2) vol_k + sum_j vol_j - target_sums[k]`` from those of maxima.
+- **Subjects with several images** (a manifest's ``subjects``: contrasts of one subject, in
+  a mixture's groups, or repeat scans): a subject is left out with all its images, so the
+  replicates resample subjects, not images. The overlap then needs, besides the per-image
+  sums, the pair sum of minima of each two images of one subject.
 
 Intervals are ``score +- t_{0.975, G-1} SE`` with ``SE^2 = (G - 1) / G sum_g (r_g - r_bar)^2``,
 computed on a scale that respects what the score can be (:func:`measure_bounds`): on the log
@@ -38,7 +42,7 @@ exact).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,28 +132,47 @@ class Comparison:
         }
 
 
-def jackknife_groups(n_images: int, n_groups: int | None = None) -> list[np.ndarray]:
-    """Subject indices of each leave-out group: subject i in group ``i mod G``.
+def jackknife_groups(
+    n_images: int, n_groups: int | None = None, *, subjects: Sequence[Hashable] | None = None
+) -> list[np.ndarray]:
+    """Image indices of each leave-out group: subject j in group ``j mod G``.
 
     Parameters
     ----------
     n_images : int
-        N >= 4 (every replicate keeps at least 3 images for a model).
+        N; with at least 4 subjects (every replicate keeps at least 3 images for a model).
     n_groups : int, optional
-        G; default N (leave-one-out). Clipped to N.
+        G; default one group per subject (leave one subject out). Clipped to the number of
+        subjects.
+    subjects : sequence of hashable, length n_images, optional
+        Each image's subject, where a subject has several images (contrasts or repeat
+        scans, the manifest's ``subjects``): a group leaves out all of its subjects' images.
+        Subjects are numbered in order of first appearance. Default: each image is its own
+        subject.
 
     Returns
     -------
     list of ndarray of int, length G
+        The images each replicate leaves out, in increasing order.
     """
-    if n_images < 4:
-        raise ValueError(f"n_images: the jackknife needs at least 4 images, got {n_images}")
-    g = n_images if n_groups is None else min(int(n_groups), n_images)
+    if subjects is None:
+        unit = np.arange(n_images)
+    else:
+        if len(subjects) != n_images:
+            raise ValueError(f"subjects: length {len(subjects)} for {n_images} images")
+        index: dict[Hashable, int] = {}
+        unit = np.array([index.setdefault(s, len(index)) for s in subjects], dtype=np.int64)
+    n_units = int(unit.max()) + 1 if n_images else 0
+    if n_units < 4:
+        what = "images" if subjects is None else "subjects"
+        raise ValueError(f"the jackknife needs at least 4 {what}, got {n_units}")
+    g = n_units if n_groups is None else min(int(n_groups), n_units)
     if g < 2:
         raise ValueError(f"n_groups: expected at least 2, got {readable(n_groups)}")
-    if n_images - math.ceil(n_images / g) < 3:
+    groups = [np.flatnonzero(unit % g == k) for k in range(g)]
+    if n_images - max(grp.size for grp in groups) < 3:
         raise ValueError(f"n_groups: {g} groups of {n_images} images leave fewer than 3 images")
-    return [np.arange(k, n_images, g) for k in range(g)]
+    return groups
 
 
 def measure_bounds(measure: str) -> tuple[float, float]:
@@ -260,6 +283,7 @@ def specificity_replicates(
     n_samples: int,
     distance: str,
     seed: int,
+    image_groups: Sequence[Hashable] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Specificity and generalization of each leave-group-out model.
 
@@ -268,9 +292,13 @@ def specificity_replicates(
     gram : ndarray of shape (n_images, n_images)
         Gram matrix of the centred images (:meth:`TextureModel.from_gram`).
     groups : sequence of ndarray of int
-        From :func:`jackknife_groups`.
+        The images each replicate leaves out, from :func:`jackknife_groups`.
     n_samples, distance, seed
         As :func:`itk_nrreval.texture_measures`; the same seed for every replicate.
+    image_groups : sequence of hashable, length n_images, optional
+        Each image's group (modality) where the model is a mixture, one Gaussian per group
+        (:class:`~itk_nrreval.model.MixtureModel`); each replicate is the mixture of the
+        images it keeps.
 
     Returns
     -------
@@ -282,7 +310,13 @@ def specificity_replicates(
     for k, out in enumerate(groups):
         keep = np.setdiff1d(np.arange(n), out)
         model = TextureModel.from_gram(_centred(gram, keep))
-        s, g = texture_measures(model, n_samples=n_samples, distance=distance, seed=seed)
+        s, g = texture_measures(
+            model,
+            groups=None if image_groups is None else [image_groups[i] for i in keep],
+            n_samples=n_samples,
+            distance=distance,
+            seed=seed,
+        )
         spec[k], gen[k] = s.value, g.value
     return spec, gen
 
@@ -297,8 +331,11 @@ def overlap_replicates(
     labels: np.ndarray,
     spacing: Sequence[float],
     weightings: Sequence[str],
+    left_out: Sequence[np.ndarray] | None = None,
+    subject_pairs: np.ndarray | None = None,
+    subject_pair_min: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """The generalized overlap with each subject left out, from the per-image sums.
+    """The generalized overlap with each subject (or group of images) left out, from sums.
 
     Parameters
     ----------
@@ -309,27 +346,60 @@ def overlap_replicates(
     spacing : sequence of float
         Voxel size in mm, ITK order.
     weightings : sequence of str
+    left_out : sequence of ndarray of int, optional
+        The images each replicate leaves out (:func:`jackknife_groups`); default each image
+        alone.
+    subject_pairs : ndarray of int, shape (n_pairs, 2), optional
+        Pairs of images left out together (a subject's images), needed for every pair of
+        images that one replicate leaves out.
+    subject_pair_min : ndarray of shape (n_pairs, n_labels), optional
+        ``sum_v min(A_i, A_j)`` of each of `subject_pairs` (voxel units, over the mask).
 
     Returns
     -------
-    dict of str to ndarray of shape (n_images,)
-        Per weighting, the overlap of the N - 1 other subjects, subject k left out.
+    dict of str to ndarray of shape (n_replicates,)
+        Per weighting, the overlap of the images each replicate keeps.
+
+    Raises
+    ------
+    ValueError
+        A replicate leaves out two images whose pair is not in `subject_pairs`.
 
     Notes
     -----
-    Leaving subject k out removes the pairs (k, j): ``sum_j min(A_k, A_j)`` is
+    Leaving image k out removes the pairs (k, j): ``sum_j min(A_k, A_j)`` is
     ``target_sums[k]``, and ``sum_j max(A_k, A_j) = sum_j (A_k + A_j - min(A_k, A_j))``
-    is ``(N - 1) vol_k + (sum_j vol_j - vol_k) - target_sums[k]``. Labels no remaining
-    subject carries drop out.
+    is ``(N - 1) vol_k + (sum_j vol_j - vol_k) - target_sums[k]``. Leaving out a set K
+    removes each pair inside K twice by that count, so its min (from `subject_pair_min`)
+    and max (``vol_k + vol_l - min``) are added back once. Labels no remaining image
+    carries drop out.
     """
     vol = np.asarray(volume, np.float64)
     n = vol.shape[0]
     total = vol.sum(axis=0)
-    out = {w: np.empty(n) for w in weightings}
-    for k in range(n):
-        keep = np.arange(n) != k
-        p = pair_min - target_sums[k]
-        q = pair_max - ((n - 2) * vol[k] + total - target_sums[k])
+    if left_out is None:
+        left_out = [np.array([k]) for k in range(n)]
+    inside: dict[tuple[int, int], np.ndarray] = {}
+    if subject_pairs is not None:
+        for (a, b), row in zip(subject_pairs, subject_pair_min, strict=True):
+            inside[(min(int(a), int(b)), max(int(a), int(b)))] = row
+    out = {w: np.empty(len(left_out)) for w in weightings}
+    for r, gone in enumerate(left_out):
+        gone = np.sort(np.asarray(gone, dtype=np.int64))
+        keep = np.ones(n, bool)
+        keep[gone] = False
+        p = pair_min - target_sums[gone].sum(axis=0)
+        q = pair_max - ((n - 2) * vol[gone] + total - target_sums[gone]).sum(axis=0)
+        for i, a in enumerate(gone):
+            for b in gone[i + 1 :]:
+                both = inside.get((int(a), int(b)))
+                if both is None:
+                    raise ValueError(
+                        f"left_out: images {a} and {b} are left out together, but their "
+                        "pair is not in subject_pairs"
+                    )
+                p = p + both
+                q = q + (vol[a] + vol[b] - both)
         present = vol[keep].sum(axis=0) > 0
         table = OverlapTable.from_sums(
             labels[present],
@@ -342,7 +412,7 @@ def overlap_replicates(
             fuzzy=True,
         )
         for w in weightings:
-            out[w][k] = table.generalized(w)
+            out[w][r] = table.generalized(w)
     return out
 
 

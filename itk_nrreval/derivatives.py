@@ -387,6 +387,8 @@ def manifest_from_derivatives(
     data = {
         "images": [str(p) for p in images],
         **({"labels": [str(p) for p in labels]} if labels else {}),
+        # a subject's sessions are one subject: the jackknife leaves them out together
+        **({"subjects": [f"sub-{k[0]}" for k in kept]} if any(k[1] for k in kept) else {}),
         **({"mask": str(Path(mask).absolute())} if mask is not None else {}),
         "registrations": {
             f.name: {

@@ -569,9 +569,11 @@ def evaluate(
         Model samples per jackknife replicate (default ``min(n_samples, 100_000)``); the
         same seed as the main run (common random numbers).
     resamples : int, optional
-        Jackknife groups G for specificity and generalization (default ``min(N, 50)``;
-        G = N leaves one subject out at a time). The overlap is always leave-one-out
-        (exact and free from the per-image sums).
+        Jackknife groups G for specificity and generalization (default ``min(S, 50)`` for
+        S subjects; G = S leaves one subject out at a time). The overlap always leaves one
+        subject out (exact and free from the per-image sums). A subject is an image, or
+        the images the manifest's ``subjects`` gives one name (a manifest with ``groups``
+        needs ``subjects`` for subject-level confidence).
     thresholds : Thresholds, optional
         Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
         whose docstring gives the defaults and their rationale). A flagged registration keeps
@@ -657,12 +659,13 @@ def evaluate(
         )
         regs = run.registrations
         values = {name: _values(r, weightings) for name, r in regs.items()}
-        n_scored = len(_scored(run))  # the jackknife runs over the subjects in the scores
-        confidence = _confidence_possible(m, confidence) and n_scored >= 4
+        # the jackknife runs over the subjects in the scores
+        plan = _jackknife_plan(m, _scored(run), resamples, asked=confidence)
+        confidence = confidence and plan is not None
         level = _SubjectLevel.empty(regs)
         if confidence:
             level = _subject_level(
-                run, values, weightings, resamples, confidence_samples, distance, seed, progress
+                run, values, weightings, plan, confidence_samples, distance, seed, progress
             )
         extent = smallest_extent_mm(run.grid)
         scores = _registration_scores(
@@ -678,7 +681,7 @@ def evaluate(
         options = {
             "confidence": confidence,
             "confidence_samples": int(confidence_samples),
-            "resamples": len(jackknife_groups(n_scored, resamples)) if n_scored >= 4 else None,
+            "resamples": None if plan is None else len(plan.left_out),
             "inverse_consistency": bool(inverse_consistency),
             "label_interpolation": label_interpolation,
             "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),
@@ -711,21 +714,57 @@ def evaluate(
     return result
 
 
-def _confidence_possible(m: Manifest, confidence: bool) -> bool:
-    """Whether subject-level confidence can be computed for `m` (asked for, and no groups:
-    a warning says why not)."""
-    if confidence and m.groups is not None:
-        # Leaving out images is not leaving out subjects when a subject has one image per
-        # group (modality), and it can leave a group with fewer than 2 images.
-        warnings.warn(
-            "subject-level intervals are not computed for a manifest with groups (the "
-            "jackknife would leave out images, not subjects); the specificity's standard "
-            "error is Monte-Carlo error only",
-            UserWarning,
-            stacklevel=3,
-        )
-        return False
-    return bool(confidence)
+@dataclass(frozen=True)
+class _JackknifePlan:
+    """What the subject-level jackknife leaves out, in indices of the scored images."""
+
+    left_out: list[np.ndarray]  # the images each specificity replicate leaves out
+    overlap_left_out: list[np.ndarray]  # one subject each (the overlap's are exact)
+    image_groups: list[str] | None  # each scored image's group (a mixture), or None
+
+
+def _jackknife_plan(
+    m: Manifest, scored: Sequence[int], resamples: int | None, *, asked: bool
+) -> _JackknifePlan | None:
+    """The jackknife over the subjects of the scored images, or None where it cannot run:
+    fewer than 4 subjects, or groups without ``subjects`` (a warning says why, when
+    confidence was `asked` for)."""
+    subjects = None if m.subjects is None else [m.subjects[i] for i in scored]
+    image_groups = None if m.groups is None else [m.groups[i] for i in scored]
+    if image_groups is not None and subjects is None:
+        if asked:
+            # Leaving out images is not leaving out subjects when a subject has one image
+            # per group (modality), and it can leave a group with fewer than 2 images.
+            warnings.warn(
+                "subject-level intervals are not computed for a manifest with groups and no "
+                "subjects (the jackknife would leave out images, not subjects; the manifest's "
+                "'subjects' names each image's subject); the specificity's standard error is "
+                "Monte-Carlo error only",
+                UserWarning,
+                stacklevel=3,
+            )
+        return None
+    n_subjects = len(set(subjects)) if subjects is not None else len(scored)
+    if n_subjects < 4:
+        return None
+    left_out = jackknife_groups(
+        len(scored), resamples if resamples is not None else min(n_subjects, 50), subjects=subjects
+    )
+    if image_groups is not None:
+        for out in left_out:
+            kept = [g for i, g in enumerate(image_groups) if i not in set(out.tolist())]
+            short = [g for g in dict.fromkeys(image_groups) if kept.count(g) < 2]
+            if short:
+                if asked:
+                    warnings.warn(
+                        f"subject-level intervals are not computed: leaving subjects out "
+                        f"leaves group {short[0]!r} with fewer than 2 images",
+                        UserWarning,
+                        stacklevel=3,
+                    )
+                return None
+    one_each = jackknife_groups(len(scored), None, subjects=subjects)
+    return _JackknifePlan(left_out, one_each, image_groups)
 
 
 def _execute(m: Manifest, *, scheduler, workers, **options):
@@ -797,14 +836,14 @@ class _SubjectLevel:
 
 
 def _subject_level(
-    run, values, weightings, resamples, n_samples, distance, seed, show
+    run, values, weightings, plan: _JackknifePlan, n_samples, distance, seed, show
 ) -> _SubjectLevel:
     """Jackknife intervals, paired comparisons and probabilities of being best, for every
     measure and registration of `run`."""
     regs = run.registrations
     level = _SubjectLevel.empty(regs)
     comparisons: list[Comparison] = []
-    reps = _replicates(run, weightings, resamples, n_samples, distance, seed, show)
+    reps = _replicates(run, weightings, plan, n_samples, distance, seed, show)
     for measure, by_name in reps.items():
         vals = {name: values[name][measure] for name in regs}
         for name in regs:
@@ -908,15 +947,19 @@ def _check_positive(name: str, value, minimum: int) -> None:
         raise ValueError(f"{name}: expected an integer >= {minimum}, got {readable(value)}")
 
 
-def _replicates(run, weightings, resamples, n_samples, distance, seed, show):
-    """Per measure, per registration, the jackknife replicates (same groups for all)."""
+def _replicates(run, weightings, plan: _JackknifePlan, n_samples, distance, seed, show):
+    """Per measure, per registration, the jackknife replicates (the same subjects left out
+    for all)."""
     regs = run.registrations
-    n = next(iter(regs.values())).gram.shape[0]
-    groups = jackknife_groups(n, resamples if resamples is not None else min(n, 50))
     out: dict[str, dict[str, np.ndarray]] = {"specificity": {}, "generalization": {}}
     for name, r in progress(regs.items(), desc="confidence", total=len(regs), enabled=show):
         spec, gen = specificity_replicates(
-            r.gram, groups=groups, n_samples=n_samples, distance=distance, seed=seed
+            r.gram,
+            groups=plan.left_out,
+            image_groups=plan.image_groups,
+            n_samples=n_samples,
+            distance=distance,
+            seed=seed,
         )
         out["specificity"][name], out["generalization"][name] = spec, gen
     if all(r.overlap_sums is not None for r in regs.values()):
@@ -924,7 +967,11 @@ def _replicates(run, weightings, resamples, n_samples, distance, seed, show):
             sums = dict(r.overlap_sums)
             labels = sums.pop("labels")
             by_w = overlap_replicates(
-                **sums, labels=labels, spacing=run.grid.spacing, weightings=weightings
+                **sums,
+                labels=labels,
+                spacing=run.grid.spacing,
+                weightings=weightings,
+                left_out=plan.overlap_left_out,
             )
             for w, arr in by_w.items():
                 out.setdefault(f"overlap.{w}", {})[name] = arr

@@ -5,6 +5,7 @@ A manifest is a YAML (or JSON) file::
     images: [img/s00.nii.gz, img/s01.nii.gz]        # N training images, each in its own space
     labels: [lab/s00.nii.gz, lab/s01.nii.gz]        # optional integer label maps, same spaces
     groups: [t1, t1, t2, t2]                         # optional: each image's group (modality)
+    subjects: [s00, s01, s00, s01]                   # optional: each image's subject
     evaluation_images: [img/s00_t2.nii.gz, img/s01_t2.nii.gz]  # optional: scored in their place
     mask: mask.nii.gz                                # optional, on the common frame's grid
     common_frame: fluid                              # optional; default the first registration
@@ -33,6 +34,12 @@ the appearance and the per-subject scores; labels, transforms and plausibility a
 registration's own). Noise and bias that a registration fitted in the images it aligned do
 not carry over to another scan, so rougher fields gain less from fitting them (the verdict's
 known-truth benchmark, ``docs/verdict.md``, measures how much less).
+
+``subjects`` (optional) names, per image, the subject it shows, where a subject has several
+images (its contrasts in ``groups``, or repeat scans). Subject-level confidence then leaves
+out a subject with all its images; without it each image is a subject, and a manifest with
+``groups`` gets no subject-level confidence (leaving out one contrast of a subject is not
+leaving out a subject).
 
 Every transform maps reference (fixed) points to image (moving) points. A chain is listed
 in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
@@ -115,6 +122,7 @@ _TOP_KEYS = (
     "images",
     "labels",
     "groups",
+    "subjects",
     "evaluation_images",
     "mask",
     "common_frame",
@@ -168,6 +176,10 @@ class Manifest:
         Each image's group (e.g. its modality), in image order: specificity is then that of
         a mixture with one Gaussian per group (:func:`itk_nrreval.specificity`). Every group
         has at least 2 images.
+    subjects : tuple of str, or None
+        Each image's subject, in image order, where a subject has several images: the
+        subject-level jackknife leaves out a subject with all its images
+        (:func:`itk_nrreval.confidence.jackknife_groups`). None: each image is a subject.
     mask : Path or InMemoryImage or None
     common_frame : str
         Name of the registration whose reference frame is the common frame.
@@ -188,6 +200,7 @@ class Manifest:
     source: Path | None = None
     groups: tuple[str, ...] | None = None
     evaluation_images: tuple[Any, ...] | None = None
+    subjects: tuple[str, ...] | None = None
 
     @property
     def n_images(self) -> int:
@@ -236,6 +249,7 @@ class Manifest:
             "images": [_describe_item(p) for p in self.images],
             "labels": None if self.labels is None else [_describe_item(p) for p in self.labels],
             "groups": None if self.groups is None else list(self.groups),
+            "subjects": None if self.subjects is None else list(self.subjects),
             "evaluation_images": None
             if self.evaluation_images is None
             else [_describe_item(p) for p in self.evaluation_images],
@@ -407,6 +421,9 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
     )
     n = None if images is None else len(images)
     groups = _groups(data["groups"], n, problems) if data.get("groups") is not None else None
+    subjects = None
+    if data.get("subjects") is not None:
+        subjects = _labels("subjects", data["subjects"], n, problems)
     evaluation_images = None
     if data.get("evaluation_images") is not None:
         what = "evaluation_images"
@@ -442,21 +459,30 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         regs,
         groups=groups,
         evaluation_images=evaluation_images,
+        subjects=subjects,
     )
 
 
-def _groups(value, n: int | None, problems: list[str]) -> tuple[str, ...] | None:
-    """Each image's group label (numbers and strings both become strings)."""
+def _labels(key: str, value, n: int | None, problems: list[str]) -> tuple[str, ...] | None:
+    """One label per image under `key` (numbers and strings both become strings)."""
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
-        problems.append("groups: expected a list with one group label per image")
+        problems.append(f"{key}: expected a list with one label per image")
         return None
     bad = [v for v in value if isinstance(v, bool) or not isinstance(v, (str, int))]
     if bad:
-        problems.append(f"groups: labels must be strings or integers, got {bad[0]!r}")
+        problems.append(f"{key}: labels must be strings or integers, got {bad[0]!r}")
         return None
     labels = tuple(str(v) for v in value)
     if n is not None and len(labels) != n:
-        problems.append(f"groups: {len(labels)} labels for {n} images")
+        problems.append(f"{key}: {len(labels)} labels for {n} images")
+        return None
+    return labels
+
+
+def _groups(value, n: int | None, problems: list[str]) -> tuple[str, ...] | None:
+    """Each image's group label; every group has at least 2 images."""
+    labels = _labels("groups", value, n, problems)
+    if labels is None:
         return None
     small = [g for g in dict.fromkeys(labels) if labels.count(g) < 2]
     if small:
@@ -859,6 +885,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
         out["labels"] = [_rel(p, folder) for p in m.labels]
     if m.groups is not None:
         out["groups"] = list(m.groups)
+    if m.subjects is not None:
+        out["subjects"] = list(m.subjects)
     if m.evaluation_images is not None:
         out["evaluation_images"] = [_rel(p, folder) for p in m.evaluation_images]
     if m.mask is not None:

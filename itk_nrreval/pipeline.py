@@ -343,14 +343,33 @@ def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
     return meta, False
 
 
+def _subject_pairs(subjects: Sequence[str] | None) -> np.ndarray:
+    """The pairs (a, b), a < b, of images of one subject: shape (n_pairs, 2)."""
+    if subjects is None:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = [
+        (a, b)
+        for a in range(len(subjects))
+        for b in range(a + 1, len(subjects))
+        if subjects[a] == subjects[b]
+    ]
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
 def _block_task(
-    ctx: _Context, keys: Sequence[str], start: int, stop: int, components: Sequence[int]
+    ctx: _Context,
+    keys: Sequence[str],
+    start: int,
+    stop: int,
+    components: Sequence[int],
+    subject_pairs: np.ndarray,
 ) -> dict:
     """One voxel block [start, stop) of the flattened grid, over all N images.
 
     Returns the block's Gram matrix of the centred masked intensities (N, N), the mean
     image on the block (stop - start,), and per label value of `components` the pair sums
-    p, q (L,) and per image the volume and target-overlap sums (N, L), voxel units.
+    p, q (L,), per image the volume and target-overlap sums (N, L), and for each of
+    `subject_pairs` (n_pairs, 2) its sum of minima (n_pairs, L), voxel units.
     """
     cache = ctx.cache()
     entries = [cache.open("resampled", k) for k in keys]
@@ -368,6 +387,7 @@ def _block_task(
     n_labels = len(components)
     p, q = np.zeros(n_labels), np.zeros(n_labels)
     vol, spair = np.zeros((n, n_labels)), np.zeros((n, n_labels))
+    pair_min = np.zeros((len(subject_pairs), n_labels))
     if n_labels:
         lookups = [{v: j for j, v in enumerate(e.meta["labels"])} for e in entries]
         arrays = [
@@ -385,7 +405,10 @@ def _block_task(
                 lo, hi = np.searchsorted(own, [start, stop])
                 block[i, np.asarray(own[lo:hi]) - start] = val[ptr[j] + lo : ptr[j] + hi]
             p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(block, mask=mask)
-    out.update(p=p, q=q, vol=vol, spair=spair)
+            for j, (a, b) in enumerate(subject_pairs):
+                both = np.minimum(block[a], block[b])
+                pair_min[j, k] = (both[mask] if mask is not None else both).sum(dtype=np.float64)
+    out.update(p=p, q=q, vol=vol, spair=spair, subject_pair_min=pair_min)
     return out
 
 
@@ -527,7 +550,9 @@ class RegistrationRun:
     overlap_sums : dict of str to ndarray, or None
         The per-image sums the overlap table was built from (``labels``, ``volume``,
         ``target_sums``, ``gradient_sums``, ``pair_min``, ``pair_max``; see
-        :meth:`OverlapTable.from_sums`), rows in `scored` order; None without labels.
+        :meth:`OverlapTable.from_sums`), rows in `scored` order, and the sums of minima of
+        each two images of one subject (``subject_pairs``, ``subject_pair_min``; see
+        :func:`~itk_nrreval.confidence.overlap_replicates`); None without labels.
     thumbnails : dict of str to ndarray
         Small arrays for the HTML report, whatever N (:func:`_thumbnails`): middle slices of
         two subjects' resampled images (and of the subjects `pictured_subjects` of
@@ -837,6 +862,7 @@ def _reduce_registration(
         region,
         coverage,
         groups=None if m.groups is None else [m.groups[i] for i in scored],
+        subjects=None if m.subjects is None else [m.subjects[i] for i in scored],
         n_samples=n_samples,
         seed=seed,
         distance=distance,
@@ -960,6 +986,7 @@ def _reduce(
     coverage,
     *,
     groups,
+    subjects,
     n_samples,
     seed,
     distance,
@@ -971,12 +998,14 @@ def _reduce(
     n_vox = int(np.prod(grid.shape))
     bounds = _block_bounds(n, n_vox)
     components = values[1:] if values is not None else []
-    calls = [(ctx, keys, a, b, components) for a, b in bounds]
+    pairs = _subject_pairs(subjects)
+    calls = [(ctx, keys, a, b, components, pairs) for a, b in bounds]
     gram = np.zeros((n, n))
     mean = np.empty(n_vox)
     n_lab = len(components)
     p, q = np.zeros(n_lab), np.zeros(n_lab)
     vol, spair = np.zeros((n, n_lab)), np.zeros((n, n_lab))
+    pair_min = np.zeros((len(pairs), n_lab))
     # Sums are taken in block order, whatever order the blocks finish in, so that a run's
     # numbers do not depend on the executor's timing.
     pending: dict[int, dict] = {}
@@ -991,6 +1020,7 @@ def _reduce(
             q += res["q"]
             vol += res["vol"]
             spair += res["spair"]
+            pair_min += res["subject_pair_min"]
             next_block += 1
     model = TextureModel.from_gram(
         gram,
@@ -1035,9 +1065,19 @@ def _reduce(
             "gradient_sums": gsum[:, present],
             "pair_min": p[present],
             "pair_max": q[present],
+            "subject_pairs": pairs,
+            "subject_pair_min": pair_min[:, present],
         }
         table = OverlapTable.from_sums(
-            *sums.values(), spacing=grid.spacing, fuzzy=True, skipped_labels=skipped
+            sums["labels"],
+            sums["volume"],
+            sums["target_sums"],
+            sums["gradient_sums"],
+            sums["pair_min"],
+            sums["pair_max"],
+            spacing=grid.spacing,
+            fuzzy=True,
+            skipped_labels=skipped,
         )
     plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
     return RegistrationRun(

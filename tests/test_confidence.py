@@ -104,6 +104,109 @@ def test_overlap_replicates_equal_the_overlap_of_the_subjects_left(mask):
             assert reps[w][k] == pytest.approx(table.generalized(w), rel=1e-12, abs=1e-14), (k, w)
 
 
+def test_groups_leave_out_whole_subjects():
+    # images 0-5 are T1 scans, 6-11 the T2 scans of the same six subjects
+    subjects = [f"s{i}" for i in range(6)] * 2
+    groups = jackknife_groups(12, subjects=subjects)
+    assert [g.tolist() for g in groups] == [[i, i + 6] for i in range(6)]
+    groups = jackknife_groups(12, 3, subjects=subjects)
+    assert [g.tolist() for g in groups] == [[0, 3, 6, 9], [1, 4, 7, 10], [2, 5, 8, 11]]
+    with pytest.raises(ValueError, match="at least 4 subjects"):
+        jackknife_groups(6, subjects=["a", "b", "c"] * 2)
+    with pytest.raises(ValueError, match="length"):
+        jackknife_groups(12, subjects=subjects[:-1])
+
+
+@pytest.mark.parametrize("distance", ["l1", "l2"])
+def test_mixture_replicates_equal_the_mixture_of_the_subjects_left(distance):
+    rng = np.random.default_rng(5)
+    n = 5  # subjects, each imaged in two contrasts with different means
+    t1 = rng.normal(size=(n, 9, 8)) + np.linspace(0, 2, n)[:, None, None]
+    t2 = 4 - 0.5 * t1 + rng.normal(scale=0.3, size=t1.shape)
+    images = np.concatenate([t1, t2])
+    labels = ["t1"] * n + ["t2"] * n
+    groups = jackknife_groups(2 * n, subjects=list(range(n)) * 2)
+    spec, gen = specificity_replicates(
+        gram_of(images),
+        groups=groups,
+        image_groups=labels,
+        n_samples=2000,
+        distance=distance,
+        seed=3,
+    )
+    for k, out in enumerate(groups):
+        keep = np.setdiff1d(np.arange(2 * n), out)
+        s, g = nr.texture_measures(
+            images[keep],
+            groups=[labels[i] for i in keep],
+            n_samples=2000,
+            distance=distance,
+            seed=3,
+        )
+        assert spec[k] == pytest.approx(s.value, rel=1e-9)
+        assert gen[k] == pytest.approx(g.value, rel=1e-9)
+
+
+@pytest.mark.parametrize("mask", [False, True])
+def test_overlap_replicates_leaving_out_whole_subjects(mask):
+    rng = np.random.default_rng(6)
+    memb = fuzzy_memberships(rng, 8, 3, (7, 9))
+    m = rng.random((7, 9)) < 0.8 if mask else None
+    spacing = (1.1, 0.6)
+    n = memb.shape[0]
+    labels = nr.overlap_table(memb, mask=m, spacing=spacing).labels
+    flat = memb.reshape(n, memb.shape[1], -1).astype(np.float64)
+    mflat = np.ones(flat.shape[-1], bool) if m is None else m.reshape(-1)
+    vol = np.zeros((n, labels.size))
+    spair = np.zeros((n, labels.size))
+    gsum = np.zeros((n, labels.size))
+    p = np.zeros(labels.size)
+    q = np.zeros(labels.size)
+    for k, comp in enumerate(labels):
+        p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(flat[:, comp], mask=mflat)
+        for i in range(n):
+            gsum[i, k] = membership_gradient_sum(
+                flat[i, comp], shape=(7, 9), spacing=spacing, mask=mflat
+            )
+    # four subjects with two images each (images i and i + 4), plus a pair no subject shares
+    subjects = [0, 1, 2, 3] * 2
+    left_out = jackknife_groups(n, subjects=subjects)
+    pairs = np.array([[i, i + 4] for i in range(4)])
+    pair_min = np.array(
+        [[np.minimum(flat[a, c], flat[b, c])[mflat].sum() for c in labels] for a, b in pairs]
+    )
+    reps = overlap_replicates(
+        vol,
+        spair,
+        gsum,
+        p,
+        q,
+        labels=labels,
+        spacing=spacing,
+        weightings=nr.WEIGHTINGS,
+        left_out=left_out,
+        subject_pairs=pairs,
+        subject_pair_min=pair_min,
+    )
+    for k, out in enumerate(left_out):
+        keep = np.setdiff1d(np.arange(n), out)
+        table = nr.overlap_table(memb[keep], mask=m, spacing=spacing)
+        for w in nr.WEIGHTINGS:
+            assert reps[w][k] == pytest.approx(table.generalized(w), rel=1e-9), (k, w)
+    with pytest.raises(ValueError, match="images 0 and 4"):
+        overlap_replicates(
+            vol,
+            spair,
+            gsum,
+            p,
+            q,
+            labels=labels,
+            spacing=spacing,
+            weightings=["volume"],
+            left_out=left_out,
+        )
+
+
 def test_jackknife_of_a_mean_is_the_classic_standard_error():
     rng = np.random.default_rng(5)
     x = rng.normal(size=25)

@@ -35,6 +35,8 @@ def test_manifest_keeps_groups_and_parameters(two_contrasts, tmp_path):
     copy = write_manifest(data, tmp_path / "copy.yaml")
     again = load_manifest(copy)
     assert again.groups == m.groups
+    assert m.subjects == tuple(f"s{i:02d}" for i in range(4)) * 2
+    assert again.subjects == m.subjects
     assert again.registrations["truth"].parameters == {"smoothing_mm": 5.0, "levels": [4, 2, 1]}
     assert again.describe()["registrations"]["truth"]["parameters"]["levels"] == [4, 2, 1]
 
@@ -52,8 +54,7 @@ def test_evaluate_scores_a_mixture_equal_to_the_direct_estimator(two_contrasts):
         stack.append(sitk.GetArrayFromImage(res))
     stack = np.stack(stack)
     region = ~np.isnan(stack).any(axis=0)
-    with pytest.warns(UserWarning, match="not computed for a manifest with groups"):
-        res = nr.evaluate(two_contrasts, n_samples=2000, seed=4, progress=False)
+    res = nr.evaluate(two_contrasts, n_samples=2000, seed=4, confidence=False, progress=False)
     got = res.scores["truth"].specificity
     expected = nr.specificity(
         np.nan_to_num(stack), mask=region, groups=list(m.groups), n_samples=2000, seed=4
@@ -64,6 +65,73 @@ def test_evaluate_scores_a_mixture_equal_to_the_direct_estimator(two_contrasts):
     assert int(got.mixture.nearest_counts.sum()) == 2000
     assert "mixture" in res.to_dict()["registrations"]["truth"]["specificity"]
     assert res.options["confidence"] is False
+
+
+def _without(data: dict, folder, drop: set[int]) -> dict:
+    """The manifest `data` (paths relative to `folder`) without the images `drop`, paths made
+    absolute."""
+    out = {key: value for key, value in data.items() if key not in ("registrations", "mask")}
+    for key in ("images", "labels"):
+        out[key] = [str(folder / p) for i, p in enumerate(data[key]) if i not in drop]
+    for key in ("groups", "subjects"):
+        if key in data:
+            out[key] = [v for i, v in enumerate(data[key]) if i not in drop]
+    if data.get("mask"):
+        out["mask"] = str(folder / data["mask"])
+    out["registrations"] = {}
+    for name, reg in data["registrations"].items():
+        out["registrations"][name] = {
+            "reference": str(folder / reg["reference"]),
+            "transforms": [
+                str(folder / t) for i, t in enumerate(reg["transforms"]) if i not in drop
+            ],
+        }
+    return out
+
+
+def test_subject_level_confidence_leaves_out_a_subject_with_all_its_contrasts(
+    two_contrasts, tmp_path
+):
+    """Reference: each replicate is the evaluation of the manifest without that subject's
+    T1 and T2 images (a mask inside every image's cover keeps the region the same)."""
+    data = yaml.safe_load(two_contrasts.read_text())
+    folder = two_contrasts.parent
+    assert data["subjects"] == [f"s{i:02d}" for i in range(4)] * 2
+    reference = sitk.ReadImage(str(folder / data["registrations"]["truth"]["reference"]))
+    size = np.array(reference.GetSize())
+    mask = np.zeros(reference.GetSize()[::-1], np.uint8)
+    lo, hi = size // 4, size - size // 4
+    mask[lo[1] : hi[1], lo[0] : hi[0]] = 1
+    mask_image = sitk.GetImageFromArray(mask)
+    mask_image.CopyInformation(reference)
+    sitk.WriteImage(mask_image, str(tmp_path / "mask.nii.gz"))
+    data["mask"] = str(tmp_path / "mask.nii.gz")
+    full = write_manifest(_without(data, folder, set()), tmp_path / "full.yaml")
+    res = nr.evaluate(full, n_samples=2000, seed=4, progress=False)
+    assert res.options["confidence"] is True
+    assert res.options["resamples"] == 4  # subjects, not the 8 images
+    reps = {"specificity": [], "overlap.volume": []}
+    for k in range(4):
+        reduced = write_manifest(_without(data, folder, {k, k + 4}), tmp_path / f"no{k}.yaml")
+        r = nr.evaluate(reduced, n_samples=2000, seed=4, confidence=False, progress=False)
+        reps["specificity"].append(r.scores["truth"].specificity.value)
+        reps["overlap.volume"].append(r.scores["truth"].overlap["volume"])
+    for measure, values in reps.items():
+        r = np.array(values)
+        se = np.sqrt(3 / 4 * np.sum((r - r.mean()) ** 2))
+        got = res.scores["truth"].intervals[measure]
+        assert got.n_replicates == 4
+        assert got.stderr == pytest.approx(se, rel=1e-6), measure
+
+
+def test_groups_without_subjects_get_no_subject_level_confidence(two_contrasts, tmp_path):
+    data = yaml.safe_load(two_contrasts.read_text())
+    del data["subjects"]
+    manifest = write_manifest(_without(data, two_contrasts.parent, set()), tmp_path / "m.yaml")
+    with pytest.warns(UserWarning, match="not computed for a manifest with groups and no subj"):
+        res = nr.evaluate(manifest, n_samples=500, seed=4, progress=False)
+    assert res.options["confidence"] is False
+    assert res.scores["truth"].intervals == {}
 
 
 @pytest.mark.parametrize(
@@ -83,4 +151,25 @@ def test_bad_groups_in_a_manifest_is_one_line_exit_2(
     out = tmp_path / "out"
     assert main(["evaluate", str(bad), "--out", str(out), "--quiet"]) == 2
     assert_one_line(capsys.readouterr().err, "bad_groups.yaml", message)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "subjects, message",
+    [
+        (["a", "b"] * 3, "subjects: 6 labels for 8 images"),
+        ("s00", "subjects: expected a list with one label per image"),
+        ([1.5] * 8, "subjects: labels must be strings or integers, got 1.5"),
+    ],
+)
+def test_bad_subjects_in_a_manifest_is_one_line_exit_2(
+    two_contrasts, tmp_path, capsys, subjects, message
+):
+    data = yaml.safe_load(two_contrasts.read_text())
+    data["subjects"] = subjects
+    bad = two_contrasts.parent / "bad_subjects.yaml"
+    bad.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "out"
+    assert main(["evaluate", str(bad), "--out", str(out), "--quiet"]) == 2
+    assert_one_line(capsys.readouterr().err, "bad_subjects.yaml", message)
     assert not out.exists()
