@@ -45,7 +45,7 @@ def _case(label: str, intensity: dict) -> dict:
     data = folder / "data" / "manifest.yaml"
     if not data.exists():
         pop = make_population("phantom", dim=2, n=N, seed=0, **intensity)
-        write_population(pop, folder / "data", montage=False, show_progress=False)
+        write_population(pop, folder / "data", montage=False, progress=False)
     m = load_manifest(data)
     truth = m.registrations["truth"]
     with warnings.catch_warnings():

@@ -77,7 +77,7 @@ def subject() -> dict:
 
     pop = make_population("phantom", dim=3, n=1, seed=30, spacing=SPACING_MM)
     manifest = yaml.safe_load(
-        write_population(pop, DATA, montage=False, show_progress=False).read_text()
+        write_population(pop, DATA, montage=False, progress=False).read_text()
     )
     affine = sitk.AffineTransform(pop.subjects[0].template_to_subject.GetNthTransform(0))
     mat = DATA / "affine" / "s00.mat"

@@ -179,7 +179,7 @@ def _case(name: str, spacing: float, size, *, dense: bool) -> dict:
 def _call(method: str, labels, transform, grid: Geometry, values):
     if method == "sparse":
         return resample_label_memberships(labels, transform, grid, values=values)
-    return resample_memberships([labels], [transform], grid, values=values, show_progress=False)
+    return resample_memberships([labels], [transform], grid, values=values, progress=False)
 
 
 def _peak_here(name: str, method: str) -> float | None:

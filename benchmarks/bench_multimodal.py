@@ -134,7 +134,7 @@ def _with_link_error(result, mm: float):
 
 def run_case(kind: str, folder: Path, worker: ElastixWorker) -> dict:
     pop = make_population(kind, dim=2, n=N_SUBJECTS, seed=SEED, contrasts=CONTRASTS, **GRID)
-    manifest = write_population(pop, folder, montage=False, show_progress=False)
+    manifest = write_population(pop, folder, montage=False, progress=False)
     m = load_manifest(manifest)
     images = [str(p) for p in m.images]
     names = [_stem(p) for p in images]

@@ -162,7 +162,7 @@ def _unseen(folder: Path, *, sweep_case: str, kind: str):
     data = OUT / f"data_{kind}2d_n{N}_t1t2" / "manifest.yaml"
     if not data.exists():
         pop = make_population(kind, dim=2, n=N, seed=SEED, contrasts=("t1", "t2"))
-        write_population(pop, data.parent, montage=False, show_progress=False)
+        write_population(pop, data.parent, montage=False, progress=False)
     both = load_manifest(data)
     t1 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t1"]
     t2 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t2"]
@@ -193,7 +193,7 @@ def _multimodal(folder: Path):
     runs = _bench("multimodal").RUNS
     contrasts = ("t1", "t2")
     pop = make_population("phantom", dim=2, n=N, seed=SEED, contrasts=contrasts)
-    manifest = write_population(pop, folder / "data", montage=False, show_progress=False)
+    manifest = write_population(pop, folder / "data", montage=False, progress=False)
     m = load_manifest(manifest)
     images = [str(p) for p in m.images]
     names = [Path(p).name.removesuffix(".nii.gz") for p in images]
@@ -223,7 +223,7 @@ def _population(kind: str, *, dim: int = 2, n: int = N, spacing: float | None = 
     if not manifest.exists():
         extra = {} if spacing is None else {"spacing": spacing}
         pop = make_population(kind, dim=dim, n=n, seed=SEED, **extra)
-        write_population(pop, manifest.parent, montage=False, show_progress=False)
+        write_population(pop, manifest.parent, montage=False, progress=False)
     return manifest
 
 

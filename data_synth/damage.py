@@ -110,7 +110,7 @@ def write_damaged(
         ``manifest.yaml`` and ``damaged.yaml``.
     """
     out = Path(out)
-    clean = write_population(pop, out, montage=False, show_progress=False)
+    clean = write_population(pop, out, montage=False, progress=False)
     (out / "damaged").mkdir(exist_ok=True)
     names = [f"s{i:02d}" if len(pop) <= 100 else f"s{i:03d}" for i in range(len(pop))]
     images = [(out / f"img/{n}.nii.gz").absolute() for n in names]

@@ -35,7 +35,7 @@ from pathlib import Path
 import SimpleITK as sitk
 
 from itk_nrreval._output import atomic_path, write_json
-from itk_nrreval._progress import progress
+from itk_nrreval._progress import progress_bar
 from itk_nrreval.manifest import write_manifest
 from itk_nrreval.transforms import write_transform
 
@@ -45,7 +45,7 @@ __all__ = ["write_population"]
 
 
 def write_population(
-    pop: Population, out: str | os.PathLike, *, montage: bool = True, show_progress: bool = True
+    pop: Population, out: str | os.PathLike, *, montage: bool = True, progress: bool = True
 ) -> Path:
     """Write `pop` into the folder `out` (layout in the module docstring).
 
@@ -68,7 +68,7 @@ def write_population(
     images = {c: [] for c in contrasts}
     labels, transforms = [], []
     subjects = zip(names, pop.subjects, strict=True)
-    for name, s in progress(subjects, desc="writing", total=len(pop), enabled=show_progress):
+    for name, s in progress_bar(subjects, desc="writing", total=len(pop), enabled=progress):
         for c in contrasts:
             images[c].append(write_image(s.images[c], f"img/{name}{suffix[c]}.nii.gz"))
         labels.append(write_image(s.labels, f"lab/{name}.nii.gz"))

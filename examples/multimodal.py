@@ -59,7 +59,7 @@ def _stem(path: str) -> str:
 def main(folder: Path, *, n: int = N_SUBJECTS, n_samples: int = 20_000) -> dict:
     """Generate, register, evaluate in `folder`; print the table and return the numbers."""
     pop = make_population("phantom", dim=2, n=n, seed=0, spacing=2.8, size=80, contrasts=CONTRASTS)
-    manifest = write_population(pop, folder, montage=False, show_progress=False)
+    manifest = write_population(pop, folder, montage=False, progress=False)
     m = load_manifest(manifest)
     images = [str(p) for p in m.images]
     names = [_stem(p) for p in images]

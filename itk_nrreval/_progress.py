@@ -10,10 +10,10 @@ from tqdm.auto import tqdm
 
 T = TypeVar("T")
 
-__all__ = ["progress"]
+__all__ = ["progress_bar"]
 
 
-def progress(
+def progress_bar(
     iterable: Iterable[T], *, desc: str, total: int | None = None, enabled: bool = True
 ) -> Iterable[T]:
     """Wrap `iterable` in a progress bar on stderr (a no-op when `enabled` is false)."""

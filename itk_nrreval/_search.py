@@ -235,7 +235,7 @@ def search(
     starts = range(0, n_chunks, runner.step)
     parts = [
         runner.run(first, min(first + runner.step, n_chunks))
-        for first in _progress.progress(starts, desc=desc, total=len(starts), enabled=progress)
+        for first in _progress.progress_bar(starts, desc=desc, total=len(starts), enabled=progress)
     ]
     per_model = [
         ChunkStats(*(np.concatenate(arrays) for arrays in zip(*model_parts, strict=True)))

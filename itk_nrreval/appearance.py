@@ -47,7 +47,7 @@ import SimpleITK as sitk
 from . import _sampling
 from ._errors import InputError, readable
 from ._images import Geometry, read_image
-from ._progress import progress as _progress_bar
+from ._progress import progress_bar
 from .frame import read_chains, resample_images, resample_onto
 from .manifest import Manifest, load_manifest
 from .model import TextureModel
@@ -414,10 +414,10 @@ def fit_appearance(
     chains = read_chains(manifest, name)
     affines = [affine_part(t, grid) for t in chains]
     raw = resample_images(
-        manifest.scored_images, affines, grid, show_progress=progress, desc=f"{name}: affine"
+        manifest.scored_images, affines, grid, progress=progress, desc=f"{name}: affine"
     )
     textures = resample_images(
-        manifest.scored_images, chains, grid, show_progress=progress, desc=f"{name}: texture"
+        manifest.scored_images, chains, grid, progress=progress, desc=f"{name}: texture"
     )
     fields = np.stack(
         [
@@ -657,7 +657,7 @@ def appearance_diagnostics(
     nearest = {}
     reassigned = 0
     starts = range(0, int(n_samples), chunk)
-    for start in _progress_bar(
+    for start in progress_bar(
         starts, desc=f"{registration}: samples", total=len(starts), enabled=progress
     ):
         stop = min(int(n_samples), start + chunk)

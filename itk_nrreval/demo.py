@@ -192,7 +192,7 @@ def run_demo(
     t0 = time.perf_counter()
     say(f"[demo] generating {n} {kind} subjects ({dim}D)")
     pop = make_population(kind, dim=dim, n=n, seed=seed)
-    truth_manifest = write_population(pop, out / "data", show_progress=progress)
+    truth_manifest = write_population(pop, out / "data", progress=progress)
     truth = load_manifest(truth_manifest)
     seconds["generate"] = time.perf_counter() - t0
 

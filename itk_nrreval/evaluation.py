@@ -25,7 +25,7 @@ import numpy as np
 
 from ._errors import InputError, readable
 from ._output import check_output_folder, json_number, staged_folder
-from ._progress import progress
+from ._progress import progress_bar
 from .confidence import (
     Comparison,
     Interval,
@@ -652,7 +652,7 @@ def evaluate(
             interpolation=interpolation,
             label_interpolation=label_interpolation,
             label_sigma_mm=label_sigma_mm,
-            show_progress=progress,
+            progress=progress,
             save_resampled=save_resampled or None,
             off_grid_coverage=subject_thresholds.off_grid_coverage,
             pictured_subjects=_subject_assessor(m, subject_thresholds, assessed),
@@ -836,14 +836,14 @@ class _SubjectLevel:
 
 
 def _subject_level(
-    run, values, weightings, plan: _JackknifePlan, n_samples, distance, seed, show
+    run, values, weightings, plan: _JackknifePlan, n_samples, distance, seed, progress
 ) -> _SubjectLevel:
     """Jackknife intervals, paired comparisons and probabilities of being best, for every
     measure and registration of `run`."""
     regs = run.registrations
     level = _SubjectLevel.empty(regs)
     comparisons: list[Comparison] = []
-    reps = _replicates(run, weightings, plan, n_samples, distance, seed, show)
+    reps = _replicates(run, weightings, plan, n_samples, distance, seed, progress)
     for measure, by_name in reps.items():
         vals = {name: values[name][measure] for name in regs}
         for name in regs:
@@ -947,12 +947,12 @@ def _check_positive(name: str, value, minimum: int) -> None:
         raise ValueError(f"{name}: expected an integer >= {minimum}, got {readable(value)}")
 
 
-def _replicates(run, weightings, plan: _JackknifePlan, n_samples, distance, seed, show):
+def _replicates(run, weightings, plan: _JackknifePlan, n_samples, distance, seed, progress):
     """Per measure, per registration, the jackknife replicates (the same subjects left out
     for all)."""
     regs = run.registrations
     out: dict[str, dict[str, np.ndarray]] = {"specificity": {}, "generalization": {}}
-    for name, r in progress(regs.items(), desc="confidence", total=len(regs), enabled=show):
+    for name, r in progress_bar(regs.items(), desc="confidence", total=len(regs), enabled=progress):
         spec, gen = specificity_replicates(
             r.gram,
             groups=plan.left_out,

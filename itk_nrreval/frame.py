@@ -31,7 +31,7 @@ import SimpleITK as sitk
 
 from ._errors import InputError
 from ._images import Geometry, InMemoryImage, read_image
-from ._progress import progress
+from ._progress import progress_bar
 from .manifest import Manifest, Registration
 from .memberships import resample_label_memberships
 from .transforms import chain_transform, displacement_field, field_transform, invert, leaves
@@ -292,7 +292,7 @@ def resample_images(
     grid: sitk.Image | Geometry,
     *,
     interpolation: str = "linear",
-    show_progress: bool = True,
+    progress: bool = True,
     desc: str = "resampling",
     outside: float = 0.0,
 ) -> np.ndarray:
@@ -304,7 +304,7 @@ def resample_images(
     transforms : sequence of sitk.Transform, length n_images
     grid : sitk.Image or Geometry
     interpolation : {"linear", "bspline"}
-    show_progress : bool
+    progress : bool
         A progress bar on stderr.
     outside : float
         The value of grid points mapped outside an image's field of view (NaN marks them).
@@ -320,7 +320,7 @@ def resample_images(
     out = np.empty((len(images), *g.shape))
     pairs = zip(images, transforms, strict=True)
     for i, (item, t) in enumerate(
-        progress(pairs, desc=desc, total=len(images), enabled=show_progress)
+        progress_bar(pairs, desc=desc, total=len(images), enabled=progress)
     ):
         img = sitk.Cast(_as_image(item, "image"), sitk.sitkFloat64)
         res = resample_onto(img, t, g, _INTERPOLATORS[interpolation], outside=outside)
@@ -389,7 +389,7 @@ def resample_memberships(
     grid: sitk.Image | Geometry,
     *,
     values: Sequence[int],
-    show_progress: bool = True,
+    progress: bool = True,
     desc: str = "resampling labels",
 ) -> np.ndarray:
     """Resample label maps as one-hot memberships, linearly, onto `grid` (dense).
@@ -418,7 +418,7 @@ def resample_memberships(
     out = np.empty((len(labels), len(values), *g.shape), dtype=np.float32)
     pairs = zip(labels, transforms, strict=True)
     for i, (item, t) in enumerate(
-        progress(pairs, desc=desc, total=len(labels), enabled=show_progress)
+        progress_bar(pairs, desc=desc, total=len(labels), enabled=progress)
     ):
         lab = _as_image(item, "label map")
         out[i] = resample_label_memberships(lab, t, g, values=values).dense()

@@ -40,7 +40,7 @@ from ._overlap_kernels import (
     membership_pair_sums,
     membership_stats,
 )
-from ._progress import progress
+from ._progress import progress_bar
 from .memberships import membership_file_labels
 
 __all__ = ["WEIGHTINGS", "OverlapTable", "overlap_table", "generalized_overlap"]
@@ -512,7 +512,7 @@ def overlap_table(
         spacing_itk,
         complexity=complexity,
         target_overlap=target_overlap,
-        show=progress,
+        progress=progress,
     )
     if skipped:
         warnings.warn(
@@ -647,7 +647,7 @@ def _crisp_sums(
     *,
     complexity: bool,
     target_overlap: bool,
-    show: bool = False,
+    progress: bool = False,
 ):
     """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`."""
     n_images = data.shape[0]
@@ -740,7 +740,7 @@ def _fuzzy_sums(
     component_labels: tuple[int, ...] | None,
     complexity: bool,
     target_overlap: bool,
-    show: bool = False,
+    progress: bool = False,
 ):
     """Label values, skipped values, and the sums of :meth:`OverlapTable.from_sums`.
 
@@ -787,8 +787,11 @@ def _fuzzy_sums(
     p = np.zeros(n_labels)
     q = np.zeros(n_labels)
     work = n_images * n_labels * flat.shape[2]
-    for k in progress(
-        range(n_labels), desc="overlap", total=n_labels, enabled=show and work > _PROGRESS_MIN_WORK
+    for k in progress_bar(
+        range(n_labels),
+        desc="overlap",
+        total=n_labels,
+        enabled=progress and work > _PROGRESS_MIN_WORK,
     ):
         rows = flat[:, int(components[k])]  # (N, n_voxels), rows adjacent in memory
         if complexity:

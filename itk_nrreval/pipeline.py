@@ -49,7 +49,7 @@ from . import _version
 from ._errors import InputError, readable
 from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
-from ._progress import progress
+from ._progress import progress_bar
 from .cache import DiskCache, digest_of
 from .frame import (
     FrameMapping,
@@ -134,7 +134,7 @@ class Executor(Protocol):
     n_workers: int
 
     def map(
-        self, fn: Callable, calls: Sequence[tuple], *, desc: str, show: bool
+        self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
     ) -> Iterator[tuple[int, Any]]: ...
 
 
@@ -147,9 +147,11 @@ class InProcessExecutor:
     n_workers = 1
 
     def map(
-        self, fn: Callable, calls: Sequence[tuple], *, desc: str, show: bool
+        self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
     ) -> Iterator[tuple[int, Any]]:
-        for i, args in enumerate(progress(calls, desc=desc, total=len(calls), enabled=show)):
+        for i, args in enumerate(
+            progress_bar(calls, desc=desc, total=len(calls), enabled=progress)
+        ):
             yield i, fn(*args)
 
 
@@ -272,7 +274,7 @@ def _resample_task(
     full = resampling_transform(t, _frame_transform(frame, g, cache))
     raw = read_image(image, what="image")
     values = resample_images(
-        [raw], [full], g, interpolation=interpolation, show_progress=False, outside=np.nan
+        [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan
     )[0].reshape(-1)
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
     values[~covered] = 0.0
@@ -632,7 +634,7 @@ def run_pipeline(
     seed: int,
     distance: str,
     interpolation: str,
-    show_progress: bool,
+    progress: bool,
     save_resampled: str | os.PathLike | None = None,
     inverse_consistency: bool = True,
     label_interpolation: str = "linear",
@@ -652,7 +654,7 @@ def run_pipeline(
         The per-image result cache (default: a temporary folder, removed afterwards).
     n_samples, seed, distance, interpolation
         As :func:`itk_nrreval.evaluate`.
-    show_progress : bool
+    progress : bool
         Progress bars on stderr.
     save_resampled : path, optional
         Write each registration's resampled images and label memberships (NIfTI, each with
@@ -689,7 +691,7 @@ def run_pipeline(
         mask_key = None if mask is None else _stored_mask(disk, mask)
         ctx = _Context(str(Path(cache).resolve()), grid, mask_key, inverse_consistency)
         counts = _Counts()
-        values, own_values = _label_values(m, executor, show_progress)
+        values, own_values = _label_values(m, executor, progress)
         resampled: dict[str, _Resampled] = {}
         warned: set[int] = set()
         for name in m.registrations:
@@ -705,7 +707,7 @@ def run_pipeline(
                 own_values=own_values,
                 interpolation=interpolation,
                 labels=(label_interpolation, label_sigma_mm),
-                show_progress=show_progress,
+                progress=progress,
             )
             if save_resampled is not None:
                 r = resampled[name]
@@ -735,7 +737,7 @@ def run_pipeline(
                 seed=seed,
                 distance=distance,
                 interpolation=interpolation,
-                show_progress=show_progress,
+                progress=progress,
                 pictured_subjects=pictured_subjects,
             )
             for name, r in resampled.items()
@@ -752,14 +754,14 @@ def _stored_mask(disk: DiskCache, mask: np.ndarray) -> str:
     return key
 
 
-def _label_values(m: Manifest, executor: Executor, show_progress: bool):
+def _label_values(m: Manifest, executor: Executor, progress: bool):
     """The label values of every label map (index 0: background), and each image's own
     non-background values; (None, [None] * N) without labels."""
     own_values: list[list[int] | None] = [None] * m.n_images
     if m.labels is None:
         return None, own_values
     calls = [([p],) for p in m.labels]
-    for i, vals in executor.map(label_values, calls, desc="label values", show=show_progress):
+    for i, vals in executor.map(label_values, calls, desc="label values", progress=progress):
         own_values[i] = [int(v) for v in vals if v != 0]  # background: not evaluated
     found = {v for vals in own_values for v in vals}
     return [0, *sorted(found)], own_values
@@ -779,14 +781,14 @@ class _Resampled:
 
 def _resample_registration(
     executor, ctx, disk, m, name, *, mask, counts, warned, own_values, interpolation, labels,
-    show_progress,
+    progress,
 ) -> _Resampled:  # fmt: skip
     """Every image of registration `name` resampled into the common frame (cached), with
     its labels' memberships and deformation measures; label-like images warned once."""
     reg = m.registrations[name]
     reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
     frame_spec, frame_digest, frame = _frame(
-        executor, ctx, disk, m, name, reg_grid, counts, show_progress
+        executor, ctx, disk, m, name, reg_grid, counts, progress
     )
     reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
     calls = [
@@ -808,7 +810,7 @@ def _resample_registration(
     keys: list[str] = [""] * m.n_images
     metas: list[dict] = [{}] * m.n_images
     for i, (key, reused, meta) in executor.map(
-        _resample_task, calls, desc=f"{name}: resampling", show=show_progress
+        _resample_task, calls, desc=f"{name}: resampling", progress=progress
     ):
         keys[i], metas[i] = key, meta
         counts.add(reused)
@@ -838,7 +840,7 @@ def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple
 
 def _reduce_registration(
     executor, region_ctx, disk, m, name, r: _Resampled, *, scored, values, region, coverage,
-    n_samples, seed, distance, interpolation, show_progress, pictured_subjects,
+    n_samples, seed, distance, interpolation, progress, pictured_subjects,
 ) -> RegistrationRun:  # fmt: skip
     """Registration `name`'s scores from its cache entries inside the region, with every
     image's deformation, and the thumbnails of the subjects the report pictures."""
@@ -848,7 +850,7 @@ def _reduce_registration(
         metas = [dict(meta) for meta in metas]
         # cheap and derived from the resampled entries: not in the counts
         for i, (sums, _reused) in executor.map(
-            _label_sums_task, calls, desc=f"{name}: label sums", show=show_progress
+            _label_sums_task, calls, desc=f"{name}: label sums", progress=progress
         ):
             metas[i].update(sums)
     run = _reduce(
@@ -866,7 +868,7 @@ def _reduce_registration(
         n_samples=n_samples,
         seed=seed,
         distance=distance,
-        show=show_progress,
+        progress=progress,
     )
     run = dataclasses.replace(
         run,
@@ -964,7 +966,7 @@ def _alternative_products(
             [resampling_transform(t, frame)],
             grid,
             interpolation=interpolation,
-            show_progress=False,
+            progress=False,
         )[0].reshape(-1)
         changed[c] = (values[region] if region is not None else values) - centre
     cross = np.empty((len(alternatives), len(keys)))
@@ -990,7 +992,7 @@ def _reduce(
     n_samples,
     seed,
     distance,
-    show,
+    progress,
 ) -> RegistrationRun:
     """Block sums -> model -> specificity and generalization; pair sums -> overlap table."""
     grid = ctx.grid
@@ -1010,7 +1012,7 @@ def _reduce(
     # numbers do not depend on the executor's timing.
     pending: dict[int, dict] = {}
     next_block = 0
-    for b, res in executor.map(_block_task, calls, desc=f"{name}: model", show=show):
+    for b, res in executor.map(_block_task, calls, desc=f"{name}: model", progress=progress):
         pending[b] = res
         while next_block in pending:
             res = pending.pop(next_block)
@@ -1034,7 +1036,7 @@ def _reduce(
         n_samples=n_samples,
         distance=distance,
         seed=seed,
-        progress=show,
+        progress=progress,
         desc=f"{name}: specificity",
     )
     table = sums = None
@@ -1085,7 +1087,7 @@ def _reduce(
     )
 
 
-def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
+def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     """F for registration `name`: its task description, the digest of that, its FrameMapping."""
     reg = m.registrations[name]
     common_items = m.registrations[m.common_frame].transforms
@@ -1102,7 +1104,9 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
         spec = None
     calls = [(ctx, common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)]
     keys = [""] * m.n_images
-    for i, (key, reused) in executor.map(_estimate_task, calls, desc=f"{name}: frame", show=show):
+    for i, (key, reused) in executor.map(
+        _estimate_task, calls, desc=f"{name}: frame", progress=progress
+    ):
         keys[i] = key
         counts.add(reused)
     if spec is None:
@@ -1124,7 +1128,9 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, show):
         disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
     calls = [(ctx, k, disp_key) for k in keys]
     parts = [(0.0, 0.0, 0)] * len(keys)
-    for i, part in executor.map(_spread_task, calls, desc=f"{name}: frame spread", show=show):
+    for i, part in executor.map(
+        _spread_task, calls, desc=f"{name}: frame spread", progress=progress
+    ):
         parts[i] = part
     count = sum(part[2] for part in parts)
     mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan

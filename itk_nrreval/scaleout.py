@@ -19,7 +19,7 @@ from typing import Any
 import SimpleITK as sitk
 
 from ._errors import InputError, readable
-from ._progress import progress
+from ._progress import progress_bar
 
 __all__ = ["DaskExecutor", "cluster_client", "check_scheduler"]
 
@@ -99,13 +99,15 @@ class DaskExecutor:
         self.n_workers = len(client.scheduler_info()["workers"])
 
     def map(
-        self, fn: Callable, calls: Sequence[tuple], *, desc: str, show: bool
+        self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
     ) -> Iterator[tuple[int, Any]]:
         from dask.distributed import as_completed
 
         futures = [self.client.submit(_one_core, fn, *args, pure=False) for args in calls]
         index = {f.key: i for i, f in enumerate(futures)}
-        for fut in progress(as_completed(futures), desc=desc, total=len(futures), enabled=show):
+        for fut in progress_bar(
+            as_completed(futures), desc=desc, total=len(futures), enabled=progress
+        ):
             yield index[fut.key], fut.result()
             fut.release()  # the driver keeps only what it has read
 

@@ -34,7 +34,7 @@ import numpy as np
 from ._errors import InputError
 from ._images import image_stack, mask_array
 from ._output import json_number, write_json, write_text
-from ._progress import progress as _progress
+from ._progress import progress_bar
 from .overlap import WEIGHTINGS, overlap_table
 from .report.validation import OUTPUT_FILES, write_validation
 from .specificity import specificity
@@ -373,7 +373,7 @@ def take_section(images, labels, spacing, section, *, mask=None):
     return images, labels, spacing, mask, (_AXES[a], index)
 
 
-def manifest_set(manifest, *, section=None, show_progress: bool = True):
+def manifest_set(manifest, *, section=None, progress: bool = True):
     """The images and label memberships of a manifest, resampled into its common frame.
 
     Uses the common-frame registration's transforms (the registered set the paper perturbs).
@@ -385,7 +385,7 @@ def manifest_set(manifest, *, section=None, show_progress: bool = True):
         ``AXIS[:INDEX]`` (:func:`parse_section`): resample only that slice of the common
         grid (default index: the middle slice), the paper's "2D slices at an equivalent
         level across the set". The grid must be 3D.
-    show_progress : bool
+    progress : bool
 
     Returns
     -------
@@ -401,11 +401,11 @@ def manifest_set(manifest, *, section=None, show_progress: bool = True):
     InputError
         A bad manifest, one without labels, or a section of a 2D grid / out of range.
     """
-    images, members, grid, _, _ = _manifest_arrays(manifest, section, show_progress)
+    images, members, grid, _, _ = _manifest_arrays(manifest, section, progress)
     return images, members, grid
 
 
-def _manifest_arrays(manifest, section, show_progress: bool):
+def _manifest_arrays(manifest, section, progress: bool):
     """:func:`manifest_set`, the section taken (``(axis, index)`` or None), and the coverage.
 
     The coverage is ``(region, fraction of the mask it keeps, name, masked)``; the region
@@ -455,16 +455,14 @@ def _manifest_arrays(manifest, section, show_progress: bool):
         chains,
         grid,
         desc="resampling images",
-        show_progress=show_progress,
+        progress=progress,
         outside=np.nan,
     )
     covered = ~np.isnan(images).any(axis=0)
     images[np.isnan(images)] = 0.0  # outside the region only: the inputs are checked finite
     found = [int(v) for v in label_values(m.labels) if v != 0]
     values = np.array([0, *found], dtype=np.int64)
-    members = resample_memberships(
-        m.labels, chains, grid, values=values, show_progress=show_progress
-    )
+    members = resample_memberships(m.labels, chains, grid, values=values, progress=progress)
     members = _drop_absent(members)
     if mask is None:
         mask = np.ones(covered.shape, dtype=bool)
@@ -644,7 +642,7 @@ def validate(
     todo = [(d, r) for d in ds for r in range(repeats)]
     rows = []
     with _threads(n_jobs) as pool:
-        for d, r in _progress(todo, desc="validate", total=len(todo), enabled=progress):
+        for d, r in progress_bar(todo, desc="validate", total=len(todo), enabled=progress):
             instance = perturbation.instance(d, r, pool)
             rows.append(
                 _measure(instance, inputs, n_samples=n_samples, seed=seed, weightings=weightings)

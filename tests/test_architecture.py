@@ -4,6 +4,9 @@ cycle, no Dask unless a scheduler is asked for, and matplotlib only in the repor
 from __future__ import annotations
 
 import ast
+import importlib
+import inspect
+import pkgutil
 import subprocess
 import sys
 from pathlib import Path
@@ -206,3 +209,61 @@ def test_no_function_outside_the_numba_kernels_is_longer_than_120_lines():
             if lines > limit:
                 too_long[f"{name}.{node.name}"] = lines
     assert too_long == {}
+
+
+def _public_modules():
+    """Every module of itk_nrreval and data_synth, imported (``__main__`` would run the
+    command line)."""
+    import data_synth
+
+    for package in (itk_nrreval, data_synth):
+        yield package
+        for info in pkgutil.walk_packages(package.__path__, package.__name__ + "."):
+            if info.name.rpartition(".")[2] != "__main__":
+                yield importlib.import_module(info.name)
+
+
+def _public_callables() -> dict[str, object]:
+    """Qualified name -> function, of every public function a module of itk_nrreval or
+    data_synth defines or lists in its ``__all__``, and of the public methods (and
+    constructors) of its public classes."""
+    out = {}
+    for module in _public_modules():
+        names = set(getattr(module, "__all__", ()))
+        names |= {
+            n
+            for n, obj in vars(module).items()
+            if not n.startswith("_") and getattr(obj, "__module__", None) == module.__name__
+        }
+        for name in sorted(names):
+            obj = getattr(module, name)
+            if inspect.isfunction(obj):
+                out[f"{obj.__module__}.{obj.__qualname__}"] = obj
+            elif inspect.isclass(obj):
+                for attr, member in vars(obj).items():
+                    if attr.startswith("_") and attr not in ("__init__", "__call__"):
+                        continue
+                    member = getattr(member, "__func__", member)  # class- and staticmethods
+                    if inspect.isfunction(member):
+                        out[f"{obj.__module__}.{member.__qualname__}"] = member
+    return out
+
+
+def test_the_progress_flag_has_one_name():
+    """The flag that turns the progress bars on stderr on is ``progress`` in every public
+    signature (issue 28: one name per concept), never ``show_progress`` or ``show``."""
+    callables = _public_callables()
+    offences = sorted(
+        f"{name}({param})"
+        for name, fn in callables.items()
+        for param in inspect.signature(fn).parameters
+        if param in ("show_progress", "show")
+    )
+    assert offences == []
+    # the check sees functions defined in modules and re-exported, methods, and data_synth
+    assert {
+        "itk_nrreval.evaluation.evaluate",
+        "itk_nrreval.pipeline.InProcessExecutor.map",
+        "itk_nrreval.registration.register",
+        "data_synth.writing.write_population",
+    } <= set(callables)

@@ -69,7 +69,7 @@ def population(tmp_path, *, size: int = 96):
     (issue 25 showed with fields above it; the demo's are 141 x 141).
     """
     pop = make_population("phantom", dim=2, n=4, seed=3, size=size)
-    return write_population(pop, tmp_path / "data", montage=False, show_progress=False)
+    return write_population(pop, tmp_path / "data", montage=False, progress=False)
 
 
 def test_dask_results_json_equals_in_process(tmp_path):

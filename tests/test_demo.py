@@ -13,7 +13,7 @@ from itk_nrreval.manifest import add_registration
 
 def test_truth_has_no_correspondence_error_and_identity_has_the_true_spread(tmp_path):
     pop = make_population("phantom", dim=2, n=5, seed=3, size=64)
-    manifest = write_population(pop, tmp_path / "data", montage=False, show_progress=False)
+    manifest = write_population(pop, tmp_path / "data", montage=False, progress=False)
     identity = sitk.TranslationTransform(2)
     paths = []
     for i in range(len(pop)):

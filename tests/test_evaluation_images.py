@@ -27,7 +27,7 @@ def two_contrasts(tmp_path_factory):
     pop = make_population(
         "phantom", dim=3, n=N, seed=5, spacing=4.0, size=(24, 28, 22), contrasts=("t1", "t2")
     )
-    m = load_manifest(write_population(pop, folder, montage=False, show_progress=False))
+    m = load_manifest(write_population(pop, folder, montage=False, progress=False))
     t1 = [p for p, g in zip(m.images, m.groups, strict=True) if g == "t1"]
     t2 = [p for p, g in zip(m.images, m.groups, strict=True) if g == "t2"]
     labels = list(m.labels[:N])

@@ -148,7 +148,7 @@ def test_memberships_one_hot_and_fuzzy():
     lab = sitk.GetImageFromArray(arr)
     ident = sitk.TranslationTransform(2, (0.0, 0.0))
     half = sitk.TranslationTransform(2, (0.5, 0.0))
-    m = resample_memberships([lab, lab], [ident, half], lab, values=[0, 1, 3], show_progress=False)
+    m = resample_memberships([lab, lab], [ident, half], lab, values=[0, 1, 3], progress=False)
     assert m.shape == (2, 3, 6, 8)
     expected = np.stack([(arr == v) for v in (0, 1, 3)]).astype(np.float32)
     np.testing.assert_array_equal(m[0], expected)

@@ -175,7 +175,7 @@ def t1_t2(tmp_path_factory):
         "phantom", dim=2, n=3, seed=0, spacing=4.0, size=48, contrasts=("t1", "t2")
     )
     folder = tmp_path_factory.mktemp("t1_t2")
-    manifest = write_population(population, folder, montage=False, show_progress=False)
+    manifest = write_population(population, folder, montage=False, progress=False)
     globbed = sorted(str(p) for p in (folder / "img").glob("*.nii.gz"))
     assert [Path(p).name for p in globbed[:2]] == ["s00_t1.nii.gz", "s00_t2.nii.gz"]
     return manifest, globbed

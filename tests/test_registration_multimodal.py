@@ -272,7 +272,7 @@ def test_the_link_is_shared_by_every_image_of_the_other_group(results, populatio
 
 
 def test_the_manifest_written_loads_and_evaluates_with_groups(results, population, truth, tmp_path):
-    manifest = write_population(population, tmp_path / "pop", montage=False, show_progress=False)
+    manifest = write_population(population, tmp_path / "pop", montage=False, progress=False)
     m = load_manifest(manifest)
     names = [p.name.removesuffix(".nii.gz") for p in m.images]
     for name, r in results.items():
@@ -308,7 +308,7 @@ def test_the_manifest_written_loads_and_evaluates_with_groups(results, populatio
 
 
 def test_a_manifest_with_other_groups_is_refused(results, population, tmp_path):
-    manifest = write_population(population, tmp_path / "pop", montage=False, show_progress=False)
+    manifest = write_population(population, tmp_path / "pop", montage=False, progress=False)
     other = dataclasses.replace(results["affine"], groups=("a", "b") * N_SUBJECTS)
     with pytest.raises(InputError, match="groups"):
         other.add_to_manifest(manifest, "other", out=tmp_path / "other")
@@ -434,7 +434,7 @@ def test_bad_arguments_are_one_line_input_errors(images, groups, kwargs, message
 def written(population, tmp_path_factory):
     """The population on disk: its manifest (images, groups, truth) and image paths."""
     manifest = write_population(
-        population, tmp_path_factory.mktemp("cli") / "pop", montage=False, show_progress=False
+        population, tmp_path_factory.mktemp("cli") / "pop", montage=False, progress=False
     )
     return manifest, [str(p) for p in load_manifest(manifest).images]
 

@@ -130,7 +130,7 @@ def test_affine_and_field_chain_recovers_image(dim):
     mov_img = sitk.GetImageFromArray(g(physical_points(mov)))
     mov_img.CopyInformation(mov)
     chain = chain_transform([field_transform(field_image(u, ref)), a])
-    got = resample_images([mov_img], [chain], ref, show_progress=False)[0]
+    got = resample_images([mov_img], [chain], ref, progress=False)[0]
     q = apply_affine(physical_points(ref) + u, m, t, c)
     expected = g(q)
     vox = (q - np.array(mov.GetOrigin())) / 0.8

@@ -86,7 +86,7 @@ KW = dict(repeats=1, n_samples=300, weightings=("volume", "inverse_volume"), pro
 
 
 def test_memberships_have_one_channel_per_present_value(case):
-    images, members, grid = manifest_set(case / "manifest.yaml", show_progress=False)
+    images, members, grid = manifest_set(case / "manifest.yaml", progress=False)
     assert images.shape == (N, *SIZE[::-1])
     assert members.shape == (N, 1 + len(VALUES), *SIZE[::-1])  # not 14176 channels
     np.testing.assert_allclose(members.sum(axis=1), 1.0, atol=1e-6)
@@ -294,7 +294,7 @@ def test_specificity_is_taken_inside_the_mask_where_every_image_covers(case, tmp
     )
     region = ~np.isnan(stack).any(axis=0) & (box > 0)
     assert 0.3 < region.mean() < box.mean() < 1  # both the crop and the mask matter
-    _, members, _ = manifest_set(folder / "manifest.yaml", show_progress=False)
+    _, members, _ = manifest_set(folder / "manifest.yaml", progress=False)
     kw = dict(displacements=(0.0, 0.05), spacing=SPACING, **KW)
     with pytest.warns(
         UserWarning, match=r"specificity is taken on the \d+% of the voxels of the mask"

@@ -334,7 +334,7 @@ def _affine_stage(
     if reference is None:
         choice = reference_choice or "near-mean"
         ref_index, initial, _ = choose_reference(
-            imgs, choice, options=options, seed=seed, show_progress=progress
+            imgs, choice, options=options, seed=seed, progress=progress
         )
         ref_image = imgs[ref_index]
     else:
@@ -347,7 +347,7 @@ def _affine_stage(
         seed=seed,
         reference_index=ref_index,
         initial=initial,
-        show_progress=progress,
+        progress=progress,
     )
     return _AffineStage(ref_image, ref_index, affines, choice, reused=False)
 
@@ -367,7 +367,7 @@ def _run_method(
     to_reference = {
         "seed": seed,
         "reference_index": stage.reference_index,
-        "show_progress": progress,
+        "progress": progress,
         "options": plan.options,
         "engine": plan.engine,
     }
@@ -396,7 +396,7 @@ def _groupwise(
     start = (imgs, stage.reference, stage.affines)
     if plan.engine == "simpleitk":
         transforms, mean = groupwise_register(
-            *start, options=plan.options, seed=seed, show_progress=progress
+            *start, options=plan.options, seed=seed, progress=progress
         )
         return _Registered(transforms, mean, None)
     with elastix_worker_for(worker) as running:
@@ -406,7 +406,7 @@ def _groupwise(
             )
             return _Registered(transforms, mean, None, resampled)
         transforms, mean = groupwise_register_elastix(
-            *start, options=plan.options, seed=seed, worker=running, show_progress=progress
+            *start, options=plan.options, seed=seed, worker=running, progress=progress
         )
         return _Registered(transforms, mean, None)
 

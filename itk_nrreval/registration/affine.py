@@ -14,7 +14,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._progress import progress
+from .._progress import progress_bar
 from ._common import (
     METRICS,
     EngineError,
@@ -153,7 +153,7 @@ def affine_to_reference(
     seed: int,
     reference_index: int | None = None,
     initial: Sequence[sitk.Transform | None] | None = None,
-    show_progress: bool = True,
+    progress: bool = True,
     numbers: Sequence[int] | None = None,
     desc: str = "affine",
 ) -> list[sitk.AffineTransform]:
@@ -164,8 +164,8 @@ def affine_to_reference(
     """
     numbers = range(len(images)) if numbers is None else numbers
     out = []
-    for i, img in progress(
-        list(enumerate(images)), desc=desc, total=len(images), enabled=show_progress
+    for i, img in progress_bar(
+        list(enumerate(images)), desc=desc, total=len(images), enabled=progress
     ):
         if i == reference_index:
             out.append(sitk.AffineTransform(img.GetDimension()))
@@ -185,7 +185,7 @@ def choose_reference(
     *,
     options: AffineOptions,
     seed: int,
-    show_progress: bool = True,
+    progress: bool = True,
 ) -> tuple[int, list[sitk.AffineTransform], np.ndarray]:
     """Pick the training image nearest to / farthest from the group mean after affine alignment.
 
@@ -214,7 +214,7 @@ def choose_reference(
         options=options,
         seed=seed,
         reference_index=0,
-        show_progress=show_progress,
+        progress=progress,
     )
     aligned = [
         sitk.GetArrayFromImage(resample(im, images[0], t)).astype(np.float64)

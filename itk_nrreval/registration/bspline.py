@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._progress import progress
+from .._progress import progress_bar
 from ._common import (
     METRICS,
     EngineError,
@@ -272,7 +272,7 @@ def bspline_to_reference(
     engine: str,
     seed: int,
     reference_index: int | None = None,
-    show_progress: bool = True,
+    progress: bool = True,
     worker=None,
     numbers: Sequence[int] | None = None,
     desc: str = "pairwise",
@@ -287,7 +287,7 @@ def bspline_to_reference(
     """
     numbers = list(range(len(images))) if numbers is None else [int(k) for k in numbers]
     items = list(enumerate(zip(images, affines, strict=True)))
-    bar = progress(items, desc=f"{desc} ({engine})", total=len(items), enabled=show_progress)
+    bar = progress_bar(items, desc=f"{desc} ({engine})", total=len(items), enabled=progress)
     by_elastix = engine != "simpleitk"
     if not by_elastix and options.bending_weight > 0:
         raise InputError(

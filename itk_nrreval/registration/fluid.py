@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import SimpleITK as sitk
 
 from .._errors import InputError, readable
-from .._progress import progress
+from .._progress import progress_bar
 from ..transforms import chain_transform, field_transform
 from ._common import EngineError, engine_seed, resample
 
@@ -303,7 +303,7 @@ def fluid_to_reference(
     engine: str = "simpleitk",
     seed: int = 0,
     reference_index: int | None = None,
-    show_progress: bool = True,
+    progress: bool = True,
 ) -> list[sitk.Transform]:
     """Per image the transform reference -> image ``[A_i, field_i]`` (``A_i(D_i(p))``).
 
@@ -318,11 +318,11 @@ def fluid_to_reference(
         for factor, sigma_mm in levels:
             demons_pixel_sigmas(sigma_mm, [factor * s for s in reference.GetSpacing()])
     out = []
-    for i, (img, aff) in progress(
+    for i, (img, aff) in progress_bar(
         list(enumerate(zip(images, affines, strict=True))),
         desc="fluid",
         total=len(images),
-        enabled=show_progress,
+        enabled=progress,
     ):
         if i == reference_index:
             out.append(aff)

@@ -33,7 +33,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._progress import progress
+from .._progress import progress_bar
 from ..transforms import displacement_field, field_transform, invert
 from ._common import group_mean, resample
 from .bspline import BSplineOptions, elastix_parameters, sitk_bspline
@@ -99,7 +99,7 @@ def groupwise_register(
     *,
     options: GroupwiseOptions,
     seed: int,
-    show_progress: bool = True,
+    progress: bool = True,
 ) -> tuple[list[sitk.Transform], sitk.Image]:
     """Register `images` to their evolving mean on the grid of `frame`.
 
@@ -112,7 +112,7 @@ def groupwise_register(
     """
     layers: list[list[sitk.Transform]] = [[a] for a in affines]
     steps = [(k, s) for k in range(options.levels) for s in range(options.sweeps)]
-    bar = progress(steps, desc="groupwise", total=len(steps), enabled=show_progress)
+    bar = progress_bar(steps, desc="groupwise", total=len(steps), enabled=progress)
     for k, s in bar:
         mean = group_mean(images, frame, [sitk.CompositeTransform(t) for t in layers])
         factor = 2 ** (options.levels - 1 - k)
@@ -152,7 +152,7 @@ def groupwise_register_elastix(
     options: GroupwiseOptions,
     seed: int,
     worker,
-    show_progress: bool = True,
+    progress: bool = True,
 ) -> tuple[list[sitk.Transform], sitk.Image]:
     """Register `images` to their evolving mean on the grid of `frame` with elastix.
 
@@ -172,7 +172,7 @@ def groupwise_register_elastix(
     )
     transforms: list[sitk.Transform] = list(affines)
     steps = [(s, i) for s in range(options.sweeps) for i in range(len(images))]
-    bar = iter(progress(steps, desc="groupwise (elastix)", total=len(steps), enabled=show_progress))
+    bar = iter(progress_bar(steps, desc="groupwise (elastix)", total=len(steps), enabled=progress))
     for sweep in range(options.sweeps):
         mean = group_mean(images, frame, transforms)
         fields = []

@@ -59,7 +59,7 @@ import SimpleITK as sitk
 
 from .._errors import InputError
 from .._output import write_json
-from .._progress import progress as progress_bar
+from .._progress import progress_bar
 from ..transforms import flatten, write_transform
 from ._common import check_choice, check_engine_options, input_settings, load_images, with_options
 from ._elastix_worker import ElastixWorker, elastix_worker_for
@@ -489,7 +489,7 @@ class _Run:
                 "near-mean",
                 options=within.affine,
                 seed=self.seed,
-                show_progress=self.progress,
+                progress=self.progress,
             )
             chosen[g] = _GroupReference(members[g][local], affines)
         return chosen
@@ -565,7 +565,7 @@ class _Run:
             seed=self.seed,
             reference_index=local,
             initial=initial,
-            show_progress=self.progress,
+            progress=self.progress,
             numbers=indices,
             desc=f"affine {desc}",
         )
@@ -579,7 +579,7 @@ class _Run:
             engine=self.engine,
             seed=self.seed,
             reference_index=local,
-            show_progress=self.progress,
+            progress=self.progress,
             worker=self.worker,
             numbers=indices,
             desc=f"B-spline {desc}",
