@@ -350,12 +350,20 @@ def load_manifest(
     return manifest
 
 
+_PROBLEMS_LISTED = 10
+
+
 def _raise(label: str, problems: list[str]) -> None:
     if not problems:
         return
     if len(problems) == 1:
         raise InputError(f"{label}: {problems[0]}")
-    raise InputError(f"{label}: {len(problems)} problems: " + "; ".join(problems))
+    # every problem is counted; a line naming hundreds (a list of bad entries) is unreadable
+    listed = "; ".join(problems[:_PROBLEMS_LISTED])
+    more = len(problems) - _PROBLEMS_LISTED
+    if more > 0:
+        listed += f"; and {more} more"
+    raise InputError(f"{label}: {len(problems)} problems: {listed}")
 
 
 def _path(value, base: Path, what: str, problems: list[str]) -> Path | None:

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 import itk_nrreval as nr
 from itk_nrreval._overlap_kernels import membership_gradient_sum, membership_pair_sums
@@ -255,3 +256,31 @@ def test_probability_best():
     same = {"a": reps["a"], "b": reps["a"] + 0.0}
     pb = probability_best({"a": 1.0, "b": 1.0}, same, higher_is_better=True, n_draws=4000)
     assert sum(pb.values()) == pytest.approx(1.0)
+
+
+def test_results_state_the_number_of_replicates_the_jackknife_ran():
+    """More than 50 subjects: the default groups are 50, and options say so (they said N)."""
+    rng = np.random.default_rng(8)
+    n = 53
+    yy, xx = np.mgrid[:10, :10]
+    grid = {"spacing": (1.0, 1.5), "origin": (3.0, -2.0), "direction": (0.0, 1.0, 1.0, 0.0)}
+    images = [
+        {
+            "array": np.exp(-((xx - 4.5 - rng.normal()) ** 2 + (yy - 4.5) ** 2) / 8) + i / n,
+            **grid,
+        }
+        for i in range(n)
+    ]
+    manifest = {
+        "images": images,
+        "registrations": {
+            "identity": {
+                "reference": {"array": np.zeros((10, 10)), **grid},
+                "transforms": [sitk.Transform(2, sitk.sitkIdentity) for _ in range(n)],
+            }
+        },
+    }
+    res = nr.evaluate(manifest, n_samples=200, seed=1, progress=False, figures=False)
+    used = res.scores["identity"].intervals["specificity"].n_replicates
+    assert used == 50
+    assert res.options["resamples"] == used

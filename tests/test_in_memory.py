@@ -880,3 +880,15 @@ def test_image_lists_take_itk_images_and_arrays_too(case):
         InputError, match=r"^image\[1\]: not on the grid of .*img0\.nii\.gz: origin"
     ):
         nr.specificity([paths[0], moved, *images[2:]], n_samples=300)
+
+
+def test_many_problems_are_counted_and_the_first_ten_named():
+    """A list of 40 bad entries is one readable line: all counted, ten named."""
+    bad = {"images": [{"array": np.zeros(SHAPE)} for _ in range(40)], "registrations": {}}
+    with pytest.raises(InputError) as e:
+        nr.load_manifest(bad)
+    message = str(e.value)
+    assert message.startswith("manifest: 41 problems: images[0]: an array needs")
+    assert "images[9]:" in message and "images[10]:" not in message
+    assert message.endswith("; and 31 more")
+    assert "\n" not in message
