@@ -249,6 +249,12 @@ class DiskCache:
                 shutil.rmtree(tmp, ignore_errors=True)
         return CacheEntry(folder, dict(meta or {}))
 
+    def remove(self, kind: str, key: str) -> None:
+        """Remove an entry this package wrote, when no run needs it again (absent: nothing)."""
+        folder = self._folder(kind, key)
+        if folder.is_dir():
+            self._discard(folder)
+
     def remove_stale(self) -> int:
         """Remove temporary folders left by killed processes of this host; return how many.
 

@@ -94,6 +94,7 @@ _TASK_VERSIONS = {
     "estimate": 2,  # 2: a coarse, refined inverse; stored float32 (issue 30)
     "frame": 1,
     "frame_disp": 1,
+    "frame_spread": 1,  # the mean and max spread of the estimates of F (issue 30)
     "reg_mask": 1,
     "resampled": 4,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
@@ -189,13 +190,17 @@ def _frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Tran
     return field_transform(img)
 
 
+def _estimate_key(ctx: _Context, common_item, item, reg_grid: Geometry) -> str:
+    return _task_key(
+        "estimate", ctx.grid, common_item, item, reg_grid, np.dtype(_STORED_ESTIMATE).str
+    )
+
+
 def _estimate_task(ctx: _Context, common_item, item, reg_grid: Geometry) -> tuple[str, bool]:
     """Cache ``F_i(p) - p`` on the common grid (mm, ``_STORED_ESTIMATE``); return (key,
     reused)."""
     cache = ctx.cache()
-    key = _task_key(
-        "estimate", ctx.grid, common_item, item, reg_grid, np.dtype(_STORED_ESTIMATE).str
-    )
+    key = _estimate_key(ctx, common_item, item, reg_grid)
     if cache.get("estimate", key) is not None:
         return key, True
     tr = chain_transform(item)
@@ -1104,22 +1109,36 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
         spec = None
     calls = [(ctx, common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)]
     keys = [""] * m.n_images
+    # on the workers: a key digests its transform files' content (kept per process)
+    for i, key in executor.map(_estimate_key, calls, desc=f"{name}: frame", progress=False):
+        keys[i] = key
+    frame_key = _task_key("frame", keys) if spec is None else None
+    spread_key = _task_key("frame_spread", keys, spec, ctx.mask_key)
+    kept = disk.get("frame_spread", spread_key)
+    if kept is not None and (frame_key is None or disk.get("frame", frame_key) is not None):
+        # F and its spread outlive the per-image estimates they were made from
+        for _ in keys:
+            counts.add(True)
+        spec = spec if frame_key is None else ("field", frame_key)
+        digest = digest_of([spec[0], spec[1:]])
+        f = _frame_transform(spec, ctx.grid, disk)
+        mean_mm, max_mm = kept.meta["mean_mm"], kept.meta["max_mm"]
+        return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
     for i, (key, reused) in executor.map(
         _estimate_task, calls, desc=f"{name}: frame", progress=progress
     ):
         keys[i] = key
         counts.add(reused)
     if spec is None:
-        key = _task_key("frame", keys)
-        if disk.get("frame", key) is None:
+        if disk.get("frame", frame_key) is None:
             total = None
             for k in keys:  # streamed: one field in memory at a time
                 est = disk.open("estimate", k).array("disp")
                 if total is None:  # summed in float64, whatever the entries' dtype
                     total = np.zeros(est.shape, np.float64)
                 total += est
-            disk.put("frame", key, {"disp": total / len(keys)})
-        spec = ("field", key)
+            disk.put("frame", frame_key, {"disp": total / len(keys)})
+        spec = ("field", frame_key)
     digest = digest_of([spec[0], spec[1:]])
     f = _frame_transform(spec, ctx.grid, disk)
     # F(p) - p on the common grid, once, for every image's spread task
@@ -1135,6 +1154,12 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     count = sum(part[2] for part in parts)
     mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
     max_mm = max(part[1] for part in parts) if count else math.nan
+    disk.put("frame_spread", spread_key, {}, {"mean_mm": mean_mm, "max_mm": max_mm})
+    # The estimates (and F - p) are full-grid fields, about half of a 1 mm cohort's cache,
+    # and nothing else reads them: a rerun takes F and its spread from their own entries.
+    for k in keys:
+        disk.remove("estimate", k)
+    disk.remove("frame_disp", disp_key)
     return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
 
 

@@ -696,7 +696,12 @@ class SubjectThresholds:
         differences too small to mean a failure.
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
-        3.5).
+        3.5) ...
+    overlap_ratio : float
+        ... and whose label mismatch with the others (1 - overlap) is more than this many
+        times the cohort's median mismatch (default 1.5): as for the deformation, a cohort
+        whose overlaps are much alike (clean 3D cohorts of 12 at 2 mm: within 0.01 of each
+        other) would otherwise flag differences too small to mean a failure.
     folded : float
         Flag a subject whose transform folds more than this fraction of its voxels (default
         0.01, as :attr:`Thresholds.folded_mean` for a registration).
@@ -732,6 +737,7 @@ class SubjectThresholds:
     deformation_z: float = 3.5
     deformation_ratio: float = 1.5
     overlap_z: float = 3.5
+    overlap_ratio: float = 1.5
     folded: float = 0.01
     off_grid_coverage: float = 0.5
     duplicate_distance: float = 0.01

@@ -345,7 +345,8 @@ def assess_subjects(
       ``th.deformation_z`` and is above ``th.deformation_ratio`` times the cohort's median;
     * its non-linear displacement is below ``th.affine_only_ratio`` times the cohort's
       median (when that median is above 0.001 mm);
-    * its overlap has z < ``-th.overlap_z``.
+    * its overlap has z < ``-th.overlap_z`` and its mismatch ``1 - overlap`` is above
+      ``th.overlap_ratio`` times the cohort's median mismatch.
 
     The diagnosis is the first that applies of: off the common grid; duplicated image;
     mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
@@ -506,7 +507,9 @@ def _flags_and_causes(i: int, c: _Cohort, images, th: SubjectThresholds):
             f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
             "median non-linear displacement (a unit or scale mix-up?)"
         )
-    if c.overlap_z[i] < -th.overlap_z:
+    if c.overlap_z[i] < -th.overlap_z and (1.0 - c.overlap[i]) > th.overlap_ratio * (
+        1.0 - c.medians["overlap"]
+    ):
         flags.append(
             f"label overlap with the others {c.overlap[i]:.3f} (cohort median "
             f"{c.medians['overlap']:.3f}, {_z_words(c.overlap_z[i])})"

@@ -116,6 +116,25 @@ def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, execut
 
 
 @pytest.mark.parametrize("executor", EXECUTORS)
+def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(tmp_path, executor):
+    """The per-image estimates of F (and F - p) are full-grid fields needed only to build F
+    and its spread: about half of a 1 mm cohort's cache (issue 30). A rerun reuses F and its
+    spread without them."""
+    manifest = with_mask(tmp_path)
+    cache = tmp_path / "c"
+    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
+    first = nr.evaluate(manifest, **kw)
+    assert not list(cache.glob("estimate/*/*/entry.json"))
+    assert not list(cache.glob("frame_disp/*/*/entry.json"))
+    assert len(list(cache.glob("frame/*/*/entry.json"))) == 1  # the group's estimate of F
+    again = nr.evaluate(manifest, **kw)
+    assert again.run["cache_computed"] == 0
+    assert_same_scores(first, again, rel=0)
+    # without the cache, the same numbers
+    assert_same_scores(first, nr.evaluate(manifest, **KW), rel=0)
+
+
+@pytest.mark.parametrize("executor", EXECUTORS)
 def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
@@ -300,9 +319,9 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "_STORED_ESTIMATE", np.float64)
     double = nr.evaluate(manifest, cache=tmp_path / "cache64", **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
-        for kind, name in (("resampled", "image.npy"), ("estimate", "disp.npy")):
-            entries = (tmp_path / cache / kind).rglob(name)
-            assert {np.load(p, mmap_mode="r").dtype for p in entries} == {np.dtype(dtype)}
+        # (the frame estimates, float32 too, are removed once F and its spread are kept)
+        entries = (tmp_path / cache / "resampled").rglob("image.npy")
+        assert {np.load(p, mmap_mode="r").dtype for p in entries} == {np.dtype(dtype)}
     assert list(single.scores) == list(double.scores)
     for name, s64 in double.scores.items():
         s32 = single.scores[name]

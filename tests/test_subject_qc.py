@@ -127,6 +127,34 @@ def test_a_clean_cohort_flags_no_one(clean):
     assert result.options["left_out_of_scores"] == []
 
 
+def test_a_clean_3d_cohort_of_12_flags_no_one(tmp_path):
+    """2 mm voxels, N = 12: its overlaps with the others lie within 0.009 of each other, so
+    a subject 0.009 below the median has z = -7 without being any worse registered (the
+    true transforms); a flag needs the overlap to be materially lower too."""
+    pop = make_population("phantom", dim=3, n=12, seed=17, size=32)
+    clean, _ = write_damaged(pop, tmp_path, {3: "mirrored"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # coverage
+        result = nr.evaluate(clean, n_samples=200, confidence=False, progress=False)
+    subjects = result.scores["truth"].subjects
+    overlaps = np.array([q.overlap for q in subjects])
+    assert overlaps.max() - overlaps.min() < 0.02  # the premise: all alike
+    assert min(q.overlap_z for q in subjects) < -3.5  # ... yet far apart in z
+    assert [q.flags for q in subjects] == [()] * 12
+    # the z alone (no ratio asked for) flags the subjects far below the others in z
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        z_alone = nr.evaluate(
+            clean,
+            n_samples=200,
+            confidence=False,
+            progress=False,
+            subject_thresholds=nr.SubjectThresholds(overlap_ratio=0.0),
+        )
+    flagged = {q.index for q in z_alone.scores["truth"].subjects if q.flags}
+    assert flagged == {q.index for q in subjects if q.overlap_z < -3.5}
+
+
 #: Transforms mixed up: subject 5's inverted, subjects 11 and 12 each with the other's.
 MIXUPS = {5: "inverted", 12: "swapped"}
 

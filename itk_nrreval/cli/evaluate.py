@@ -229,7 +229,15 @@ SUBJECT_OPTIONS = (
         "overlap_z",
         positive,
         "Z",
-        "flag a subject whose label overlap with the others has z below -Z",
+        "flag a subject whose label overlap with the others has z below -Z and whose "
+        "mismatch (1 - overlap) is above --subject-overlap-ratio x the cohort's median",
+    ),
+    (
+        "--subject-overlap-ratio",
+        "overlap_ratio",
+        positive,
+        "R",
+        "see --subject-overlap-z",
     ),
     (
         "--subject-folded",
