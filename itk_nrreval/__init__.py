@@ -6,8 +6,10 @@ images of a group give a shape-free texture model; its specificity scores the re
 """
 
 from ._errors import EngineError, InputError
+from ._images import Geometry
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
+from .confidence import Comparison, Interval
 from .derivatives import manifest_from_derivatives, manifest_from_transforms
 from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
@@ -20,13 +22,16 @@ from .evaluation import (
     ranks,
     relative_ranks,
 )
+from .frame import FrameMapping
 from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
-from .model import TextureModel
+from .model import MixtureModel, TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
+from .pipeline import Coverage
 from .plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
 from .registration import RegistrationResult, register
 from .specificity import (
     GeneralizationResult,
+    MixtureSummary,
     SpecificityComparison,
     SpecificityResult,
     compare_specificity,
@@ -35,8 +40,16 @@ from .specificity import (
     specificity,
     texture_measures,
 )
-from .validation import ValidationResult, validate
-from .warps import ClampedPlateSpline, cps_warp, max_safe_displacement, random_cps, warp_stack
+from .subject_qc import SubjectQC
+from .validation import ValidationResult, ValidationRow, ValidationSummary, validate
+from .warps import (
+    ClampedPlateSpline,
+    CPSWarp,
+    cps_warp,
+    max_safe_displacement,
+    random_cps,
+    warp_stack,
+)
 
 __all__ = [
     "appearance_diagnostics",
@@ -49,14 +62,20 @@ __all__ = [
     "random_cps",
     "warp_stack",
     "ClampedPlateSpline",
+    "CPSWarp",
     "validate",
     "ValidationResult",
+    "ValidationRow",
+    "ValidationSummary",
     "InputError",
     "EngineError",
     "TextureModel",
+    "MixtureModel",
+    "Geometry",
     "register",
     "RegistrationResult",
     "SpecificityResult",
+    "MixtureSummary",
     "GeneralizationResult",
     "SpecificityComparison",
     "specificity",
@@ -73,6 +92,11 @@ __all__ = [
     "manifest_from_transforms",
     "EvaluationResult",
     "RegistrationScores",
+    "Interval",
+    "Comparison",
+    "FrameMapping",
+    "Coverage",
+    "SubjectQC",
     "Verdict",
     "Decision",
     "OpenPair",

@@ -9,6 +9,7 @@ import inspect
 import pkgutil
 import subprocess
 import sys
+import typing
 from pathlib import Path
 
 import itk_nrreval
@@ -267,3 +268,136 @@ def test_the_progress_flag_has_one_name():
         "itk_nrreval.registration.register",
         "data_synth.writing.write_population",
     } <= set(callables)
+
+
+def _package_classes() -> dict[str, list[type]]:
+    """Class name -> the classes of that name defined in itk_nrreval (public or not)."""
+    out: dict[str, list[type]] = {}
+    for module in _public_modules():
+        if not module.__name__.startswith("itk_nrreval"):
+            continue
+        for obj in vars(module).values():
+            if inspect.isclass(obj) and obj.__module__ == module.__name__:
+                if obj not in out.setdefault(obj.__name__, []):
+                    out[obj.__name__].append(obj)
+    return out
+
+
+def _classes_in_hint(hint) -> set[type]:
+    """Every class a resolved type hint mentions, through unions, Optional, and the
+    parameters of tuple, list, dict, Mapping, Sequence, Callable, ..."""
+    if inspect.isclass(hint) and not typing.get_args(hint):
+        return {hint}
+    found = set()
+    origin = typing.get_origin(hint)
+    if inspect.isclass(origin):
+        found.add(origin)
+    for arg in typing.get_args(hint):
+        if isinstance(arg, (list, tuple)):  # Callable[[A, B], C]
+            for a in arg:
+                found |= _classes_in_hint(a)
+        elif origin is not typing.Literal:
+            found |= _classes_in_hint(arg)
+    return found
+
+
+def _classes_in_annotation_text(text: str, namespace: dict, by_name: dict) -> set[type]:
+    """The classes an annotation string names, for a hint `typing.get_type_hints` cannot
+    resolve (a name imported only under TYPE_CHECKING): every name in it is looked up in
+    the module's globals, else among the package's classes of that name."""
+    found = set()
+    for node in ast.walk(ast.parse(text, mode="eval")):
+        if not isinstance(node, ast.Name):
+            continue
+        obj = namespace.get(node.id)
+        if obj is None:
+            found.update(by_name.get(node.id, []))
+        elif inspect.isclass(obj):
+            found.add(obj)
+    return found
+
+
+def _classes_in_signature(obj, by_name: dict) -> set[type]:
+    """The classes the type hints of a function (or of a class's public fields) mention."""
+    namespace = vars(sys.modules[obj.__module__])
+    annotations = dict(getattr(obj, "__annotations__", {}))
+    if inspect.isclass(obj):
+        annotations = {}
+        for klass in reversed(obj.__mro__[:-1]):  # inherited fields too
+            annotations.update(vars(klass).get("__annotations__", {}))
+        annotations = {n: a for n, a in annotations.items() if not n.startswith("_")}
+    try:
+        hints = typing.get_type_hints(obj, globalns=namespace)
+    except NameError:
+        hints = {}
+    found = set()
+    for name, annotation in annotations.items():
+        if name in hints:
+            found |= _classes_in_hint(hints[name])
+        elif isinstance(annotation, str):
+            found |= _classes_in_annotation_text(annotation, namespace, by_name)
+        else:
+            found |= _classes_in_hint(annotation)
+    return found
+
+
+def _public_members(cls: type):
+    """The functions of a class's public surface: its public methods, constructor,
+    ``__call__``, and the getters of its public properties."""
+    for klass in cls.__mro__[:-1]:
+        if not klass.__module__.startswith("itk_nrreval"):
+            continue
+        for attr, member in vars(klass).items():
+            if attr.startswith("_") and attr not in ("__init__", "__call__"):
+                continue
+            member = getattr(member, "__func__", member)  # class- and staticmethods
+            if isinstance(member, property):
+                member = member.fget
+            if inspect.isfunction(member):
+                yield member
+
+
+def _types_reachable_from_all() -> dict[type, str]:
+    """Every class of itk_nrreval that a public signature mentions -> the first public
+    name whose signature mentions it. Starts from ``itk_nrreval.__all__`` and follows the
+    package's classes found, so a type reached only through another missing one is found
+    in the same run."""
+    by_name = _package_classes()
+    todo = [(getattr(itk_nrreval, n), n) for n in itk_nrreval.__all__]
+    seen: set = set()
+    reached: dict[type, str] = {}
+    while todo:
+        obj, where = todo.pop()
+        if obj in seen or not (inspect.isfunction(obj) or inspect.isclass(obj)):
+            continue
+        seen.add(obj)
+        parts = [obj]
+        if inspect.isclass(obj):
+            parts += list(_public_members(obj))
+        for part in parts:
+            for cls in _classes_in_signature(part, by_name):
+                if cls.__module__.split(".")[0] != "itk_nrreval":
+                    continue
+                reached.setdefault(cls, f"{where}.{part.__name__}" if part is not obj else where)
+                todo.append((cls, cls.__name__))
+    return reached
+
+
+def test_every_type_in_a_public_signature_is_exported():
+    """Issue 28: a user can import every type a public function takes or returns, and
+    every type a public class's fields and methods mention, from ``itk_nrreval``."""
+    reached = _types_reachable_from_all()
+    exported = {getattr(itk_nrreval, n) for n in itk_nrreval.__all__}
+    missing = sorted(
+        f"{cls.__module__}.{cls.__qualname__} (in {where})"
+        for cls, where in reached.items()
+        if cls not in exported
+    )
+    assert missing == []
+    # the check sees return types, fields through containers and Optional, and a hint
+    # that cannot be resolved (subject_qc imports SubjectThresholds under TYPE_CHECKING)
+    assert {itk_nrreval.EvaluationResult, itk_nrreval.RegistrationScores} <= set(reached)
+    by_name = _package_classes()
+    assert itk_nrreval.SubjectThresholds in _classes_in_signature(
+        importlib.import_module("itk_nrreval.subject_qc").assess_subjects, by_name
+    )
