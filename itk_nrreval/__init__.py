@@ -23,7 +23,13 @@ from .evaluation import (
     relative_ranks,
 )
 from .frame import FrameMapping
-from .manifest import Manifest, Registration, add_registration, load_manifest, write_manifest
+from .manifest import (
+    Manifest,
+    ManifestRegistration,
+    add_registration,
+    load_manifest,
+    write_manifest,
+)
 from .model import MixtureModel, TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
 from .pipeline import Coverage
@@ -84,7 +90,7 @@ __all__ = [
     "compare_specificity",
     "loo_generalization",
     "Manifest",
-    "Registration",
+    "ManifestRegistration",
     "load_manifest",
     "write_manifest",
     "add_registration",

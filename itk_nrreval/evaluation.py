@@ -74,7 +74,7 @@ _INTERPOLATIONS = ("linear", "bspline")
 
 @dataclass(frozen=True)
 class RegistrationScores:
-    """The scores of one registration.
+    """One registration's scores in an :class:`EvaluationResult`: its measures, intervals, flags.
 
     Attributes
     ----------
@@ -217,7 +217,7 @@ class EvaluationResult:
     thumbnails : dict of str to dict of str to ndarray
         Per registration, the small arrays the HTML report draws (middle slices of two
         subjects, of subject 0's labels and det J, the log det J histogram over all
-        subjects; :attr:`itk_nrreval.pipeline.RegistrationRun.thumbnails`). Not in
+        subjects; :attr:`itk_nrreval.pipeline.ReducedRegistration.thumbnails`). Not in
         ``results.json``.
     """
 

@@ -32,7 +32,7 @@ import SimpleITK as sitk
 from ._errors import InputError
 from ._images import Geometry, InMemoryImage, read_image
 from ._progress import progress_bar
-from .manifest import Manifest, Registration
+from .manifest import Manifest, ManifestRegistration
 from .memberships import resample_label_memberships
 from .transforms import chain_transform, displacement_field, field_transform, invert, leaves
 
@@ -177,7 +177,7 @@ def _spread(
     return float(dist.mean()), float(dist.max())
 
 
-def frame_method(registration: Registration) -> str:
+def frame_method(registration: ManifestRegistration) -> str:
     """How F is obtained for a registration other than the common one.
 
     Returns

@@ -105,7 +105,7 @@ from .transforms import (
 )
 
 __all__ = [
-    "Registration",
+    "ManifestRegistration",
     "Manifest",
     "load_manifest",
     "write_manifest",
@@ -136,8 +136,11 @@ _IN_MEMORY = (InMemoryImage, InMemoryTransform)
 
 
 @dataclass(frozen=True)
-class Registration:
-    """One registration of the N images.
+class ManifestRegistration:
+    """One registration as the manifest lists it: reference, transform chains, frame transform.
+
+    What :func:`load_manifest` reads from a manifest's ``registrations``; the files (or
+    in-memory objects) of the registration, not its scores.
 
     Attributes
     ----------
@@ -183,7 +186,7 @@ class Manifest:
     mask : Path or InMemoryImage or None
     common_frame : str
         Name of the registration whose reference frame is the common frame.
-    registrations : dict of str to Registration
+    registrations : dict of str to ManifestRegistration
         In the manifest's order.
     source : Path or None
         The manifest file, or None for a manifest built from a dict.
@@ -196,7 +199,7 @@ class Manifest:
     labels: tuple[Any, ...] | None
     mask: Any
     common_frame: str
-    registrations: Mapping[str, Registration] = field(default_factory=dict)
+    registrations: Mapping[str, ManifestRegistration] = field(default_factory=dict)
     source: Path | None = None
     groups: tuple[str, ...] | None = None
     evaluation_images: tuple[Any, ...] | None = None
@@ -439,7 +442,7 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         if evaluation_images is not None and n is not None and len(evaluation_images) != n:
             problems.append(f"{what}: {len(evaluation_images)} images for {n} images")
 
-    regs: dict[str, Registration] = {}
+    regs: dict[str, ManifestRegistration] = {}
     raw = data.get("registrations")
     if raw is None:
         problems.append("missing 'registrations' (at least one)")
@@ -534,7 +537,7 @@ def _identity_frame(reference, what: str, problems: list[str]) -> InMemoryTransf
 
 def _parse_registration(
     name: str, entry, base: Path, n: int | None, problems: list[str]
-) -> Registration | None:
+) -> ManifestRegistration | None:
     where = f"registrations.{name}"
     if not isinstance(entry, Mapping):
         problems.append(f"{where}: expected a mapping with 'reference' and 'transforms'")
@@ -597,7 +600,7 @@ def _parse_registration(
         ok &= parameters is not None
     if not ok:
         return None
-    return Registration(reference, tuple(chains), ref_index, frame, parameters)
+    return ManifestRegistration(reference, tuple(chains), ref_index, frame, parameters)
 
 
 # ----------------------------------------------------------------------------- file checks
@@ -990,7 +993,7 @@ def add_registration(
     transforms : sequence, one entry per image
         A path, or a chain of paths in ANTs ``fwdtransforms`` order, per image.
     reference_index, frame_transform : optional
-        See :class:`Registration`.
+        See :class:`ManifestRegistration`.
     images, labels : sequence of path, optional
         Set the manifest's images / labels (a new manifest needs `images`; for an existing
         one, given images must be the same files).

@@ -81,7 +81,7 @@ __all__ = [
     "Coverage",
     "Executor",
     "InProcessExecutor",
-    "RegistrationRun",
+    "ReducedRegistration",
     "PipelineRun",
     "run_pipeline",
 ]
@@ -532,8 +532,11 @@ def _region(
 
 
 @dataclass(frozen=True)
-class RegistrationRun:
-    """What the dataflow computes for one registration (the driver's inputs to a report).
+class ReducedRegistration:
+    """One registration after the evaluate pipeline's reductions: its measures and their sums.
+
+    Internal to :func:`~itk_nrreval.evaluation.evaluate`, which turns it into the public
+    :class:`~itk_nrreval.evaluation.RegistrationScores`; the driver's inputs to a report.
 
     Attributes
     ----------
@@ -590,11 +593,11 @@ class RegistrationRun:
 
 @dataclass(frozen=True)
 class PipelineRun:
-    """Every registration's :class:`RegistrationRun`, the label values, and how it ran.
+    """Every registration's :class:`ReducedRegistration`, the label values, and how it ran.
 
     Attributes
     ----------
-    registrations : dict of str to RegistrationRun
+    registrations : dict of str to ReducedRegistration
         In the manifest's order.
     label_values : list of int or None
         ``[0, *labels]``: background then every nonzero label value found (None without
@@ -605,7 +608,7 @@ class PipelineRun:
         Per-image results found in the cache, and computed.
     """
 
-    registrations: Mapping[str, RegistrationRun]
+    registrations: Mapping[str, ReducedRegistration]
     label_values: list[int] | None
     grid: Geometry
     cache_reused: int
@@ -645,7 +648,7 @@ def run_pipeline(
     label_interpolation: str = "linear",
     label_sigma_mm: float | None = None,
     off_grid_coverage: float = 0.5,
-    pictured_subjects: Callable[[RegistrationRun, Callable], Sequence[int]] | None = None,
+    pictured_subjects: Callable[[ReducedRegistration, Callable], Sequence[int]] | None = None,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -674,7 +677,7 @@ def run_pipeline(
         fraction of the median image, under any registration (:func:`off_grid_subjects`);
         they are named in a warning.
     pictured_subjects : callable, optional
-        Given a registration's finished :class:`RegistrationRun` (without these pictures)
+        Given a registration's finished :class:`ReducedRegistration` (without these pictures)
         and a function that resamples images through changed transforms and returns their
         inner products with the scored images (:func:`_alternative_products`, its first
         arguments bound; for the subject QC's :func:`itk_nrreval.subject_qc.transform_mixups`),
@@ -846,7 +849,7 @@ def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple
 def _reduce_registration(
     executor, region_ctx, disk, m, name, r: _Resampled, *, scored, values, region, coverage,
     n_samples, seed, distance, interpolation, progress, pictured_subjects,
-) -> RegistrationRun:  # fmt: skip
+) -> ReducedRegistration:  # fmt: skip
     """Registration `name`'s scores from its cache entries inside the region, with every
     image's deformation, and the thumbnails of the subjects the report pictures."""
     metas = r.metas
@@ -998,7 +1001,7 @@ def _reduce(
     seed,
     distance,
     progress,
-) -> RegistrationRun:
+) -> ReducedRegistration:
     """Block sums -> model -> specificity and generalization; pair sums -> overlap table."""
     grid = ctx.grid
     n = len(keys)
@@ -1087,7 +1090,7 @@ def _reduce(
             skipped_labels=skipped,
         )
     plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
-    return RegistrationRun(
+    return ReducedRegistration(
         name, spec, gen, table, frame, plaus, coverage, mean.reshape(grid.shape), gram, sums
     )
 

@@ -22,7 +22,7 @@ __all__ = ["RegistrationResult"]
 
 @dataclass(frozen=True)
 class RegistrationResult:
-    """The registration of N images to one reference frame.
+    """What :func:`register` returns: the registration of N images to one reference frame.
 
     Attributes
     ----------
