@@ -3,7 +3,7 @@
 One 3D phantom subject at 1 mm (200 x 236 x 190 voxels, 9.0 M; 26 labels) and two
 registrations of it: ``field`` (its true template-to-subject transform, an affine map and a
 1 mm displacement field) and ``affine`` (the affine part alone). For each, the task the
-pipeline runs per image and registration (:func:`itk_nrreval.pipeline._resample_task`)
+pipeline runs per image and registration (:func:`itk_nrreval._pipeline._resample_task`)
 runs on a cold cache, in a fresh process on one thread (SimpleITK and numba), with its
 parts timed by wrapping the functions it calls:
 
@@ -18,7 +18,7 @@ parts timed by wrapping the functions it calls:
 - ``cache write``: the entry written (hashed and renamed into place);
 - ``other``: the rest of the task.
 
-A third run times the frame-estimate task (:func:`itk_nrreval.pipeline._estimate_task`) of
+A third run times the frame-estimate task (:func:`itk_nrreval._pipeline._estimate_task`) of
 the ``field`` registration with ``affine`` as the common frame -- ``F = T_field^-1 o
 T_affine`` sampled on the common grid, the task a registration whose frame is not the
 common one runs per image -- with its inversion apart, and its cache entry's size.
@@ -101,9 +101,9 @@ def _measure(info: dict, name: str) -> dict:
     import numpy as np
     import SimpleITK as sitk
 
-    from itk_nrreval import pipeline, plausibility
+    from itk_nrreval import _pipeline, plausibility
+    from itk_nrreval._cache import DiskCache
     from itk_nrreval._images import Geometry, read_image
-    from itk_nrreval.cache import DiskCache
     from itk_nrreval.frame import label_values, resampling_transform
     from itk_nrreval.transforms import chain_transform
 
@@ -120,17 +120,19 @@ def _measure(info: dict, name: str) -> dict:
         return wrapper
 
     # the task's own calls, wrapped where it looks them up
-    pipeline.read_image = timed("read", pipeline.read_image)
-    pipeline.resample_images = timed("resample", pipeline.resample_images)
-    pipeline.resample_label_memberships = timed("memberships", pipeline.resample_label_memberships)
-    pipeline.deformation_measures = timed("plausibility", pipeline.deformation_measures)
+    _pipeline.read_image = timed("read", _pipeline.read_image)
+    _pipeline.resample_images = timed("resample", _pipeline.resample_images)
+    _pipeline.resample_label_memberships = timed(
+        "memberships", _pipeline.resample_label_memberships
+    )
+    _pipeline.deformation_measures = timed("plausibility", _pipeline.deformation_measures)
     plausibility.invert = timed("invert", plausibility.invert)
     # since issue 30 the affine fit adds up the measures' own sampling (a part of them)
     shared_fit = hasattr(plausibility, "_AffineSums")
     if shared_fit:
         plausibility._AffineSums.add = timed("affine fit", plausibility._AffineSums.add)
     else:
-        pipeline.affine_fit = timed("affine fit", pipeline.affine_fit)
+        _pipeline.affine_fit = timed("affine fit", _pipeline.affine_fit)
     DiskCache.put = timed("cache write", DiskCache.put)
     direct_round_trip = hasattr(plausibility, "_mean_round_trip")  # since issue 30
     if direct_round_trip:
@@ -141,15 +143,15 @@ def _measure(info: dict, name: str) -> dict:
     own = [int(v) for v in label_values([labels]) if v != 0]
     item = Path(info["transforms"][name])
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
-        ctx = pipeline._Context(root, grid, None, True)
+        ctx = _pipeline._Context(root, grid, None, True)
         args = (ctx, Path(info["image"]), labels, item, ("identity",), "identity", grid)
         # a first run compiles the numba kernels (when their disk cache is cold) and reads
         # the files into the page cache: not timed
-        pipeline._resample_task(*args, "linear", None, own)
+        _pipeline._resample_task(*args, "linear", None, own)
         shutil.rmtree(Path(root) / "resampled")
         spent.update(dict.fromkeys(PARTS, 0.0))
         t0 = time.process_time()
-        key, reused, _meta = pipeline._resample_task(*args, "linear", None, own)
+        key, reused, _meta = _pipeline._resample_task(*args, "linear", None, own)
         total = time.process_time() - t0
         assert not reused
         folder = DiskCache(root)._folder("resampled", key)
@@ -202,9 +204,9 @@ def _measure_estimate(info: dict) -> dict:
     frame: ``F_i = T_field^-1 o T_affine`` sampled on the common grid, on a cold cache."""
     import tempfile
 
-    from itk_nrreval import frame, pipeline
+    from itk_nrreval import _pipeline, frame
+    from itk_nrreval._cache import DiskCache
     from itk_nrreval._images import Geometry, read_image
-    from itk_nrreval.cache import DiskCache
 
     spent = {"invert": 0.0}
     invert = frame.invert
@@ -220,12 +222,12 @@ def _measure_estimate(info: dict) -> dict:
     grid = Geometry.from_image(read_image(info["reference"], what="reference image"))
     common, item = Path(info["transforms"]["affine"]), Path(info["transforms"]["field"])
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
-        ctx = pipeline._Context(root, grid, None, True)
-        pipeline._estimate_task(ctx, common, item, grid)  # warm-up, as in _measure
+        ctx = _pipeline._Context(root, grid, None, True)
+        _pipeline._estimate_task(ctx, common, item, grid)  # warm-up, as in _measure
         shutil.rmtree(Path(root) / "estimate")
         spent["invert"] = 0.0
         t0 = time.process_time()
-        key, reused = pipeline._estimate_task(ctx, common, item, grid)
+        key, reused = _pipeline._estimate_task(ctx, common, item, grid)
         total = time.process_time() - t0
         assert not reused
         folder = DiskCache(root)._folder("estimate", key)

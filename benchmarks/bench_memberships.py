@@ -7,7 +7,7 @@ translation). Side by side in one run, on the same inputs:
 
 * dense: ``itk_nrreval.frame.resample_memberships`` for one image -- the float32 one-hot
   vector image (27 channels) through one linear ``sitk.Resample``, (1, 27, *shape) float32;
-* sparse: ``itk_nrreval.memberships.resample_label_memberships``.
+* sparse: ``itk_nrreval._memberships.resample_label_memberships``.
 
 Wall and CPU (process) time are the medians of a few repeats; the results are checked to
 agree to 1e-6 at every voxel. Peak memory is the largest resident-set growth seen while one
@@ -33,8 +33,8 @@ import SimpleITK as sitk
 
 from data_synth.phantom import make_phantom
 from itk_nrreval._images import Geometry
+from itk_nrreval._memberships import resample_label_memberships
 from itk_nrreval.frame import resample_memberships
-from itk_nrreval.memberships import resample_label_memberships
 
 SEED = 20261123
 REPEATS_DENSE = 3

@@ -7,6 +7,7 @@ images of a group give a shape-free texture model; its specificity scores the re
 
 from ._errors import EngineError, InputError
 from ._images import Geometry
+from ._pipeline import Coverage
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
 from .confidence import Comparison, Interval
@@ -32,7 +33,6 @@ from .manifest import (
 )
 from .model import MixtureModel, TextureModel
 from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
-from .pipeline import Coverage
 from .plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
 from .registration import RegistrationResult, register
 from .specificity import (

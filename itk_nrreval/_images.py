@@ -25,7 +25,7 @@ Wherever an image file is accepted, an image object is too (:func:`to_sitk_image
 A manifest keeps such an object as an :class:`InMemoryImage`: a private SimpleITK copy,
 the manifest item's name for messages (``images[3]``), and a digest of its content (pixel
 type, grid, voxel values; :func:`image_digest`) that the result cache uses as its key -- the
-same key as a file holding the same image (:func:`itk_nrreval.cache.content_digest`).
+same key as a file holding the same image (:func:`itk_nrreval._cache.content_digest`).
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ common grid: give it (``mask=``, e.g. the template's own brain mask) where wante
 ``<prefix>1Warp.nii.gz`` and ``<prefix>0GenericAffine.mat``, listed as the chain
 ``[warp, affine]`` in ANTs ``fwdtransforms`` order, or ``<prefix>Composite.h5``), an elastix
 output folder ``"out/sub-*/"`` (its last ``TransformParameters.<k>.txt``, which stands for the
-whole chain of runs: :mod:`itk_nrreval.elastix_files`). The reference is the fixed image
+whole chain of runs: :mod:`itk_nrreval._elastix_files`). The reference is the fixed image
 every subject was registered to.
 
 A small entity parser is used rather than pybids: the layouts read here need a file name
@@ -50,8 +50,8 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from ._elastix_files import final_parameter_file
 from ._errors import InputError
-from .elastix_files import final_parameter_file
 from .manifest import IDENTITY_FRAME, Manifest, load_manifest
 
 __all__ = [

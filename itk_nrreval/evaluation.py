@@ -24,7 +24,9 @@ from typing import Any
 import numpy as np
 
 from ._errors import InputError, readable
+from ._memberships import LABEL_INTERPOLATIONS
 from ._output import check_output_folder, json_number, staged_folder
+from ._pipeline import Coverage, InProcessExecutor, run_pipeline
 from ._progress import progress_bar
 from .confidence import (
     Comparison,
@@ -39,9 +41,7 @@ from .confidence import (
 )
 from .frame import FrameMapping
 from .manifest import Manifest, load_manifest
-from .memberships import LABEL_INTERPOLATIONS
 from .overlap import WEIGHTINGS
-from .pipeline import Coverage, InProcessExecutor, run_pipeline
 from .plausibility import (
     Plausibility,
     SubjectThresholds,
@@ -101,7 +101,7 @@ class RegistrationScores:
         (:func:`itk_nrreval.confidence.probability_best`).
     coverage : Coverage or None
         How much of the common grid its images cover; the scores are taken where every
-        image covers it under every registration (:class:`itk_nrreval.pipeline.Coverage`).
+        image covers it under every registration (:class:`itk_nrreval.Coverage`).
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, in manifest order
         (:mod:`itk_nrreval.subject_qc`): which subjects stand out from the cohort, and why.
@@ -217,7 +217,7 @@ class EvaluationResult:
     thumbnails : dict of str to dict of str to ndarray
         Per registration, the small arrays the HTML report draws (middle slices of two
         subjects, of subject 0's labels and det J, the log det J histogram over all
-        subjects; :attr:`itk_nrreval.pipeline.ReducedRegistration.thumbnails`). Not in
+        subjects; :attr:`itk_nrreval._pipeline.ReducedRegistration.thumbnails`). Not in
         ``results.json``.
     """
 
@@ -528,7 +528,7 @@ def evaluate(
         Intensity interpolation.
     label_interpolation : {"linear", "nearest", "gaussian"}
         How label maps become the overlap's fuzzy memberships in the common frame
-        (:func:`itk_nrreval.memberships.resample_label_memberships`): one-hot memberships
+        (:func:`itk_nrreval._memberships.resample_label_memberships`): one-hot memberships
         resampled linearly (partial memberships within a voxel of every boundary), crisp
         nearest-neighbour labels, or one-hot memberships smoothed by a Gaussian of
         `label_sigma_mm` mm and then resampled linearly. Recorded in the result's options.
@@ -545,11 +545,10 @@ def evaluate(
         (NIfTI; one component per nonzero label value); True: ``out/resampled`` (with
         `out`).
     scheduler : str, optional
-        Run the tasks on a Dask cluster (:mod:`itk_nrreval.scaleout`): ``"local"`` starts a
+        Run the tasks on a Dask cluster (``docs/large-cohorts.md``): ``"local"`` starts a
         local cluster of `workers` single-threaded processes; otherwise the address of a
-        running scheduler. Default: in this process. Either way the same tasks run
-        (:mod:`itk_nrreval.pipeline`), no process holds all the images, and the numbers
-        are the same.
+        running scheduler. Default: in this process. Either way the same tasks run, no
+        process holds all the images, and the numbers are the same.
     workers : int, optional
         With ``scheduler="local"``, the number of worker processes (default: CPU count);
         with an address, wait until that many workers have joined.
@@ -776,7 +775,7 @@ def _execute(m: Manifest, *, scheduler, workers, **options):
         run = run_pipeline(m, executor, **options)
         run_info = {"scheduler": None, "workers": 1}
     else:
-        from .scaleout import DaskExecutor, check_scheduler, cluster_client
+        from ._scaleout import DaskExecutor, check_scheduler, cluster_client
 
         check_scheduler(scheduler, workers)
         with cluster_client(scheduler, workers=workers) as client:

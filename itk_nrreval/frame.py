@@ -31,9 +31,9 @@ import SimpleITK as sitk
 
 from ._errors import InputError
 from ._images import Geometry, InMemoryImage, read_image
+from ._memberships import resample_label_memberships
 from ._progress import progress_bar
 from .manifest import Manifest, ManifestRegistration
-from .memberships import resample_label_memberships
 from .transforms import chain_transform, displacement_field, field_transform, invert, leaves
 
 __all__ = [
@@ -394,7 +394,7 @@ def resample_memberships(
 ) -> np.ndarray:
     """Resample label maps as one-hot memberships, linearly, onto `grid` (dense).
 
-    The dense form of :func:`itk_nrreval.memberships.resample_label_memberships` for a
+    The dense form of :func:`itk_nrreval._memberships.resample_label_memberships` for a
     few small images; the evaluate pipeline keeps the sparse form.
 
     Parameters

@@ -87,14 +87,14 @@ import numpy as np
 import SimpleITK as sitk
 import yaml
 
-from ._errors import InputError
-from ._images import InMemoryImage, dimension_problem
-from ._output import write_text
-from .elastix_files import (
+from ._elastix_files import (
     elastix_file_dimension,
     is_elastix_parameter_file,
     read_elastix_transform,
 )
+from ._errors import InputError
+from ._images import InMemoryImage, dimension_problem
+from ._output import write_text
 from .transforms import (
     FIELD_SUFFIXES,
     TRANSFORM_SUFFIXES,

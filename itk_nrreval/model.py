@@ -136,7 +136,7 @@ class TextureModel:
         """The model from the Gram matrix of the centred images, computed elsewhere.
 
         This is how a model is built when the images never sit in one process
-        (:mod:`itk_nrreval.pipeline` sums the Gram matrix over voxel blocks).
+        (:mod:`itk_nrreval._pipeline` sums the Gram matrix over voxel blocks).
 
         Parameters
         ----------

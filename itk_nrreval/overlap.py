@@ -32,6 +32,7 @@ import SimpleITK as sitk
 
 from ._errors import InputError, readable
 from ._images import image_stack, mask_array
+from ._memberships import membership_file_labels
 from ._output import json_number
 from ._overlap_kernels import (
     label_map_gradient_sums,
@@ -41,7 +42,6 @@ from ._overlap_kernels import (
     membership_stats,
 )
 from ._progress import progress_bar
-from .memberships import membership_file_labels
 
 __all__ = ["WEIGHTINGS", "OverlapTable", "overlap_table", "generalized_overlap"]
 
@@ -410,7 +410,7 @@ def overlap_table(
         - a sequence of multi-component images or files (one per subject, components as
           above): fuzzy memberships;
         - a sequence of membership files that name their labels (a JSON sidecar or header
-          from :func:`itk_nrreval.memberships.write_membership_image`, as written by
+          from :func:`itk_nrreval._memberships.write_membership_image`, as written by
           ``nrreval evaluate --save-resampled``): component k is the membership of the label
           the file names for it, and there is no background component. One label may come
           as a scalar image.

@@ -357,7 +357,7 @@ def texture_measures(
     Examples
     --------
     A mixture from the N x N Gram matrix of the centred images alone (as
-    :mod:`itk_nrreval.pipeline` builds its models), two groups of 4:
+    :mod:`itk_nrreval._pipeline` builds its models), two groups of 4:
 
     >>> import numpy as np, itk_nrreval as nr
     >>> flat = np.random.default_rng(0).normal(size=(8, 50))

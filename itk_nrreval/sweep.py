@@ -16,7 +16,7 @@ registered again, and the evaluation's per-image cache lives in ``out/cache``, s
 extending a sweep by one value registers and evaluates only that value. (The earlier
 settings' scores can still move a little then: the scores of all the registrations compared
 are taken on the voxels every image covers under every one of them, and a new setting may
-cover less; see :class:`itk_nrreval.pipeline.Coverage`.)
+cover less; see :class:`itk_nrreval.Coverage`.)
 """
 
 from __future__ import annotations

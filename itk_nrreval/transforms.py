@@ -44,6 +44,7 @@ import numba
 import numpy as np
 import SimpleITK as sitk
 
+from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
 from ._errors import InputError
 from ._images import (
     Geometry,
@@ -55,7 +56,6 @@ from ._images import (
     to_sitk_image,
 )
 from ._output import atomic_path
-from .elastix_files import is_elastix_parameter_file, read_elastix_transform
 
 __all__ = [
     "TRANSFORM_SUFFIXES",
@@ -350,7 +350,7 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
         ``.tfm`` / ``.txt`` / ``.h5`` / ``.hdf5`` / ``.mat`` (incl. ANTs
         ``*0GenericAffine.mat``) are read with ``sitk.ReadTransform``, an elastix
         ``TransformParameters.<k>.txt`` with its initial transforms
-        (:func:`itk_nrreval.elastix_files.read_elastix_transform`); ``.nii.gz`` / ``.nii``
+        (:func:`itk_nrreval._elastix_files.read_elastix_transform`); ``.nii.gz`` / ``.nii``
         / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
         fields. An in-memory transform is returned as is; a manifest's transform object
         (:class:`InMemoryTransform`) gives its transform.

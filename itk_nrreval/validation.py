@@ -505,7 +505,7 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
     for key in ("spacing", "section", "mask"):
         if key in options:
             raise TypeError(f"validate_manifest() got an unexpected keyword argument {key!r}")
-    from .pipeline import COVERAGE_WARNING
+    from ._pipeline import COVERAGE_WARNING
 
     images, members, grid, taken, (region, fraction, where, masked) = _manifest_arrays(
         manifest, section, options.get("progress", True)

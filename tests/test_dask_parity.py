@@ -19,7 +19,7 @@ from test_evaluate import make_case
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval import _version, pipeline
+from itk_nrreval import _pipeline, _version
 from itk_nrreval.plausibility import INVERSE_CONSISTENCY_STEP
 from itk_nrreval.transforms import invert
 
@@ -184,9 +184,9 @@ def test_cache_not_reused_across_computation_versions(tmp_path, monkeypatch):
     current one recomputes them.
     """
     manifest, cache = one_registration(tmp_path)
-    current = pipeline._TASK_VERSIONS["resampled"]
+    current = _pipeline._TASK_VERSIONS["resampled"]
     with monkeypatch.context() as patch:
-        patch.setitem(pipeline._TASK_VERSIONS, "resampled", current - 1)
+        patch.setitem(_pipeline._TASK_VERSIONS, "resampled", current - 1)
         right = inverse_consistency(nr.evaluate(manifest, cache=cache, **FAST))
         for path in resampled_metas(cache):
             entry = json.loads(path.read_text())

@@ -494,7 +494,7 @@ def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys
 
 def test_elastix_chain_by_hand(tmp_path):
     """Parameter files written as elastix writes them, their mapping worked out by hand."""
-    from itk_nrreval.cache import content_digest
+    from itk_nrreval._cache import content_digest
 
     folder = tmp_path / "moved"
     folder.mkdir()

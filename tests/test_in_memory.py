@@ -25,8 +25,8 @@ import yaml
 
 import itk_nrreval as nr
 from itk_nrreval import InputError
+from itk_nrreval._cache import content_digest, digest_of
 from itk_nrreval._images import InMemoryImage, to_sitk_image
-from itk_nrreval.cache import content_digest, digest_of
 from itk_nrreval.cli import main
 from itk_nrreval.transforms import InMemoryTransform, to_sitk_transform
 from itk_nrreval.validation import manifest_set

@@ -1,6 +1,6 @@
 """The label-interpolation option of the overlap (issue 17): linear, nearest, gaussian.
 
-The reference is independent of the pipeline and of :mod:`itk_nrreval.memberships`: each
+The reference is independent of the pipeline and of :mod:`itk_nrreval._memberships`: each
 label map's one-hot channels (background included) resampled by SimpleITK itself into the
 common frame -- nearest neighbour on the label map, or each whole channel smoothed by
 ``sitk.SmoothingRecursiveGaussian`` and then resampled linearly -- and

@@ -7,10 +7,10 @@ import pytest
 import SimpleITK as sitk
 from scipy import ndimage
 
-from itk_nrreval import memberships
+from itk_nrreval import _memberships
 from itk_nrreval._errors import InputError
 from itk_nrreval._images import Geometry
-from itk_nrreval.memberships import SparseMemberships, resample_label_memberships
+from itk_nrreval._memberships import SparseMemberships, resample_label_memberships
 
 LARGE_VALUES = (0, 3, 1000, 14175)  # non-contiguous, FreeSurfer-sized
 
@@ -239,7 +239,7 @@ def test_exact_voxel_centres_and_buffer_border(dim, flip, kind, decided_by, monk
     """Points on the border are normally handed to ITK; in exact arithmetic the kernel's own
     test (forced with a negative tolerance) must give the same answer."""
     if decided_by == "here":
-        monkeypatch.setattr(memberships, "_BORDER_EPS", -1.0)
+        monkeypatch.setattr(_memberships, "_BORDER_EPS", -1.0)
     label_map, grid = exact_border_case(dim, flip)
     n = np.array(label_map.GetSize())
     if kind == "identity":  # ITK's linear-transform path
@@ -346,7 +346,7 @@ def test_many_labels_per_point_and_small_slabs(monkeypatch):
     sm = compare(label_map, transform, grid)
     assert sm.index.size > 2 * np.prod(grid.shape) * 0.5
     for slab in (grid.size[0] * grid.size[1], 100):
-        monkeypatch.setattr(memberships, "_SLAB_VOXELS", slab)
+        monkeypatch.setattr(_memberships, "_SLAB_VOXELS", slab)
         again = resample_label_memberships(label_map, transform, grid)
         np.testing.assert_array_equal(again.ptr, sm.ptr)
         np.testing.assert_array_equal(again.index, sm.index)
@@ -361,7 +361,7 @@ def test_border_decided_by_itk_or_here_agree(monkeypatch):
     grid = common_grid(3)
     transform = make_transform("composite", grid, rng)
     ours = resample_label_memberships(label_map, transform, grid)
-    monkeypatch.setattr(memberships, "_BORDER_EPS", np.inf)  # every slab asks ITK
+    monkeypatch.setattr(_memberships, "_BORDER_EPS", np.inf)  # every slab asks ITK
     itk = resample_label_memberships(label_map, transform, grid)
     np.testing.assert_array_equal(ours.index, itk.index)
     np.testing.assert_array_equal(ours.weight, itk.weight)

@@ -17,7 +17,7 @@ import yaml
 from test_evaluate import image, make_case
 
 import itk_nrreval as nr
-from itk_nrreval.cache import DiskCache, digest_of
+from itk_nrreval._cache import DiskCache, digest_of
 from itk_nrreval.cli import main
 
 pytest.importorskip("dask.distributed")
@@ -309,14 +309,14 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     # The reductions add up in float64, so every score and frame spread stays within 1e-5
     # (relative) of float64 entries', and the deformation measures, which never read the
     # entries, are the same.
-    from itk_nrreval import pipeline
+    from itk_nrreval import _pipeline
 
     data = make_case(tmp_path)
     manifest = tmp_path / "manifest.yaml"
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
     single = nr.evaluate(manifest, cache=tmp_path / "cache32", **KW)
-    monkeypatch.setattr(pipeline, "_STORED_IMAGE", np.float64)
-    monkeypatch.setattr(pipeline, "_STORED_ESTIMATE", np.float64)
+    monkeypatch.setattr(_pipeline, "_STORED_IMAGE", np.float64)
+    monkeypatch.setattr(_pipeline, "_STORED_ESTIMATE", np.float64)
     double = nr.evaluate(manifest, cache=tmp_path / "cache64", **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
         # (the frame estimates, float32 too, are removed once F and its spread are kept)

@@ -18,8 +18,8 @@ from test_bad_inputs import assert_one_line
 from test_evaluate import SIZE, make_case
 
 from itk_nrreval._images import Geometry
+from itk_nrreval._memberships import membership_file_labels, write_membership_image
 from itk_nrreval.cli import main
-from itk_nrreval.memberships import membership_file_labels, write_membership_image
 from itk_nrreval.overlap import WEIGHTINGS
 
 # non-consecutive values, so that a component index read as a label value shows

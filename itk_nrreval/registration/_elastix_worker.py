@@ -43,8 +43,8 @@ from pathlib import Path
 
 import SimpleITK as sitk
 
+from .._elastix_files import bspline_from_parameter_map
 from .._errors import InputError
-from ..elastix_files import bspline_from_parameter_map
 from ._common import EngineError
 
 __all__ = ["ElastixWorker", "elastix_available", "elastix_worker_for"]
@@ -292,7 +292,7 @@ def elastix_worker_for(
 
 def _bspline_transform(pm: dict[str, list[str]]) -> sitk.BSplineTransform:
     """elastix's B-spline parameter map as a SimpleITK transform
-    (:func:`itk_nrreval.elastix_files.bspline_from_parameter_map`)."""
+    (:func:`itk_nrreval._elastix_files.bspline_from_parameter_map`)."""
     if pm.get("Transform", [""])[0] not in ("BSplineTransform", "RecursiveBSplineTransform"):
         raise EngineError(f"elastix returned a {pm.get('Transform')} transform, not a B-spline")
     try:

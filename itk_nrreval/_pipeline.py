@@ -1,7 +1,7 @@
 """The evaluate dataflow, written once: per-image tasks, per-voxel-block sums, the driver.
 
 :func:`itk_nrreval.evaluate` runs here, in this process by default or on a Dask cluster
-(:mod:`itk_nrreval.scaleout`); both run the same task functions, the executor only maps
+(:mod:`itk_nrreval._scaleout`); both run the same task functions, the executor only maps
 them. The work is cut so that no process holds the N x n data (N images, n voxels):
 
 1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
@@ -11,7 +11,7 @@ them. The work is cut so that no process holds the N x n data (N images, n voxel
    (:mod:`itk_nrreval.plausibility`, on the registration's own reference grid). Each
    result is written to a disk cache under a digest of everything it depends on (input
    file contents, transforms, the frame, grid, mask, settings, and the code version: the
-   package's and the task's, ``_TASK_VERSIONS``; :mod:`itk_nrreval.cache`), so a rerun
+   package's and the task's, ``_TASK_VERSIONS``; :mod:`itk_nrreval._cache`), so a rerun
    -- after an interruption, or with more images or registrations -- finds it there
    instead of recomputing it;
 2. **per voxel block** (a few tasks per registration): every image's block is read back
@@ -46,11 +46,12 @@ import numpy as np
 import SimpleITK as sitk
 
 from . import _version
+from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
 from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
+from ._memberships import SparseMemberships, resample_label_memberships, write_membership_image
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
 from ._progress import progress_bar
-from .cache import DiskCache, digest_of
 from .frame import (
     FrameMapping,
     common_reference,
@@ -64,7 +65,6 @@ from .frame import (
     resampling_transform,
 )
 from .manifest import Manifest
-from .memberships import SparseMemberships, resample_label_memberships, write_membership_image
 from .model import TextureModel
 from .overlap import OverlapTable
 from .plausibility import (
@@ -129,7 +129,7 @@ class Executor(Protocol):
     """Maps a task function over argument tuples; yields ``(index, result)`` as each ends.
 
     Implementations: :class:`InProcessExecutor` (this process, in order) and
-    :class:`itk_nrreval.scaleout.DaskExecutor` (one task per call on a cluster).
+    :class:`itk_nrreval._scaleout.DaskExecutor` (one task per call on a cluster).
     """
 
     n_workers: int
@@ -249,7 +249,7 @@ def _resample_task(
     ``deformation_measures(..., affine=True)``) on the registration's reference grid
     `reg_grid` (inside the mask mapped there, `reg_mask_key`). `own_values` are the label
     map's own nonzero values (found once by the driver); `label_resampling` is
-    ``(method, sigma_mm)`` of :func:`~itk_nrreval.memberships.resample_label_memberships`.
+    ``(method, sigma_mm)`` of :func:`~itk_nrreval._memberships.resample_label_memberships`.
     For the report, the entry also holds ``detj_middle`` (float32: det J on the middle slice
     of `reg_grid`, NaN outside its mask) and the metadata ``log_jacobian_histogram``
     (fixed-bin counts of log det J over the same voxels; both
@@ -1213,7 +1213,7 @@ def _save_resampled(
     The images are float64, in the input's intensity units, 0 outside the subject's field of
     view (NIfTI keeps no NaN). The memberships have one component per nonzero label value
     (``values[1:]``, in that order) and no background component
-    (:func:`itk_nrreval.memberships.write_membership_image` gives the format).
+    (:func:`itk_nrreval._memberships.write_membership_image` gives the format).
     """
     from ._output import atomic_path, write_json
 

@@ -1,7 +1,7 @@
 """Evaluation of large cohorts on a Dask cluster.
 
 :func:`itk_nrreval.evaluate` with ``scheduler=`` maps the tasks of
-:mod:`itk_nrreval.pipeline` -- the same functions the in-process executor runs -- onto a
+:mod:`itk_nrreval._pipeline` -- the same functions the in-process executor runs -- onto a
 Dask cluster: per-image work and voxel-block sums become tasks, and no process holds all
 the images. The per-image cache folder must be visible to the driver and every worker (a
 shared filesystem on a cluster). The numbers equal the in-process run's (the driver adds
@@ -86,7 +86,7 @@ def check_scheduler(scheduler: str, workers: int | None) -> None:
 
 
 class DaskExecutor:
-    """Run each task on a Dask cluster (see :class:`itk_nrreval.pipeline.Executor`).
+    """Run each task on a Dask cluster (see :class:`itk_nrreval._pipeline.Executor`).
 
     Parameters
     ----------

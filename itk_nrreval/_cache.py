@@ -69,7 +69,7 @@ def content_digest(path: str | os.PathLike) -> str:
     changes do not show in the header's times), and so are elastix parameter files (read
     with their initial transforms' files, whose changes do not show in theirs).
     """
-    from .elastix_files import is_elastix_parameter_file
+    from ._elastix_files import is_elastix_parameter_file
     from .transforms import file_suffix
 
     path = Path(path)
@@ -89,8 +89,8 @@ def _cached_digest(path: str, size: int, mtime_ns: int, ctime_ns: int, inode: in
 def _decoded_digest(path: str) -> str:
     import SimpleITK as sitk
 
+    from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
     from ._images import image_digest
-    from .elastix_files import is_elastix_parameter_file, read_elastix_transform
     from .transforms import TRANSFORM_SUFFIXES, file_suffix, transform_digest
 
     if is_elastix_parameter_file(path):  # its initial transforms' files count too
