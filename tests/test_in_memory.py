@@ -249,7 +249,13 @@ def test_sitk_objects_give_the_files_scores_and_cache_keys(case, from_files, tmp
     objects = nr.evaluate(manifest, cache=tmp_path / "c", **KW)
     assert_identical(files, objects)
     assert cache_keys(tmp_path / "c") == cache_keys(files_cache)
-    assert set(cache_keys(files_cache)) >= {"resampled", "frame", "frame_spread", "mask", "reg_mask"}
+    assert set(cache_keys(files_cache)) >= {
+        "resampled",
+        "frame",
+        "frame_spread",
+        "mask",
+        "reg_mask",
+    }
     # the objects find the files' entries: nothing is computed again
     again = nr.evaluate(manifest, cache=files_cache, **KW)
     assert again.run["cache_computed"] == 0
