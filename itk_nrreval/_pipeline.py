@@ -37,10 +37,10 @@ import math
 import os
 import tempfile
 import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
@@ -48,10 +48,10 @@ import SimpleITK as sitk
 from . import _version
 from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
+from ._executors import Executor
 from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
 from ._memberships import SparseMemberships, resample_label_memberships, write_membership_image
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
-from ._progress import progress_bar
 from .frame import (
     FrameMapping,
     common_reference,
@@ -79,8 +79,6 @@ from .transforms import chain_transform, field_transform, invert
 
 __all__ = [
     "Coverage",
-    "Executor",
-    "InProcessExecutor",
     "ReducedRegistration",
     "PipelineRun",
     "run_pipeline",
@@ -120,40 +118,6 @@ def _task_key(kind: str, *parts) -> str:
     `parts` must hold every input and every option the entry's result depends on.
     """
     return digest_of([kind, _FORMAT, _version.__version__, _TASK_VERSIONS[kind], *parts])
-
-
-# ----------------------------------------------------------------------------- executors
-
-
-class Executor(Protocol):
-    """Maps a task function over argument tuples; yields ``(index, result)`` as each ends.
-
-    Implementations: :class:`InProcessExecutor` (this process, in order) and
-    :class:`itk_nrreval._scaleout.DaskExecutor` (one task per call on a cluster).
-    """
-
-    n_workers: int
-
-    def map(
-        self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
-    ) -> Iterator[tuple[int, Any]]: ...
-
-
-class InProcessExecutor:
-    """Run every task in this process, one after the other, in order.
-
-    Tasks use the threads SimpleITK and numba give them (all cores by default).
-    """
-
-    n_workers = 1
-
-    def map(
-        self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
-    ) -> Iterator[tuple[int, Any]]:
-        for i, args in enumerate(
-            progress_bar(calls, desc=desc, total=len(calls), enabled=progress)
-        ):
-            yield i, fn(*args)
 
 
 # ----------------------------------------------------------------------------- tasks

@@ -86,7 +86,7 @@ def check_scheduler(scheduler: str, workers: int | None) -> None:
 
 
 class DaskExecutor:
-    """Run each task on a Dask cluster (see :class:`itk_nrreval._pipeline.Executor`).
+    """Run each task on a Dask cluster (see :class:`itk_nrreval._executors.Executor`).
 
     Parameters
     ----------

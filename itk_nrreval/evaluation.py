@@ -24,9 +24,10 @@ from typing import Any
 import numpy as np
 
 from ._errors import InputError, readable
+from ._executors import InProcessExecutor
 from ._memberships import LABEL_INTERPOLATIONS
 from ._output import check_output_folder, json_number, staged_folder
-from ._pipeline import Coverage, InProcessExecutor, run_pipeline
+from ._pipeline import Coverage, run_pipeline
 from ._progress import progress_bar
 from .confidence import (
     Comparison,

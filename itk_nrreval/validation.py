@@ -21,17 +21,16 @@ one that is reachable.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import warnings
-from collections.abc import Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import InputError
+from ._executors import Executor, local_executor
 from ._images import image_stack, mask_array
 from ._output import json_number, write_json, write_text
 from ._progress import progress_bar
@@ -641,12 +640,12 @@ def validate(
         perturbation.warp(ds[-1], 0, 0)
     todo = [(d, r) for d in ds for r in range(repeats)]
     rows = []
-    with _threads(n_jobs) as pool:
-        for d, r in progress_bar(todo, desc="validate", total=len(todo), enabled=progress):
-            instance = perturbation.instance(d, r, pool)
-            rows.append(
-                _measure(instance, inputs, n_samples=n_samples, seed=seed, weightings=weightings)
-            )
+    executor = local_executor(n_jobs)
+    for d, r in progress_bar(todo, desc="validate", total=len(todo), enabled=progress):
+        instance = perturbation.instance(d, r, executor)
+        rows.append(
+            _measure(instance, inputs, n_samples=n_samples, seed=seed, weightings=weightings)
+        )
     return ValidationResult(
         rows=tuple(rows),
         summary=summarize(rows, weightings),
@@ -811,36 +810,23 @@ class _Perturbation:
             raise _unreachable(d, exc, inputs.spatial, self.max_tries) from None
         return img[0], mem[0], warp.min_jacobian, warp.mean_displacement_mm
 
-    def instance(self, d: float, r: int, pool: ThreadPoolExecutor | None) -> _Instance:
-        """The whole set perturbed at `d` in repeat `r` (its images warped on `pool`)."""
+    def instance(self, d: float, r: int, executor: Executor) -> _Instance:
+        """The whole set perturbed at `d` in repeat `r` (its images warped by `executor`)."""
         inputs = self.inputs
         if d == 0.0:  # the identity: no resampling at all
             members = _onehot(inputs.labels, inputs.n_labels)
             return _Instance(d, r, inputs.images, members, 1.0, 0.0)
-        done = (pool.map if pool else map)(lambda i: self.image(d, r, i), range(inputs.n_images))
+        calls = [(d, r, i) for i in range(inputs.n_images)]
+        done = executor.map(self.image, calls, desc="warp", progress=False)
         warped = np.empty(inputs.images.shape)
         # memberships are stored as float32 (N x labels x voxels: the largest array here);
         # their overlap sums accumulate in float64
         members = np.empty((inputs.n_images, inputs.n_labels, *inputs.spatial), dtype=np.float32)
-        jacobians, mms = [], []
-        for i, (img, mem, jacobian, mm) in enumerate(done):
+        jacobians, mms = np.empty(inputs.n_images), np.empty(inputs.n_images)
+        for i, (img, mem, jacobian, mm) in done:  # in any order: placed by index
             warped[i], members[i] = img, mem
-            jacobians.append(jacobian)
-            mms.append(mm)
-        return _Instance(d, r, warped, members, min(jacobians), float(np.mean(mms)))
-
-
-@contextlib.contextmanager
-def _threads(n_jobs: int) -> Iterator[ThreadPoolExecutor | None]:
-    """`n_jobs` threads (None for one: work in the caller's), not waited for on an error."""
-    if n_jobs <= 1:
-        yield None
-        return
-    pool = ThreadPoolExecutor(n_jobs)
-    try:
-        yield pool
-    finally:
-        pool.shutdown(cancel_futures=True)
+            jacobians[i], mms[i] = jacobian, mm
+        return _Instance(d, r, warped, members, float(jacobians.min()), float(np.mean(mms)))
 
 
 def _measure(

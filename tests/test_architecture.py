@@ -150,6 +150,27 @@ def test_only_the_report_package_imports_matplotlib():
     assert _imports_matplotlib(modules["itk_nrreval.report._plot"])
 
 
+def test_parallel_work_has_one_mechanism():
+    """Every command that works in parallel maps its tasks through an executor of
+    itk_nrreval._executors (in this process, or threads) or a Dask one (_scaleout): no module
+    starts its own pool (issue 28: one executor for every command that works in parallel)."""
+    pools = ("concurrent.futures", "multiprocessing", "threading", "joblib")
+    allowed = {"itk_nrreval._executors", "itk_nrreval._scaleout"}
+    modules = _modules()
+    offences = [
+        f"{name}:{line} {target}"
+        for name in modules
+        if name not in allowed
+        for line, target, _names in _all_imports(name, modules)
+        if target.split(".")[0] in {p.split(".")[0] for p in pools}
+    ]
+    assert offences == []
+    assert any(
+        target == "concurrent.futures"
+        for _, target, _ in _all_imports("itk_nrreval._executors", modules)
+    )
+
+
 def _imported_names(name: str, modules: dict[str, Path]):
     """(line, dotted name) of everything `name` imports: ``from a import b`` gives both
     ``a`` and ``a.b`` (b may be a module)."""
@@ -264,7 +285,7 @@ def test_the_progress_flag_has_one_name():
     # the check sees functions defined in modules and re-exported, methods, and data_synth
     assert {
         "itk_nrreval.evaluation.evaluate",
-        "itk_nrreval._pipeline.InProcessExecutor.map",
+        "itk_nrreval._executors.InProcessExecutor.map",
         "itk_nrreval.registration.register",
         "data_synth.writing.write_population",
     } <= set(callables)

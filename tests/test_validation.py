@@ -73,6 +73,8 @@ def test_validation_is_reproducible(brain):
     b = validate(images[:4], labels[:4], seed=3, n_jobs=1, **kw)
     c = validate(images[:4], labels[:4], seed=4, **kw)
     assert a.rows == b.rows
+    # four threads, one image each: they end in any order, and are placed by index
+    assert validate(images[:4], labels[:4], seed=3, n_jobs=4, **kw).rows == a.rows
     assert a.rows[0].specificity != c.rows[0].specificity
 
 
