@@ -92,7 +92,7 @@ _TASK_VERSIONS = {
     "estimate": 2,  # 2: a coarse, refined inverse; stored float32 (issue 30)
     "frame": 2,  # 2: stored float32, as its estimates (issue 30)
     "frame_disp": 1,
-    "frame_spread": 1,  # the mean and max spread of the estimates of F (issue 30)
+    "frame_spread": 2,  # the spread of the estimates of F (issue 30); 2: per image (issue 27)
     "reg_mask": 1,
     "resampled": 4,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
@@ -1090,7 +1090,8 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
         digest = digest_of([spec[0], spec[1:]])
         f = _frame_transform(spec, ctx.grid, disk)
         mean_mm, max_mm = kept.meta["mean_mm"], kept.meta["max_mm"]
-        return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
+        per_image = tuple(kept.meta["per_image_mm"])
+        return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm, per_image)
     for i, (key, reused) in executor.map(
         _estimate_task, calls, desc=f"{name}: frame", progress=progress
     ):
@@ -1122,13 +1123,15 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     count = sum(part[2] for part in parts)
     mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
     max_mm = max(part[1] for part in parts) if count else math.nan
-    disk.put("frame_spread", spread_key, {}, {"mean_mm": mean_mm, "max_mm": max_mm})
+    per_image = tuple(part[0] / part[2] if part[2] else math.nan for part in parts)
+    meta = {"mean_mm": mean_mm, "max_mm": max_mm, "per_image_mm": list(per_image)}
+    disk.put("frame_spread", spread_key, {}, meta)
     # The estimates (and F - p) are full-grid fields, about half of a 1 mm cohort's cache,
     # and nothing else reads them: a rerun takes F and its spread from their own entries.
     for k in keys:
         disk.remove("estimate", k)
     disk.remove("frame_disp", disp_key)
-    return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm)
+    return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm, per_image)
 
 
 def _registration_mask(

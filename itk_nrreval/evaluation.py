@@ -911,6 +911,8 @@ def _subjects(
     deformation["inverse_consistency_mm"] = [row["inverse_consistency_mm"] for row in plaus]
     for k in ("linear_det", "nonlinear_rms_mm", "displacement_rms_mm"):
         deformation[k] = [row[k] for row in fits]
+    # where this registration's frame was estimated from the group (not the common one)
+    deformation["frame_deviation_mm"] = list(r.frame.per_image_mm) or [None] * m.n_images
     sums = r.overlap_sums
     return assess_subjects(
         images=[str(p) for p in m.images],

@@ -80,6 +80,10 @@ class FrameMapping:
     spread_mean_mm, spread_max_mm : float
         Mean and max of ``|F_i(p) - F(p)|`` (mm) over images i and common-grid voxels p;
         0 for the common registration itself; NaN when not computed.
+    per_image_mm : tuple of float
+        Each image's mean of ``|F_i(p) - F(p)|`` over the voxels p (mm), in manifest order
+        (a subject whose estimate stands out: :mod:`itk_nrreval.subject_qc`); empty for the
+        common registration.
     """
 
     name: str
@@ -87,6 +91,7 @@ class FrameMapping:
     transform: sitk.Transform
     spread_mean_mm: float
     spread_max_mm: float
+    per_image_mm: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         return {

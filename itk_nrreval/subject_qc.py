@@ -76,7 +76,12 @@ _AFFINE_COHORT_MM = 1e-3
 
 #: Floors of the log-scale measures: values below are no variation at all (SDlogJ of a
 #: linear map, the round-off inverse consistency of one), and are compared as the floor.
-_LOG_FLOORS = {"sdlogj": 1e-3, "nonlinear_rms_mm": 1e-3, "inverse_consistency_mm": 1e-3}
+_LOG_FLOORS = {
+    "sdlogj": 1e-3,
+    "nonlinear_rms_mm": 1e-3,
+    "inverse_consistency_mm": 1e-3,
+    "frame_deviation_mm": 1e-3,
+}
 
 
 @dataclass(frozen=True)
@@ -311,7 +316,12 @@ def assess_subjects(
     deformation : mapping of str to sequence of float, each of length N
         Per subject: ``folded_fraction``, ``sdlogj``, ``jacobian_min``, ``jacobian_max``,
         ``inverse_consistency_mm`` (None: not measured), ``linear_det``,
-        ``nonlinear_rms_mm``, ``displacement_rms_mm`` (mm).
+        ``nonlinear_rms_mm``, ``displacement_rms_mm`` (mm); optionally
+        ``frame_deviation_mm``, the subject's mean distance between its own estimate of the
+        registration's frame and the group's (:class:`~itk_nrreval.frame.FrameMapping`;
+        None where the frame was not estimated), reported with its robust z but not flagged:
+        a deviation says the subject's transforms under this registration and the common
+        one disagree, not which of the two is wrong.
     coverage : sequence of float, length N
         Each subject's covered fraction of the common grid (inside the mask).
     overlap_volume, overlap_target_sums : ndarray of shape (n, n_labels), optional
@@ -429,6 +439,10 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
         name: robust_z(defo[name], log=True, floor=_LOG_FLOORS[name])
         for name, _ in _DEFORMATION_FLAGS
     }
+    if "frame_deviation_mm" in defo:
+        deformation_z["frame_deviation_mm"] = robust_z(
+            defo["frame_deviation_mm"], log=True, floor=_LOG_FLOORS["frame_deviation_mm"]
+        )
     medians = {name: _median(defo[name]) for name in defo}
     medians["coverage"] = float(np.median(cov))
     overlap = None
@@ -531,6 +545,11 @@ def _subject_qc(i: int, c: _Cohort, images, flags, causes, better_fit) -> Subjec
             "sdlogj_z": float(c.deformation_z["sdlogj"][i]),
             "nonlinear_rms_z": float(c.deformation_z["nonlinear_rms_mm"][i]),
             "inverse_consistency_z": float(c.deformation_z["inverse_consistency_mm"][i]),
+            **(
+                {"frame_deviation_z": number(c.deformation_z["frame_deviation_mm"][i])}
+                if "frame_deviation_mm" in c.deformation_z
+                else {}
+            ),
         },
         overlap=None if c.overlap is None else number(c.overlap[i]),
         overlap_z=number(c.overlap_z[i]),

@@ -420,3 +420,51 @@ def test_an_image_that_stands_out_under_every_registration_is_named_as_such(coho
         assert subjects[5].z > 3.5
         assert subjects[5].diagnosis.startswith("far from the model under every registration")
         assert not [q.index for q in subjects if q.flags and q.index != 5]
+
+
+def test_each_subjects_frame_estimate_deviation_is_reported(tmp_path):
+    """Registration b = registration a after a translation t_i of subject i: F_i(p) = p + t_i
+    exactly, F = p + mean(t), so subject i's deviation is |t_i - mean(t)| at every voxel."""
+    import yaml
+
+    from data_synth import write_population
+
+    pop = make_population("phantom", dim=2, n=8, seed=2, size=32)
+    manifest = write_population(pop, tmp_path / "data", montage=False, progress=False)
+    data = yaml.safe_load(manifest.read_text())
+    folder = manifest.parent
+    shifts = np.random.default_rng(3).uniform(-2, 2, size=(8, 2))
+    truth = [
+        sitk.ReadTransform(str(folder / t)) for t in data["registrations"]["truth"]["transforms"]
+    ]
+    shifted = [
+        [sitk.TranslationTransform(2, tuple(-shift)), t]
+        for shift, t in zip(shifts, truth, strict=True)
+    ]
+    m = {
+        "images": [str(folder / p) for p in data["images"]],
+        "registrations": {
+            "truth": {
+                "reference": str(folder / data["registrations"]["truth"]["reference"]),
+                "transforms": truth,
+            },
+            "shifted": {
+                "reference": str(folder / data["registrations"]["truth"]["reference"]),
+                "transforms": shifted,
+            },
+        },
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = nr.evaluate(m, n_samples=200, confidence=False, progress=False, figures=False)
+    expected = np.linalg.norm(shifts - shifts.mean(axis=0), axis=1)
+    got = [q.deformation["frame_deviation_mm"] for q in result.scores["shifted"].subjects]
+    # b's inverse is numerical (the true transforms are fields): within 0.015 mm
+    np.testing.assert_allclose(got, expected, rtol=0, atol=0.015)
+    z = [q.deformation["frame_deviation_z"] for q in result.scores["shifted"].subjects]
+    np.testing.assert_allclose(z, robust_z(got, log=True, floor=1e-3))
+    # the common registration has no estimate of its own frame
+    assert all(q.deformation["frame_deviation_mm"] is None for q in result.scores["truth"].subjects)
+    assert result.scores["shifted"].frame.spread_mean_mm == pytest.approx(
+        np.mean(expected), abs=0.015
+    )

@@ -262,6 +262,8 @@ _SUBJECT_DEFORMATION = (
     "nonlinear_rms_mm",
     "nonlinear_rms_z",
     "displacement_rms_mm",
+    "frame_deviation_mm",
+    "frame_deviation_z",
 )
 
 
