@@ -110,6 +110,10 @@ _STORED_IMAGE = np.float32
 #: 1e-5 mm, a thousandth of the coarse inverse's error (``frame.ESTIMATE_FIELD_STEP``); the
 #: frame and the spreads add them up in float64.
 _STORED_ESTIMATE = np.float32
+#: Bytes of changed images (float64, over the region) the subject checks of
+#: :func:`_alternative_products` hold at once: 64 alternatives of a 1 mm brain region would
+#: otherwise take 2.5 GB.
+ALTERNATIVE_CHUNK_BYTES = 256 * 2**20
 
 
 def _task_key(kind: str, *parts) -> str:
@@ -925,27 +929,37 @@ def _alternative_products(
     transforms = m.registrations[name].transforms
     centre = mean_image.reshape(-1)
     centre = centre[region] if region is not None else centre
-    changed = np.empty((len(alternatives), centre.size))
-    raw: dict[int, sitk.Image] = {}
-    for c, alt in enumerate(alternatives):
-        t = chain_transform(transforms[alt.transform])
-        if alt.inverse:
-            t = invert(t, grid=reg_grid)
-        if alt.image not in raw:
-            raw[alt.image] = read_image(m.scored_images[alt.image], what="image")
-        values = resample_images(
-            [raw[alt.image]],
-            [resampling_transform(t, frame)],
-            grid,
-            interpolation=interpolation,
-            progress=False,
-        )[0].reshape(-1)
-        changed[c] = (values[region] if region is not None else values) - centre
+    # by transform, so that each transform is read (and inverted) once
+    order = sorted(range(len(alternatives)), key=lambda c: alternatives[c].transform)
+    per_chunk = max(1, ALTERNATIVE_CHUNK_BYTES // (8 * max(centre.size, 1)))
     cross = np.empty((len(alternatives), len(keys)))
-    for k, key in enumerate(keys):  # one scored image in memory at a time
-        x = np.asarray(cache.open("resampled", key).array("image", mmap=True))
-        cross[:, k] = changed @ ((x[region] if region is not None else x) - centre)
-    return cross, np.einsum("ij,ij->i", changed, changed)
+    squared = np.empty(len(alternatives))
+    raw: dict[int, sitk.Image] = {}
+    current: tuple[int, sitk.Transform] | None = None
+    for start in range(0, len(order), per_chunk):
+        chunk = order[start : start + per_chunk]
+        changed = np.empty((len(chunk), centre.size))
+        for row, c in enumerate(chunk):
+            alt = alternatives[c]
+            if current is None or current[0] != alt.transform:
+                current = (alt.transform, chain_transform(transforms[alt.transform]))
+            t = invert(current[1], grid=reg_grid) if alt.inverse else current[1]
+            if alt.image not in raw:
+                raw[alt.image] = read_image(m.scored_images[alt.image], what="image")
+            values = resample_images(
+                [raw[alt.image]],
+                [resampling_transform(t, frame)],
+                grid,
+                interpolation=interpolation,
+                progress=False,
+            )[0].reshape(-1)
+            changed[row] = (values[region] if region is not None else values) - centre
+        for k, key in enumerate(keys):  # one scored image in memory at a time
+            x = np.asarray(cache.open("resampled", key).array("image", mmap=True))
+            cross[chunk, k] = changed @ ((x[region] if region is not None else x) - centre)
+        squared[chunk] = np.einsum("ij,ij->i", changed, changed)
+        del changed
+    return cross, squared
 
 
 def _reduce(

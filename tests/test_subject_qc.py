@@ -225,6 +225,32 @@ def test_the_swap_and_inversion_ratios_are_brute_force_fits_in_image_space(mixed
     assert subjects[5].better_fit == pytest.approx(expected, rel=0.1)
 
 
+def test_mixup_checks_in_chunks_of_one_alternative_give_the_same_fits(mixed_up, monkeypatch):
+    """The changed images are resampled and reduced a bounded chunk at a time (64
+    alternatives of a 1 mm region would be 2.5 GB at once): one at a time, the same fits."""
+    from itk_nrreval import _pipeline
+
+    monkeypatch.setattr(_pipeline, "ALTERNATIVE_CHUNK_BYTES", 1)  # one alternative per chunk
+    result, _, folder = mixed_up
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        again = nr.evaluate(
+            folder / "damaged.yaml",
+            n_samples=200,
+            confidence=False,
+            figures=False,
+            progress=False,
+        )
+    for q, r in zip(
+        result.scores["damaged"].subjects, again.scores["damaged"].subjects, strict=True
+    ):
+        if q.better_fit is None:
+            assert r.better_fit is None
+        else:
+            assert r.better_fit == pytest.approx(q.better_fit, rel=1e-9)
+            assert r.diagnosis == q.diagnosis
+
+
 def test_results_json_csv_and_summary_name_the_subjects(damaged):
     result, out = damaged
     entries = json.loads((out / "results.json").read_text())["registrations"]["damaged"]["subjects"]
