@@ -223,11 +223,12 @@ def _measure_estimate(info: dict) -> dict:
     common, item = Path(info["transforms"]["affine"]), Path(info["transforms"]["field"])
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
         ctx = _pipeline._Context(root, grid, None, True)
-        _pipeline._estimate_task(ctx, common, item, grid)  # warm-up, as in _measure
+        key = _pipeline._estimate_key(ctx, common, item, grid)
+        _pipeline._estimate_task(ctx, key, common, item, grid)  # warm-up, as in _measure
         shutil.rmtree(Path(root) / "estimate")
         spent["invert"] = 0.0
         t0 = time.process_time()
-        key, reused = _pipeline._estimate_task(ctx, common, item, grid)
+        reused = _pipeline._estimate_task(ctx, key, common, item, grid)
         total = time.process_time() - t0
         assert not reused
         folder = DiskCache(root)._folder("estimate", key)

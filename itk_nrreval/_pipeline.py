@@ -164,18 +164,17 @@ def _estimate_key(ctx: _Context, common_item, item, reg_grid: Geometry) -> str:
     )
 
 
-def _estimate_task(ctx: _Context, common_item, item, reg_grid: Geometry) -> tuple[str, bool]:
-    """Cache ``F_i(p) - p`` on the common grid (mm, ``_STORED_ESTIMATE``); return (key,
-    reused)."""
+def _estimate_task(ctx: _Context, key: str, common_item, item, reg_grid: Geometry) -> bool:
+    """Cache ``F_i(p) - p`` on the common grid (mm, ``_STORED_ESTIMATE``) under `key`
+    (:func:`_estimate_key`); return whether it was cached already."""
     cache = ctx.cache()
-    key = _estimate_key(ctx, common_item, item, reg_grid)
     if cache.get("estimate", key) is not None:
-        return key, True
+        return True
     tr = chain_transform(item)
     other = reg_grid if needs_inversion_grid(tr) else None
     disp = frame_estimates([chain_transform(common_item)], [tr], ctx.grid, other_grid=other)[0]
     cache.put("estimate", key, {"disp": disp.astype(_STORED_ESTIMATE)})
-    return key, False
+    return False
 
 
 def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, float, int]:
@@ -1096,35 +1095,63 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     frame_key = _task_key("frame", keys) if spec is None else None
     spread_key = _task_key("frame_spread", keys, spec, ctx.mask_key)
     kept = disk.get("frame_spread", spread_key)
-    if kept is not None and (frame_key is None or disk.get("frame", frame_key) is not None):
-        # F and its spread outlive the per-image estimates they were made from
+    reused = kept is not None and (frame_key is None or disk.get("frame", frame_key) is not None)
+    if reused:  # F and its spread outlive the per-image estimates they were made from
         for _ in keys:
             counts.add(True)
-        spec = spec if frame_key is None else ("field", frame_key)
-        digest = digest_of([spec[0], spec[1:]])
-        f = _frame_transform(spec, ctx.grid, disk)
-        mean_mm, max_mm = kept.meta["mean_mm"], kept.meta["max_mm"]
-        per_image = tuple(kept.meta["per_image_mm"])
-        return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm, per_image)
-    for i, (key, reused) in executor.map(
-        _estimate_task, calls, desc=f"{name}: frame", progress=progress
-    ):
-        keys[i] = key
-        counts.add(reused)
-    if spec is None:
-        if disk.get("frame", frame_key) is None:
-            total = None
-            for k in keys:  # streamed: one field in memory at a time
-                est = disk.open("estimate", k).array("disp")
-                if total is None:  # summed in float64, whatever the entries' dtype
-                    total = np.zeros(est.shape, np.float64)
-                total += est
-            # stored as its estimates are: float32 halves the 1 mm field (200 MB)
-            disk.put("frame", frame_key, {"disp": (total / len(keys)).astype(_STORED_ESTIMATE)})
+    else:
+        tasks = [
+            (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)
+        ]
+        for _i, was_cached in executor.map(
+            _estimate_task, tasks, desc=f"{name}: frame", progress=progress
+        ):
+            counts.add(was_cached)
+        if frame_key is not None and disk.get("frame", frame_key) is None:
+            _put_mean_frame(disk, frame_key, keys)
+    if frame_key is not None:
         spec = ("field", frame_key)
     digest = digest_of([spec[0], spec[1:]])
     f = _frame_transform(spec, ctx.grid, disk)
-    # F(p) - p on the common grid, once, for every image's spread task
+    if reused:
+        spread = kept.meta
+    else:
+        spread = _frame_spread(executor, ctx, disk, keys, f, digest, progress, name)
+        disk.put("frame_spread", spread_key, {}, spread)
+        # The estimates are full-grid fields, about half of a 1 mm cohort's cache, and
+        # nothing else reads them: a rerun takes F and its spread from their own entries.
+        for k in keys:
+            disk.remove("estimate", k)
+    return (
+        spec,
+        digest,
+        FrameMapping(
+            name,
+            method,
+            f,
+            spread["mean_mm"],
+            spread["max_mm"],
+            tuple(spread["per_image_mm"]),
+        ),
+    )
+
+
+def _put_mean_frame(disk: DiskCache, frame_key: str, keys: Sequence[str]) -> None:
+    """Cache F as the mean of the per-image estimates `keys` (``F(p) - p``, mm)."""
+    total = None
+    for k in keys:  # streamed: one field in memory at a time
+        est = disk.open("estimate", k).array("disp")
+        if total is None:  # summed in float64, whatever the entries' dtype
+            total = np.zeros(est.shape, np.float64)
+        total += est
+    # stored as its estimates are: float32 halves the 1 mm field (200 MB)
+    disk.put("frame", frame_key, {"disp": (total / len(keys)).astype(_STORED_ESTIMATE)})
+
+
+def _frame_spread(executor, ctx, disk, keys, f, digest, progress, name) -> dict:
+    """How far each image's estimate `keys` lies from F (`f`): ``{"mean_mm", "max_mm",
+    "per_image_mm"}`` over the mask (mm)."""
+    # F(p) - p on the common grid, once, for every image's spread task; dropped after
     disp_key = _task_key("frame_disp", ctx.grid, digest)
     if disk.get("frame_disp", disp_key) is None:
         disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
@@ -1134,18 +1161,13 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
         _spread_task, calls, desc=f"{name}: frame spread", progress=progress
     ):
         parts[i] = part
-    count = sum(part[2] for part in parts)
-    mean_mm = math.fsum(part[0] for part in parts) / count if count else math.nan
-    max_mm = max(part[1] for part in parts) if count else math.nan
-    per_image = tuple(part[0] / part[2] if part[2] else math.nan for part in parts)
-    meta = {"mean_mm": mean_mm, "max_mm": max_mm, "per_image_mm": list(per_image)}
-    disk.put("frame_spread", spread_key, {}, meta)
-    # The estimates (and F - p) are full-grid fields, about half of a 1 mm cohort's cache,
-    # and nothing else reads them: a rerun takes F and its spread from their own entries.
-    for k in keys:
-        disk.remove("estimate", k)
     disk.remove("frame_disp", disp_key)
-    return spec, digest, FrameMapping(name, method, f, mean_mm, max_mm, per_image)
+    count = sum(part[2] for part in parts)
+    return {
+        "mean_mm": math.fsum(part[0] for part in parts) / count if count else math.nan,
+        "max_mm": max(part[1] for part in parts) if count else math.nan,
+        "per_image_mm": [part[0] / part[2] if part[2] else math.nan for part in parts],
+    }
 
 
 def _registration_mask(
