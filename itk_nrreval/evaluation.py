@@ -752,7 +752,8 @@ def _jackknife_plan(
     )
     if image_groups is not None:
         for out in left_out:
-            kept = [g for i, g in enumerate(image_groups) if i not in set(out.tolist())]
+            gone = set(out.tolist())
+            kept = [g for i, g in enumerate(image_groups) if i not in gone]
             short = [g for g in dict.fromkeys(image_groups) if kept.count(g) < 2]
             if short:
                 if asked:

@@ -72,17 +72,13 @@ def fuzzy_memberships(rng, n: int, n_labels: int, shape) -> np.ndarray:
     return m.astype(np.float32)
 
 
-@pytest.mark.parametrize("mask", [False, True])
-def test_overlap_replicates_equal_the_overlap_of_the_subjects_left(mask):
-    rng = np.random.default_rng(3)
-    memb = fuzzy_memberships(rng, 7, 4, (9, 10))
-    m = rng.random((9, 10)) < 0.8 if mask else None
-    spacing = (0.7, 1.3)
-    n = memb.shape[0]
-    labels = nr.overlap_table(memb, mask=m, spacing=spacing).labels
-    # per-image sums (voxel units) from the kernels the pipeline uses
+def per_image_sums(memb: np.ndarray, mask: np.ndarray | None, spacing):
+    """The labels present, and the per-image sums (voxel units) from the kernels the
+    pipeline uses: volume, target sums, gradient sums (n, L) and pair sums p, q (L,)."""
+    n, shape = memb.shape[0], memb.shape[2:]
+    labels = nr.overlap_table(memb, mask=mask, spacing=spacing).labels
     flat = memb.reshape(n, memb.shape[1], -1)
-    mflat = None if m is None else m.reshape(-1)
+    mflat = None if mask is None else mask.reshape(-1)
     vol = np.zeros((n, labels.size))
     spair = np.zeros((n, labels.size))
     gsum = np.zeros((n, labels.size))
@@ -92,8 +88,19 @@ def test_overlap_replicates_equal_the_overlap_of_the_subjects_left(mask):
         p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(flat[:, comp], mask=mflat)
         for i in range(n):
             gsum[i, k] = membership_gradient_sum(
-                flat[i, comp], shape=(9, 10), spacing=spacing, mask=mflat
+                flat[i, comp], shape=shape, spacing=spacing, mask=mflat
             )
+    return labels, (vol, spair, gsum, p, q)
+
+
+@pytest.mark.parametrize("mask", [False, True])
+def test_overlap_replicates_equal_the_overlap_of_the_subjects_left(mask):
+    rng = np.random.default_rng(3)
+    memb = fuzzy_memberships(rng, 7, 4, (9, 10))
+    m = rng.random((9, 10)) < 0.8 if mask else None
+    spacing = (0.7, 1.3)
+    n = memb.shape[0]
+    labels, (vol, spair, gsum, p, q) = per_image_sums(memb, m, spacing)
     weightings = nr.WEIGHTINGS
     reps = overlap_replicates(
         vol, spair, gsum, p, q, labels=labels, spacing=spacing, weightings=weightings
@@ -155,20 +162,9 @@ def test_overlap_replicates_leaving_out_whole_subjects(mask):
     m = rng.random((7, 9)) < 0.8 if mask else None
     spacing = (1.1, 0.6)
     n = memb.shape[0]
-    labels = nr.overlap_table(memb, mask=m, spacing=spacing).labels
+    labels, (vol, spair, gsum, p, q) = per_image_sums(memb, m, spacing)
     flat = memb.reshape(n, memb.shape[1], -1).astype(np.float64)
     mflat = np.ones(flat.shape[-1], bool) if m is None else m.reshape(-1)
-    vol = np.zeros((n, labels.size))
-    spair = np.zeros((n, labels.size))
-    gsum = np.zeros((n, labels.size))
-    p = np.zeros(labels.size)
-    q = np.zeros(labels.size)
-    for k, comp in enumerate(labels):
-        p[k], q[k], vol[:, k], spair[:, k] = membership_pair_sums(flat[:, comp], mask=mflat)
-        for i in range(n):
-            gsum[i, k] = membership_gradient_sum(
-                flat[i, comp], shape=(7, 9), spacing=spacing, mask=mflat
-            )
     # four subjects with two images each (images i and i + 4), plus a pair no subject shares
     subjects = [0, 1, 2, 3] * 2
     left_out = jackknife_groups(n, subjects=subjects)

@@ -135,41 +135,23 @@ def test_groups_without_subjects_get_no_subject_level_confidence(two_contrasts, 
 
 
 @pytest.mark.parametrize(
-    "groups, message",
+    "key, value, message",
     [
-        (["t1"] * 4 + ["t2"] * 3 + ["pd"], "groups: group 'pd' has 1 image (needs 2)"),
-        (["t1"] * 7, "groups: 7 labels for 8 images"),
+        ("groups", ["t1"] * 4 + ["t2"] * 3 + ["pd"], "groups: group 'pd' has 1 image (needs 2)"),
+        ("groups", ["t1"] * 7, "groups: 7 labels for 8 images"),
+        ("subjects", ["a", "b"] * 3, "subjects: 6 labels for 8 images"),
+        ("subjects", "s00", "subjects: expected a list with one label per image"),
+        ("subjects", [1.5] * 8, "subjects: labels must be strings or integers, got 1.5"),
     ],
 )
-def test_bad_groups_in_a_manifest_is_one_line_exit_2(
-    two_contrasts, tmp_path, capsys, groups, message
+def test_bad_groups_or_subjects_in_a_manifest_is_one_line_exit_2(
+    two_contrasts, tmp_path, capsys, key, value, message
 ):
     data = yaml.safe_load(two_contrasts.read_text())
-    data["groups"] = groups
-    bad = two_contrasts.parent / "bad_groups.yaml"
+    data[key] = value
+    bad = two_contrasts.parent / f"bad_{key}.yaml"
     bad.write_text(yaml.safe_dump(data, sort_keys=False))
     out = tmp_path / "out"
     assert main(["evaluate", str(bad), "--out", str(out), "--quiet"]) == 2
-    assert_one_line(capsys.readouterr().err, "bad_groups.yaml", message)
-    assert not out.exists()
-
-
-@pytest.mark.parametrize(
-    "subjects, message",
-    [
-        (["a", "b"] * 3, "subjects: 6 labels for 8 images"),
-        ("s00", "subjects: expected a list with one label per image"),
-        ([1.5] * 8, "subjects: labels must be strings or integers, got 1.5"),
-    ],
-)
-def test_bad_subjects_in_a_manifest_is_one_line_exit_2(
-    two_contrasts, tmp_path, capsys, subjects, message
-):
-    data = yaml.safe_load(two_contrasts.read_text())
-    data["subjects"] = subjects
-    bad = two_contrasts.parent / "bad_subjects.yaml"
-    bad.write_text(yaml.safe_dump(data, sort_keys=False))
-    out = tmp_path / "out"
-    assert main(["evaluate", str(bad), "--out", str(out), "--quiet"]) == 2
-    assert_one_line(capsys.readouterr().err, "bad_subjects.yaml", message)
+    assert_one_line(capsys.readouterr().err, f"bad_{key}.yaml", message)
     assert not out.exists()
