@@ -52,6 +52,7 @@ import io
 import itertools
 import json
 import pickle
+import shutil
 import sys
 import time
 import warnings
@@ -389,7 +390,9 @@ def _cases() -> dict:
 def _run_case(case: str) -> None:
     """Register and evaluate one case; save what a re-judged verdict needs."""
     folder = OUT / case
-    folder.mkdir(parents=True, exist_ok=True)
+    # a case is run afresh: the demo refuses a folder holding this benchmark's own files
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
     t0 = time.perf_counter()
     evaluation, errors = _cases()[case](folder)
     (folder / "evaluation.pkl").write_bytes(pickle.dumps(evaluation))
