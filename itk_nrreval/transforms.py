@@ -619,25 +619,38 @@ def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> si
     pad = _padding(u, spacing)  # voxels per ITK axis
     origin = np.asarray(field.GetOrigin()) - direction @ (pad * spacing)
     v = sitk.GetArrayFromImage(inverse)
-    if dim == 2:  # a 2D field as one plane of 3D
-        u, v = u[None], v[None]
+    to_index = np.zeros((3, 3))  # mm -> the field's index steps (ITK axis order)
+    to_index[:dim, :dim] = direction.T / spacing[:, None]
+    # the grown grid's node i in the coarse inverse's continuous index: offset + ratio * i
+    ratio, offset = np.zeros(3), np.zeros(3)
+    ratio[:dim] = spacing / np.asarray(inverse.GetSpacing())
+    coarse_to_index = direction.T / np.asarray(inverse.GetSpacing())[:, None]
+    offset[:dim] = coarse_to_index @ (origin - np.asarray(inverse.GetOrigin()))
+    u_offset = np.zeros(3)
+    u_offset[:dim] = -pad
+    if dim == 2:  # one plane of 3D with a zero third component: the same numbers, one kernel
+        u, v = _as_plane(u), _as_plane(v)
     grown = np.zeros(3, int)
     grown[:dim] = 2 * pad  # ITK axis order
-    out_shape = (u.shape[0] + grown[2], u.shape[1] + grown[1], u.shape[2] + grown[0], dim)
-    to_index = direction.T / spacing[:, None]  # mm -> the field's index steps
-    # the grown grid's node i in the coarse inverse's continuous index: offset + ratio * i
-    ratio = spacing / np.asarray(inverse.GetSpacing())
-    coarse_to_index = direction.T / np.asarray(inverse.GetSpacing())[:, None]
-    offset = coarse_to_index @ (origin - np.asarray(inverse.GetOrigin()))
-    for _ in range(max(int(steps), 1)):
-        out = np.empty(out_shape)
-        _fixed_point_step(u, v, out, -pad.astype(np.float64), to_index, ratio, offset)
-        v, ratio, offset = out, np.ones(dim), np.zeros(dim)
-    result = sitk.GetImageFromArray(v[0] if dim == 2 else v, isVector=True)
+    shape = (u.shape[0] + grown[2], u.shape[1] + grown[1], u.shape[2] + grown[0], 3)
+    buffers = [np.empty(shape), np.empty(shape) if steps > 1 else None]
+    on_grid = False
+    for n in range(max(int(steps), 1)):
+        out = buffers[n % 2]
+        _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, on_grid)
+        v, on_grid = out, True
+    result = sitk.GetImageFromArray(v[0, ..., :2] if dim == 2 else v, isVector=True)
     result.SetSpacing(field.GetSpacing())
     result.SetDirection(field.GetDirection())
     result.SetOrigin(origin.tolist())
     return result
+
+
+def _as_plane(a: np.ndarray) -> np.ndarray:
+    """A 2D field (ny, nx, 2) as one plane of a 3D one, (1, ny, nx, 3), third component 0."""
+    plane = np.zeros((1, *a.shape[:2], 3))
+    plane[0, ..., :2] = a
+    return plane
 
 
 def _padding(u: np.ndarray, spacing: np.ndarray) -> np.ndarray:
@@ -650,57 +663,59 @@ def _padding(u: np.ndarray, spacing: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, inline="always")
-def _sample(a, x, y, z, out):  # pragma: no cover - compiled
-    """`a` (nz, ny, nx, d) interpolated linearly at ITK index (x, y, z), clamped to its grid."""
-    nz, ny, nx, d = a.shape
-    x = min(max(x, 0.0), nx - 1.0)
-    y = min(max(y, 0.0), ny - 1.0)
-    z = min(max(z, 0.0), nz - 1.0)
-    x0 = min(int(x), max(nx - 2, 0))
-    y0 = min(int(y), max(ny - 2, 0))
-    z0 = min(int(z), max(nz - 2, 0))
-    fx, fy, fz = x - x0, y - y0, z - z0
-    x1, y1, z1 = min(x0 + 1, nx - 1), min(y0 + 1, ny - 1), min(z0 + 1, nz - 1)
-    for c in range(d):
-        out[c] = (1 - fz) * (
-            (1 - fy) * ((1 - fx) * a[z0, y0, x0, c] + fx * a[z0, y0, x1, c])
-            + fy * ((1 - fx) * a[z0, y1, x0, c] + fx * a[z0, y1, x1, c])
-        ) + fz * (
-            (1 - fy) * ((1 - fx) * a[z1, y0, x0, c] + fx * a[z1, y0, x1, c])
-            + fy * ((1 - fx) * a[z1, y1, x0, c] + fx * a[z1, y1, x1, c])
-        )
+def _corner(x, n):  # pragma: no cover - compiled
+    """Lower and upper node and weight of continuous index `x` on an axis of `n` nodes,
+    clamped to the axis (the edge value beyond it)."""
+    x = min(max(x, 0.0), n - 1.0)
+    x0 = min(int(x), max(n - 2, 0))
+    return x0, min(x0 + 1, n - 1), x - x0
+
+
+@numba.njit(cache=True, inline="always")
+def _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, c):  # pragma: no cover - compiled
+    """Component `c` of `a` (nz, ny, nx, 3) interpolated between the given nodes."""
+    return (1 - fz) * (
+        (1 - fy) * ((1 - fx) * a[z0, y0, x0, c] + fx * a[z0, y0, x1, c])
+        + fy * ((1 - fx) * a[z0, y1, x0, c] + fx * a[z0, y1, x1, c])
+    ) + fz * (
+        (1 - fy) * ((1 - fx) * a[z1, y0, x0, c] + fx * a[z1, y0, x1, c])
+        + fy * ((1 - fx) * a[z1, y1, x0, c] + fx * a[z1, y1, x1, c])
+    )
 
 
 @numba.njit(cache=True, parallel=True)
-def _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset):  # pragma: no cover
-    """``out(q) = -u(q + v(q))`` on out's grid, whose node i is u's continuous index
-    ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order); `to_index` maps mm to
+def _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, v_on_grid):  # pragma: no cover
+    """``out(q) = -u(q + v(q))`` on out's grid (nz, ny, nx, 3), whose node i is u's
+    continuous index ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order; with
+    `v_on_grid`, v is on out's own grid and read at its nodes); `to_index` (3, 3) maps mm to
     u's index steps. u and v are sampled linearly, clamped to their grids.
 
     Slices run in parallel; each node is computed alone by the same operations, so the
     numbers do not depend on the number of threads."""
-    nz, ny, nx, d = out.shape
+    nz, ny, nx, _ = out.shape
+    uz, uy, ux, _ = u.shape
+    vz, vy, vx, _ = v.shape
+    t00, t01, t02 = to_index[0, 0], to_index[0, 1], to_index[0, 2]
+    t10, t11, t12 = to_index[1, 0], to_index[1, 1], to_index[1, 2]
+    t20, t21, t22 = to_index[2, 0], to_index[2, 1], to_index[2, 2]
     for k in numba.prange(nz):
-        idx = np.zeros(3)  # per slice: the threads' own scratch
-        vv = np.zeros(d)
-        uu = np.zeros(d)
         for j in range(ny):
             for i in range(nx):
-                idx[0] = i + u_offset[0]
-                idx[1] = j + u_offset[1]
-                idx[2] = k + u_offset[2] if d == 3 else 0.0
-                vx = offset[0] + i * ratio[0]
-                vy = offset[1] + j * ratio[1]
-                vz = offset[2] + k * ratio[2] if d == 3 else 0.0
-                _sample(v, vx, vy, vz, vv)
-                for r in range(d):
-                    s = 0.0
-                    for c in range(d):
-                        s += to_index[r, c] * vv[c]
-                    idx[r] += s
-                _sample(u, idx[0], idx[1], idx[2], uu)
-                for c in range(d):
-                    out[k, j, i, c] = -uu[c]
+                if v_on_grid:
+                    a0, a1, a2 = v[k, j, i, 0], v[k, j, i, 1], v[k, j, i, 2]
+                else:
+                    x0, x1, fx = _corner(offset[0] + i * ratio[0], vx)
+                    y0, y1, fy = _corner(offset[1] + j * ratio[1], vy)
+                    z0, z1, fz = _corner(offset[2] + k * ratio[2], vz)
+                    a0 = _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+                    a1 = _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+                    a2 = _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+                x0, x1, fx = _corner(i + u_offset[0] + (t00 * a0 + t01 * a1 + t02 * a2), ux)
+                y0, y1, fy = _corner(j + u_offset[1] + (t10 * a0 + t11 * a1 + t12 * a2), uy)
+                z0, z1, fz = _corner(k + u_offset[2] + (t20 * a0 + t21 * a1 + t22 * a2), uz)
+                out[k, j, i, 0] = -_trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+                out[k, j, i, 1] = -_trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+                out[k, j, i, 2] = -_trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
 
 
 def _every_nth_node(field: sitk.Image, step: int) -> sitk.Image:
