@@ -90,15 +90,20 @@ def _decoded_digest(path: str) -> str:
     import SimpleITK as sitk
 
     from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
-    from ._images import image_digest
+    from ._images import ITK_READ_LOCK, image_digest
     from .transforms import TRANSFORM_SUFFIXES, file_suffix, transform_digest
 
     if is_elastix_parameter_file(path):  # its initial transforms' files count too
         return transform_digest(read_elastix_transform(path))
     try:
-        if file_suffix(Path(path)) in TRANSFORM_SUFFIXES:
-            return transform_digest(sitk.ReadTransform(path))
-        return image_digest(sitk.ReadImage(path))
+        with ITK_READ_LOCK:
+            if file_suffix(Path(path)) in TRANSFORM_SUFFIXES:
+                read = sitk.ReadTransform(path)
+            else:
+                read = sitk.ReadImage(path)
+        if isinstance(read, sitk.Transform):
+            return transform_digest(read)
+        return image_digest(read)
     except RuntimeError:  # not an image or transform: its bytes (a reader will say more)
         return "file:" + file_digest(path)
 

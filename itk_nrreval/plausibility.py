@@ -306,8 +306,8 @@ def deformation_measures(
       ``T^-1 o T`` sampled as a displacement field on the evaluated voxels whose every index
       is even (all evaluated voxels when none is). For linear transforms this is rounding
       error; for a displacement field it is the error of the numerical inverse (computed on
-      a grid four times as coarse as the field's and refined on the field's), which grows where the field folds (a folded
-      map has no inverse).
+      a grid four times as coarse as the field's and refined on the field's), which grows
+      where the field folds (a folded map has no inverse).
 
     The sums run over the evaluated voxels (the mask), all at once on grids of at most
     `max_slab_voxels` voxels and otherwise slab by slab, each slab with one row of halo so

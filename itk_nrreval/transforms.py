@@ -47,6 +47,7 @@ import SimpleITK as sitk
 from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
 from ._errors import InputError
 from ._images import (
+    ITK_READ_LOCK,
     Geometry,
     image_digest,
     is_finite,
@@ -210,8 +211,9 @@ def _from_itk(value, name: str) -> sitk.Transform:
     with tempfile.TemporaryDirectory(prefix="nrreval-itk-") as tmp:
         path = os.path.join(tmp, "transform.h5")
         try:
-            itk.transformwrite([value], path)
-            return sitk.ReadTransform(path)
+            with ITK_READ_LOCK:
+                itk.transformwrite([value], path)
+                return sitk.ReadTransform(path)
         except (RuntimeError, TypeError, ValueError) as exc:
             raise InputError(
                 f"{name}: cannot convert the ITK transform {type(value).__name__} ({_reason(exc)})"
@@ -396,7 +398,8 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
         return t
     try:
         if suffix in TRANSFORM_SUFFIXES:
-            t = sitk.ReadTransform(str(path)).Downcast()
+            with ITK_READ_LOCK:
+                t = sitk.ReadTransform(str(path)).Downcast()
             if not _finite(t):
                 raise InputError("transform contains NaN or infinite values")
             return t

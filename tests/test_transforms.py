@@ -5,6 +5,10 @@ References are computed here independently with numpy from the known matrices an
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
+
 import nibabel as nib
 import numpy as np
 import pytest
@@ -327,3 +331,47 @@ def test_inverting_a_field_leaves_it_as_it_was():
         p = physical_points(ref).reshape(-1, 3)[40]
         back = inverse.TransformPoint(t.TransformPoint(p.tolist()))
         np.testing.assert_allclose(back, p, atol=0.05)
+
+
+_READ_FROM_THREADS = textwrap.dedent(
+    """
+    import sys, threading
+    import SimpleITK as sitk
+    from itk_nrreval._cache import content_digest
+    from itk_nrreval.transforms import chain_transform
+
+    path = sys.argv[1]
+    field = sitk.DisplacementFieldTransform(sitk.Image([20, 20, 20], sitk.sitkVectorFloat64, 3))
+    sitk.WriteTransform(sitk.CompositeTransform([sitk.AffineTransform(3), field]), path)
+    errors = []
+
+    def read():
+        try:
+            for _ in range(50):
+                chain_transform(path)
+                content_digest(path)
+        except Exception as exc:
+            errors.append(repr(exc))
+
+    threads = [threading.Thread(target=read) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    print("done", errors)
+    """
+)
+
+
+def test_hdf5_transforms_read_from_threads(tmp_path):
+    # ITK's HDF5 library is not thread-safe: four threads reading one .h5 transform ended the
+    # process ("double free or corruption"; "HDF5: infinite loop closing library" when
+    # evaluate's tasks ran on two threads). Every SimpleITK read takes one lock.
+    done = subprocess.run(
+        [sys.executable, "-c", _READ_FROM_THREADS, str(tmp_path / "t.h5")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-500:]
+    assert done.stdout.strip() == "done []"
