@@ -310,7 +310,9 @@ def resample_images(
     grid : sitk.Image or Geometry
     interpolation : {"linear", "bspline"}
     progress : bool
-        A progress bar on stderr.
+        A progress bar on stderr, labelled `desc`.
+    desc : str
+        The progress bar's label.
     outside : float
         The value of grid points mapped outside an image's field of view (NaN marks them).
 
@@ -411,6 +413,10 @@ def resample_memberships(
     grid : sitk.Image or Geometry
     values : sequence of int, length n_labels
         The label values, one membership channel each, in this order.
+    progress : bool
+        A progress bar on stderr, labelled `desc`.
+    desc : str
+        The progress bar's label.
 
     Returns
     -------

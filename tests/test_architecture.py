@@ -245,12 +245,12 @@ def _public_modules():
                 yield importlib.import_module(info.name)
 
 
-def _public_callables() -> dict[str, object]:
+def _public_callables(modules=None) -> dict[str, object]:
     """Qualified name -> function, of every public function a module of itk_nrreval or
-    data_synth defines or lists in its ``__all__``, and of the public methods (and
-    constructors) of its public classes."""
+    data_synth (or of `modules`) defines or lists in its ``__all__``, and of the public
+    methods (and constructors) of its public classes."""
     out = {}
-    for module in _public_modules():
+    for module in _public_modules() if modules is None else modules:
         names = set(getattr(module, "__all__", ()))
         names |= {
             n
@@ -288,6 +288,80 @@ def test_the_progress_flag_has_one_name():
         "itk_nrreval._executors.InProcessExecutor.map",
         "itk_nrreval.registration.register",
         "data_synth.writing.write_population",
+    } <= set(callables)
+
+
+def _documented_parameters(doc: str | None) -> set[str] | None:
+    """The names the numpydoc "Parameters" section of `doc` documents (``a, b : int``
+    documents both; ``*args`` documents ``args``), or None when it has no such section."""
+    lines = inspect.cleandoc(doc or "").splitlines()
+
+    def is_header(i: int) -> bool:
+        underline = lines[i + 1].strip() if i + 1 < len(lines) else ""
+        return bool(lines[i].strip()) and bool(underline) and set(underline) == {"-"}
+
+    starts = [i for i in range(len(lines)) if lines[i] == "Parameters" and is_header(i)]
+    if not starts:
+        return None
+    names: set[str] = set()
+    for i in range(starts[0] + 2, len(lines)):
+        if is_header(i):
+            break
+        line = lines[i]
+        if line.strip() and not line[0].isspace():  # an entry; its description is indented
+            names |= {n.strip().lstrip("*") for n in line.partition(" : ")[0].split(",")}
+    return names
+
+
+def test_the_docstring_reader_sees_entries_and_sections():
+    doc = """Summary.
+
+    Parameters
+    ----------
+    a, b : int
+        Two.
+    *args : float
+    progress : bool
+
+    Returns
+    -------
+    c : int
+        Not a parameter.
+    """
+    assert _documented_parameters(doc) == {"a", "b", "args", "progress"}
+    assert _documented_parameters("Summary.\n\n    Returns\n    -------\n    int\n") is None
+
+
+def test_public_functions_document_every_parameter():
+    """Issue 28: a public function of a public module whose docstring has a numpydoc
+    Parameters section documents every parameter of its signature there, and every public
+    registration function (the engines too) that takes ``progress`` has such a section."""
+    modules = [
+        m
+        for m in _public_modules()
+        if m.__name__.startswith("itk_nrreval")
+        and not any(part.startswith("_") for part in m.__name__.split("."))
+    ]
+    callables = _public_callables(modules)
+    undocumented, no_section = [], []
+    for name, fn in sorted(callables.items()):
+        params = [p for p in inspect.signature(fn).parameters if p not in ("self", "cls")]
+        documented = _documented_parameters(fn.__doc__)
+        if documented is None:
+            if name.startswith("itk_nrreval.registration") and "progress" in params:
+                no_section.append(name)
+            continue
+        undocumented += [f"{name}({p})" for p in params if p not in documented]
+    assert undocumented == []
+    assert no_section == []
+    # the walk sees the package's functions, the registration engines, and methods
+    assert {
+        "itk_nrreval.evaluation.evaluate",
+        "itk_nrreval.registration.register",
+        "itk_nrreval.registration.multimodal.register_multimodal",
+        "itk_nrreval.registration.fluid.fluid_to_reference",
+        "itk_nrreval.registration.groupwise.groupwise_register_elastix",
+        "itk_nrreval.evaluation.EvaluationResult.write",
     } <= set(callables)
 
 

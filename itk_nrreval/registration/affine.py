@@ -159,8 +159,30 @@ def affine_to_reference(
 ) -> list[sitk.AffineTransform]:
     """Affine of every image to `reference` (reference -> image); identity for the reference itself.
 
-    Image ``i`` uses the metric sampling seed ``seed + numbers[i]`` (`numbers`: the images'
-    numbers in a larger group, default ``0 .. n-1``); `reference_index` indexes `images`.
+    Parameters
+    ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of the reference's dimension.
+    reference : sitk.Image
+        The fixed image: the transforms map its points (mm) to each image's.
+    options : AffineOptions
+    seed : int
+        Image ``i`` uses the metric sampling seed ``seed + numbers[i]``.
+    reference_index : int, optional
+        The reference's index in `images`: that image keeps the identity, unregistered.
+    initial : sequence of sitk.Transform or None, length n_images, optional
+        Each image's starting affine (None: centres of mass matched).
+    progress : bool
+        A progress bar on stderr, labelled `desc`.
+    numbers : sequence of int, length n_images, optional
+        The images' numbers in a larger group (default ``0 .. n_images - 1``).
+    desc : str
+        The progress bar's label.
+
+    Returns
+    -------
+    list of sitk.AffineTransform, length n_images
+        Reference points -> image points (mm, LPS).
     """
     numbers = range(len(images)) if numbers is None else numbers
     out = []
@@ -194,7 +216,15 @@ def choose_reference(
 
     Parameters
     ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of one dimension.
     choice : {"near-mean", "far-from-mean"}
+    options : AffineOptions
+        The alignment's settings.
+    seed : int
+        Image ``i``'s alignment to image 0 uses the metric sampling seed ``seed + i``.
+    progress : bool
+        A progress bar on stderr.
 
     Returns
     -------

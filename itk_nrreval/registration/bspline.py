@@ -279,11 +279,37 @@ def bspline_to_reference(
 ) -> tuple[list[sitk.Transform], list[sitk.Image] | None]:
     """Per image the B-spline transform reference -> image (affine included).
 
-    Returns the transforms and, for elastix, elastix's own resampled images (else None).
-    The reference image itself (`reference_index`, an index into `images`) keeps its
-    identity affine. Image ``i`` uses the seed ``seed + numbers[i]`` and is called
-    ``image numbers[i]`` in messages (`numbers`: the images' numbers in a larger group,
-    default ``0 .. n-1``). Without a `worker`, elastix runs in one started for this call.
+    Parameters
+    ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of the reference's dimension.
+    reference : sitk.Image
+        The fixed image: the transforms map its points (mm) to each image's.
+    affines : sequence of sitk.Transform, length n_images
+        Each image's affine reference -> image, the B-spline's start.
+    options : BSplineOptions
+    engine : {"elastix", "simpleitk"}
+    seed : int
+        Image ``i`` uses the seed ``seed + numbers[i]``.
+    reference_index : int, optional
+        The reference's index in `images`: that image keeps its identity affine.
+    progress : bool
+        A progress bar on stderr, labelled `desc` and the engine.
+    worker : ElastixWorker, optional
+        A running elastix worker to reuse; without one, elastix runs in one started for
+        this call.
+    numbers : sequence of int, length n_images, optional
+        The images' numbers in a larger group (default ``0 .. n_images - 1``): image ``i``
+        is called ``image numbers[i]`` in messages.
+    desc : str
+        The progress bar's label.
+
+    Returns
+    -------
+    transforms : list of sitk.Transform, length n_images
+        Reference points -> image points (mm, LPS), affine included.
+    resampled : list of sitk.Image or None
+        elastix's own resampled images on the reference grid; None with ``"simpleitk"``.
     """
     numbers = list(range(len(images))) if numbers is None else [int(k) for k in numbers]
     items = list(enumerate(zip(images, affines, strict=True)))

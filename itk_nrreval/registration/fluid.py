@@ -307,8 +307,29 @@ def fluid_to_reference(
 ) -> list[sitk.Transform]:
     """Per image the transform reference -> image ``[A_i, field_i]`` (``A_i(D_i(p))``).
 
-    The reference image itself (`reference_index`) keeps its identity affine. Engine
-    ``"ants"`` seeds antsRegistration of image ``i`` with ``seed + i``.
+    Parameters
+    ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of the reference's dimension.
+    reference : sitk.Image
+        The fixed image: the transforms map its points (mm) to each image's.
+    affines : sequence of sitk.Transform, length n_images
+        Each image's affine reference -> image ``A_i``.
+    options : FluidOptions
+    engine : {"simpleitk", "ants"}
+        Diffeomorphic demons, or ANTs SyN (needs antspyx).
+    seed : int
+        Engine ``"ants"`` seeds antsRegistration of image ``i`` with ``seed + i``; demons
+        is deterministic.
+    reference_index : int, optional
+        The reference's index in `images`: that image keeps its identity affine.
+    progress : bool
+        A progress bar on stderr.
+
+    Returns
+    -------
+    list of sitk.Transform, length n_images
+        Reference points -> image points (mm, LPS).
     """
     if engine == "ants":
         ants = import_ants()

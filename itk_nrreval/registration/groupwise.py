@@ -103,6 +103,20 @@ def groupwise_register(
 ) -> tuple[list[sitk.Transform], sitk.Image]:
     """Register `images` to their evolving mean on the grid of `frame`.
 
+    Parameters
+    ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of the frame's dimension.
+    frame : sitk.Image
+        The grid of the group mean and of the transforms' reference points.
+    affines : sequence of sitk.Transform, length n_images
+        Each image's affine frame -> image, the start.
+    options : GroupwiseOptions
+    seed : int
+        Seeds the metric sampling of every image at every sweep and level.
+    progress : bool
+        A progress bar on stderr (one step per sweep of each level).
+
     Returns
     -------
     transforms : list of sitk.CompositeTransform
@@ -155,6 +169,22 @@ def groupwise_register_elastix(
     progress: bool = True,
 ) -> tuple[list[sitk.Transform], sitk.Image]:
     """Register `images` to their evolving mean on the grid of `frame` with elastix.
+
+    Parameters
+    ----------
+    images : sequence of sitk.Image, length n_images
+        Scalar images (any grids) of the frame's dimension.
+    frame : sitk.Image
+        The grid of the group mean and of the transforms' reference points.
+    affines : sequence of sitk.Transform, length n_images
+        Each image's affine frame -> image, the start.
+    options : GroupwiseOptions
+    seed : int
+        Seeds elastix's sampling of every image at every sweep.
+    worker : ElastixWorker
+        The running elastix worker.
+    progress : bool
+        A progress bar on stderr (one step per image and sweep).
 
     Returns
     -------
