@@ -79,7 +79,11 @@ def main() -> dict:
     demo = run_demo(out=OUT, n=36, n_samples=SAMPLES, progress=False, log=lambda _: None)
     cheat_manifest = add_cheat(OUT)
     res = nr.evaluate(
-        cheat_manifest, n_samples=SAMPLES, cache=OUT / "cache", progress=False, seed=0
+        cheat_manifest,
+        n_samples=SAMPLES,
+        execution=nr.Execution(cache=OUT / "cache"),
+        progress=False,
+        seed=0,
     )
     names = list(res.scores)
     by_score = sorted(names, key=lambda n: res.scores[n].specificity.value)

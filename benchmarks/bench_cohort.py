@@ -16,9 +16,9 @@ so the four registrations after ``field_a`` (the common frame) are brought into 
 mean of per-image frame estimates: N field inversions each for ``field_b`` and ``field_c``.
 
 Each evaluation is the default in-process path with confidence and plausibility on
-(``nr.evaluate(manifest, cache=...)``, nothing else set), in a fresh process with a cold
-cache; it reports its wall time, its CPU time (user + system: the machine may be shared,
-which inflates the wall time but not the CPU time), its peak resident memory
+(``nr.evaluate(manifest, execution=nr.Execution(cache=...))``, nothing else set), in a
+fresh process with a cold cache; it reports its wall time, its CPU time (user + system: the
+machine may be shared, which inflates the wall time but not the CPU time), its peak resident memory
 (``ru_maxrss``) and the size of its cache on disk when it ends. Targets (issue 30, two
 cores): N = 12 under 5 minutes; N = 36 under 15 minutes, peak RSS under 3 GB, cache under
 4 GB.
@@ -138,7 +138,7 @@ def _run_one(manifest: str, cache: str) -> None:
     import itk_nrreval as nr
 
     t0 = time.perf_counter()
-    res = nr.evaluate(manifest, cache=cache, progress=False)
+    res = nr.evaluate(manifest, execution=nr.Execution(cache=cache), progress=False)
     seconds = time.perf_counter() - t0
     usage = resource.getrusage(resource.RUSAGE_SELF)
     print(

@@ -76,7 +76,13 @@ def _case(label: str, intensity: dict) -> dict:
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ev = nr.evaluate(combined, n_samples=50_000, seed=0, progress=False, cache=folder / "cache")
+        ev = nr.evaluate(
+            combined,
+            n_samples=50_000,
+            seed=0,
+            progress=False,
+            execution=nr.Execution(cache=folder / "cache"),
+        )
     value_of = {s.name: s.values["smoothing_mm"] for s in res.settings}
     rows = {}
     for name, scores in ev.scores.items():

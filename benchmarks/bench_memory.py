@@ -112,7 +112,9 @@ def _run_one(manifest: str, cache: str) -> None:
     import itk_nrreval as nr
 
     t0 = time.perf_counter()
-    res = nr.evaluate(manifest, n_samples=SAMPLES, cache=cache, progress=False)
+    res = nr.evaluate(
+        manifest, n_samples=SAMPLES, execution=nr.Execution(cache=cache), progress=False
+    )
     seconds = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # kB -> MB on Linux
     n_vox = int(np.prod(next(iter(res.mean_images.values())).shape))

@@ -80,7 +80,7 @@ def _evaluate(manifest, cache: Path):
             confidence=False,
             progress=False,
             figures=False,
-            cache=cache,
+            execution=nr.Execution(cache=cache),
         )
 
 

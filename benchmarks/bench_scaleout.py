@@ -110,9 +110,7 @@ def driver(manifest: str, workers: int, cache: str) -> None:
     res = nr.evaluate(
         manifest,
         n_samples=SAMPLES,
-        scheduler="local",
-        workers=workers,
-        cache=cache,
+        execution=nr.Execution(scheduler="local", workers=workers, cache=cache),
         progress=False,
     )
     seconds = time.perf_counter() - t0

@@ -5,7 +5,7 @@ two registrations: ``nonrigid`` (the true template-to-subject transforms) and ``
 (their affine parts), three subjects' registrations broken in both as a mix-up of files
 would break them (:mod:`data_synth.damage`): subject 60 mirrored, subject 130 inverted,
 subjects 200 and 201 swapped (each with the other's transform). The first N subjects are
-evaluated with ``scheduler="local", workers=2`` in a fresh driver process with a cold
+evaluated with ``Execution(scheduler="local", workers=2)`` in a fresh driver process with a cold
 cache (M = 10,000 model samples, no confidence intervals); reported: the evaluate time,
 the driver's peak resident memory (the scheduler runs in it; the workers are separate
 processes), the time of the per-subject step on the driver
@@ -209,9 +209,7 @@ def driver(manifest: str, cache: str) -> None:
         res = nr.evaluate(
             manifest,
             n_samples=SAMPLES,
-            scheduler="local",
-            workers=2,
-            cache=cache,
+            execution=nr.Execution(scheduler="local", workers=2, cache=cache),
             confidence=False,
             progress=False,
         )

@@ -39,9 +39,10 @@ def run(args: argparse.Namespace, folder: Path) -> None:
     kw = dict(n_samples=20_000, seed=0, progress=False)
     for attempt in ("first run", "rerun"):
         t0 = time.perf_counter()
-        result = nr.evaluate(
-            manifest, scheduler=args.scheduler, workers=args.workers, cache=folder / "cache", **kw
+        execution = nr.Execution(
+            scheduler=args.scheduler, workers=args.workers, cache=folder / "cache"
         )
+        result = nr.evaluate(manifest, execution=execution, **kw)
         run = result.run
         print(
             f"{attempt}: {time.perf_counter() - t0:.1f} s on {run['workers']} workers, "

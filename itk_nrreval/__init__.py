@@ -14,10 +14,13 @@ from .confidence import Comparison, Interval
 from .derivatives import manifest_from_derivatives, manifest_from_transforms
 from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
+    Confidence,
     Decision,
     EvaluationResult,
+    Execution,
     OpenPair,
     RegistrationScores,
+    Resampling,
     Verdict,
     evaluate,
     ranks,
@@ -111,6 +114,9 @@ __all__ = [
     "SubjectThresholds",
     "deformation_plausibility",
     "evaluate",
+    "Resampling",
+    "Confidence",
+    "Execution",
     "ranks",
     "relative_ranks",
     "WEIGHTINGS",

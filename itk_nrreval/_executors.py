@@ -4,8 +4,8 @@ A task is a function and its argument tuples; an executor maps it over them and 
 ``(index, result)`` as each ends. :class:`InProcessExecutor` runs them here, in order;
 :class:`ThreadExecutor` on threads of this process (for tasks on arrays already in memory
 whose heavy parts release the GIL: SimpleITK, numpy); :class:`itk_nrreval._scaleout.DaskExecutor`
-on a cluster (evaluate's ``scheduler=``). Results never depend on which one ran them: each
-caller places a result by its index.
+on a cluster (evaluate's ``Execution(scheduler=...)``). Results never depend on which one
+ran them: each caller places a result by its index.
 """
 
 from __future__ import annotations

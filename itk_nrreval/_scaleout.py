@@ -1,6 +1,6 @@
 """Evaluation of large cohorts on a Dask cluster.
 
-:func:`itk_nrreval.evaluate` with ``scheduler=`` maps the tasks of
+:func:`itk_nrreval.evaluate` with an ``Execution(scheduler=...)`` maps the tasks of
 :mod:`itk_nrreval._pipeline` -- the same functions the in-process executor runs -- onto a
 Dask cluster: per-image work and voxel-block sums become tasks, and no process holds all
 the images. The per-image cache folder must be visible to the driver and every worker (a

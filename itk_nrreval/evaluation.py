@@ -57,6 +57,9 @@ from .subject_qc import SubjectQC, across_registrations, assess_subjects, transf
 from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
+    "Resampling",
+    "Confidence",
+    "Execution",
     "RegistrationScores",
     "EvaluationResult",
     "Verdict",
@@ -71,6 +74,138 @@ __all__ = [
 
 _DISTANCES = ("l1", "l2")
 _INTERPOLATIONS = ("linear", "bspline")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Resampling:
+    """How :func:`evaluate` resamples the images and label maps into the common frame.
+
+    Attributes
+    ----------
+    interpolation : {"linear", "bspline"}
+        Intensity interpolation (default ``"linear"``).
+    label_interpolation : {"linear", "nearest", "gaussian"}
+        How label maps become the overlap's fuzzy memberships in the common frame
+        (:func:`itk_nrreval._memberships.resample_label_memberships`): one-hot memberships
+        resampled linearly (partial memberships within a voxel of every boundary; the
+        default), crisp nearest-neighbour labels, or one-hot memberships smoothed by a
+        Gaussian of `label_sigma_mm` mm and then resampled linearly. Recorded in the
+        result's options. A perfect registration does not reach overlap 1 with any of them
+        (each subject's labels sit on its own grid, so boundaries land between common-frame
+        voxels at different places), and the choice moves the ceiling (``docs/outputs.md``).
+    label_sigma_mm : float, optional
+        The Gaussian's standard deviation (mm); only with, and required by,
+        ``label_interpolation="gaussian"``.
+
+    Raises
+    ------
+    ValueError
+        A value outside its accepted ones (the message names the attribute).
+    """
+
+    interpolation: str = "linear"
+    label_interpolation: str = "linear"
+    label_sigma_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.interpolation not in _INTERPOLATIONS:
+            raise ValueError(
+                f"interpolation: {self.interpolation!r} is not one of {_INTERPOLATIONS}"
+            )
+        method, sigma_mm = self.label_interpolation, self.label_sigma_mm
+        if method not in LABEL_INTERPOLATIONS:
+            raise ValueError(
+                f"label_interpolation: {method!r} is not one of {LABEL_INTERPOLATIONS}"
+            )
+        if method == "gaussian":
+            ok = isinstance(sigma_mm, (int, float)) and not isinstance(sigma_mm, bool)
+            if not ok or not 0 < sigma_mm < math.inf:
+                raise ValueError(
+                    f"label_sigma_mm: label_interpolation='gaussian' needs a finite sigma > 0 "
+                    f"mm, got {readable(sigma_mm)}"
+                )
+        elif sigma_mm is not None:
+            raise ValueError(
+                f"label_sigma_mm: only with label_interpolation='gaussian', not {method!r}"
+            )
+
+
+@dataclass(frozen=True, kw_only=True)
+class Confidence:
+    """The settings of :func:`evaluate`'s subject-level confidence.
+
+    Subject-level 95% intervals of every score and every pairwise difference, and the
+    probability that each registration is best (:mod:`itk_nrreval.confidence`): a grouped
+    jackknife over the subjects, each replicate's model from the Gram matrix. Giving
+    ``evaluate(confidence=Confidence(...))`` turns it on with these settings;
+    ``confidence=True`` is ``Confidence()``.
+
+    Attributes
+    ----------
+    samples : int, optional
+        Model samples per jackknife replicate (default ``min(n_samples, 100_000)`` of the
+        evaluation's `n_samples`); the same seed as the main run (common random numbers).
+    resamples : int, optional
+        Jackknife groups G for specificity and generalization (default ``min(S, 50)`` for
+        S subjects; G = S leaves one subject out at a time). The overlap always leaves one
+        subject out (exact and free from the per-image sums). A subject is an image, or
+        the images the manifest's ``subjects`` gives one name (a manifest with ``groups``
+        needs ``subjects`` for subject-level confidence).
+
+    Raises
+    ------
+    ValueError
+        A count that is not an integer >= 2 (the message names the attribute).
+    """
+
+    samples: int | None = None
+    resamples: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("samples", "resamples"):
+            if getattr(self, name) is not None:
+                _check_positive(name, getattr(self, name), 2)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Execution:
+    """Where :func:`evaluate`'s per-image tasks run, and where their results are cached.
+
+    Attributes
+    ----------
+    scheduler : str, optional
+        Run the tasks on a Dask cluster (``docs/large-cohorts.md``): ``"local"`` starts a
+        local cluster of `workers` single-threaded processes; otherwise the address of a
+        running scheduler. Default: in this process. Either way the same tasks run, no
+        process holds all the images, and the numbers are the same.
+    workers : int, optional
+        With ``scheduler="local"``, the number of worker processes (default: CPU count);
+        with an address, wait until that many workers have joined.
+    cache : path, optional
+        The folder of the per-image result cache (with a scheduler: shared by driver and
+        workers): a rerun -- after an interruption, or with more images or registrations --
+        recomputes only what changed. Entries are keyed by the inputs' content (voxel values,
+        grids, transform parameters), so objects in memory find the entries of the same
+        images and transforms given as files, and the same objects find them again in a new
+        process. Default: ``out/cache`` with evaluate's `out`, else a temporary folder,
+        removed afterwards.
+
+    Raises
+    ------
+    ValueError
+        `workers` without a `scheduler`, or not a positive integer.
+    """
+
+    scheduler: str | None = None
+    workers: int | None = None
+    cache: str | os.PathLike | None = None
+
+    def __post_init__(self) -> None:
+        if self.workers is None:
+            return
+        if self.scheduler is None:
+            raise ValueError("workers: only with a scheduler (local or an address)")
+        _check_positive("workers", self.workers, 1)
 
 
 @dataclass(frozen=True)
@@ -465,11 +600,9 @@ def relative_ranks(
     return out
 
 
-def _check_options(n_samples, distance, interpolation, weightings) -> tuple[str, ...]:
+def _check_options(n_samples, distance, weightings) -> tuple[str, ...]:
     if distance not in _DISTANCES:
         raise ValueError(f"distance: {distance!r} is not one of {_DISTANCES}")
-    if interpolation not in _INTERPOLATIONS:
-        raise ValueError(f"interpolation: {interpolation!r} is not one of {_INTERPOLATIONS}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:
         raise ValueError(f"n_samples: expected an integer >= 2, got {readable(n_samples)}")
     if weightings is None:
@@ -490,20 +623,14 @@ def evaluate(
     seed: int = 0,
     distance: str = "l1",
     weightings: Sequence[str] | None = None,
-    interpolation: str = "linear",
-    label_interpolation: str = "linear",
-    label_sigma_mm: float | None = None,
-    progress: bool = True,
-    save_resampled: str | os.PathLike | bool | None = None,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    cache: str | os.PathLike | None = None,
-    confidence: bool = True,
-    confidence_samples: int | None = None,
-    resamples: int | None = None,
+    resampling: Resampling | None = None,
+    confidence: bool | Confidence = True,
     thresholds: Thresholds | None = None,
     subject_thresholds: SubjectThresholds | None = None,
     inverse_consistency: bool = True,
+    execution: Execution | None = None,
+    progress: bool = True,
+    save_resampled: str | os.PathLike | bool | None = None,
     out: str | os.PathLike | None = None,
     figures: bool = True,
 ) -> EvaluationResult:
@@ -525,55 +652,13 @@ def evaluate(
 "complexity", "inverse_volume_complexity"}
         Overlap label weightings to report (all read from one overlap table); default all
         five, in that order.
-    interpolation : {"linear", "bspline"}
-        Intensity interpolation.
-    label_interpolation : {"linear", "nearest", "gaussian"}
-        How label maps become the overlap's fuzzy memberships in the common frame
-        (:func:`itk_nrreval._memberships.resample_label_memberships`): one-hot memberships
-        resampled linearly (partial memberships within a voxel of every boundary), crisp
-        nearest-neighbour labels, or one-hot memberships smoothed by a Gaussian of
-        `label_sigma_mm` mm and then resampled linearly. Recorded in the result's options.
-        A perfect registration does not reach overlap 1 with any of them (each subject's
-        labels sit on its own grid, so boundaries land between common-frame voxels at
-        different places), and the choice moves the ceiling (``docs/outputs.md``).
-    label_sigma_mm : float, optional
-        The Gaussian's standard deviation (mm); only with, and required by,
-        ``label_interpolation="gaussian"``.
-    progress : bool
-        Progress bars on stderr (resampling, model, specificity search).
-    save_resampled : path or bool, optional
-        Folder to write each registration's resampled images and label memberships
-        (NIfTI; one component per nonzero label value); True: ``out/resampled`` (with
-        `out`).
-    scheduler : str, optional
-        Run the tasks on a Dask cluster (``docs/large-cohorts.md``): ``"local"`` starts a
-        local cluster of `workers` single-threaded processes; otherwise the address of a
-        running scheduler. Default: in this process. Either way the same tasks run, no
-        process holds all the images, and the numbers are the same.
-    workers : int, optional
-        With ``scheduler="local"``, the number of worker processes (default: CPU count);
-        with an address, wait until that many workers have joined.
-    cache : path, optional
-        The folder of the per-image result cache (with a scheduler: shared by driver and
-        workers): a rerun -- after an interruption, or with more images or registrations --
-        recomputes only what changed. Entries are keyed by the inputs' content (voxel values,
-        grids, transform parameters), so objects in memory find the entries of the same
-        images and transforms given as files, and the same objects find them again in a new
-        process. Default: ``out/cache`` with `out`, else a temporary folder, removed
-        afterwards.
-    confidence : bool
-        Subject-level 95% intervals of every score and every pairwise difference, and the
-        probability that each registration is best (:mod:`itk_nrreval.confidence`): a
-        grouped jackknife over the subjects, each replicate's model from the Gram matrix.
-    confidence_samples : int, optional
-        Model samples per jackknife replicate (default ``min(n_samples, 100_000)``); the
-        same seed as the main run (common random numbers).
-    resamples : int, optional
-        Jackknife groups G for specificity and generalization (default ``min(S, 50)`` for
-        S subjects; G = S leaves one subject out at a time). The overlap always leaves one
-        subject out (exact and free from the per-image sums). A subject is an image, or
-        the images the manifest's ``subjects`` gives one name (a manifest with ``groups``
-        needs ``subjects`` for subject-level confidence).
+    resampling : Resampling, optional
+        How images and label maps are resampled into the common frame (:class:`Resampling`;
+        default ``Resampling()``, linear for both).
+    confidence : bool or Confidence
+        Subject-level confidence intervals, comparisons and probabilities of being best:
+        True (the default) with the settings of ``Confidence()``, a :class:`Confidence`
+        with its settings, or False (off).
     thresholds : Thresholds, optional
         Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
         whose docstring gives the defaults and their rationale). A flagged registration keeps
@@ -587,6 +672,15 @@ def evaluate(
         of every registration's scores (a warning names it).
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
+    execution : Execution, optional
+        Where the tasks run and the per-image cache (:class:`Execution`; default
+        ``Execution()``: in this process, cache in ``out/cache`` or a temporary folder).
+    progress : bool
+        Progress bars on stderr (resampling, model, specificity search).
+    save_resampled : path or bool, optional
+        Folder to write each registration's resampled images and label memberships
+        (NIfTI; one component per nonzero label value); True: ``out/resampled`` (with
+        `out`).
     out : path, optional
         Also write the reports :meth:`EvaluationResult.write` writes into this folder, as
         ``nrreval evaluate --out`` does (:func:`itk_nrreval._output.staged_folder`): the
@@ -608,7 +702,8 @@ def evaluate(
         A bad manifest (every problem listed in one message), or an `out` that cannot be a
         folder.
     ValueError
-        An option outside its accepted values.
+        An option outside its accepted values, or of the wrong type (`resampling` not a
+        :class:`Resampling`, ...).
 
     Warns
     -----
@@ -616,20 +711,19 @@ def evaluate(
         When a registration is flagged as implausible (folding, rough fields, a frame
         that the registrations disagree about).
     """
-    weightings = _check_options(n_samples, distance, interpolation, weightings)
-    _check_label_interpolation(label_interpolation, label_sigma_mm)
-    thresholds = Thresholds() if thresholds is None else thresholds
-    if subject_thresholds is None:
-        subject_thresholds = SubjectThresholds()
+    weightings = _check_options(n_samples, distance, weightings)
+    resampling = _option("resampling", resampling, Resampling)
+    execution = _option("execution", execution, Execution)
+    thresholds = _option("thresholds", thresholds, Thresholds)
+    subject_thresholds = _option("subject_thresholds", subject_thresholds, SubjectThresholds)
+    asked, settings = _confidence_settings(confidence)
+    # the default depends on n_samples: resolved here, not in Confidence
+    confidence_samples = settings.samples
     if confidence_samples is None:
         confidence_samples = min(int(n_samples), 100_000)
-    _check_positive("confidence_samples", confidence_samples, 2)
-    if resamples is not None:
-        _check_positive("resamples", resamples, 2)
     if isinstance(save_resampled, bool) and save_resampled and out is None:
         raise ValueError("save_resampled=True: only with out= (it means out/resampled)")
-    if scheduler is None and workers is not None:
-        raise ValueError("workers: only with a scheduler (local or an address)")
+    cache = execution.cache
     m = load_manifest(manifest)
     if out is not None:
         out = check_output_folder(out, inputs=m.files, option="out")
@@ -642,16 +736,16 @@ def evaluate(
         assessed: dict[str, tuple[SubjectQC, ...]] = {}
         run, run_info = _execute(
             m,
-            scheduler=scheduler,
-            workers=workers,
+            scheduler=execution.scheduler,
+            workers=execution.workers,
             inverse_consistency=inverse_consistency,
             cache=cache,
             n_samples=int(n_samples),
             seed=seed,
             distance=distance,
-            interpolation=interpolation,
-            label_interpolation=label_interpolation,
-            label_sigma_mm=label_sigma_mm,
+            interpolation=resampling.interpolation,
+            label_interpolation=resampling.label_interpolation,
+            label_sigma_mm=resampling.label_sigma_mm,
             progress=progress,
             save_resampled=save_resampled or None,
             off_grid_coverage=subject_thresholds.off_grid_coverage,
@@ -660,8 +754,8 @@ def evaluate(
         regs = run.registrations
         values = {name: _values(r, weightings) for name, r in regs.items()}
         # the jackknife runs over the subjects in the scores
-        plan = _jackknife_plan(m, _scored(run), resamples, asked=confidence)
-        confidence = confidence and plan is not None
+        plan = _jackknife_plan(m, _scored(run), settings.resamples, asked=asked)
+        confidence = asked and plan is not None
         level = _SubjectLevel.empty(regs)
         if confidence:
             level = _subject_level(
@@ -683,8 +777,10 @@ def evaluate(
             "confidence_samples": int(confidence_samples),
             "resamples": None if plan is None else len(plan.left_out),
             "inverse_consistency": bool(inverse_consistency),
-            "label_interpolation": label_interpolation,
-            "label_sigma_mm": None if label_sigma_mm is None else float(label_sigma_mm),
+            "label_interpolation": resampling.label_interpolation,
+            "label_sigma_mm": (
+                None if resampling.label_sigma_mm is None else float(resampling.label_sigma_mm)
+            ),
             "thresholds": dataclasses.asdict(thresholds),
             "subject_thresholds": dataclasses.asdict(subject_thresholds),
             # whose voxels are scored: the registered images, or the manifest's other scans
@@ -703,7 +799,7 @@ def evaluate(
             n_samples,
             seed,
             distance,
-            interpolation,
+            resampling.interpolation,
             run=run_info,
             comparisons=level.comparisons,
             extra_options=options,
@@ -929,20 +1025,28 @@ def _subjects(
     )
 
 
-def _check_label_interpolation(method, sigma_mm) -> None:
-    if method not in LABEL_INTERPOLATIONS:
-        raise ValueError(f"label_interpolation: {method!r} is not one of {LABEL_INTERPOLATIONS}")
-    if method == "gaussian":
-        ok = isinstance(sigma_mm, (int, float)) and not isinstance(sigma_mm, bool)
-        if not ok or not 0 < sigma_mm < math.inf:
-            raise ValueError(
-                f"label_sigma_mm: label_interpolation='gaussian' needs a finite sigma > 0 mm, "
-                f"got {readable(sigma_mm)}"
-            )
-    elif sigma_mm is not None:
+def _option(name: str, value, kind: type):
+    """`value`, or ``kind()`` (its defaults) for None; ValueError naming `name` for a value
+    of another type (a check here, not a failure deep in the run)."""
+    if value is None:
+        return kind()
+    if not isinstance(value, kind):
         raise ValueError(
-            f"label_sigma_mm: only with label_interpolation='gaussian', not {method!r}"
+            f"{name}: expected {kind.__name__}(...) or None, got {type(value).__name__}"
         )
+    return value
+
+
+def _confidence_settings(confidence) -> tuple[bool, Confidence]:
+    """Whether subject-level confidence is asked for, and its settings (``Confidence()`` for
+    True and False: the settings of an unasked run are still recorded in its options)."""
+    if isinstance(confidence, Confidence):
+        return True, confidence
+    if isinstance(confidence, (bool, np.bool_)):
+        return bool(confidence), Confidence()
+    raise ValueError(
+        f"confidence: expected True, False or a Confidence, got {type(confidence).__name__}"
+    )
 
 
 def _check_positive(name: str, value, minimum: int) -> None:

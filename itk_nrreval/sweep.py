@@ -43,7 +43,7 @@ from ._output import (
     write_json,
     write_text,
 )
-from .evaluation import EvaluationResult, evaluate
+from .evaluation import EvaluationResult, Execution, evaluate
 from .manifest import add_registration, load_manifest, write_manifest
 from .report.sweep import write_sweep
 from .transforms import file_stem
@@ -395,7 +395,11 @@ def sweep(
         out, settings, logs, method=method, images=images, labels=labels, mask=mask
     )
     evaluation = evaluate(
-        manifest, n_samples=n_samples, seed=seed, cache=out / "cache", progress=progress
+        manifest,
+        n_samples=n_samples,
+        seed=seed,
+        execution=Execution(cache=out / "cache"),
+        progress=progress,
     )
     truth_error = None
     if truth is not None:

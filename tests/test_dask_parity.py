@@ -75,7 +75,12 @@ def population(tmp_path, *, size: int = 96):
 def test_dask_results_json_equals_in_process(tmp_path):
     manifest = population(tmp_path)
     nr.evaluate(manifest, out=tmp_path / "single", **KW)
-    nr.evaluate(manifest, out=tmp_path / "dask", scheduler="local", workers=1, **KW)
+    nr.evaluate(
+        manifest,
+        out=tmp_path / "dask",
+        execution=nr.Execution(scheduler="local", workers=1),
+        **KW,
+    )
     single, scaled = results_json(tmp_path / "single"), results_json(tmp_path / "dask")
     # inverse consistency is computable here, and not the 0.0 of issue 25
     assert single["registrations"]["truth"]["plausibility"]["inverse_consistency_mm"] > 1e-4
@@ -154,12 +159,12 @@ def inverse_consistency(result) -> dict:
     "first, second",
     [
         ({"inverse_consistency": False}, {}),
-        ({}, {"interpolation": "bspline"}),
-        ({}, {"label_interpolation": "nearest"}),
-        ({}, {"label_interpolation": "gaussian", "label_sigma_mm": 1.0}),
+        ({}, {"resampling": nr.Resampling(interpolation="bspline")}),
+        ({}, {"resampling": nr.Resampling(label_interpolation="nearest")}),
+        ({}, {"resampling": nr.Resampling(label_interpolation="gaussian", label_sigma_mm=1.0)}),
         (
-            {"label_interpolation": "gaussian", "label_sigma_mm": 1.0},
-            {"label_interpolation": "gaussian", "label_sigma_mm": 2.0},
+            {"resampling": nr.Resampling(label_interpolation="gaussian", label_sigma_mm=1.0)},
+            {"resampling": nr.Resampling(label_interpolation="gaussian", label_sigma_mm=2.0)},
         ),
     ],
 )
@@ -169,10 +174,12 @@ def test_cache_not_reused_when_a_per_image_option_changes(tmp_path, first, secon
     The reference is a run of `second` on a fresh cache.
     """
     manifest, cache = one_registration(tmp_path)
-    nr.evaluate(manifest, cache=cache, **first, **FAST)
-    again = nr.evaluate(manifest, cache=cache, **second, **FAST)
+    nr.evaluate(manifest, execution=nr.Execution(cache=cache), **first, **FAST)
+    again = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **second, **FAST)
     assert again.run["cache_computed"] == N_IMAGES
-    fresh = nr.evaluate(manifest, cache=tmp_path / "fresh", **second, **FAST)
+    fresh = nr.evaluate(
+        manifest, execution=nr.Execution(cache=tmp_path / "fresh"), **second, **FAST
+    )
     # "run" holds the cache counts: computed afresh or not, they differ by construction
     assert_same_json(fresh.to_dict(), again.to_dict(), ignore={("run",)})
 
@@ -188,15 +195,17 @@ def test_cache_not_reused_across_computation_versions(tmp_path, monkeypatch):
     current = _pipeline._TASK_VERSIONS["resampled"]
     with monkeypatch.context() as patch:
         patch.setitem(_pipeline._TASK_VERSIONS, "resampled", current - 1)
-        right = inverse_consistency(nr.evaluate(manifest, cache=cache, **FAST))
+        right = inverse_consistency(
+            nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
+        )
         for path in resampled_metas(cache):
             entry = json.loads(path.read_text())
             entry["meta"]["plausibility"]["inverse_consistency_mm"] = 0.0
             path.write_text(json.dumps(entry))
-        old = nr.evaluate(manifest, cache=cache, **FAST)
+        old = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
         assert old.run["cache_computed"] == 0  # the tampered entries are the ones read
         assert set(inverse_consistency(old).values()) == {0.0}
-    new = nr.evaluate(manifest, cache=cache, **FAST)
+    new = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
     assert new.run["cache_computed"] == N_IMAGES
     assert inverse_consistency(new) == pytest.approx(right, rel=1e-12)
     assert min(right.values()) > 1e-3
@@ -206,7 +215,10 @@ def test_cache_not_reused_across_package_versions(tmp_path, monkeypatch):
     manifest, cache = one_registration(tmp_path)
     with monkeypatch.context() as patch:
         patch.setattr(_version, "__version__", "0.0.1")
-        nr.evaluate(manifest, cache=cache, **FAST)
-    new = nr.evaluate(manifest, cache=cache, **FAST)
+        nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
+    new = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
     assert new.run["cache_computed"] == N_IMAGES and new.run["cache_reused"] == 0
-    assert nr.evaluate(manifest, cache=cache, **FAST).run["cache_reused"] == N_IMAGES
+    assert (
+        nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST).run["cache_reused"]
+        == N_IMAGES
+    )

@@ -171,6 +171,93 @@ def test_evaluate_python_api_common_random_numbers(tmp_path):
         nr.evaluate(data, weightings=["dice"])
 
 
+# ----------------------------------------------------------------------------- option groups
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: nr.Resampling(interpolation="cubic"), "interpolation: 'cubic' is not one of"),
+        (lambda: nr.Resampling(label_interpolation="cubic"), "label_interpolation: 'cubic' is"),
+        (
+            lambda: nr.Resampling(label_interpolation="gaussian"),
+            "label_sigma_mm: label_interpolation='gaussian' needs a finite sigma > 0 mm, got None",
+        ),
+        (
+            lambda: nr.Resampling(label_interpolation="gaussian", label_sigma_mm=math.inf),
+            "label_sigma_mm: .* needs a finite sigma",
+        ),
+        (
+            lambda: nr.Resampling(label_sigma_mm=1.0),
+            "label_sigma_mm: only with label_interpolation='gaussian', not 'linear'",
+        ),
+        (lambda: nr.Confidence(samples=1), "samples: expected an integer >= 2, got 1"),
+        (lambda: nr.Confidence(samples=True), "samples: expected an integer >= 2, got True"),
+        (lambda: nr.Confidence(resamples=2.5), "resamples: expected an integer >= 2, got 2.5"),
+        (lambda: nr.Execution(workers=2), r"workers: only with a scheduler \(local or an address"),
+        (
+            lambda: nr.Execution(scheduler="local", workers=0),
+            "workers: expected an integer >= 1, got 0",
+        ),
+        (
+            lambda: nr.evaluate({}, resampling="bspline"),
+            r"resampling: expected Resampling\(...\) or None, got str",
+        ),
+        (
+            lambda: nr.evaluate({}, execution={}),
+            r"execution: expected Execution\(...\) or None, got dict",
+        ),
+        (
+            lambda: nr.evaluate({}, confidence="yes"),
+            "confidence: expected True, False or a Confidence, got str",
+        ),
+    ],
+)
+def test_option_groups_refuse_bad_values_naming_the_option(make, message):
+    """Each group checks its values when it is made (before any manifest is read: ``{}`` is
+    not a valid manifest), and evaluate refuses a group of the wrong type."""
+    with pytest.raises(ValueError, match=message):
+        make()
+
+
+def test_option_groups_are_keyword_only_and_frozen():
+    for group in (nr.Resampling, nr.Confidence, nr.Execution):
+        with pytest.raises(TypeError, match="positional"):
+            group(None)
+        with pytest.raises(AttributeError):
+            group().cache = None  # frozen: a dataclass refuses any assignment
+    # the defaults evaluate documents
+    assert nr.Resampling() == nr.Resampling(
+        interpolation="linear", label_interpolation="linear", label_sigma_mm=None
+    )
+    assert nr.Execution() == nr.Execution(scheduler=None, workers=None, cache=None)
+    assert nr.Confidence() == nr.Confidence(samples=None, resamples=None)
+
+
+def test_confidence_settings_reach_the_jackknife(tmp_path):
+    """``confidence=Confidence(resamples=3, samples=...)`` runs the jackknife with 3 groups
+    of the 6 subjects and the given samples per replicate; True runs ``Confidence()``:
+    leave one subject out (6 groups), ``min(n_samples, 100_000)`` samples."""
+    make_case(tmp_path, with_labels=False)
+    kw = dict(n_samples=400, seed=3, progress=False, figures=False)
+    default = nr.evaluate(tmp_path / "manifest.yaml", confidence=True, **kw)
+    grouped = nr.evaluate(
+        tmp_path / "manifest.yaml", confidence=nr.Confidence(resamples=3, samples=300), **kw
+    )
+    for result, groups, samples in ((default, N_IMAGES, 400), (grouped, 3, 300)):
+        assert result.options["confidence"] is True
+        assert result.options["resamples"] == groups
+        assert result.options["confidence_samples"] == samples
+        for scores in result.scores.values():
+            assert scores.intervals["specificity"].n_replicates == groups
+    # the same main run: only the intervals differ
+    for name, scores in grouped.scores.items():
+        assert scores.specificity.value == default.scores[name].specificity.value
+        assert scores.intervals["specificity"] != default.scores[name].intervals["specificity"]
+    off = nr.evaluate(tmp_path / "manifest.yaml", confidence=False, **kw)
+    assert off.options["confidence"] is False and off.scores["truth"].intervals == {}
+
+
 # ----------------------------------------------------------------------------- ranks
 
 

@@ -60,8 +60,7 @@ def test_overlap_matches_simpleitk_resampling_of_the_label_maps(tmp_path, method
     res = nr.evaluate(
         tmp_path / "manifest.yaml",
         weightings=("volume", "inverse_volume"),
-        label_interpolation=method,
-        label_sigma_mm=sigma,
+        resampling=nr.Resampling(label_interpolation=method, label_sigma_mm=sigma),
         **KW,
     )
     linear = nr.evaluate(tmp_path / "manifest.yaml", weightings=("inverse_volume",), **KW)
@@ -117,8 +116,16 @@ def test_bad_label_interpolation_options(tmp_path, capsys, extra, message):
 def test_api_refuses_inconsistent_options(tmp_path):
     make_case(tmp_path)
     with pytest.raises(ValueError, match="needs a finite sigma > 0 mm"):
-        nr.evaluate(tmp_path / "manifest.yaml", label_interpolation="gaussian", **KW)
+        nr.evaluate(
+            tmp_path / "manifest.yaml",
+            resampling=nr.Resampling(label_interpolation="gaussian"),
+            **KW,
+        )
     with pytest.raises(ValueError, match="only with label_interpolation='gaussian'"):
-        nr.evaluate(tmp_path / "manifest.yaml", label_sigma_mm=1.0, **KW)
+        nr.evaluate(tmp_path / "manifest.yaml", resampling=nr.Resampling(label_sigma_mm=1.0), **KW)
     with pytest.raises(ValueError, match="is not one of"):
-        nr.evaluate(tmp_path / "manifest.yaml", label_interpolation="cubic", **KW)
+        nr.evaluate(
+            tmp_path / "manifest.yaml",
+            resampling=nr.Resampling(label_interpolation="cubic"),
+            **KW,
+        )

@@ -63,7 +63,10 @@ def test_distributed_equals_single_process(tmp_path, distance):
     manifest = with_mask(tmp_path)
     single = nr.evaluate(manifest, distance=distance, **KW)
     scaled = nr.evaluate(
-        manifest, distance=distance, scheduler="local", workers=2, cache=tmp_path / "c", **KW
+        manifest,
+        distance=distance,
+        execution=nr.Execution(scheduler="local", workers=2, cache=tmp_path / "c"),
+        **KW,
     )
     assert_same_scores(single, scaled)
     assert scaled.run["workers"] == 2
@@ -81,7 +84,11 @@ def test_running_cluster_by_address(tmp_path):
     single = nr.evaluate(manifest, **KW)
     with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
         scaled = nr.evaluate(
-            manifest, scheduler=cluster.scheduler_address, workers=2, cache=tmp_path / "c", **KW
+            manifest,
+            execution=nr.Execution(
+                scheduler=cluster.scheduler_address, workers=2, cache=tmp_path / "c"
+            ),
+            **KW,
         )
         assert len(cluster.scheduler_info["workers"]) == 2  # still running: not ours to close
     assert_same_scores(single, scaled)
@@ -92,7 +99,7 @@ def test_running_cluster_by_address(tmp_path):
 def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
+    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
     first = nr.evaluate(manifest, **kw)
     again = nr.evaluate(manifest, **kw)
     assert again.run["cache_reused"] == first.run["cache_computed"] == 30
@@ -122,7 +129,7 @@ def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(
     spread without them."""
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
+    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
     first = nr.evaluate(manifest, **kw)
     assert not list(cache.glob("estimate/*/*/entry.json"))
     assert not list(cache.glob("frame_disp/*/*/entry.json"))
@@ -138,7 +145,7 @@ def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(
 def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(cache=cache, **EXECUTORS[executor], **KW)
+    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
     first = nr.evaluate(manifest, **kw)
     entries = sorted((cache / "resampled").glob("*/*/entry.json"))
     assert len(entries) == 18
@@ -315,10 +322,10 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     data = make_case(tmp_path)
     manifest = tmp_path / "manifest.yaml"
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
-    single = nr.evaluate(manifest, cache=tmp_path / "cache32", **KW)
+    single = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache32"), **KW)
     monkeypatch.setattr(_pipeline, "_STORED_IMAGE", np.float64)
     monkeypatch.setattr(_pipeline, "_STORED_ESTIMATE", np.float64)
-    double = nr.evaluate(manifest, cache=tmp_path / "cache64", **KW)
+    double = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache64"), **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
         # (the frame estimates, float32 too, are removed once F and its spread are kept)
         for kind, name in (("resampled", "image.npy"), ("frame", "disp.npy")):

@@ -216,8 +216,13 @@ def test_reports_show_no_python_internals(run):
     "call",
     [
         lambda: nr.evaluate({}, n_samples=np.int64(1)),
-        lambda: nr.evaluate({}, confidence_samples=np.int64(1)),
-        lambda: nr.evaluate({}, label_interpolation="gaussian", label_sigma_mm=np.float64(-62)),
+        lambda: nr.evaluate({}, confidence=nr.Confidence(samples=np.int64(1))),
+        lambda: nr.evaluate(
+            {},
+            resampling=nr.Resampling(
+                label_interpolation="gaussian", label_sigma_mm=np.float64(-62)
+            ),
+        ),
         lambda: nr.overlap_table(np.ones((3, 4, 4), int), spacing=(np.float64(-1.0), 1.0)),
         lambda: nr.overlap_table(np.ones((3, 4, 4), int), label_values=np.array([1, 1])),
         lambda: nr.overlap_table(np.ones((3, 4, 4), int), label_values=np.array([1.0, 2.5])),

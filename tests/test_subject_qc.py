@@ -360,7 +360,11 @@ def test_the_jackknife_runs_over_the_subjects_in_the_scores(cohort, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = nr.evaluate(
-            cohort[1], n_samples=100, confidence_samples=100, progress=False, cache=tmp_path
+            cohort[1],
+            n_samples=100,
+            confidence=nr.Confidence(samples=100),
+            progress=False,
+            execution=nr.Execution(cache=tmp_path),
         )
     assert result.options["resamples"] == N - 1  # leave-one-out over the 35 scored subjects
     assert math.isfinite(result.scores["damaged"].intervals["specificity"].lo)

@@ -123,8 +123,8 @@ def test_confidence_off_gives_no_intervals(tmp_path):
     assert "not computed" in " ".join(result.verdict.text)
     assert result.verdict.decisions == ()  # nothing separable, no severe folding: all open
     assert not result.verdict.decided
-    with pytest.raises(ValueError, match="confidence_samples: expected an integer >= 2"):
-        nr.evaluate(tmp_path / "manifest.yaml", confidence_samples=1, **KW)
+    with pytest.raises(ValueError, match="samples: expected an integer >= 2"):
+        nr.evaluate(tmp_path / "manifest.yaml", confidence=nr.Confidence(samples=1), **KW)
 
 
 def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):

@@ -293,7 +293,7 @@ SUBJECT_OPTIONS = (
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
-    from ..evaluation import evaluate
+    from ..evaluation import Confidence, Execution, Resampling, evaluate
     from ..plausibility import SubjectThresholds, Thresholds
     from ..report import summary_table
 
@@ -316,16 +316,18 @@ def run(args: argparse.Namespace) -> int:
         n_samples=args.samples,
         seed=args.seed,
         distance=args.distance,
-        interpolation=args.interpolation,
-        label_interpolation=args.label_interpolation,
-        label_sigma_mm=args.label_sigma,
+        resampling=Resampling(
+            interpolation=args.interpolation,
+            label_interpolation=args.label_interpolation,
+            label_sigma_mm=args.label_sigma,
+        ),
         progress=not args.quiet,
-        scheduler=args.scheduler,
-        workers=args.workers,
-        cache=cache,
-        confidence=not args.no_confidence,
-        confidence_samples=args.confidence_samples,
-        resamples=args.resamples,
+        execution=Execution(scheduler=args.scheduler, workers=args.workers, cache=cache),
+        confidence=(
+            False
+            if args.no_confidence
+            else Confidence(samples=args.confidence_samples, resamples=args.resamples)
+        ),
         inverse_consistency=not args.no_inverse_consistency,
         thresholds=Thresholds(
             folded_mean=args.flag_folded_mean,
