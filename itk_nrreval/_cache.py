@@ -90,7 +90,8 @@ def _decoded_digest(path: str) -> str:
     import SimpleITK as sitk
 
     from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
-    from ._images import ITK_READ_LOCK, image_digest
+    from ._executors import ITK_READ_LOCK
+    from ._images import image_digest
     from .transforms import TRANSFORM_SUFFIXES, file_suffix, transform_digest
 
     if is_elastix_parameter_file(path):  # its initial transforms' files count too

@@ -10,13 +10,21 @@ ran them: each caller places a result by its index.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any, Protocol
 
 from ._progress import progress_bar
 
-__all__ = ["Executor", "InProcessExecutor", "ThreadExecutor", "local_executor"]
+__all__ = ["Executor", "InProcessExecutor", "ThreadExecutor", "local_executor", "ITK_READ_LOCK"]
+
+
+#: ITK's HDF5 library is not thread-safe (two threads reading ``.h5`` transforms at once end
+#: the process: "HDF5: infinite loop closing library"). Every read of an image or transform
+#: file by SimpleITK takes this lock, so that tasks on threads of one process (or callers'
+#: own threads) can read; a read is about 3 % of a task's time at 1 mm.
+ITK_READ_LOCK = threading.Lock()
 
 
 class Executor(Protocol):

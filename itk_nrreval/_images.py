@@ -35,7 +35,6 @@ import hashlib
 import os
 import pickle
 import sys
-import threading
 import warnings
 import zlib
 from collections.abc import Mapping, Sequence
@@ -46,6 +45,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ._errors import InputError
+from ._executors import ITK_READ_LOCK
 
 __all__ = [
     "Geometry",
@@ -66,12 +66,6 @@ __all__ = [
 
 ImageLike = "np.ndarray | sitk.Image | itk.Image | dict | str | os.PathLike"
 ARRAY_KEYS = ("array", "spacing", "origin", "direction")
-
-#: ITK's HDF5 library is not thread-safe (two threads reading ``.h5`` transforms at once end
-#: the process: "HDF5: infinite loop closing library"). Every read of an image or transform
-#: file by SimpleITK takes this lock, so that evaluate's per-image tasks can run on threads
-#: of one process; a read is about 3 % of a task's time at 1 mm.
-ITK_READ_LOCK = threading.Lock()
 
 
 @dataclass(frozen=True)

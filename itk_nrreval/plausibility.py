@@ -331,9 +331,15 @@ def deformation_measures(
     if inverse_consistency:
         try:
             inverse = invert(t, grid=g, field_step=INVERSE_FIELD_STEP)
-            # p -> T^-1(T(p)), nested as it is (SimpleITK applies its list from the back):
-            # flattening would copy every displacement field two more times
-            round_trip = sitk.CompositeTransform([inverse, t])
+            # p -> T^-1(T(p)) (SimpleITK applies its list from the back). `inverse` is ours:
+            # T joins it in place, which copies T's fields once, where a new composite
+            # would copy the inverse's too (~0.15 s at 1 mm)
+            if isinstance(inverse, sitk.CompositeTransform):
+                inverse.AddTransform(t)
+                inverse.FlattenTransform()
+                round_trip = inverse
+            else:
+                round_trip = sitk.CompositeTransform([inverse, t])
         except (InputError, RuntimeError):
             round_trip = None
 

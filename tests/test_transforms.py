@@ -375,3 +375,57 @@ def test_hdf5_transforms_read_from_threads(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-500:]
     assert done.stdout.strip() == "done []"
+
+
+def test_a_transform_file_changed_to_nan_after_a_first_read_is_refused(tmp_path):
+    # A file once found finite is not taken apart again to check it (issue 30: that copies
+    # every field), but only while it is unchanged: rewritten with a NaN, it is refused.
+    from itk_nrreval.transforms import read_transform
+
+    field = sitk.Image([6, 5, 4], sitk.sitkVectorFloat64, 3)
+    values = sitk.GetArrayFromImage(field)  # the transform takes the image's buffer
+    path = tmp_path / "t.h5"
+    sitk.WriteTransform(
+        sitk.CompositeTransform([sitk.AffineTransform(3), sitk.DisplacementFieldTransform(field)]),
+        str(path),
+    )
+    assert read_transform(path).GetNumberOfTransforms() == 2
+    assert read_transform(path).GetNumberOfTransforms() == 2  # the second read: remembered
+    values[2, 3, 1, 0] = np.nan
+    bad = sitk.GetImageFromArray(values, isVector=True)
+    sitk.WriteTransform(
+        sitk.CompositeTransform([sitk.AffineTransform(3), sitk.DisplacementFieldTransform(bad)]),
+        str(path),
+    )
+    with pytest.raises(InputError, match="t.h5: transform contains NaN or infinite values"):
+        read_transform(path)
+
+
+def test_a_chain_is_built_in_place_without_touching_the_callers_transforms(tmp_path):
+    # chain_transform grows the composite it read from the last file in place (issue 30);
+    # a composite the caller passed is copied, never changed, and the map is the chain's.
+    from itk_nrreval.transforms import chain_transform, leaves
+
+    first = sitk.Euler3DTransform((1.0, 2.0, 0.0), 0.1, -0.2, 0.3, (2.0, -1.0, 0.5))
+    field = sitk.Image([8, 7, 6], sitk.sitkVectorFloat64, 3)
+    field.SetSpacing((1.5, 0.8, 1.2))
+    field.SetOrigin((-3.0, -2.0, -4.0))
+    values = np.random.default_rng(4).normal(0.0, 0.7, (6, 7, 8, 3))
+    shifted = sitk.GetImageFromArray(values, isVector=True)
+    shifted.CopyInformation(field)
+    last = sitk.CompositeTransform(
+        [sitk.ScaleTransform(3, (1.1, 0.9, 1.05)), sitk.DisplacementFieldTransform(shifted)]
+    )
+    path = tmp_path / "last.h5"
+    sitk.WriteTransform(last, str(path))
+    points = [(0.3, -1.2, 0.4), (2.0, 1.0, -1.5), (-2.5, 0.5, 1.0)]
+    expected = [last.TransformPoint(first.TransformPoint(p)) for p in points]
+    for given in (path, last):
+        chain = chain_transform([first, given])
+        assert [t.GetName() for t in leaves(chain)] == [
+            "ScaleTransform",
+            "DisplacementFieldTransform",
+            "Euler3DTransform",
+        ]
+        np.testing.assert_allclose([chain.TransformPoint(p) for p in points], expected, atol=1e-12)
+    assert last.GetNumberOfTransforms() == 2  # the caller's composite is unchanged
