@@ -56,10 +56,11 @@ _INTERPOLATORS = {"linear": sitk.sitkLinear, "bspline": sitk.sitkBSpline}
 #: Each frame estimate inverts the displacement fields of ``T_i^R`` on every
 #: ``ESTIMATE_FIELD_STEP``-th node of their grids and refines that inverse by
 #: ``ESTIMATE_REFINE_STEPS`` fixed-point steps on their own grids (``field_step`` and
-#: ``refine_steps`` of :func:`itk_nrreval.transforms.invert`): at 1 mm 5.3 s of one core
-#: instead of 13.2 s (``benchmarks/bench_image_task.py``), within 0.01 mm of the full-grid
+#: ``refine_steps`` of :func:`itk_nrreval.transforms.invert`): at 1 mm about 3 s of one core
+#: instead of 13 s (``benchmarks/bench_image_task.py``), within 0.01 mm of the full-grid
 #: inverse at every voxel on a smooth 3 mm field on an oblique, anisotropic grid
-#: (tests/test_frame.py; issue 30).
+#: (tests/test_frame.py; issue 30). Every fourth node would save another second at 1 mm, but
+#: on small grids (a 2D 32-pixel phantom) its frame estimates missed by 0.02 mm.
 ESTIMATE_FIELD_STEP = 2
 ESTIMATE_REFINE_STEPS = 3
 _METHODS = ("common", "frame_transform", "reference_index", "mean")

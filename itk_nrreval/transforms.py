@@ -672,6 +672,7 @@ def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> si
         out = buffers[n % 2]
         _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, on_grid)
         v, on_grid = out, True
+    del buffers, out  # the other buffer goes before the image copies `v` (283 MB at 1 mm)
     result = sitk.GetImageFromArray(v[0, ..., :2] if dim == 2 else v, isVector=True)
     result.SetSpacing(field.GetSpacing())
     result.SetDirection(field.GetDirection())
