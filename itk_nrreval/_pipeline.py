@@ -55,6 +55,7 @@ from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
 from .frame import (
     FrameMapping,
     common_reference,
+    distance_sums,
     frame_estimates,
     frame_method,
     label_values,
@@ -182,11 +183,7 @@ def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, f
     cache = ctx.cache()
     est = cache.open("estimate", key).array("disp")
     f_disp = cache.open("frame_disp", frame_disp_key).array("disp")
-    dist = np.linalg.norm(est - f_disp, axis=-1).reshape(-1)  # float64, as f_disp
-    mask = ctx.mask_flat()
-    if mask is not None:
-        dist = dist[mask]
-    return float(dist.sum()), float(dist.max()), int(dist.size)
+    return distance_sums(est, f_disp, ctx.mask_flat())
 
 
 def _resample_task(

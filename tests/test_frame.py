@@ -227,3 +227,22 @@ def test_frame_estimates_within_a_hundredth_of_a_mm_of_the_full_grid_inverse():
     )
     err = np.linalg.norm(est - expected, axis=-1)
     assert err.max() < 0.01 and err.mean() < 1e-4, (err.max(), err.mean())
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_distance_sums_equal_numpys_norm(masked):
+    # The frame spread's per-estimate sums (issue 30: one compiled pass instead of two
+    # full-size temporaries) against np.linalg.norm over the same voxels.
+    from itk_nrreval.frame import distance_sums
+
+    rng = np.random.default_rng(7)
+    a = rng.normal(0.0, 2.0, (9, 11, 13, 3)).astype(np.float32)
+    b = rng.normal(0.0, 2.0, (9, 11, 13, 3))
+    mask = rng.random((9, 11, 13)) > 0.4 if masked else None
+    dist = np.linalg.norm(a.astype(np.float64) - b, axis=-1)
+    if mask is not None:
+        dist = dist[mask]
+    total, largest, count = distance_sums(a, b, mask)
+    assert count == dist.size
+    assert largest == dist.max()
+    assert total == pytest.approx(dist.sum(), rel=1e-13)
