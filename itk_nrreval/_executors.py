@@ -21,9 +21,10 @@ __all__ = ["Executor", "InProcessExecutor", "ThreadExecutor", "local_executor", 
 
 
 #: ITK's HDF5 library is not thread-safe (two threads reading ``.h5`` transforms at once end
-#: the process: "HDF5: infinite loop closing library"). Every read of an image or transform
-#: file by SimpleITK takes this lock, so that tasks on threads of one process (or callers'
-#: own threads) can read; a read is about 3 % of a task's time at 1 mm.
+#: the process: "HDF5: infinite loop closing library"). Every whole-file read by SimpleITK
+#: (``ReadImage``, ``ReadTransform``) takes this lock, so that tasks on threads of one process
+#: (or callers' own threads) can read; a read is about 3 % of a task's time at 1 mm. Header
+#: reads (``ImageFileReader.ReadImageInformation``, in the manifest checks) do not.
 ITK_READ_LOCK = threading.Lock()
 
 

@@ -240,11 +240,7 @@ def _resample_task(
     if entry is not None:
         return key, True, dict(entry.meta)
     t = chain_transform(item)
-    if frame[0] == "identity" and not t.IsLinear():
-        # T_i o identity is T_i to the bit, and a composite around it would copy its fields
-        full = t
-    else:
-        full = resampling_transform(t, _frame_transform(frame, g, cache))
+    full = resampling_transform(t, _frame_transform(frame, g, cache))
     raw = read_image(image, what="image")
     values = resample_images(
         [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan

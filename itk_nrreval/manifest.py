@@ -93,6 +93,7 @@ from ._elastix_files import (
     read_elastix_transform,
 )
 from ._errors import InputError
+from ._executors import ITK_READ_LOCK
 from ._images import InMemoryImage, dimension_problem
 from ._output import write_text
 from .transforms import (
@@ -645,7 +646,8 @@ def transform_file_dimension(path: Path) -> int:
                 if m:
                     return int(m.group(1))
         raise ValueError("no 'Transform:' line")
-    return sitk.ReadTransform(str(path)).GetDimension()
+    with ITK_READ_LOCK:
+        return sitk.ReadTransform(str(path)).GetDimension()
 
 
 def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:

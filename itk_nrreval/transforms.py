@@ -467,9 +467,9 @@ def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sit
     # it from a file (nobody else holds it), and the earlier items, which act first, appended
     # at the back of SimpleITK's list.
     last = transforms[-1]
-    fresh = isinstance(items[-1], (str, os.PathLike))
-    chain = last if fresh and isinstance(last, sitk.CompositeTransform) else None
-    if chain is None:
+    if isinstance(items[-1], (str, os.PathLike)) and isinstance(last, sitk.CompositeTransform):
+        chain = last
+    else:
         chain = sitk.CompositeTransform(last.GetDimension())
         chain.AddTransform(last)
     for t in reversed(transforms[:-1]):
