@@ -23,6 +23,7 @@ __all__ = [
     "json_written_by_nrreval",
     "staged_folder",
     "claim_output_folder",
+    "claim_entries",
     "json_number",
 ]
 
@@ -266,6 +267,66 @@ def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str]) -> Pa
         raise InputError(f"{out / foreign[0]}: was not written by nrreval and would be replaced")
     _write_record(out, previous | entries)
     return out
+
+
+def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
+    """Before a result's ``write`` into `folder`: refuse, before anything is written, to
+    replace an entry the toolkit did not write; then record `names` as the toolkit's.
+
+    The Python API's writers (``register(out=)``, each result's ``write``) may write into a
+    user's own folder, beside the user's files; this keeps them from replacing one that
+    happens to share a name (``report.html``, ``reference.nii.gz``). An entry is the
+    toolkit's when the folder's record (:data:`MARKER`) names it, or when the folder itself
+    lies inside an entry of the toolkit's (a demo's ``registrations/fluid``, a staged
+    result).
+
+    Parameters
+    ----------
+    folder : path
+        Created where missing.
+    names : str
+        The top-level names about to be written there.
+
+    Returns
+    -------
+    Path
+        `folder`, absolute.
+
+    Raises
+    ------
+    InputError
+        `folder` is a file, or one of `names` exists there and was not written by the
+        toolkit (nothing is written).
+    """
+    from ._errors import InputError
+
+    folder = Path(folder).resolve()
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{folder}: exists and is not a folder")
+    names = set(names)
+    if _inside_an_entry_of_ours(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+        return folder
+    record = _read_record(folder) or set()
+    foreign = sorted(n for n in names - record if os.path.lexists(folder / n))
+    if foreign:
+        raise InputError(
+            f"{folder / foreign[0]}: exists and was not written by nrreval; "
+            "write into a new folder, or move the file (nothing was written)"
+        )
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_record(folder, record | names)
+    return folder
+
+
+def _inside_an_entry_of_ours(folder: Path) -> bool:
+    """Whether `folder` lies inside an entry the toolkit recorded in a folder above it, or
+    is one of :func:`staged_folder`'s temporary folders."""
+    for parent, child in zip(folder.parents, [folder, *folder.parents], strict=False):
+        record = _read_record(parent)
+        if record is not None and (child.name in record or child.name.startswith(_STAGE)):
+            return True
+    return False
 
 
 @contextlib.contextmanager

@@ -111,6 +111,7 @@ __all__ = [
     "load_manifest",
     "write_manifest",
     "written_by_nrreval",
+    "check_rewritable",
     "WRITTEN_BY",
     "add_registration",
     "order_as_in_manifest",
@@ -970,6 +971,23 @@ def written_by_nrreval(path: str | os.PathLike) -> bool:
     return first == WRITTEN_BY or first.startswith(WRITTEN_BY + " ")
 
 
+def check_rewritable(manifest_path: str | os.PathLike) -> None:
+    """Refuse a manifest that adding a registration would rewrite but the toolkit did not
+    write: its comments and layout would be lost.
+
+    Raises
+    ------
+    InputError
+        `manifest_path` exists and is not :func:`written_by_nrreval`.
+    """
+    if os.path.lexists(manifest_path) and not written_by_nrreval(manifest_path):
+        raise InputError(
+            f"{manifest_path}: a manifest nrreval did not write; adding the registration would "
+            "rewrite it. Give a new manifest file (it may list the same images), or add the "
+            "registration to it by hand (nothing was written)"
+        )
+
+
 def add_registration(
     manifest_path: str | os.PathLike,
     name: str,
@@ -1013,9 +1031,11 @@ def add_registration(
     Raises
     ------
     InputError
-        Bad structure (wrong counts ...), or `images` differing from an existing manifest's.
+        Bad structure (wrong counts ...), `images` differing from an existing manifest's,
+        or an existing manifest the toolkit did not write (:func:`check_rewritable`).
     """
     manifest_path = Path(manifest_path)
+    check_rewritable(manifest_path)
     cwd = Path.cwd()
 
     def absolute(p):

@@ -32,7 +32,7 @@ import numpy as np
 from ._errors import InputError
 from ._executors import Executor, local_executor
 from ._images import image_stack, mask_array
-from ._output import json_number, write_json, write_text
+from ._output import claim_entries, json_number, write_json, write_text
 from ._progress import progress_bar
 from .overlap import WEIGHTINGS, overlap_table
 from .report.validation import OUTPUT_FILES, write_validation
@@ -269,7 +269,7 @@ class ValidationResult:
         """
         from ._version import __version__
 
-        out = Path(out_dir)
+        out = claim_entries(out_dir, OUTPUT_FILES)
         paths = [out / name for name in OUTPUT_FILES[:2]]
         write_text(paths[0], self.to_csv())
         write_json(paths[1], {"version": __version__, **self.to_dict()})

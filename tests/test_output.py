@@ -231,3 +231,82 @@ def test_register_refuses_to_rewrite_a_manifest_it_did_not_write(tmp_path, capsy
     from itk_nrreval.manifest import load_manifest
 
     assert set(load_manifest(ours).registrations) == {"affine", "b"}
+
+
+def _write_registration(out, **kwargs):
+    """register(out=) of three small blobs (affine: seconds)."""
+    import SimpleITK as sitk
+
+    from itk_nrreval.registration import register
+
+    images = [sitk.ReadImage(p) for p in _blob_images(out.parent, out.name + "_img")]
+    return register(images, method="affine", progress=False, out=out, **kwargs)
+
+
+def test_python_writers_never_replace_a_users_file(tmp_path):
+    """The Python API's writers (register(out=), every result's .write) into a folder that
+    holds a user's file of a name they write: refused before anything is written, the
+    user's file byte for byte kept; a second write into the toolkit's own folder replaces
+    only its own files, and a user's file of another name stays."""
+    from test_evaluate import make_case
+
+    import itk_nrreval as nr
+    from itk_nrreval import InputError
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "reference.nii.gz").write_bytes(b"the user's reference")
+    (mine / "notes.txt").write_text("the user's notes")
+    before = _tree(mine)
+    with pytest.raises(InputError, match="reference.nii.gz.*not written by nrreval"):
+        _write_registration(mine)
+    assert _tree(mine) == before
+
+    ours = tmp_path / "ours"
+    result = _write_registration(ours)
+    (ours / "notes.txt").write_text("the user's notes")
+    result.write(ours)  # its own files: replaced
+    assert (ours / "notes.txt").read_text() == "the user's notes"
+    assert (ours / "registration.json").is_file()
+
+    case = tmp_path / "case"
+    case.mkdir()
+    make_case(case)
+    evaluation = nr.evaluate(case / "manifest.yaml", n_samples=200, progress=False)
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "report.html").write_text("<p>the user's page</p>")
+    before = _tree(report)
+    with pytest.raises(InputError, match="report.html.*not written by nrreval"):
+        evaluation.write(report)
+    assert _tree(report) == before
+    evaluation.write(tmp_path / "new", figures=False)
+    evaluation.write(tmp_path / "new", figures=False)  # a rerun replaces its own files
+
+
+def test_add_to_manifest_refuses_a_hand_written_manifest(tmp_path):
+    """RegistrationResult.add_to_manifest rewrites the whole manifest: a hand-written one
+    (comments, layout) is refused as the CLI refuses it, before the transforms are
+    written; a manifest the toolkit wrote is extended."""
+    from itk_nrreval import InputError
+
+    result = _write_registration(tmp_path / "first")
+    images = [str(p) for p in sorted(tmp_path.glob("first_img*.nii.gz"))]
+    mine = tmp_path / "mine.yaml"
+    first = tmp_path / "first"
+    mine.write_text(
+        "# my study, do not lose this comment\n"
+        f"images: [{', '.join(images)}]\n"
+        f"registrations:\n  mine:\n    reference: {first / 'reference.nii.gz'}\n"
+        f"    transforms: [{', '.join(str(p) for p in sorted(first.glob('*.h5')))}]\n"
+    )
+    before = mine.read_bytes()
+    with pytest.raises(InputError, match="a manifest nrreval did not write"):
+        result.add_to_manifest(mine, "affine", out=tmp_path / "affine")
+    assert mine.read_bytes() == before and not (tmp_path / "affine").exists()
+    ours = tmp_path / "ours.yaml"
+    result.add_to_manifest(ours, "a", out=tmp_path / "a", images=images)
+    result.add_to_manifest(ours, "b", out=tmp_path / "b")
+    from itk_nrreval.manifest import load_manifest
+
+    assert set(load_manifest(ours).registrations) == {"a", "b"}

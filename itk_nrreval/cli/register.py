@@ -89,7 +89,7 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
-    from ..manifest import add_registration, load_manifest, order_as_in_manifest, written_by_nrreval
+    from ..manifest import add_registration, check_rewritable, load_manifest, order_as_in_manifest
     from ..registration import register
     from ..registration.multimodal import record_groups
     from ..transforms import file_stem
@@ -97,14 +97,7 @@ def run(args: argparse.Namespace) -> int:
     inputs = [*args.images, *(p for p in (args.reference, args.manifest) if p is not None)]
     out = check_output_folder(args.out, inputs=inputs)  # before the (long) registration
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
-    if manifest.exists() and not written_by_nrreval(manifest):
-        # adding a registration rewrites the whole file: a hand-written one would lose its
-        # comments and layout
-        raise InputError(
-            f"{manifest}: a manifest nrreval did not write; adding the registration would "
-            "rewrite it. Give --manifest NEW.yaml (it may list the same images), or add the "
-            "registration to it by hand (nothing was written)"
-        )
+    check_rewritable(manifest)  # before the (long) registration
     old = load_manifest(manifest, check_files=False) if manifest.exists() else None
     # --images may come in any order (a shell glob lists s00_t1 s00_t2 s01_t1 ...): they are
     # registered, named and recorded in the manifest's order, which its groups follow.

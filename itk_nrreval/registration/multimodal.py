@@ -58,7 +58,7 @@ from typing import Any
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._output import write_json
+from .._output import claim_entries, write_json
 from .._progress import progress_bar
 from ..transforms import flatten, write_transform
 from ._common import check_choice, check_engine_options, input_settings, load_images, with_options
@@ -127,11 +127,12 @@ class MultimodalResult(RegistrationResult):
             ``{"reference": Path, "transforms": [Path, ...], "log": Path,
             "links": {group: Path}}``.
         """
+        link_names = self.link_names()
+        # every name claimed before any is written: a refused link leaves nothing behind
+        claim_entries(out, [*link_names.values(), *self.file_names(names), *self.FILES])
         paths = super().write(out, names=names)
         out = Path(out)
-        links = {
-            g: write_transform(self.links[g], out / name) for g, name in self.link_names().items()
-        }
+        links = {g: write_transform(self.links[g], out / name) for g, name in link_names.items()}
         log = json.loads(paths["log"].read_text())
         log["links"] = {str(g): p.name for g, p in links.items()}
         write_json(paths["log"], log)

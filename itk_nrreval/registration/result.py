@@ -13,7 +13,7 @@ from typing import Any
 import SimpleITK as sitk
 
 from .._errors import InputError
-from .._output import atomic_path, write_json
+from .._output import atomic_path, claim_entries, write_json
 from ..transforms import write_transform
 from ._common import resample
 
@@ -140,19 +140,20 @@ class RegistrationResult:
         -------
         dict
             ``{"reference": Path, "transforms": [Path, ...], "log": Path}``.
+
+        Raises
+        ------
+        InputError
+            A file of one of these names is in `out` and was not written by the toolkit
+            (nothing is written; files of other names in `out` are left alone).
         """
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        names = [f"image{i:03d}" for i in range(self.n_images)] if names is None else list(names)
-        if len(names) != self.n_images:
-            raise InputError(f"names: {len(names)} given for {self.n_images} transforms")
-        paths = []
-        for i, (t, stem) in enumerate(zip(self.transforms, names, strict=True)):
-            paths.append(write_transform(t, out / f"{i:03d}_{stem}.h5"))
-        reference = out / "reference.nii.gz"
+        files = self.file_names(names)
+        out = claim_entries(out, [*files, *self.FILES])
+        paths = [write_transform(t, out / f) for t, f in zip(self.transforms, files, strict=True)]
+        reference = out / self.FILES[0]
         with atomic_path(reference) as tmp:
             sitk.WriteImage(self.reference, str(tmp))
-        log = out / "registration.json"
+        log = out / self.FILES[1]
         write_json(
             log,
             {
@@ -165,6 +166,17 @@ class RegistrationResult:
             },
         )
         return {"reference": reference, "transforms": paths, "log": log}
+
+    #: The files :meth:`write` writes beside the transforms.
+    FILES = ("reference.nii.gz", "registration.json")
+
+    def file_names(self, names: Sequence[str] | None = None) -> list[str]:
+        """The transform files' names :meth:`write` gives: ``000_<stem>.h5`` ... (default
+        stems ``image000`` ...)."""
+        names = [f"image{i:03d}" for i in range(self.n_images)] if names is None else list(names)
+        if len(names) != self.n_images:
+            raise InputError(f"names: {len(names)} given for {self.n_images} transforms")
+        return [f"{i:03d}_{stem}.h5" for i, stem in enumerate(names)]
 
     def add_to_manifest(
         self,
@@ -199,8 +211,9 @@ class RegistrationResult:
         Path
             `manifest`.
         """
-        from ..manifest import add_registration  # noqa: PLC0415 - only needed here
+        from ..manifest import add_registration, check_rewritable  # noqa: PLC0415
 
+        check_rewritable(manifest)  # before any transform is written
         written = self.write(out, names=names)
         return add_registration(
             manifest,

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._output import atomic_path, write_json, write_text
+from .._output import atomic_path, claim_entries, write_json, write_text
 
 __all__ = ["table1_markdown", "table1_csv", "save_cell_figure", "write_diagnostics"]
 
@@ -36,13 +36,19 @@ def write_diagnostics(result, out_dir: str | os.PathLike) -> list[Path]:
     list of Path
         The four files, in that order.
     """
-    out = Path(out_dir)
-    paths = [out / "appearance_table1.md", out / "appearance_table1.csv"]
+    names = [
+        "appearance_table1.md",
+        "appearance_table1.csv",
+        "appearance_diagnostics.json",
+        "appearance_cells.png",
+    ]
+    out = claim_entries(out_dir, names)
+    paths = [out / names[0], out / names[1]]
     write_text(paths[0], table1_markdown(result.results))
     write_text(paths[1], table1_csv(result.results))
-    paths.append(out / "appearance_diagnostics.json")
+    paths.append(out / names[2])
     write_json(paths[-1], result.to_dict())
-    paths.append(save_cell_figure(result.results, out / "appearance_cells.png"))
+    paths.append(save_cell_figure(result.results, out / names[3]))
     return paths
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .._output import atomic_path, write_text
+from .._output import atomic_path, claim_entries, write_text
 from .evaluation_figures import figure_pngs
 from .evaluation_page import report_html
 from .evaluation_text import results_csv, results_json, subjects_csv, summary_table
@@ -28,7 +28,9 @@ def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) ->
     ----------
     result : EvaluationResult
     out : path
-        Created if needed; files of other names in it are left alone.
+        Created if needed; files of other names in it are left alone, and one of these
+        names that the toolkit did not write there is refused (InputError, nothing
+        written).
     figures : bool
         Render and write the PNG figures (:func:`~.evaluation_figures.figure_pngs`) and
         ``report.html`` (:func:`~.evaluation_page.report_html`, embedding the same bytes);
@@ -39,18 +41,8 @@ def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) ->
     list of Path
         The files written.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     pngs = figure_pngs(result) if figures else {}
-    written = []
-    for fname, data in pngs.items():
-        with atomic_path(out / fname) as tmp:
-            tmp.write_bytes(data)
-        written.append(out / fname)
-    if figures:
-        write_text(out / "report.html", report_html(result, figures=pngs))
-        written.append(out / "report.html")
-    # build everything before writing any results.* file
+    # build everything before writing any file
     texts = {
         "results.json": results_json(result),
         "results.csv": results_csv(result),
@@ -58,7 +50,14 @@ def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) ->
     }
     if any(s.subjects for s in result.scores.values()):
         texts["subjects.csv"] = subjects_csv(result)
-    for fname, text in texts.items():
+    page = {"report.html": report_html(result, figures=pngs)} if figures else {}
+    out = claim_entries(out, [*pngs, *page, *texts])
+    written = []
+    for fname, data in pngs.items():
+        with atomic_path(out / fname) as tmp:
+            tmp.write_bytes(data)
+        written.append(out / fname)
+    for fname, text in {**page, **texts}.items():
         write_text(out / fname, text)
         written.append(out / fname)
     return written
