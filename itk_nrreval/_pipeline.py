@@ -50,7 +50,13 @@ from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
 from ._executors import Executor
 from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
-from ._memberships import SparseMemberships, resample_label_memberships, write_membership_image
+from ._memberships import (
+    SparseMemberships,
+    resample_image_and_memberships,
+    resample_label_memberships,
+    shares_grid,
+    write_membership_image,
+)
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
 from .frame import (
     FrameMapping,
@@ -242,9 +248,11 @@ def _resample_task(
     t = chain_transform(item)
     full = resampling_transform(t, _frame_transform(frame, g, cache))
     raw = read_image(image, what="image")
-    values = resample_images(
-        [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan
-    )[0].reshape(-1)
+    lab = None if labels is None else read_image(labels, what="label map")
+    own = None if labels is None else [int(v) for v in own_values]
+    values, memb = _resampled_image_and_memberships(
+        raw, lab, full, g, interpolation=interpolation, values=own, labels=label_resampling
+    )
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
     values[~covered] = 0.0
     arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
@@ -265,19 +273,41 @@ def _resample_task(
         "label_like": label_like_values(raw),
         "coverage": float(inside.mean()) if inside.size else 0.0,
     }
-    if labels is not None:
-        lab = read_image(labels, what="label map")
-        own = [int(v) for v in own_values]
-        method, sigma_mm = label_resampling
-        memb = resample_label_memberships(
-            lab, full, g, values=own, method=method, sigma_mm=sigma_mm
-        )
+    if memb is not None:
         # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
         index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
         arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
         meta.update(labels=own)
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
+
+
+def _resampled_image_and_memberships(
+    raw: sitk.Image,
+    lab: sitk.Image | None,
+    full: sitk.Transform,
+    g: Geometry,
+    *,
+    interpolation: str,
+    values: list[int] | None,
+    labels: tuple[str, float | None],
+) -> tuple[np.ndarray, SparseMemberships | None]:
+    """The image on `g` (flat float64, NaN outside its field of view) and the label map's
+    memberships (None without one): through one sampling of `full` when both are linear
+    and on one grid (the usual image and its parcellation), else one resampling each."""
+    method, sigma_mm = labels
+    scalar = raw.GetNumberOfComponentsPerPixel() == 1
+    if lab is not None and scalar and interpolation == method == "linear" and shares_grid(raw, lab):
+        return resample_image_and_memberships(raw, lab, full, g, values=values)
+    image = resample_images(
+        [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan
+    )
+    memb = None
+    if lab is not None:
+        memb = resample_label_memberships(
+            lab, full, g, values=values, method=method, sigma_mm=sigma_mm
+        )
+    return image[0].reshape(-1), memb
 
 
 def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:

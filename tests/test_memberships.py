@@ -489,3 +489,97 @@ def test_label_interpolation_options_are_checked():
         resample_label_memberships(label_map, t, grid, method="gaussian")
     with pytest.raises(InputError, match="only for method 'gaussian'"):
         resample_label_memberships(label_map, t, grid, method="nearest", sigma_mm=1.0)
+
+
+# ------------------------------------------------- the image resampled beside the memberships
+
+
+def intensity_on(label_map: sitk.Image, rng, dtype=np.int16) -> sitk.Image:
+    """A smooth image with sharp steps on the label map's own grid (header copied)."""
+    labels = sitk.GetArrayFromImage(label_map).astype(float)
+    smooth = ndimage.gaussian_filter(rng.normal(size=labels.shape), 1.5)
+    arr = (300.0 * smooth / np.abs(smooth).max() + 0.01 * labels).astype(dtype)
+    img = sitk.GetImageFromArray(arr)
+    img.CopyInformation(label_map)
+    return img
+
+
+def itk_linear(image: sitk.Image, transform, grid: Geometry) -> np.ndarray:
+    """ITK's own linear resampling in float64, NaN outside the buffer (flat, C order)."""
+    out = sitk.Resample(
+        sitk.Cast(image, sitk.sitkFloat64),
+        list(grid.size),
+        transform,
+        sitk.sitkLinear,
+        list(grid.origin),
+        list(grid.spacing),
+        list(grid.direction),
+        float("nan"),
+        sitk.sitkFloat64,
+    )
+    return sitk.GetArrayFromImage(out).ravel()
+
+
+def check_image_and_memberships(image, label_map, transform, grid) -> np.ndarray:
+    """The shared sampling's image equals ITK's linear resampling (NaN where ITK's is, values
+    to 1e-12 of the image's range) and its memberships are the memberships' own, bit for bit."""
+    values, sm = _memberships.resample_image_and_memberships(
+        image, label_map, transform, grid, values=LARGE_VALUES
+    )
+    ref = itk_linear(image, transform, grid)
+    assert values.shape == ref.shape and values.dtype == np.float64
+    np.testing.assert_array_equal(np.isnan(values), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    scale = float(np.abs(sitk.GetArrayViewFromImage(image)).max())
+    np.testing.assert_allclose(values[ok], ref[ok], rtol=0, atol=1e-12 * scale)
+    own = resample_label_memberships(label_map, transform, grid, values=LARGE_VALUES)
+    for a, b in ((sm.ptr, own.ptr), (sm.index, own.index), (sm.weight, own.weight)):
+        np.testing.assert_array_equal(a, b)
+    return values
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kind", ["identity", "affine", "field", "composite", "bspline"])
+@pytest.mark.parametrize("dtype", [np.int16, np.float32])
+def test_image_resampled_beside_the_memberships_equals_itk(dim, kind, dtype):
+    """Oblique, anisotropic, not co-located with the grid; part of the grid maps outside."""
+    rng = np.random.default_rng(21 + dim)
+    label_map = oblique_label_map(dim, rng)
+    grid = common_grid(dim)
+    values = check_image_and_memberships(
+        intensity_on(label_map, rng, dtype), label_map, make_transform(kind, grid, rng), grid
+    )
+    assert np.isnan(values).any() and (~np.isnan(values)).any()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("flip", [False, True])
+@pytest.mark.parametrize("decided_by", ["itk", "here"])
+def test_image_beside_the_memberships_on_voxel_centres_and_the_buffer_border(
+    dim, flip, decided_by, monkeypatch
+):
+    """Grid points exactly on voxel centres and on both half-voxel borders (ITK's half-open
+    buffer): inside and outside decided as ITK decides them."""
+    if decided_by == "here":
+        monkeypatch.setattr(_memberships, "_BORDER_EPS", -1.0)
+    label_map, grid = exact_border_case(dim, flip)
+    image = intensity_on(label_map, np.random.default_rng(5), np.float32)
+    for transform in (
+        sitk.Transform(dim, sitk.sitkIdentity),
+        sitk.TranslationTransform(dim, [1.0, -0.5, 0.25][:dim]),
+    ):
+        check_image_and_memberships(image, label_map, transform, grid)
+
+
+def test_image_beside_the_memberships_needs_the_label_maps_grid():
+    rng = np.random.default_rng(2)
+    label_map = oblique_label_map(3, rng)
+    image = intensity_on(label_map, rng)
+    image.SetOrigin([o + 0.5 for o in image.GetOrigin()])
+    grid = common_grid(3)
+    with pytest.raises(ValueError, match="grid"):
+        _memberships.resample_image_and_memberships(
+            image, label_map, sitk.Transform(3, sitk.sitkIdentity), grid, values=LARGE_VALUES
+        )
+    assert not _memberships.shares_grid(image, label_map)
+    assert _memberships.shares_grid(label_map, label_map)
