@@ -8,7 +8,8 @@ runs on a cold cache, in a fresh process on one thread (SimpleITK and numba), wi
 parts timed by wrapping the functions it calls:
 
 - ``read``: the image and label map read from disk;
-- ``resample``: the image resampled onto the common grid;
+- ``resample``: the image resampled onto the common grid (since issue 30, when it shares the
+  label map's grid, from the memberships' own sampling of the transform: their kernel);
 - ``memberships``: the label map's sparse memberships on the common grid;
 - ``plausibility``: folding, SDlogJ, the Jacobian histogram and inverse consistency, of
   which ``invert`` (the numerical inverse) and ``round trip`` (``T^-1(T(p))`` sampled; the
@@ -125,6 +126,15 @@ def _measure(info: dict, name: str) -> dict:
     _pipeline.resample_label_memberships = timed(
         "memberships", _pipeline.resample_label_memberships
     )
+    # since issue 30 the image is resampled inside the memberships' pass, from their sampling
+    shared_sampling = hasattr(_pipeline, "resample_image_and_memberships")
+    if shared_sampling:
+        from itk_nrreval import _memberships
+
+        _pipeline.resample_image_and_memberships = timed(
+            "memberships", _pipeline.resample_image_and_memberships
+        )
+        _memberships._linear_values = timed("resample", _memberships._linear_values)
     _pipeline.deformation_measures = timed("plausibility", _pipeline.deformation_measures)
     plausibility.invert = timed("invert", plausibility.invert)
     # since issue 30 the affine fit adds up the measures' own sampling (a part of them)
@@ -160,7 +170,11 @@ def _measure(info: dict, name: str) -> dict:
     nested = ("invert", "round trip", "other")  # parts of the plausibility
     if shared_fit:
         nested += ("affine fit",)
+    if shared_sampling:
+        nested += ("resample",)  # a part of the memberships' pass
     spent["other"] = total - sum(v for k, v in spent.items() if k not in nested)
+    if shared_sampling:
+        spent["memberships"] -= spent["resample"]
     t = chain_transform(item)
     if not direct_round_trip:  # plausibility with inverse consistency minus without
         t0 = time.process_time()
