@@ -30,7 +30,7 @@ import SimpleITK as sitk
 from ._errors import InputError
 from ._images import Geometry
 from ._output import json_number
-from .transforms import chain_transform, displacement_field, invert, jacobian_determinant
+from .transforms import PointwiseInverse, chain_transform, displacement_field, jacobian_determinant
 
 __all__ = [
     "Plausibility",
@@ -57,14 +57,17 @@ SLAB_VOXELS = 1 << 20
 LOG_JACOBIAN_BINS = 64
 LOG_JACOBIAN_RANGE = (-2.0, 2.0)
 
-#: Inverse consistency is measured with displacement fields inverted on every
-#: ``INVERSE_FIELD_STEP``-th node of their grids and refined by three fixed-point steps on
-#: their own (``field_step`` and ``refine_steps`` of :func:`itk_nrreval.transforms.invert`),
-#: and its round trip averaged over every ``INVERSE_CONSISTENCY_STEP``-th voxel of the grid
-#: along each axis. At 1 mm the inversion takes about 1.8 s of one core instead of 12 s on
-#: the full grid, with a mean round trip of 0.00230 mm against 0.00229 mm from every second
-#: node, and the inverse within 7e-5 mm of the full grid's on average
-#: (``benchmarks/bench_image_task.py``; ``tests/test_plausibility.py`` states the bound).
+#: Inverse consistency is measured on every ``INVERSE_CONSISTENCY_STEP``-th voxel of the
+#: grid along each axis: each displacement field of ``T`` is inverted by ITK on every
+#: ``INVERSE_FIELD_STEP``-th node of its grid, and that coarse inverse refined by three
+#: fixed-point steps at the round trip's own points
+#: (:class:`itk_nrreval.transforms.PointwiseInverse`), not on the field's grid. At 1 mm this
+#: takes about 0.3 s of one core (1.9 s refining a whole inverse field, 12 s inverting on
+#: the full grid). Without the interpolation of an inverse field, a smooth invertible field
+#: measures near 0 (6e-5 mm against 0.004 mm with ITK's full-grid inverse field), and
+#: a folding one grows with its folding as that reference does
+#: (``tests/test_plausibility.py`` states the bounds; ``benchmarks/bench_image_task.py``
+#: the times).
 INVERSE_FIELD_STEP = 4
 INVERSE_CONSISTENCY_STEP = 2
 
@@ -263,12 +266,13 @@ def deformation_measures(
     mask : ndarray of bool, shape ``grid.shape`` (numpy order), optional
         Evaluate only these voxels (the Jacobian still uses their neighbours).
     inverse_consistency : bool
-        Invert the transform with :func:`itk_nrreval.transforms.invert` (linear parts
-        exactly, displacement fields numerically on every fourth node of their own grid
-        (:data:`INVERSE_FIELD_STEP`) and then refined on it, other non-linear pieces after
-        sampling them on `grid`) and measure the round trip on every second voxel
-        (:data:`INVERSE_CONSISTENCY_STEP`). False leaves ``inverse_consistency_mm`` None
-        (and saves a field inversion).
+        Invert the transform at the points it maps every second voxel to
+        (:data:`INVERSE_CONSISTENCY_STEP`) with
+        :class:`itk_nrreval.transforms.PointwiseInverse` (linear parts exactly,
+        displacement fields from a coarse inverse on every fourth node of their own grid,
+        :data:`INVERSE_FIELD_STEP`, refined at those points; other non-linear pieces after
+        sampling them on `grid`) and measure the round trip. False leaves
+        ``inverse_consistency_mm`` None (and saves a field inversion).
     max_slab_voxels : int
         Grids larger than this are processed in slabs along the last axis (z in 3D) so that
         memory stays bounded; the result does not depend on it.
@@ -302,12 +306,12 @@ def deformation_measures(
     * ``sdlogj = std{log det J(p) : det J(p) > 0}`` (Leow et al., IEEE TMI 26(6), 2007;
       the Learn2Reg challenges' smoothness measure), accumulated slab by slab with the
       parallel-variance formula of Chan et al.;
-    * ``inverse_consistency_mm = mean_p |T^-1(T(p)) - p|``, with the composite
-      ``T^-1 o T`` sampled as a displacement field on the evaluated voxels whose every index
-      is even (all evaluated voxels when none is). For linear transforms this is rounding
-      error; for a displacement field it is the error of the numerical inverse (computed on
-      a grid four times as coarse as the field's and refined on the field's), which grows
-      where the field folds (a folded map has no inverse).
+    * ``inverse_consistency_mm = mean_p |T^-1(T(p)) - p|`` over the evaluated voxels whose
+      every index is even (all evaluated voxels when none is), ``T(p)`` sampled by ITK and
+      ``T^-1`` evaluated at those points. For linear transforms this is rounding error; for
+      a displacement field it is the error of the numerical inverse (three fixed-point
+      steps from an inverse computed on a grid four times as coarse as the field's): near 0
+      where the field is invertible, growing where it folds (a folded map has no inverse).
 
     The sums run over the evaluated voxels (the mask), all at once on grids of at most
     `max_slab_voxels` voxels and otherwise slab by slab, each slab with one row of halo so
@@ -327,21 +331,12 @@ def deformation_measures(
         if not mask.any():
             raise InputError("mask: empty (no voxel to evaluate)")
 
-    round_trip = None
+    inverse = None
     if inverse_consistency:
         try:
-            inverse = invert(t, grid=g, field_step=INVERSE_FIELD_STEP)
-            # p -> T^-1(T(p)) (SimpleITK applies its list from the back). `inverse` is ours:
-            # T joins it in place, which copies T's fields once, where a new composite
-            # would copy the inverse's too (~0.15 s at 1 mm)
-            if isinstance(inverse, sitk.CompositeTransform):
-                inverse.AddTransform(t)
-                inverse.FlattenTransform()
-                round_trip = inverse
-            else:
-                round_trip = sitk.CompositeTransform([inverse, t])
+            inverse = PointwiseInverse(t, grid=g, field_step=INVERSE_FIELD_STEP)
         except (InputError, RuntimeError):
-            round_trip = None
+            inverse = None
 
     count = folded = 0
     n_log, mean_log, m2_log = 0, 0.0, 0.0
@@ -388,8 +383,8 @@ def deformation_measures(
             n_log = total
 
     consistency = None
-    if round_trip is not None:
-        consistency = _mean_round_trip(round_trip, g, mask, max(int(max_slab_voxels), 1))
+    if inverse is not None:
+        consistency = _mean_round_trip(t, inverse, g, mask, max(int(max_slab_voxels), 1))
     fraction = folded / count
     plausibility = Plausibility(
         folded_fraction=fraction,
@@ -404,10 +399,15 @@ def deformation_measures(
 
 
 def _mean_round_trip(
-    round_trip: sitk.Transform, g: Geometry, mask: np.ndarray | None, max_slab_voxels: int
+    t: sitk.Transform,
+    inverse: PointwiseInverse,
+    g: Geometry,
+    mask: np.ndarray | None,
+    max_slab_voxels: int,
 ) -> float | None:
-    """Mean ``|round_trip(p) - p|`` (mm) over the evaluated voxels of `g` whose every index is
-    a multiple of :data:`INVERSE_CONSISTENCY_STEP` (over all of them when none is); None when
+    """Mean ``|T^-1(T(p)) - p|`` (mm) over the evaluated voxels of `g` whose every index is
+    a multiple of :data:`INVERSE_CONSISTENCY_STEP` (over all of them when none is), with
+    ``T(p)`` ITK's own sampling of `t` and ``T^-1`` the `inverse` at those points; None when
     not finite."""
     step = INVERSE_CONSISTENCY_STEP
     every = (slice(None, None, step),) * g.dimension
@@ -424,14 +424,25 @@ def _mean_round_trip(
     for rows, _halo, slab_grid, _inner in _slabs(sub, max_slab_voxels):
         # An array view does not keep its image alive: name the image, or the view reads
         # freed memory (zeros on a Dask worker, issue 25).
-        err_field = displacement_field(round_trip, slab_grid)
-        err = sitk.GetArrayViewFromImage(err_field)
+        field = displacement_field(t, slab_grid)
+        moved = sitk.GetArrayFromImage(field).reshape(-1, g.dimension)
+        del field
+        points = _voxel_points(slab_grid)
+        moved += points  # T(p)
+        err = inverse.map_points(moved) - points
         norms = np.sqrt(np.sum(err * err, axis=-1))
         if sub_mask is not None:
-            norms = norms[sub_mask[rows]]
+            norms = norms[sub_mask[rows].ravel()]
         err_sum += float(norms.sum())
         count += norms.size
     return err_sum / count if count and math.isfinite(err_sum) else None
+
+
+def _voxel_points(g: Geometry) -> np.ndarray:
+    """The physical points of `g`'s voxels (m, dim), C order: ITK's ``origin + D diag(s) i``."""
+    index = np.indices(g.shape, dtype=np.float64).reshape(g.dimension, -1)[::-1]  # ITK order
+    matrix = np.asarray(g.direction, float).reshape(g.dimension, -1) * np.asarray(g.spacing)
+    return (matrix @ index).T + np.asarray(g.origin, float)
 
 
 @dataclass(frozen=True)

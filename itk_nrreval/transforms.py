@@ -75,6 +75,8 @@ __all__ = [
     "field_transform",
     "displacement_field",
     "invert",
+    "INVERSION_STOPPING",
+    "PointwiseInverse",
     "jacobian_determinant",
     "folded_fraction",
 ]
@@ -541,13 +543,18 @@ def displacement_field(transform: sitk.Transform, reference: sitk.Image | Geomet
     )
 
 
+#: The stopping rule of ITK's field inversion by default (:func:`invert`'s `max_iterations`,
+#: `max_error`, `mean_error`), and always in :class:`PointwiseInverse`.
+INVERSION_STOPPING = (50, 0.01, 1e-4)
+
+
 def invert(
     transform: sitk.Transform | str | os.PathLike | Sequence,
     *,
     grid: sitk.Image | Geometry | None = None,
-    max_iterations: int = 50,
-    max_error: float = 0.01,
-    mean_error: float = 1e-4,
+    max_iterations: int = INVERSION_STOPPING[0],
+    max_error: float = INVERSION_STOPPING[1],
+    mean_error: float = INVERSION_STOPPING[2],
     field_step: int = 1,
     refine_steps: int = 3,
 ) -> sitk.Transform:
@@ -602,6 +609,222 @@ def invert(
     return inverted[0] if len(inverted) == 1 else sitk.CompositeTransform(inverted)
 
 
+class PointwiseInverse:
+    """A transform's numerical inverse, evaluated at any points without an inverse field.
+
+    The inverse :func:`invert` gives with ``field_step`` and ``refine_steps``, except that
+    each displacement field's fixed-point steps ``y <- r - u(y)`` run at the points asked
+    about rather than at the nodes of the field's grid (whose results :func:`invert` then
+    interpolates). For a round trip ``T^-1(T(p))`` on every second voxel this is an eighth of
+    the refinement's work and no full-size inverse field (issue 30: 1.9 s -> 0.3 s at 1 mm).
+    The coarse inverse it starts from and the convention beyond the field's grid are
+    :func:`invert`'s: the inverse is the identity beyond the field's grid grown by its
+    largest displacement, and the field is extended by its edge values.
+
+    Parameters
+    ----------
+    transform : sitk.Transform, path or chain (ANTs order)
+        Grid points -> image points (mm, LPS).
+    grid : sitk.Image or Geometry, optional
+        Where pieces that are neither linear nor displacement fields (B-splines) are sampled
+        as displacement fields first (as :func:`invert`).
+    field_step : int
+        Each displacement field is first inverted by ITK on every `field_step`-th node of
+        its grid (:func:`invert`).
+    refine_steps : int
+        Fixed-point steps at each point after the coarse inverse.
+
+    Raises
+    ------
+    InputError
+        A piece that is neither linear nor a displacement field and no `grid`, or a linear
+        piece that is not invertible.
+    """
+
+    def __init__(
+        self,
+        transform,
+        *,
+        grid: sitk.Image | Geometry | None = None,
+        field_step: int = 1,
+        refine_steps: int = 3,
+    ):
+        self.dimension = chain_transform(transform).GetDimension()
+        self.refine_steps = int(refine_steps)
+        # sitk list [a, b] means a(b(p)): its inverse applies a^-1 first
+        self._pieces = [
+            _pointwise_piece(t, grid, int(field_step)) for t in leaves(chain_transform(transform))
+        ]
+
+    def map_points(self, points: np.ndarray) -> np.ndarray:
+        """``T^-1`` at `points`.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, dim)
+            Physical points (mm, LPS, ITK (x, y[, z]) order).
+
+        Returns
+        -------
+        ndarray of shape (m, dim), float64
+            Their images under the numerical inverse.
+        """
+        y = np.zeros((len(points), 3))
+        y[:, : self.dimension] = points
+        for piece in self._pieces:
+            if isinstance(piece, _FieldPiece):
+                _fixed_point_at_points(y, *piece.arrays(), self.refine_steps)
+            else:
+                matrix, offset = piece
+                y = y @ matrix.T + offset
+        return y[:, : self.dimension]
+
+
+@dataclass(frozen=True)
+class _FieldPiece:
+    """A displacement field and its coarse inverse, as :func:`_fixed_point_at_points` reads
+    them (3D arrays; a 2D field as one plane)."""
+
+    u: np.ndarray  # (nz, ny, nx, 3), mm
+    u_origin: np.ndarray  # (3,)
+    u_to_index: np.ndarray  # (3, 3): mm -> u's index steps (ITK axis order)
+    lower: np.ndarray  # (3,): the grown grid's buffer, in u's continuous index
+    upper: np.ndarray
+    v: np.ndarray  # the coarse inverse, (vz, vy, vx, 3)
+    v_origin: np.ndarray
+    v_to_index: np.ndarray
+    images: tuple  # the images whose buffers `u` and `v` view (kept alive with them)
+
+    def arrays(self) -> tuple:
+        return (
+            self.u,
+            self.u_origin,
+            self.u_to_index,
+            self.lower,
+            self.upper,
+            self.v,
+            self.v_origin,
+            self.v_to_index,
+        )
+
+
+def _pointwise_piece(t: sitk.Transform, grid, step: int):
+    """One piece of :class:`PointwiseInverse`: a :class:`_FieldPiece`, or the inverse of a
+    linear piece as ``(matrix (3, 3), offset (3,))`` acting on 3-vectors."""
+    t = t.Downcast()
+    dim = t.GetDimension()
+    if t.IsLinear():
+        try:
+            inverse = t.GetInverse()
+        except RuntimeError as exc:
+            raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
+        origin = np.asarray(inverse.TransformPoint((0.0,) * dim))
+        matrix, offset = np.eye(3), np.zeros(3)
+        for j in range(dim):
+            unit = np.zeros(dim)
+            unit[j] = 1.0
+            matrix[:dim, j] = np.asarray(inverse.TransformPoint(unit.tolist())) - origin
+        offset[:dim] = origin
+        return matrix, offset
+    if not isinstance(t, sitk.DisplacementFieldTransform):
+        if grid is None:
+            raise InputError(
+                f"{t.GetName()}: cannot invert this transform type without a grid to sample "
+                "it on (pass grid=, e.g. the registration's reference)"
+            )
+        t = field_transform(displacement_field(t, grid))
+    field = t.GetDisplacementField()
+    coarse = _coarse_inverse(field, step, INVERSION_STOPPING)
+    # views: the piece keeps `field` and `coarse` alive (a copy of a 1 mm field: 0.1 s)
+    u = sitk.GetArrayViewFromImage(field)
+    v = sitk.GetArrayViewFromImage(coarse)
+    pad = _padding(u, np.asarray(field.GetSpacing()))
+    if dim == 2:
+        u, v = _as_plane(u), _as_plane(v)
+    lower, upper = np.full(3, -np.inf), np.full(3, np.inf)
+    # ITK's inside-buffer test of the grown grid: -0.5 <= index < size - 0.5 there
+    lower[:dim] = -pad - 0.5
+    upper[:dim] = np.asarray(field.GetSize()) + pad - 0.5
+    return _FieldPiece(u, *_index_map(field), lower, upper, v, *_index_map(coarse), (field, coarse))
+
+
+def _coarse_inverse(field: sitk.Image, step: int, stopping: tuple) -> sitk.Image:
+    """ITK's inverse of `field` from every `step`-th node of its grid, grown by its largest
+    displacement (:func:`_edge_padded`); `stopping` is ``(iterations, max_error,
+    mean_error)``."""
+    iterations, max_error, mean_error = stopping
+    return sitk.InvertDisplacementField(
+        _edge_padded(_every_nth_node(field, step)),
+        maximumNumberOfIterations=int(iterations),
+        maxErrorToleranceThreshold=float(max_error),
+        meanErrorToleranceThreshold=float(mean_error),
+        enforceBoundaryCondition=False,
+    )
+
+
+def _index_map(image: sitk.Image) -> tuple[np.ndarray, np.ndarray]:
+    """`image`'s origin (3,) and its mm -> continuous index map (3, 3), ITK axis order, as
+    3D (a 2D image's third row and column zero)."""
+    dim = image.GetDimension()
+    origin, to_index = np.zeros(3), np.zeros((3, 3))
+    origin[:dim] = image.GetOrigin()
+    direction = np.asarray(image.GetDirection()).reshape(dim, dim)
+    to_index[:dim, :dim] = direction.T / np.asarray(image.GetSpacing())[:, None]
+    return origin, to_index
+
+
+@numba.njit(cache=True, parallel=True)
+def _fixed_point_at_points(
+    y, u, u_origin, u_to_index, lower, upper, v, v_origin, v_to_index, steps
+):  # pragma: no cover - compiled
+    """In place, each point r of `y` (m, 3) -> the inverse of ``p -> p + u(p)`` at r: the
+    coarse inverse `v` interpolated there, then `steps` steps ``y <- r - u(y)``; r itself
+    where it lies beyond the grown grid (`lower`, `upper`: its buffer in u's continuous
+    index). Fields are sampled linearly, clamped to their grids (:func:`_fixed_point_step`'s
+    rules). Each point alone, by the same operations: the numbers do not depend on the
+    threads."""
+    uz, uy, ux, _ = u.shape
+    vz, vy, vx, _ = v.shape
+    for f in numba.prange(y.shape[0]):
+        r0, r1, r2 = y[f, 0], y[f, 1], y[f, 2]
+        d0, d1, d2 = r0 - u_origin[0], r1 - u_origin[1], r2 - u_origin[2]
+        c0 = u_to_index[0, 0] * d0 + u_to_index[0, 1] * d1 + u_to_index[0, 2] * d2
+        c1 = u_to_index[1, 0] * d0 + u_to_index[1, 1] * d1 + u_to_index[1, 2] * d2
+        c2 = u_to_index[2, 0] * d0 + u_to_index[2, 1] * d1 + u_to_index[2, 2] * d2
+        if not (
+            lower[0] <= c0 < upper[0] and lower[1] <= c1 < upper[1] and lower[2] <= c2 < upper[2]
+        ):
+            continue
+        e0, e1, e2 = r0 - v_origin[0], r1 - v_origin[1], r2 - v_origin[2]
+        x0, x1, fx = _corner(
+            v_to_index[0, 0] * e0 + v_to_index[0, 1] * e1 + v_to_index[0, 2] * e2, vx
+        )
+        y0, y1, fy = _corner(
+            v_to_index[1, 0] * e0 + v_to_index[1, 1] * e1 + v_to_index[1, 2] * e2, vy
+        )
+        z0, z1, fz = _corner(
+            v_to_index[2, 0] * e0 + v_to_index[2, 1] * e1 + v_to_index[2, 2] * e2, vz
+        )
+        a0 = r0 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+        a1 = r1 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+        a2 = r2 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+        for _ in range(steps):
+            d0, d1, d2 = a0 - u_origin[0], a1 - u_origin[1], a2 - u_origin[2]
+            x0, x1, fx = _corner(
+                u_to_index[0, 0] * d0 + u_to_index[0, 1] * d1 + u_to_index[0, 2] * d2, ux
+            )
+            y0, y1, fy = _corner(
+                u_to_index[1, 0] * d0 + u_to_index[1, 1] * d1 + u_to_index[1, 2] * d2, uy
+            )
+            z0, z1, fz = _corner(
+                u_to_index[2, 0] * d0 + u_to_index[2, 1] * d1 + u_to_index[2, 2] * d2, uz
+            )
+            a0 = r0 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+            a1 = r1 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+            a2 = r2 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+        y[f, 0], y[f, 1], y[f, 2] = a0, a1, a2
+
+
 def _invert_one(t: sitk.Transform, grid, stopping: tuple, step: int, refine_steps: int):
     t = t.Downcast()
     if not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform):
@@ -612,15 +835,8 @@ def _invert_one(t: sitk.Transform, grid, stopping: tuple, step: int, refine_step
             )
         t = field_transform(displacement_field(t, grid))
     if isinstance(t, sitk.DisplacementFieldTransform):
-        iterations, max_error, mean_error = stopping
         own = t.GetDisplacementField()
-        inverse = sitk.InvertDisplacementField(
-            _edge_padded(_every_nth_node(own, int(step))),
-            maximumNumberOfIterations=int(iterations),
-            maxErrorToleranceThreshold=float(max_error),
-            meanErrorToleranceThreshold=float(mean_error),
-            enforceBoundaryCondition=False,
-        )
+        inverse = _coarse_inverse(own, int(step), stopping)
         if step > 1:
             inverse = _fixed_point_steps(own, inverse, int(refine_steps))
         if inverse.GetPixelID() != sitk.sitkVectorFloat64:
