@@ -35,7 +35,14 @@ from ._images import Geometry, InMemoryImage, read_image
 from ._memberships import resample_label_memberships
 from ._progress import progress_bar
 from .manifest import Manifest, ManifestRegistration
-from .transforms import chain_transform, displacement_field, field_transform, invert, leaves
+from .transforms import (
+    PointwiseInverse,
+    chain_transform,
+    composed_displacement,
+    displacement_field,
+    field_transform,
+    leaves,
+)
 
 __all__ = [
     "FrameMapping",
@@ -57,12 +64,14 @@ __all__ = [
 _INTERPOLATORS = {"linear": sitk.sitkLinear, "bspline": sitk.sitkBSpline}
 #: Each frame estimate inverts the displacement fields of ``T_i^R`` on every
 #: ``ESTIMATE_FIELD_STEP``-th node of their grids and refines that inverse by
-#: ``ESTIMATE_REFINE_STEPS`` fixed-point steps on their own grids (``field_step`` and
-#: ``refine_steps`` of :func:`itk_nrreval.transforms.invert`): at 1 mm about 3 s of one core
-#: instead of 13 s (``benchmarks/bench_image_task.py``), within 0.01 mm of the full-grid
-#: inverse at every voxel on a smooth 3 mm field on an oblique, anisotropic grid
-#: (tests/test_frame.py; issue 30). Every fourth node would save another second at 1 mm, but
-#: on small grids (a 2D 32-pixel phantom) its frame estimates missed by 0.02 mm.
+#: ``ESTIMATE_REFINE_STEPS`` fixed-point steps at every voxel of the common grid it is
+#: evaluated at (``field_step`` and ``refine_steps`` of
+#: :class:`itk_nrreval.transforms.PointwiseInverse`): at 1 mm about 3 s of one core instead
+#: of 13 s (``benchmarks/bench_image_task.py``). On a smooth 3 mm field on an oblique,
+#: anisotropic grid, ``T^R(F(p)) = T^C(p)`` to 0.01 mm at every voxel whose preimage lies in
+#: the field's grid (tests/test_frame.py; issue 30). Every fourth node would save another
+#: second at 1 mm, but on small grids (a 2D 32-pixel phantom) its frame estimates missed by
+#: 0.017 mm (0.015 mm with five refinement steps) against the tests' 0.015 mm.
 ESTIMATE_FIELD_STEP = 2
 ESTIMATE_REFINE_STEPS = 3
 _METHODS = ("common", "frame_transform", "reference_index", "mean")
@@ -139,8 +148,9 @@ def frame_estimates(
     common : sequence of sitk.Transform, length n_images
         ``T_i^C``: common frame -> image i.
     other : sequence of sitk.Transform, length n_images
-        ``T_i^R``: R's frame -> image i (inverted here; fields on their own grids, first on
-        every second node and then refined on every node: :data:`ESTIMATE_FIELD_STEP`).
+        ``T_i^R``: R's frame -> image i (inverted here; fields first on every second node
+        of their own grids, :data:`ESTIMATE_FIELD_STEP`, then refined at each voxel's
+        point).
     grid : sitk.Image or Geometry
         The common grid.
     other_grid : sitk.Image or Geometry, optional
@@ -157,14 +167,13 @@ def frame_estimates(
         raise InputError(f"frame: {len(other)} transforms for {len(common)} images")
     out = np.empty((len(common), *g.shape, g.dimension))
     for i, (tc, tr) in enumerate(zip(common, other, strict=True)):
-        # sitk list order: [R^-1, C] means R^-1(C(p))
-        inverse = invert(
+        inverse = PointwiseInverse(
             tr,
             grid=other_grid,
             field_step=ESTIMATE_FIELD_STEP,
             refine_steps=ESTIMATE_REFINE_STEPS,
         )
-        out[i] = points_minus_grid(sitk.CompositeTransform([inverse, tc]), g)
+        out[i] = composed_displacement(inverse, tc, g)  # R^-1(C(p)) - p
     return out
 
 

@@ -30,7 +30,13 @@ import SimpleITK as sitk
 from ._errors import InputError
 from ._images import Geometry
 from ._output import json_number
-from .transforms import PointwiseInverse, chain_transform, displacement_field, jacobian_determinant
+from .transforms import (
+    PointwiseInverse,
+    chain_transform,
+    composed_displacement,
+    displacement_field,
+    jacobian_determinant,
+)
 
 __all__ = [
     "Plausibility",
@@ -406,9 +412,8 @@ def _mean_round_trip(
     max_slab_voxels: int,
 ) -> float | None:
     """Mean ``|T^-1(T(p)) - p|`` (mm) over the evaluated voxels of `g` whose every index is
-    a multiple of :data:`INVERSE_CONSISTENCY_STEP` (over all of them when none is), with
-    ``T(p)`` ITK's own sampling of `t` and ``T^-1`` the `inverse` at those points; None when
-    not finite."""
+    a multiple of :data:`INVERSE_CONSISTENCY_STEP` (over all of them when none is)
+    (:func:`~itk_nrreval.transforms.composed_displacement`); None when not finite."""
     step = INVERSE_CONSISTENCY_STEP
     every = (slice(None, None, step),) * g.dimension
     if mask is not None and not mask[every].any():
@@ -424,25 +429,13 @@ def _mean_round_trip(
     for rows, _halo, slab_grid, _inner in _slabs(sub, max_slab_voxels):
         # An array view does not keep its image alive: name the image, or the view reads
         # freed memory (zeros on a Dask worker, issue 25).
-        field = displacement_field(t, slab_grid)
-        moved = sitk.GetArrayFromImage(field).reshape(-1, g.dimension)
-        del field
-        points = _voxel_points(slab_grid)
-        moved += points  # T(p)
-        err = inverse.map_points(moved) - points
+        err = composed_displacement(inverse, t, slab_grid).reshape(-1, g.dimension)
         norms = np.sqrt(np.sum(err * err, axis=-1))
         if sub_mask is not None:
             norms = norms[sub_mask[rows].ravel()]
         err_sum += float(norms.sum())
         count += norms.size
     return err_sum / count if count and math.isfinite(err_sum) else None
-
-
-def _voxel_points(g: Geometry) -> np.ndarray:
-    """The physical points of `g`'s voxels (m, dim), C order: ITK's ``origin + D diag(s) i``."""
-    index = np.indices(g.shape, dtype=np.float64).reshape(g.dimension, -1)[::-1]  # ITK order
-    matrix = np.asarray(g.direction, float).reshape(g.dimension, -1) * np.asarray(g.spacing)
-    return (matrix @ index).T + np.asarray(g.origin, float)
 
 
 @dataclass(frozen=True)

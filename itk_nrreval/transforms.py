@@ -77,6 +77,7 @@ __all__ = [
     "invert",
     "INVERSION_STOPPING",
     "PointwiseInverse",
+    "composed_displacement",
     "jacobian_determinant",
     "folded_fraction",
 ]
@@ -671,13 +672,76 @@ class PointwiseInverse:
         """
         y = np.zeros((len(points), 3))
         y[:, : self.dimension] = points
+        self._map_in_place(y)
+        return y[:, : self.dimension]
+
+    def _map_in_place(self, y: np.ndarray) -> None:
+        """:meth:`map_points` on points as 3-vectors (m, 3), in place."""
         for piece in self._pieces:
             if isinstance(piece, _FieldPiece):
                 _fixed_point_at_points(y, *piece.arrays(), self.refine_steps)
             else:
-                matrix, offset = piece
-                y = y @ matrix.T + offset
-        return y[:, : self.dimension]
+                _affine_in_place(y, *piece)
+
+
+def composed_displacement(
+    inverse: PointwiseInverse, first: sitk.Transform, grid: Geometry
+) -> np.ndarray:
+    """``inverse(first(p)) - p`` on `grid`'s voxels p: `first` sampled by ITK, then the
+    numerical inverse at the points it gives (no inverse field is built).
+
+    Parameters
+    ----------
+    inverse : PointwiseInverse
+        A numerical inverse ``T^-1``.
+    first : sitk.Transform
+        Grid points -> points where `inverse` is evaluated (mm, LPS).
+    grid : Geometry
+        The points p.
+
+    Returns
+    -------
+    ndarray of shape (*grid.shape, dim)
+        Displacements in mm, numpy axis order for the grid and ITK (x, y[, z]) order last
+        (as ``sitk.GetArrayFromImage`` of a displacement field).
+    """
+    dim = grid.dimension
+    origin, matrix = np.zeros(3), np.zeros((3, 3))
+    origin[:dim] = grid.origin
+    matrix[:dim, :dim] = np.asarray(grid.direction, float).reshape(dim, dim) * grid.spacing
+    size = np.ones(3, np.int64)
+    size[:dim] = grid.size
+    # An array view does not keep its image alive: `field` stays named while it is read
+    field = displacement_field(first, grid)
+    y = np.zeros((math.prod(grid.size), 3))
+    y[:, :dim] = sitk.GetArrayViewFromImage(field).reshape(-1, dim)
+    del field
+    _add_voxel_points(y, origin, matrix, size, 1.0)  # first(p)
+    inverse._map_in_place(y)
+    _add_voxel_points(y, origin, matrix, size, -1.0)
+    return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
+
+
+@numba.njit(cache=True, parallel=True)
+def _add_voxel_points(y, origin, matrix, size, sign):  # pragma: no cover - compiled
+    """In place, row f of `y` (m, 3) += `sign` * the physical point of voxel f of a grid of
+    ITK `size` (3,) (C order: x fastest): ``origin + matrix @ index``."""
+    nx, ny = size[0], size[1]
+    for f in numba.prange(y.shape[0]):
+        i = f % nx
+        j = (f // nx) % ny
+        k = f // (nx * ny)
+        for a in range(3):
+            y[f, a] += sign * (origin[a] + matrix[a, 0] * i + matrix[a, 1] * j + matrix[a, 2] * k)
+
+
+@numba.njit(cache=True, parallel=True)
+def _affine_in_place(y, matrix, offset):  # pragma: no cover - compiled
+    """In place, each row of `y` (m, 3) -> ``matrix @ row + offset``."""
+    for f in numba.prange(y.shape[0]):
+        a0, a1, a2 = y[f, 0], y[f, 1], y[f, 2]
+        for r in range(3):
+            y[f, r] = matrix[r, 0] * a0 + matrix[r, 1] * a1 + matrix[r, 2] * a2 + offset[r]
 
 
 @dataclass(frozen=True)
