@@ -260,6 +260,7 @@ def resample_image_and_memberships(
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
+    displacement: np.ndarray | None = None,
 ) -> tuple[np.ndarray, SparseMemberships]:
     """An image and its label map (on the same grid) resampled linearly through one
     sampling of `transform`.
@@ -273,6 +274,10 @@ def resample_image_and_memberships(
         Scalar, on `label_map`'s grid (:func:`shares_grid`).
     label_map, transform, grid, values
         As :func:`resample_label_memberships` (``method="linear"``).
+    displacement : ndarray of shape ``(*grid.shape, dim)``, optional
+        ``transform(p) - p`` already sampled on `grid` (mm, ITK order last; what
+        ``sitk.GetArrayViewFromImage`` of ``sitk.TransformToDisplacementField`` gives) when
+        the caller has it; default: sampled here, slab by slab.
 
     Returns
     -------
@@ -299,8 +304,10 @@ def resample_image_and_memberships(
     labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
     pixels = sitk.GetArrayViewFromImage(image)
     pixels = np.asarray(pixels, dtype=np.float64).reshape(lead + pixels.shape)
+    if displacement is not None and displacement.shape != (*g.shape, g.dimension):
+        raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
     memberships, resampled = _linear_memberships(
-        label_map, labels3, vmin, lut, values, transform, g, image=pixels
+        label_map, labels3, vmin, lut, values, transform, g, image=pixels, sampled=displacement
     )
     return resampled, memberships
 
@@ -367,10 +374,12 @@ def _linear_memberships(
     transform: sitk.Transform,
     g: Geometry,
     image: np.ndarray | None = None,
+    sampled: np.ndarray | None = None,
 ) -> tuple[SparseMemberships, np.ndarray | None]:
     """The linear memberships, slab by slab; with `image` (on the label map's grid, numpy
     order, float64), also the image linearly resampled at the same points (flat float64,
-    NaN outside the buffer: :func:`resample_image_and_memberships`)."""
+    NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
+    transform's displacement on the whole grid, when the caller has it."""
     dim = g.dimension
     # Grid voxel -> physical point: origin + D diag(spacing) index; label-map point ->
     # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
@@ -394,11 +403,14 @@ def _linear_memberships(
         nz = min(step, shape[0] - z0)
         size = (*g.size[:-1], nz)
         origin = g_origin + g_matrix[:, -1] * z0
-        field = sitk.TransformToDisplacementField(
-            transform, sitk.sitkVectorFloat64, size, origin.tolist(), g.spacing, g.direction
-        )
-        cidx = sitk.GetArrayFromImage(field).reshape(-1, dim)  # T(p) - p, a writable copy
-        del field
+        if sampled is None:
+            field = sitk.TransformToDisplacementField(
+                transform, sitk.sitkVectorFloat64, size, origin.tolist(), g.spacing, g.direction
+            )
+            cidx = sitk.GetArrayFromImage(field).reshape(-1, dim)  # T(p) - p, a writable copy
+            del field
+        else:
+            cidx = sampled[z0 : z0 + nz].reshape(-1, dim).copy()
         near_border = _continuous_indices(
             cidx,
             np.asarray(size, np.int64),

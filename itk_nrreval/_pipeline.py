@@ -82,7 +82,7 @@ from .plausibility import (
     deformation_measures,
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
-from .transforms import chain_transform, field_transform, invert
+from .transforms import chain_transform, displacement_field, field_transform, invert
 
 __all__ = [
     "Coverage",
@@ -250,8 +250,21 @@ def _resample_task(
     raw = read_image(image, what="image")
     lab = None if labels is None else read_image(labels, what="label map")
     own = None if labels is None else [int(v) for v in own_values]
+    field = sampled = None
+    if frame[0] == "identity" and reg_grid == g and _shares_sampling(raw, lab, interpolation):
+        # T itself on the common grid: one sampling serves the plausibility and the
+        # memberships (and the image's resampling through them); 0.4 s at 1 mm
+        field = displacement_field(t, g)
+        sampled = sitk.GetArrayViewFromImage(field)  # `field` stays named while it is used
     values, memb = _resampled_image_and_memberships(
-        raw, lab, full, g, interpolation=interpolation, values=own, labels=label_resampling
+        raw,
+        lab,
+        full,
+        g,
+        interpolation=interpolation,
+        values=own,
+        labels=label_resampling,
+        displacement=sampled,
     )
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
     values[~covered] = 0.0
@@ -263,8 +276,14 @@ def _resample_task(
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
     # the affine fit from the measures' own sampling of the transform (one pass, not two)
     plaus, jac, fit = deformation_measures(
-        t, reg_grid, mask=reg_mask, inverse_consistency=ctx.inverse_consistency, affine=True
+        t,
+        reg_grid,
+        mask=reg_mask,
+        inverse_consistency=ctx.inverse_consistency,
+        affine=True,
+        displacement=sampled,
     )
+    del sampled, field
     arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
     meta: dict = {
         "plausibility": plaus.to_dict(),
@@ -291,14 +310,17 @@ def _resampled_image_and_memberships(
     interpolation: str,
     values: list[int] | None,
     labels: tuple[str, float | None],
+    displacement: np.ndarray | None = None,
 ) -> tuple[np.ndarray, SparseMemberships | None]:
     """The image on `g` (flat float64, NaN outside its field of view) and the label map's
     memberships (None without one): through one sampling of `full` when both are linear
-    and on one grid (the usual image and its parcellation), else one resampling each."""
+    and on one grid (the usual image and its parcellation; `displacement`, that sampling
+    when the caller has it), else one resampling each."""
     method, sigma_mm = labels
-    scalar = raw.GetNumberOfComponentsPerPixel() == 1
-    if lab is not None and scalar and interpolation == method == "linear" and shares_grid(raw, lab):
-        return resample_image_and_memberships(raw, lab, full, g, values=values)
+    if method == "linear" and _shares_sampling(raw, lab, interpolation):
+        return resample_image_and_memberships(
+            raw, lab, full, g, values=values, displacement=displacement
+        )
     image = resample_images(
         [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan
     )
@@ -308,6 +330,14 @@ def _resampled_image_and_memberships(
             lab, full, g, values=values, method=method, sigma_mm=sigma_mm
         )
     return image[0].reshape(-1), memb
+
+
+def _shares_sampling(raw: sitk.Image, lab: sitk.Image | None, interpolation: str) -> bool:
+    """Whether a scalar image and its label map can be resampled linearly through one
+    sampling of the transform (:func:`resample_image_and_memberships`): same grid."""
+    if lab is None or interpolation != "linear" or raw.GetNumberOfComponentsPerPixel() != 1:
+        return False
+    return shares_grid(raw, lab)
 
 
 def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:

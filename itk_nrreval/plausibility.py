@@ -253,6 +253,7 @@ def deformation_measures(
     inverse_consistency: bool = True,
     max_slab_voxels: int = SLAB_VOXELS,
     affine: bool = False,
+    displacement: np.ndarray | None = None,
 ) -> tuple[Plausibility, JacobianSummary] | tuple[Plausibility, JacobianSummary, AffineFit]:
     """Plausibility of a transform on a grid, and its Jacobian's histogram and middle slice.
 
@@ -282,6 +283,11 @@ def deformation_measures(
     max_slab_voxels : int
         Grids larger than this are processed in slabs along the last axis (z in 3D) so that
         memory stays bounded; the result does not depend on it.
+    displacement : ndarray of shape ``(*grid.shape, dim)``, optional
+        ``T(p) - p`` already sampled on `grid` (mm, ITK (x, y[, z]) order last, as
+        ``sitk.GetArrayViewFromImage`` of :func:`~itk_nrreval.transforms.displacement_field`
+        gives it), when the caller needs that sampling too; default: sampled here, slab by
+        slab.
     affine : bool
         Also return :func:`affine_fit`'s fit over the evaluated voxels, from the
         displacement sampled here (its numbers to rounding, without sampling the transform
@@ -325,6 +331,10 @@ def deformation_measures(
     """
     g = _geometry(grid)
     t = chain_transform(transform)
+    if displacement is not None and displacement.shape != (*g.shape, g.dimension):
+        raise InputError(
+            f"displacement: shape {displacement.shape} is not the grid's {(*g.shape, g.dimension)}"
+        )
     if t.GetDimension() != g.dimension:
         raise InputError(
             f"transform: {t.GetDimension()}D transform on a {g.dimension}D grid {g.size}"
@@ -353,9 +363,15 @@ def deformation_measures(
     middle = np.full(g.shape[1:] if g.dimension == 3 else g.shape, np.nan, np.float32)
     fit = _AffineSums(g) if affine else None
     for rows, halo_grid, slab_grid, inner in _slabs(g, max(int(max_slab_voxels), 1)):
-        # An array view does not keep its image alive: `field` stays named while `u` is used.
-        field = displacement_field(t, halo_grid)
-        u = sitk.GetArrayViewFromImage(field)
+        if displacement is None:
+            # An array view does not keep its image alive: `field` stays named while `u` is
+            # used.
+            field = displacement_field(t, halo_grid)
+            u = sitk.GetArrayViewFromImage(field)
+        else:
+            field = None
+            first = rows.start - inner.start
+            u = displacement[first : first + halo_grid.size[-1]]
         det = jacobian_determinant(u, spacing=g.spacing, direction=g.direction)[inner]
         sel = None if mask is None else mask[rows]
         if fit is not None:

@@ -583,3 +583,32 @@ def test_image_beside_the_memberships_needs_the_label_maps_grid():
         )
     assert not _memberships.shares_grid(image, label_map)
     assert _memberships.shares_grid(label_map, label_map)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_image_and_memberships_from_the_callers_sampling(dim, monkeypatch):
+    """With the transform already sampled on the grid (displacement=), the same image and
+    memberships as from their own slab-by-slab sampling (several slabs here)."""
+    monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 200)
+    rng = np.random.default_rng(31 + dim)
+    label_map = oblique_label_map(dim, rng)
+    image = intensity_on(label_map, rng, np.float32)
+    grid = common_grid(dim)
+    t = make_transform("composite", grid, rng)
+    field = sitk.TransformToDisplacementField(
+        t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
+    )
+    sampled = sitk.GetArrayViewFromImage(field)
+    own_values, own = _memberships.resample_image_and_memberships(
+        image, label_map, t, grid, values=LARGE_VALUES
+    )
+    values, sm = _memberships.resample_image_and_memberships(
+        image, label_map, t, grid, values=LARGE_VALUES, displacement=sampled
+    )
+    np.testing.assert_array_equal(np.isnan(values), np.isnan(own_values))
+    np.testing.assert_allclose(values, own_values, rtol=1e-12, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(sm.dense(), own.dense(), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="displacement"):
+        _memberships.resample_image_and_memberships(
+            image, label_map, t, grid, values=LARGE_VALUES, displacement=sampled[1:]
+        )

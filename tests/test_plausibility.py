@@ -540,3 +540,28 @@ def test_voxel_points_are_itks(dim):
         for index in np.ndindex(*g.shape)
     ]
     np.testing.assert_allclose(g.voxel_points(), expected, rtol=0, atol=1e-12)
+
+
+def test_measures_from_the_callers_sampling_equal_their_own():
+    """deformation_measures(displacement=) -- the transform already sampled on the grid, as
+    evaluate shares it with the memberships -- gives what its own slab-by-slab sampling
+    gives, slabs and mask included."""
+    from itk_nrreval.plausibility import deformation_measures
+    from itk_nrreval.transforms import displacement_field
+
+    g = OBLIQUE_GRID
+    t, _ = _sine(g, k=1.1, period=14.0, axis=(0.3, 0.5, 1.0))
+    mask = np.zeros(g.shape, bool)
+    mask[3:-4, 5:, :-6] = True
+    field = displacement_field(t, g)
+    sampled = sitk.GetArrayViewFromImage(field)
+    kwargs = dict(mask=mask, affine=True, max_slab_voxels=9000)
+    own = deformation_measures(t, g, **kwargs)
+    given = deformation_measures(t, g, displacement=sampled, **kwargs)
+    for a, b in zip(own[0].to_dict().values(), given[0].to_dict().values(), strict=True):
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-12)
+    np.testing.assert_allclose(own[1].middle, given[1].middle, rtol=1e-9, equal_nan=True)
+    np.testing.assert_array_equal(own[1].counts, given[1].counts)
+    assert own[2].to_dict() == pytest.approx(given[2].to_dict(), rel=1e-9)
+    with pytest.raises(InputError, match="displacement"):
+        deformation_measures(t, g, displacement=sampled[1:])
