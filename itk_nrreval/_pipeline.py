@@ -96,15 +96,18 @@ _FORMAT = 6  # bump when what a cache entry holds changes
 #: computes changes (a fix, a new default), so that entries computed the old way are never
 #: reused. Every key also holds the package version (:func:`_task_key`).
 _TASK_VERSIONS = {
-    "estimate": 2,  # 2: a coarse, refined inverse; stored float32 (issue 30)
+    "estimate": 3,  # 2: a coarse, refined inverse; stored float32 (issue 30)
+    # 3: the coarse inverse refined at the common grid's points (issue 30)
     "frame": 2,  # 2: stored float32, as its estimates (issue 30)
     "frame_disp": 1,
     "frame_spread": 2,  # the spread of the estimates of F (issue 30); 2: per image (issue 27)
     "reg_mask": 1,
-    "resampled": 4,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    "resampled": 5,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
     # 4: inverse consistency from a coarse, refined inverse on every second voxel; float32
     # image, uint32 label indices (issue 30)
+    # 5: inverse consistency refined at the round trip's points; the image from the
+    # memberships' sampling of the transform (issue 30)
     "label_sums": 1,
 }
 _BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)

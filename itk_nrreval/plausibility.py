@@ -65,17 +65,20 @@ LOG_JACOBIAN_RANGE = (-2.0, 2.0)
 
 #: Inverse consistency is measured on every ``INVERSE_CONSISTENCY_STEP``-th voxel of the
 #: grid along each axis: each displacement field of ``T`` is inverted by ITK on every
-#: ``INVERSE_FIELD_STEP``-th node of its grid, and that coarse inverse refined by three
-#: fixed-point steps at the round trip's own points
+#: ``INVERSE_FIELD_STEP``-th node of its grid, and that coarse inverse refined by
+#: ``INVERSE_REFINE_STEPS`` fixed-point steps at the round trip's own points
 #: (:class:`itk_nrreval.transforms.PointwiseInverse`), not on the field's grid. At 1 mm this
-#: takes about 0.3 s of one core (1.9 s refining a whole inverse field, 12 s inverting on
-#: the full grid). Without the interpolation of an inverse field, a smooth invertible field
-#: measures near 0 (6e-5 mm against 0.004 mm with ITK's full-grid inverse field), and
-#: a folding one grows with its folding as that reference does
-#: (``tests/test_plausibility.py`` states the bounds; ``benchmarks/bench_image_task.py``
-#: the times).
+#: takes about 0.6 s of one core (1.9 s refining a whole inverse field, 12 s inverting on
+#: the full grid). Without the interpolation of an inverse field, what is left is the
+#: iteration's own error: near 0 where the map is invertible (7e-7 mm on a smooth 3 mm
+#: field, where ITK's full-grid inverse field gives 0.004 mm), large where it folds (no
+#: inverse). Six steps rather than three: with three, the error of clean cohorts' smooth
+#: fields spread from 1e-4 to 0.02 mm, enough for their subjects' z-scores to flag
+#: (``tests/test_plausibility.py`` and ``tests/test_subject_qc.py`` state the bounds;
+#: ``benchmarks/bench_image_task.py`` the times; issue 30).
 INVERSE_FIELD_STEP = 4
 INVERSE_CONSISTENCY_STEP = 2
+INVERSE_REFINE_STEPS = 6
 
 
 @dataclass(frozen=True)
@@ -321,9 +324,9 @@ def deformation_measures(
     * ``inverse_consistency_mm = mean_p |T^-1(T(p)) - p|`` over the evaluated voxels whose
       every index is even (all evaluated voxels when none is), ``T(p)`` sampled by ITK and
       ``T^-1`` evaluated at those points. For linear transforms this is rounding error; for
-      a displacement field it is the error of the numerical inverse (three fixed-point
-      steps from an inverse computed on a grid four times as coarse as the field's): near 0
-      where the field is invertible, growing where it folds (a folded map has no inverse).
+      a displacement field it is the error of the numerical inverse (six fixed-point steps
+      from an inverse computed on a grid four times as coarse as the field's): near 0 where
+      the field is invertible, growing where it folds (a folded map has no inverse).
 
     The sums run over the evaluated voxels (the mask), all at once on grids of at most
     `max_slab_voxels` voxels and otherwise slab by slab, each slab with one row of halo so
@@ -350,7 +353,9 @@ def deformation_measures(
     inverse = None
     if inverse_consistency:
         try:
-            inverse = PointwiseInverse(t, grid=g, field_step=INVERSE_FIELD_STEP)
+            inverse = PointwiseInverse(
+                t, grid=g, field_step=INVERSE_FIELD_STEP, refine_steps=INVERSE_REFINE_STEPS
+            )
         except (InputError, RuntimeError):
             inverse = None
 
@@ -720,9 +725,10 @@ class SubjectThresholds:
         Flag a subject whose log SDlogJ, log non-linear displacement (RMS beyond the best
         affine map) or log inverse-consistency error has z above this (default 3.5) ...
     deformation_ratio : float
-        ... and is more than this many times the cohort's median (default 1.5): in a cohort
-        whose deformations are much alike (a small MAD), a z-score alone would flag
-        differences too small to mean a failure.
+        ... and is more than this many times the cohort's median (default 1.5; the median
+        taken no lower than the measure's floor: 0.001 for SDlogJ and mm of displacement,
+        0.01 mm of inverse consistency): in a cohort whose deformations are much alike (a
+        small MAD), a z-score alone would flag differences too small to mean a failure.
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
         3.5) ...

@@ -367,27 +367,28 @@ def _full_resolution_round_trip(t: sitk.Transform, field: sitk.Image, g: Geometr
 
 def test_inverse_consistency_against_the_full_resolution_one():
     # Issue 30: inverse consistency inverts each field pointwise at the round trip's points
-    # (every second voxel), by three fixed-point steps from a coarse inverse (every fourth
-    # node), instead of refining a whole inverse field and interpolating it (1.9 s -> 0.3 s
+    # (every second voxel), by six fixed-point steps from a coarse inverse (every fourth
+    # node), instead of refining a whole inverse field and interpolating it (1.9 s -> 0.6 s
     # at 1 mm). The reference inverts with ITK on every node and interpolates that inverse
-    # field, so on a smooth field it measures mostly the interpolation of the inverse (0.004
-    # mm here), which the pointwise inverse does not have (6e-5 mm): within 0.01 mm. Where
-    # the map folds it has no inverse and both grow with the folding; measured on sines of
-    # period 14 mm, k = 0.5, 0.9, 1.1, 1.6 (0, 0, 12 %, 28 % folded) give 0.013, 0.189,
-    # 0.506, 2.63 mm against the reference's 0.068, 0.208, 0.517, 2.22 mm.
+    # field, so where the map is invertible it measures mostly the interpolation of the
+    # inverse, which the pointwise inverse does not have: a smooth 3 mm field gives 7e-7 mm
+    # against the reference's 0.004 mm, and sines of period 14 mm with k = 0.5 and 0.9 (none
+    # folded) 0.001 and 0.084 mm against 0.068 and 0.208 mm. Where the map folds it has no
+    # inverse, and both grow with the folding: k = 1.1 and 1.6 (12 %, 28 % folded) give
+    # 0.43 and 2.99 mm against 0.52 and 2.22 mm.
     g = OBLIQUE_GRID
     t = smooth_random_field(g, max_mm=3.0)
     reference = _full_resolution_round_trip(t, t.GetDisplacementField(), g)
     smooth = deformation_plausibility(t, g).inverse_consistency_mm
-    assert smooth == pytest.approx(reference, abs=0.01)
+    assert smooth < 1e-4 < reference
     measured, references = [], []
     for k in (0.5, 0.9, 1.1, 1.6):
         t, _ = _sine(g, k=k, period=14.0, axis=(0.3, 0.5, 1.0))
         references.append(_full_resolution_round_trip(t, t.GetDisplacementField(), g))
         measured.append(deformation_plausibility(t, g).inverse_consistency_mm)
     assert smooth < measured[0] < measured[1] < measured[2] < measured[3]  # grows with folding
-    assert measured[1:3] == pytest.approx(references[1:3], rel=0.1)  # up to 12 % folded
-    assert references[3] > 1.0 and measured[3] == pytest.approx(references[3], rel=0.25)
+    assert measured[0] < references[0] and measured[1] < references[1]  # invertible
+    assert references[3] > 1.0 and measured[2:] == pytest.approx(references[2:], rel=0.4)
 
 
 def test_refined_inverse_does_not_depend_on_the_number_of_threads():
