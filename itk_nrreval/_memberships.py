@@ -585,9 +585,8 @@ def _point_entries(
     inside : (m,) uint8 ITK's inside-buffer decision, or empty to decide here.
     Stops early when fewer than 8 entries of room are left. Returns (next point, entries).
     """
-    m, d = cidx.shape
+    m = cidx.shape[0]
     nz, ny, nx = labels.shape
-    use_mask = inside.size > 0
     cap = out_code.size
     val = np.empty(8, np.int64)
     wgt = np.empty(8)
@@ -596,14 +595,7 @@ def _point_entries(
     while f < m:
         if n + 8 > cap:
             break
-        cx = cidx[f, 0]
-        cy = cidx[f, 1]
-        cz = cidx[f, 2] if d == 3 else 0.0
-        if use_mask:
-            ok = inside[f] != 0
-        else:  # ITK's IsInsideBuffer: -0.5 <= c < size - 0.5 (half-open; NaN is outside)
-            ok = (cx >= -0.5 and cx < nx - 0.5) and (cy >= -0.5 and cy < ny - 0.5)
-            ok = ok and (cz >= -0.5 and cz < nz - 0.5)
+        ok, cx, cy, cz = _inside_at(cidx, f, inside, nz, ny, nx)
         if not ok:
             f += 1
             continue
@@ -680,18 +672,9 @@ def _linear_values(cidx, image, inside, out):  # pragma: no cover - compiled
     (x, y[, z]) as ITK's linear interpolator does (clamped to the outer voxel centres), NaN
     outside the buffer. `inside` as in :func:`_point_entries` (empty: decide here). Each
     point alone, by the same operations: the numbers do not depend on the threads."""
-    m, d = cidx.shape
     nz, ny, nx = image.shape
-    use_mask = inside.size > 0
-    for f in numba.prange(m):
-        cx = cidx[f, 0]
-        cy = cidx[f, 1]
-        cz = cidx[f, 2] if d == 3 else 0.0
-        if use_mask:
-            ok = inside[f] != 0
-        else:  # ITK's IsInsideBuffer: -0.5 <= c < size - 0.5 (half-open; NaN is outside)
-            ok = (cx >= -0.5 and cx < nx - 0.5) and (cy >= -0.5 and cy < ny - 0.5)
-            ok = ok and (cz >= -0.5 and cz < nz - 0.5)
+    for f in numba.prange(cidx.shape[0]):
+        ok, cx, cy, cz = _inside_at(cidx, f, inside, nz, ny, nx)
         if not ok:
             out[f] = np.nan
             continue
@@ -709,6 +692,21 @@ def _linear_values(cidx, image, inside, out):  # pragma: no cover - compiled
         lo = a + (b - a) * ty
         hi = c + (e - c) * ty
         out[f] = lo + (hi - lo) * tz
+
+
+@numba.njit(cache=True, inline="always")
+def _inside_at(cidx, f, inside, nz, ny, nx):  # pragma: no cover - compiled
+    """Whether point `f` (continuous index ``cidx[f]``, x, y[, z]) is inside a buffer of
+    shape (nz, ny, nx), and its index (z 0 in 2D): ITK's decision ``inside[f]`` where given
+    (non-empty), else ITK's IsInsideBuffer, ``-0.5 <= c < size - 0.5`` on every axis
+    (half-open; NaN is outside)."""
+    cx = cidx[f, 0]
+    cy = cidx[f, 1]
+    cz = cidx[f, 2] if cidx.shape[1] == 3 else 0.0
+    if inside.size > 0:
+        return inside[f] != 0, cx, cy, cz
+    ok = (cx >= -0.5 and cx < nx - 0.5) and (cy >= -0.5 and cy < ny - 0.5)
+    return ok and (cz >= -0.5 and cz < nz - 0.5), cx, cy, cz
 
 
 @numba.njit(cache=True, inline="always")

@@ -254,7 +254,8 @@ def _resample_task(
     lab = None if labels is None else read_image(labels, what="label map")
     own = None if labels is None else [int(v) for v in own_values]
     field = sampled = None
-    if frame[0] == "identity" and reg_grid == g and _shares_sampling(raw, lab, interpolation):
+    one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
+    if one_sampling and frame[0] == "identity" and reg_grid == g:
         # T itself on the common grid: one sampling serves the plausibility and the
         # memberships (and the image's resampling through them); 0.4 s at 1 mm
         field = displacement_field(t, g)
@@ -267,6 +268,7 @@ def _resample_task(
         interpolation=interpolation,
         values=own,
         labels=label_resampling,
+        one_sampling=one_sampling,
         displacement=sampled,
     )
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
@@ -313,14 +315,15 @@ def _resampled_image_and_memberships(
     interpolation: str,
     values: list[int] | None,
     labels: tuple[str, float | None],
+    one_sampling: bool,
     displacement: np.ndarray | None = None,
 ) -> tuple[np.ndarray, SparseMemberships | None]:
     """The image on `g` (flat float64, NaN outside its field of view) and the label map's
-    memberships (None without one): through one sampling of `full` when both are linear
-    and on one grid (the usual image and its parcellation; `displacement`, that sampling
-    when the caller has it), else one resampling each."""
+    memberships (None without one): through one sampling of `full` with `one_sampling`
+    (:func:`_shares_sampling`; `displacement`, that sampling when the caller has it), else
+    one resampling each."""
     method, sigma_mm = labels
-    if method == "linear" and _shares_sampling(raw, lab, interpolation):
+    if one_sampling:
         return resample_image_and_memberships(
             raw, lab, full, g, values=values, displacement=displacement
         )
@@ -335,10 +338,15 @@ def _resampled_image_and_memberships(
     return image[0].reshape(-1), memb
 
 
-def _shares_sampling(raw: sitk.Image, lab: sitk.Image | None, interpolation: str) -> bool:
+def _shares_sampling(
+    raw: sitk.Image, lab: sitk.Image | None, interpolation: str, label_method: str
+) -> bool:
     """Whether a scalar image and its label map can be resampled linearly through one
-    sampling of the transform (:func:`resample_image_and_memberships`): same grid."""
-    if lab is None or interpolation != "linear" or raw.GetNumberOfComponentsPerPixel() != 1:
+    sampling of the transform (:func:`resample_image_and_memberships`): both linear, one
+    grid."""
+    if lab is None or interpolation != "linear" or label_method != "linear":
+        return False
+    if raw.GetNumberOfComponentsPerPixel() != 1:
         return False
     return shares_grid(raw, lab)
 

@@ -847,8 +847,6 @@ def _fixed_point_at_points(
     index). Fields are sampled linearly, clamped to their grids (:func:`_fixed_point_step`'s
     rules). Each point alone, by the same operations: the numbers do not depend on the
     threads."""
-    uz, uy, ux, _ = u.shape
-    vz, vy, vx, _ = v.shape
     for f in numba.prange(y.shape[0]):
         r0, r1, r2 = y[f, 0], y[f, 1], y[f, 2]
         d0, d1, d2 = r0 - u_origin[0], r1 - u_origin[1], r2 - u_origin[2]
@@ -859,33 +857,11 @@ def _fixed_point_at_points(
             lower[0] <= c0 < upper[0] and lower[1] <= c1 < upper[1] and lower[2] <= c2 < upper[2]
         ):
             continue
-        e0, e1, e2 = r0 - v_origin[0], r1 - v_origin[1], r2 - v_origin[2]
-        x0, x1, fx = _corner(
-            v_to_index[0, 0] * e0 + v_to_index[0, 1] * e1 + v_to_index[0, 2] * e2, vx
-        )
-        y0, y1, fy = _corner(
-            v_to_index[1, 0] * e0 + v_to_index[1, 1] * e1 + v_to_index[1, 2] * e2, vy
-        )
-        z0, z1, fz = _corner(
-            v_to_index[2, 0] * e0 + v_to_index[2, 1] * e1 + v_to_index[2, 2] * e2, vz
-        )
-        a0 = r0 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
-        a1 = r1 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
-        a2 = r2 + _trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+        w0, w1, w2 = _linear_at(v, r0, r1, r2, v_origin, v_to_index)
+        a0, a1, a2 = r0 + w0, r1 + w1, r2 + w2
         for _ in range(steps):
-            d0, d1, d2 = a0 - u_origin[0], a1 - u_origin[1], a2 - u_origin[2]
-            x0, x1, fx = _corner(
-                u_to_index[0, 0] * d0 + u_to_index[0, 1] * d1 + u_to_index[0, 2] * d2, ux
-            )
-            y0, y1, fy = _corner(
-                u_to_index[1, 0] * d0 + u_to_index[1, 1] * d1 + u_to_index[1, 2] * d2, uy
-            )
-            z0, z1, fz = _corner(
-                u_to_index[2, 0] * d0 + u_to_index[2, 1] * d1 + u_to_index[2, 2] * d2, uz
-            )
-            a0 = r0 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
-            a1 = r1 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
-            a2 = r2 - _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+            w0, w1, w2 = _linear_at(u, a0, a1, a2, u_origin, u_to_index)
+            a0, a1, a2 = r0 - w0, r1 - w1, r2 - w2
         y[f, 0], y[f, 1], y[f, 2] = a0, a1, a2
 
 
@@ -933,8 +909,7 @@ def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> si
     pad = _padding(u, spacing)  # voxels per ITK axis
     origin = np.asarray(field.GetOrigin()) - direction @ (pad * spacing)
     v = sitk.GetArrayFromImage(inverse)
-    to_index = np.zeros((3, 3))  # mm -> the field's index steps (ITK axis order)
-    to_index[:dim, :dim] = direction.T / spacing[:, None]
+    _, to_index = _index_map(field)  # mm -> the field's index steps (ITK axis order)
     # the grown grid's node i in the coarse inverse's continuous index: offset + ratio * i
     ratio, offset = np.zeros(3), np.zeros(3)
     ratio[:dim] = spacing / np.asarray(inverse.GetSpacing())
@@ -997,6 +972,22 @@ def _corner(x, n):  # pragma: no cover - compiled
     x = min(max(x, 0.0), n - 1.0)
     x0 = min(int(x), max(n - 2, 0))
     return x0, min(x0 + 1, n - 1), x - x0
+
+
+@numba.njit(cache=True, inline="always")
+def _linear_at(a, p0, p1, p2, origin, to_index):  # pragma: no cover - compiled
+    """The three components of `a` (nz, ny, nx, 3) at physical point p, sampled linearly and
+    clamped to its grid (`origin` (3,), `to_index` (3, 3): mm -> index, ITK axis order)."""
+    nz, ny, nx, _ = a.shape
+    d0, d1, d2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
+    x0, x1, fx = _corner(to_index[0, 0] * d0 + to_index[0, 1] * d1 + to_index[0, 2] * d2, nx)
+    y0, y1, fy = _corner(to_index[1, 0] * d0 + to_index[1, 1] * d1 + to_index[1, 2] * d2, ny)
+    z0, z1, fz = _corner(to_index[2, 0] * d0 + to_index[2, 1] * d1 + to_index[2, 2] * d2, nz)
+    return (
+        _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0),
+        _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1),
+        _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2),
+    )
 
 
 @numba.njit(cache=True, inline="always")
