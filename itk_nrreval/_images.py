@@ -117,15 +117,6 @@ class Geometry:
                 return f"{name} {tuple(np.round(b, 6))} differs from {tuple(np.round(a, 6))}"
         return None
 
-    def voxel_points(self) -> np.ndarray:
-        """The physical points of the voxels (m, dim), mm, ITK (x, y[, z]) order, C order
-        over the grid: ITK's ``origin + D diag(spacing) index``."""
-        index = np.indices(self.shape, dtype=np.float64).reshape(self.dimension, -1)[::-1]
-        matrix = np.asarray(self.direction, float).reshape(self.dimension, -1) * np.asarray(
-            self.spacing
-        )
-        return (matrix @ index).T + np.asarray(self.origin, float)
-
     def apply_to(self, image: sitk.Image) -> sitk.Image:
         """Stamp this grid's spacing, origin and direction onto `image` (same size)."""
         image.SetSpacing(self.spacing)

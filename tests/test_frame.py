@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from test_plausibility import OBLIQUE_GRID, full_grid_inverse, smooth_random_field
+from test_plausibility import OBLIQUE_GRID, full_grid_inverse, smooth_random_field, voxel_points
 
 from itk_nrreval.frame import (
     frame_estimates,
@@ -229,7 +229,7 @@ def test_frame_estimates_invert_the_registration_to_a_hundredth_of_a_mm():
         )
     )
     assert np.linalg.norm(est - itk_est, axis=-1).mean() < 0.005
-    points = g.voxel_points()
+    points = voxel_points(g)
     targets = np.array([common.TransformPoint(p) for p in points])
     grid_of_field = field.GetDisplacementField()
     last = np.array(grid_of_field.GetSize()) - 1

@@ -506,17 +506,8 @@ def intensity_on(label_map: sitk.Image, rng, dtype=np.int16) -> sitk.Image:
 
 def itk_linear(image: sitk.Image, transform, grid: Geometry) -> np.ndarray:
     """ITK's own linear resampling in float64, NaN outside the buffer (flat, C order)."""
-    out = sitk.Resample(
-        sitk.Cast(image, sitk.sitkFloat64),
-        list(grid.size),
-        transform,
-        sitk.sitkLinear,
-        list(grid.origin),
-        list(grid.spacing),
-        list(grid.direction),
-        float("nan"),
-        sitk.sitkFloat64,
-    )
+    image = sitk.Cast(image, sitk.sitkFloat64)
+    out = sitk.Resample(image, grid_image(grid), transform, sitk.sitkLinear, float("nan"))
     return sitk.GetArrayFromImage(out).ravel()
 
 

@@ -457,12 +457,25 @@ def test_affine_fit_from_the_measures_sampling_equals_affine_fit(masked):
     assert fit.linear_det == pytest.approx(np.linalg.det(np.eye(3) + coef[:3].T), rel=1e-12)
 
 
+def voxel_points(g: Geometry) -> np.ndarray:
+    """The physical points of `g`'s voxels (m, dim), C order (x fastest): ITK's own
+    TransformIndexToPhysicalPoint, one voxel at a time."""
+    image = sitk.Image(list(g.size), sitk.sitkUInt8)
+    g.apply_to(image)
+    return np.array(
+        [
+            image.TransformIndexToPhysicalPoint([int(i) for i in index[::-1]])
+            for index in np.ndindex(*g.shape)
+        ]
+    )
+
+
 def _sampled(t: sitk.Transform, g: Geometry) -> np.ndarray:
     """``t(p)`` on `g`'s voxels (m, dim): ITK's own sampling."""
     d = sitk.TransformToDisplacementField(
         t, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
     )
-    return g.voxel_points() + sitk.GetArrayFromImage(d).reshape(-1, g.dimension)
+    return voxel_points(g) + sitk.GetArrayFromImage(d).reshape(-1, g.dimension)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -481,7 +494,7 @@ def test_pointwise_inverse_at_the_nodes_is_the_refined_inverse(dim, step):
         u = np.random.default_rng(4).standard_normal((*g.shape, 2))
         u = np.stack([ndimage_smooth(u[..., c]) for c in range(2)], axis=-1)
         t = _field(g, u * (3.0 / np.sqrt((u**2).sum(-1)).max()))
-    nodes = g.voxel_points()
+    nodes = voxel_points(g)
     expected = _sampled(invert(t, field_step=step, refine_steps=3), g)
     got = PointwiseInverse(t, field_step=step, refine_steps=3).map_points(nodes)
     assert np.abs(got - expected).max() < 1e-9
@@ -512,7 +525,7 @@ def test_pointwise_inverse_of_a_chain_round_trips():
         (np.random.default_rng(8).normal(scale=0.8, size=len(bspline.GetParameters()))).tolist()
     )
     chain = sitk.CompositeTransform([affine, smooth_random_field(g, max_mm=3.0)])
-    p = g.voxel_points()
+    p = voxel_points(g)
     back = PointwiseInverse(chain, field_step=4).map_points(_sampled(chain, g))
     assert np.linalg.norm(back - p, axis=1).mean() < 0.01
     linear = PointwiseInverse(affine).map_points(_sampled(affine, g))
@@ -532,15 +545,18 @@ def test_pointwise_inverse_of_a_chain_round_trips():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_voxel_points_are_itks(dim):
-    """Geometry.voxel_points: ITK's own index -> physical point, C order (x fastest)."""
+    """composed_displacement's voxel points (transforms._add_voxel_points): ITK's own index
+    -> physical point, C order (x fastest)."""
+    from itk_nrreval.transforms import _add_voxel_points
+
     g = OBLIQUE_GRID if dim == 3 else _grid((7, 5), (1.2, 0.9), (-10.0, 4.0), _rotation(2, [30]))
-    image = sitk.Image(list(g.size), sitk.sitkUInt8)
-    g.apply_to(image)
-    expected = [
-        image.TransformIndexToPhysicalPoint([int(i) for i in index[::-1]])
-        for index in np.ndindex(*g.shape)
-    ]
-    np.testing.assert_allclose(g.voxel_points(), expected, rtol=0, atol=1e-12)
+    origin, matrix, size = np.zeros(3), np.zeros((3, 3)), np.ones(3, np.int64)
+    origin[:dim] = g.origin
+    matrix[:dim, :dim] = np.asarray(g.direction).reshape(dim, dim) * g.spacing
+    size[:dim] = g.size
+    points = np.zeros((int(np.prod(g.size)), 3))
+    _add_voxel_points(points, origin, matrix, size, 1.0)
+    np.testing.assert_allclose(points[:, :dim], voxel_points(g), rtol=0, atol=1e-12)
 
 
 def test_measures_from_the_callers_sampling_equal_their_own():
