@@ -52,6 +52,7 @@ __all__ = [
     "ImageStack",
     "InMemoryImage",
     "read_image",
+    "read_header",
     "image_stack",
     "mask_array",
     "to_sitk_image",
@@ -430,6 +431,23 @@ def warn_label_like(name: str, n_values: int, *, stacklevel: int = 2) -> None:
 
 
 # ----------------------------------------------------------------------------- files
+
+
+def read_header(path: str | os.PathLike) -> sitk.ImageFileReader:
+    """An image file's header without its voxels (size, spacing, origin, direction,
+    components, metadata), read under :data:`~itk_nrreval._executors.ITK_READ_LOCK`: ITK
+    asks every image reader it knows, the HDF5 one included, whether it can read the file.
+
+    Raises
+    ------
+    RuntimeError
+        ITK cannot read the file (as ``ReadImageInformation``).
+    """
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    with ITK_READ_LOCK:
+        reader.ReadImageInformation()
+    return reader
 
 
 def read_image(path: str | os.PathLike | InMemoryImage, *, what: str = "image") -> sitk.Image:

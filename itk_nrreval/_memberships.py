@@ -48,7 +48,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,7 +58,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from ._errors import InputError, readable
-from ._images import Geometry
+from ._images import Geometry, read_header
 from ._output import atomic_path, write_json
 from .transforms import file_stem
 
@@ -256,7 +256,7 @@ def resample_label_memberships(
 def resample_image_and_memberships(
     image: sitk.Image,
     label_map: sitk.Image,
-    transform: sitk.Transform,
+    transform: sitk.Transform | Callable[[], sitk.Transform],
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
@@ -273,7 +273,10 @@ def resample_image_and_memberships(
     image : sitk.Image
         Scalar, on `label_map`'s grid (:func:`shares_grid`).
     label_map, transform, grid, values
-        As :func:`resample_label_memberships` (``method="linear"``).
+        As :func:`resample_label_memberships` (``method="linear"``). With `displacement`,
+        `transform` may be a function of no arguments that returns it: called only where
+        ITK's own inside-buffer decisions are needed (a point within 1e-6 voxel of the label
+        map's border), for a transform costly to build (a composite copies its fields).
     displacement : ndarray of shape ``(*grid.shape, dim)``, optional
         ``transform(p) - p`` already sampled on `grid` (mm, ITK order last; what
         ``sitk.GetArrayViewFromImage`` of ``sitk.TransformToDisplacementField`` gives) when
@@ -292,14 +295,18 @@ def resample_image_and_memberships(
     Raises
     ------
     ValueError
-        `image` is not on `label_map`'s grid, or not scalar.
+        `image` is not on `label_map`'s grid, or not scalar; `transform` a function without
+        `displacement`.
     InputError
         As :func:`resample_label_memberships`.
     """
     if not shares_grid(image, label_map) or image.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError("image: expected a scalar image on the label map's grid")
+    built = not callable(transform)
+    if not built and displacement is None:
+        raise ValueError("transform: a function only with displacement=")
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
-    labels = _checked_labels(label_map, transform, g, "linear", None)
+    labels = _checked_labels(label_map, transform if built else None, g, "linear", None)
     lead = (1,) * (3 - g.dimension)  # 2D as one plane of 3D
     labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
     pixels = sitk.GetArrayViewFromImage(image)
@@ -324,16 +331,18 @@ def shares_grid(image: sitk.Image, label_map: sitk.Image) -> bool:
 
 
 def _checked_labels(
-    label_map: sitk.Image, transform: sitk.Transform, g: Geometry, method: str, sigma_mm
+    label_map: sitk.Image, transform: sitk.Transform | None, g: Geometry, method: str, sigma_mm
 ) -> np.ndarray:
     """The label map's values as an integer array (numpy order) once the arguments of
-    :func:`resample_label_memberships` are checked (InputError otherwise)."""
+    :func:`resample_label_memberships` are checked (InputError otherwise; `transform` None:
+    not yet built, its dimension unchecked)."""
     dim = g.dimension
     if dim not in (2, 3):
         raise InputError(f"grid: {dim}D, expected 2D or 3D")
-    if label_map.GetDimension() != dim or transform.GetDimension() != dim:
+    t_dim = dim if transform is None else transform.GetDimension()
+    if label_map.GetDimension() != dim or t_dim != dim:
         raise InputError(
-            f"label map ({label_map.GetDimension()}D), transform ({transform.GetDimension()}D) "
+            f"label map ({label_map.GetDimension()}D), transform ({t_dim}D) "
             f"and grid ({dim}D) must have the same dimension"
         )
     if label_map.GetNumberOfComponentsPerPixel() != 1:
@@ -371,7 +380,7 @@ def _linear_memberships(
     vmin: int,
     lut: np.ndarray,
     values: np.ndarray,
-    transform: sitk.Transform,
+    transform: sitk.Transform | Callable[[], sitk.Transform],
     g: Geometry,
     image: np.ndarray | None = None,
     sampled: np.ndarray | None = None,
@@ -379,7 +388,8 @@ def _linear_memberships(
     """The linear memberships, slab by slab; with `image` (on the label map's grid, numpy
     order, float64), also the image linearly resampled at the same points (flat float64,
     NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
-    transform's displacement on the whole grid, when the caller has it."""
+    transform's displacement on the whole grid, when the caller has it (then `transform`
+    may be a function that builds it, called only for ITK's decisions near the border)."""
     dim = g.dimension
     # Grid voxel -> physical point: origin + D diag(spacing) index; label-map point ->
     # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
@@ -423,7 +433,8 @@ def _linear_memberships(
             _BORDER_EPS,
         )
         if near_border and inside is None:
-            inside = _itk_inside(label_map, transform, g)
+            built = transform() if callable(transform) else transform
+            inside = _itk_inside(label_map, built, g)
         mask = np.empty(0, np.uint8) if inside is None else inside[z0 * plane : (z0 + nz) * plane]
         starts, index, weight = _slab_memberships(cidx, labels3, vmin, lut, mask, n_labels)
         if image is not None:
@@ -967,9 +978,7 @@ def membership_file_labels(item, *, name: str) -> tuple[int, ...] | None:
         description = item.GetMetaData(key) if key in keys else ""
         sidecar = None
     elif isinstance(item, (str, os.PathLike)):
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(str(item))
-        reader.ReadImageInformation()
+        reader = read_header(item)
         n_components = reader.GetNumberOfComponents()
         has = reader.HasMetaDataKey("descrip")
         description = reader.GetMetaData("descrip") if has else ""

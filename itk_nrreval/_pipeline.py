@@ -62,10 +62,9 @@ from .frame import (
     FrameMapping,
     common_reference,
     distance_sums,
-    frame_estimates,
+    frame_estimate,
     frame_method,
     label_values,
-    needs_inversion_grid,
     points_minus_grid,
     resample_images,
     resample_onto,
@@ -82,7 +81,14 @@ from .plausibility import (
     deformation_measures,
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
-from .transforms import chain_transform, displacement_field, field_transform, invert
+from .transforms import (
+    chain_transform,
+    displacement_after,
+    displacement_field,
+    field_transform,
+    has_only_fields,
+    invert,
+)
 
 __all__ = [
     "Coverage",
@@ -180,9 +186,9 @@ def _estimate_task(ctx: _Context, key: str, common_item, item, reg_grid: Geometr
     cache = ctx.cache()
     if cache.get("estimate", key) is not None:
         return True
-    tr = chain_transform(item)
-    other = reg_grid if needs_inversion_grid(tr) else None
-    disp = frame_estimates([chain_transform(common_item)], [tr], ctx.grid, other_grid=other)[0]
+    # the chain read where it is inverted: a composite held here too would keep a second
+    # copy of its fields (0.2 GB at 1 mm) while the inverse holds its pieces
+    disp = frame_estimate(chain_transform(common_item), item, ctx.grid, other_grid=reg_grid)
     cache.put("estimate", key, {"disp": disp.astype(_STORED_ESTIMATE)})
     return False
 
@@ -249,17 +255,12 @@ def _resample_task(
     if entry is not None:
         return key, True, dict(entry.meta)
     t = chain_transform(item)
-    full = resampling_transform(t, _frame_transform(frame, g, cache))
     raw = read_image(image, what="image")
     lab = None if labels is None else read_image(labels, what="label map")
     own = None if labels is None else [int(v) for v in own_values]
-    field = sampled = None
     one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
-    if one_sampling and frame[0] == "identity" and reg_grid == g:
-        # T itself on the common grid: one sampling serves the plausibility and the
-        # memberships (and the image's resampling through them); 0.4 s at 1 mm
-        field = displacement_field(t, g)
-        sampled = sitk.GetArrayViewFromImage(field)  # `field` stays named while it is used
+    full, field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=one_sampling)
+    shared = sampled if frame[0] == "identity" else None  # T's own displacement on g
     values, memb = _resampled_image_and_memberships(
         raw,
         lab,
@@ -276,6 +277,20 @@ def _resample_task(
     arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
+    meta: dict = {
+        "label_like": label_like_values(raw),
+        "coverage": float(inside.mean()) if inside.size else 0.0,
+    }
+    if memb is not None:
+        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
+        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
+        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
+        meta.update(labels=own)
+    # what the plausibility does not read goes before it samples T on its own grid: two
+    # tasks at once at 1 mm stay under 3 GB
+    del values, covered, inside, memb, raw, lab, full
+    if shared is None:
+        sampled = field = None
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
@@ -286,24 +301,48 @@ def _resample_task(
         mask=reg_mask,
         inverse_consistency=ctx.inverse_consistency,
         affine=True,
-        displacement=sampled,
+        displacement=shared,
     )
-    del sampled, field
+    del shared, sampled, field
     arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
-    meta: dict = {
-        "plausibility": plaus.to_dict(),
-        "affine_fit": fit.to_dict(),
-        "log_jacobian_histogram": jac.histogram(),
-        "label_like": label_like_values(raw),
-        "coverage": float(inside.mean()) if inside.size else 0.0,
-    }
-    if memb is not None:
-        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
-        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
-        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
-        meta.update(labels=own)
+    meta.update(
+        plausibility=plaus.to_dict(),
+        affine_fit=fit.to_dict(),
+        log_jacobian_histogram=jac.histogram(),
+    )
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
+
+
+def _sampling(
+    t: sitk.Transform, frame: tuple, g: Geometry, reg_grid: Geometry, cache: DiskCache, *,
+    one_sampling: bool,
+) -> tuple:  # fmt: skip
+    """Image i's transform from the common frame, ``T_i^R o F`` (:func:`resampling_transform`),
+    and, where one sampling of it on the common grid `g` serves more than one use, that
+    displacement and the sitk image it views: ``(transform, image or None, displacement or
+    None)``; otherwise the memberships sample the transform slab by slab.
+
+    - F a field the pipeline estimated (frame ``("field", key)``): the displacement is
+      composed from F's cache entry (:func:`~itk_nrreval.transforms.displacement_after`),
+      and the composite, which copies T's and F's fields (0.4 GB at 1 mm), is built only
+      if ITK's own decisions are needed: the transform returned is a function that builds
+      it;
+    - F the identity and T on the common grid: T's displacement there also serves the
+      plausibility (0.4 s at 1 mm).
+    """
+    if one_sampling and frame[0] == "field" and has_only_fields(t):
+        f_disp = cache.open("frame", frame[1]).array("disp")
+        return (
+            lambda: resampling_transform(t, _frame_transform(frame, g, cache)),
+            None,
+            displacement_after(t, f_disp, g),
+        )
+    full = resampling_transform(t, _frame_transform(frame, g, cache))
+    if one_sampling and frame[0] == "identity" and reg_grid == g:
+        field = displacement_field(t, g)
+        return full, field, sitk.GetArrayViewFromImage(field)
+    return full, None, None
 
 
 def _resampled_image_and_memberships(

@@ -48,10 +48,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 
 from ._elastix_files import final_parameter_file
 from ._errors import InputError
+from ._images import read_header
 from .manifest import IDENTITY_FRAME, Manifest, load_manifest
 
 __all__ = [
@@ -248,10 +248,8 @@ def _registered(f: _Folder, space: str) -> dict[SubjectKey, Path]:
 
 
 def _grid(path: Path) -> tuple:
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
     try:
-        reader.ReadImageInformation()
+        reader = read_header(path)
     except RuntimeError:
         raise InputError(f"{path}: cannot read image") from None
     return (

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ._errors import InputError, readable
-from ._executors import InProcessExecutor
+from ._executors import default_threads, local_executor
 from ._memberships import LABEL_INTERPOLATIONS
 from ._output import check_output_folder, json_number, staged_folder
 from ._pipeline import Coverage, run_pipeline
@@ -181,6 +181,14 @@ class Execution:
     workers : int, optional
         With ``scheduler="local"``, the number of worker processes (default: CPU count);
         with an address, wait until that many workers have joined.
+    threads : int, optional
+        Without a scheduler, how many tasks run at once on threads of this process
+        (default: 2 on two or more cores, else 1). Each task uses every core itself; a
+        second one at once keeps them busy while the first reads files. Each running task
+        holds one image's fields (``docs/speed.md``). Where numba has neither OpenMP nor
+        TBB (its ``workqueue`` threading layer cannot run kernels on several threads at
+        once), tasks run one at a time, with a warning when more were asked for. The
+        numbers do not depend on it.
     cache : path, optional
         The folder of the per-image result cache (with a scheduler: shared by driver and
         workers): a rerun -- after an interruption, or with more images or registrations --
@@ -193,14 +201,20 @@ class Execution:
     Raises
     ------
     ValueError
-        `workers` without a `scheduler`, or not a positive integer.
+        `workers` without a `scheduler`, `threads` with one, or either not a positive
+        integer.
     """
 
     scheduler: str | None = None
     workers: int | None = None
+    threads: int | None = None
     cache: str | os.PathLike | None = None
 
     def __post_init__(self) -> None:
+        if self.threads is not None:
+            if self.scheduler is not None:
+                raise ValueError("threads: only without a scheduler (a Dask worker runs one task)")
+            _check_positive("threads", self.threads, 1)
         if self.workers is None:
             return
         if self.scheduler is None:
@@ -738,6 +752,7 @@ def evaluate(
             m,
             scheduler=execution.scheduler,
             workers=execution.workers,
+            threads=execution.threads,
             inverse_consistency=inverse_consistency,
             cache=cache,
             n_samples=int(n_samples),
@@ -864,14 +879,14 @@ def _jackknife_plan(
     return _JackknifePlan(left_out, one_each, image_groups)
 
 
-def _execute(m: Manifest, *, scheduler, workers, **options):
+def _execute(m: Manifest, *, scheduler, workers, threads, **options):
     """Run the per-image tasks and their reductions, in this process or on Dask: the
-    pipeline's run, and what ran it (``{"scheduler", "workers", "cache_reused",
+    pipeline's run, and what ran it (``{"scheduler", "workers", "threads", "cache_reused",
     "cache_computed"}``)."""
     if scheduler is None:
-        executor = InProcessExecutor()
+        executor = local_executor(default_threads() if threads is None else threads)
         run = run_pipeline(m, executor, **options)
-        run_info = {"scheduler": None, "workers": 1}
+        run_info = {"scheduler": None, "workers": 1, "threads": executor.n_workers}
     else:
         from ._scaleout import DaskExecutor, check_scheduler, cluster_client
 
@@ -879,7 +894,7 @@ def _execute(m: Manifest, *, scheduler, workers, **options):
         with cluster_client(scheduler, workers=workers) as client:
             executor = DaskExecutor(client)
             run = run_pipeline(m, executor, **options)
-        run_info = {"scheduler": scheduler, "workers": executor.n_workers}
+        run_info = {"scheduler": scheduler, "workers": executor.n_workers, "threads": 1}
     run_info.update(cache_reused=run.cache_reused, cache_computed=run.cache_computed)
     return run, run_info
 

@@ -41,7 +41,7 @@ from .transforms import (
     composed_displacement,
     displacement_field,
     field_transform,
-    leaves,
+    has_only_fields,
 )
 
 __all__ = [
@@ -49,6 +49,7 @@ __all__ = [
     "common_reference",
     "read_chains",
     "frame_estimates",
+    "frame_estimate",
     "frame_method",
     "frame_mapping",
     "needs_inversion_grid",
@@ -167,22 +168,32 @@ def frame_estimates(
         raise InputError(f"frame: {len(other)} transforms for {len(common)} images")
     out = np.empty((len(common), *g.shape, g.dimension))
     for i, (tc, tr) in enumerate(zip(common, other, strict=True)):
-        inverse = PointwiseInverse(
-            tr,
-            grid=other_grid,
-            field_step=ESTIMATE_FIELD_STEP,
-            refine_steps=ESTIMATE_REFINE_STEPS,
-        )
-        out[i] = composed_displacement(inverse, tc, g)  # R^-1(C(p)) - p
+        out[i] = frame_estimate(tc, tr, g, other_grid=other_grid)
     return out
+
+
+def frame_estimate(
+    common: sitk.Transform,
+    other,
+    grid: Geometry,
+    *,
+    other_grid: sitk.Image | Geometry | None = None,
+) -> np.ndarray:
+    """One image's ``F_i(p) - p`` on the common grid (:func:`frame_estimates` for one
+    image, without the stacked copy): ndarray of shape (*spatial_zyx, dim), float64, mm.
+    `other` (``T_i^R``) may also be a path or a chain (ANTs order), read here."""
+    inverse = PointwiseInverse(
+        other,
+        grid=other_grid,
+        field_step=ESTIMATE_FIELD_STEP,
+        refine_steps=ESTIMATE_REFINE_STEPS,
+    )
+    return composed_displacement(inverse, common, grid)  # R^-1(C(p)) - p
 
 
 def needs_inversion_grid(transform: sitk.Transform) -> bool:
     """Whether inverting `transform` needs a grid (it has a B-spline or similar piece)."""
-    return any(
-        not t.IsLinear() and not isinstance(t, sitk.DisplacementFieldTransform)
-        for t in leaves(transform)
-    )
+    return not has_only_fields(transform)
 
 
 def _spread(

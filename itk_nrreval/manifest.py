@@ -94,7 +94,7 @@ from ._elastix_files import (
 )
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
-from ._images import InMemoryImage, dimension_problem
+from ._images import InMemoryImage, dimension_problem, read_header
 from ._output import write_text
 from .transforms import (
     FIELD_SUFFIXES,
@@ -610,9 +610,7 @@ def _parse_registration(
 
 def _image_info(path: Path) -> tuple[int, int]:
     """(dimension, components) of an image from its header."""
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
-    reader.ReadImageInformation()
+    reader = read_header(path)
     return reader.GetDimension(), reader.GetNumberOfComponents()
 
 
@@ -727,9 +725,7 @@ def _physical_box(item) -> tuple[np.ndarray, np.ndarray] | None:
         if isinstance(item, InMemoryImage):
             info = item.image
         else:
-            info = sitk.ImageFileReader()
-            info.SetFileName(str(item))
-            info.ReadImageInformation()
+            info = read_header(item)
         size, spacing = np.asarray(info.GetSize()), np.asarray(info.GetSpacing())
         origin, d = np.asarray(info.GetOrigin()), len(info.GetSize())
         direction = np.asarray(info.GetDirection()).reshape(d, d)

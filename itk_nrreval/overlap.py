@@ -31,7 +31,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from ._errors import InputError, readable
-from ._images import image_stack, mask_array
+from ._images import image_stack, mask_array, read_header
 from ._memberships import membership_file_labels
 from ._output import json_number
 from ._overlap_kernels import (
@@ -558,10 +558,7 @@ def _check_components(labels) -> None:
             if isinstance(item, sitk.Image):
                 n = item.GetNumberOfComponentsPerPixel()
             else:
-                reader = sitk.ImageFileReader()
-                reader.SetFileName(str(item))
-                reader.ReadImageInformation()
-                n = reader.GetNumberOfComponents()
+                n = read_header(item).GetNumberOfComponents()
         except (RuntimeError, TypeError):  # unreadable: image_stack reports it properly
             return
         if first is None:

@@ -78,6 +78,8 @@ __all__ = [
     "INVERSION_STOPPING",
     "PointwiseInverse",
     "composed_displacement",
+    "displacement_after",
+    "has_only_fields",
     "jacobian_determinant",
     "folded_fraction",
 ]
@@ -722,6 +724,95 @@ def composed_displacement(
     return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
 
 
+def displacement_after(
+    transform: sitk.Transform, displacement: np.ndarray, grid: Geometry
+) -> np.ndarray:
+    """``T(p + d(p)) - p`` on `grid`'s voxels p: the displacement of ``T o D``, where D is
+    ``p -> p + d(p)`` given at the voxels (a frame F on the common grid).
+
+    What ``displacement_field(sitk.CompositeTransform([T, D]), grid)`` gives, D as a
+    displacement-field transform on `grid`, to about 1e-13 mm (the same interpolation in
+    another order of operations), without building that composite, which copies every
+    field of T and D (at 1 mm, 0.1 s and 215 MB each).
+
+    Parameters
+    ----------
+    transform : sitk.Transform
+        T, of linear pieces and displacement fields only (:func:`has_only_fields`); each
+        field by ITK's rules: linear interpolation, the edge values in the half-voxel
+        border of its buffer, the identity beyond.
+    displacement : ndarray of shape (*grid.shape, dim)
+        d(p) in mm, ITK (x, y[, z]) order last; any float dtype.
+    grid : Geometry
+        The points p.
+
+    Returns
+    -------
+    ndarray of shape (*grid.shape, dim), float64
+        Displacements in mm, as ``sitk.GetArrayFromImage`` of a displacement field.
+
+    Raises
+    ------
+    ValueError
+        A piece of T is neither linear nor a displacement field, or `displacement` is not
+        shaped as the grid.
+    """
+    dim = grid.dimension
+    if displacement.shape != (*grid.shape, dim):
+        raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
+    if not has_only_fields(transform):
+        raise ValueError("transform: a piece is neither linear nor a displacement field")
+    origin, matrix = np.zeros(3), np.zeros((3, 3))
+    origin[:dim] = grid.origin
+    matrix[:dim, :dim] = np.asarray(grid.direction, float).reshape(dim, dim) * grid.spacing
+    size = np.ones(3, np.int64)
+    size[:dim] = grid.size
+    y = np.zeros((math.prod(grid.size), 3))
+    y[:, :dim] = displacement.reshape(-1, dim)
+    _add_voxel_points(y, origin, matrix, size, 1.0)  # D(p)
+    # SimpleITK's list [a, b] is a(b(p)): the last piece acts first
+    for piece in reversed(leaves(transform)):
+        if piece.IsLinear():
+            _affine_in_place(y, *_linear_parts(piece))
+            continue
+        field = piece.GetDisplacementField()
+        u = sitk.GetArrayViewFromImage(field)  # `field` stays named while `u` is read
+        _field_in_place(y, _as_plane(u) if dim == 2 else u, *_index_map(field))
+        del u, field
+    _add_voxel_points(y, origin, matrix, size, -1.0)
+    return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
+
+
+def has_only_fields(transform: sitk.Transform) -> bool:
+    """Whether every piece of `transform` is linear or a displacement field."""
+    return all(
+        t.IsLinear() or isinstance(t, sitk.DisplacementFieldTransform) for t in leaves(transform)
+    )
+
+
+@numba.njit(cache=True, parallel=True)
+def _field_in_place(y, u, origin, to_index):  # pragma: no cover - compiled
+    """In place, each point p (row of `y` (m, 3)) -> ``p + u(p)`` by ITK's
+    DisplacementFieldTransform: inside the buffer (continuous index ``-0.5 <= c < size -
+    0.5`` on every axis) `u` (nz, ny, nx, 3) sampled linearly, clamped to its nodes;
+    unchanged outside. `origin`, `to_index`: u's grid (:func:`_index_map`)."""
+    nz, ny, nx, _ = u.shape
+    for f in numba.prange(y.shape[0]):
+        p0, p1, p2 = y[f, 0], y[f, 1], y[f, 2]
+        d0, d1, d2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
+        cx = to_index[0, 0] * d0 + to_index[0, 1] * d1 + to_index[0, 2] * d2
+        cy = to_index[1, 0] * d0 + to_index[1, 1] * d1 + to_index[1, 2] * d2
+        cz = to_index[2, 0] * d0 + to_index[2, 1] * d1 + to_index[2, 2] * d2
+        inside = cx >= -0.5 and cx < nx - 0.5 and cy >= -0.5 and cy < ny - 0.5
+        if not (inside and cz >= -0.5 and cz < nz - 0.5):
+            continue
+        x0, x1, fx = _corner(cx, nx)
+        y0, y1, fy = _corner(cy, ny)
+        z0, z1, fz = _corner(cz, nz)
+        for c in range(3):
+            y[f, c] += _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, c)
+
+
 @numba.njit(cache=True, parallel=True)
 def _add_voxel_points(y, origin, matrix, size, sign):  # pragma: no cover - compiled
     """In place, row f of `y` (m, 3) += `sign` * the physical point of voxel f of a grid of
@@ -782,14 +873,7 @@ def _pointwise_piece(t: sitk.Transform, grid, step: int):
             inverse = t.GetInverse()
         except RuntimeError as exc:
             raise InputError(f"{t.GetName()}: not invertible ({_reason(exc)})") from None
-        origin = np.asarray(inverse.TransformPoint((0.0,) * dim))
-        matrix, offset = np.eye(3), np.zeros(3)
-        for j in range(dim):
-            unit = np.zeros(dim)
-            unit[j] = 1.0
-            matrix[:dim, j] = np.asarray(inverse.TransformPoint(unit.tolist())) - origin
-        offset[:dim] = origin
-        return matrix, offset
+        return _linear_parts(inverse)
     if not isinstance(t, sitk.DisplacementFieldTransform):
         if grid is None:
             raise InputError(
@@ -810,6 +894,20 @@ def _pointwise_piece(t: sitk.Transform, grid, step: int):
     lower[:dim] = -pad - 0.5
     upper[:dim] = np.asarray(field.GetSize()) + pad - 0.5
     return _FieldPiece(u, *_index_map(field), lower, upper, v, *_index_map(coarse), (field, coarse))
+
+
+def _linear_parts(t: sitk.Transform) -> tuple[np.ndarray, np.ndarray]:
+    """A linear transform as ``(matrix (3, 3), offset (3,))`` acting on 3-vectors (a 2D
+    one in the upper-left block), from the images of the origin and the unit vectors."""
+    dim = t.GetDimension()
+    origin = np.asarray(t.TransformPoint((0.0,) * dim))
+    matrix, offset = np.eye(3), np.zeros(3)
+    for j in range(dim):
+        unit = np.zeros(dim)
+        unit[j] = 1.0
+        matrix[:dim, j] = np.asarray(t.TransformPoint(unit.tolist())) - origin
+    offset[:dim] = origin
+    return matrix, offset
 
 
 def _coarse_inverse(field: sitk.Image, step: int, stopping: tuple) -> sitk.Image:

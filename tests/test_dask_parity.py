@@ -38,6 +38,7 @@ ABS = 1e-12
 EXECUTION_FIELDS = {
     ("run", "scheduler"),  # None in process, "local" on the cluster
     ("run", "workers"),  # 1 in process, the cluster's worker count
+    ("run", "threads"),  # tasks at once in process (2 by default), 1 per Dask worker
 }
 
 

@@ -199,6 +199,11 @@ def test_evaluate_python_api_common_random_numbers(tmp_path):
             lambda: nr.Execution(scheduler="local", workers=0),
             "workers: expected an integer >= 1, got 0",
         ),
+        (lambda: nr.Execution(threads=0), "threads: expected an integer >= 1, got 0"),
+        (
+            lambda: nr.Execution(scheduler="local", threads=2),
+            r"threads: only without a scheduler \(a Dask worker runs one task\)",
+        ),
         (
             lambda: nr.evaluate({}, resampling="bspline"),
             r"resampling: expected Resampling\(...\) or None, got str",
@@ -230,7 +235,7 @@ def test_option_groups_are_keyword_only_and_frozen():
     assert nr.Resampling() == nr.Resampling(
         interpolation="linear", label_interpolation="linear", label_sigma_mm=None
     )
-    assert nr.Execution() == nr.Execution(scheduler=None, workers=None, cache=None)
+    assert nr.Execution() == nr.Execution(scheduler=None, workers=None, threads=None, cache=None)
     assert nr.Confidence() == nr.Confidence(samples=None, resamples=None)
 
 

@@ -238,6 +238,11 @@ def test_cli_scheduler_errors(tmp_path, capsys):
     out = tmp_path / "out"
     assert main(["evaluate", str(manifest), "--out", str(out), "--workers", "2"]) == 2
     assert "--workers needs --scheduler" in capsys.readouterr().err
+    cmd = ["evaluate", str(manifest), "--out", str(out), "--scheduler", "local", "--threads", "2"]
+    assert main(cmd) == 2
+    err = capsys.readouterr().err
+    assert "--threads runs tasks in this process: not with --scheduler" in err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
     assert main(["evaluate", str(manifest), "--out", str(out), "--scheduler", "nowhere"]) == 2
     err = capsys.readouterr().err
     assert "scheduler: 'nowhere' is neither 'local' nor an address" in err

@@ -429,3 +429,84 @@ def test_a_chain_is_built_in_place_without_touching_the_callers_transforms(tmp_p
         ]
         np.testing.assert_allclose([chain.TransformPoint(p) for p in points], expected, atol=1e-12)
     assert last.GetNumberOfTransforms() == 2  # the caller's composite is unchanged
+
+
+def _oblique(size, spacing, origin, angle: float) -> sitk.Image:
+    """An empty image on an oblique grid (rotated by `angle` about a skew axis in 3D)."""
+    img = sitk.Image(list(size), sitk.sitkFloat32)
+    img.SetSpacing(spacing)
+    img.SetOrigin(origin)
+    if len(size) == 2:
+        c, s = np.cos(angle), np.sin(angle)
+        img.SetDirection([c, -s, s, c])
+    else:
+        axis = np.array([1.0, 2.0, 0.5]) / np.linalg.norm([1.0, 2.0, 0.5])
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+        img.SetDirection(rot.ravel().tolist())
+    return img
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_displacement_after_equals_itk_sampling_the_composite(dim):
+    """T o D without the composite: ITK's own sampling of CompositeTransform([T, D]), where T
+    is an affine after a field after an affine (fields on oblique, anisotropic grids that do
+    not cover the whole common grid, so points fall in their half-voxel borders and beyond)
+    and D a rough field on the common grid."""
+    from itk_nrreval._images import Geometry
+    from itk_nrreval.transforms import displacement_after
+
+    rng = np.random.default_rng(dim)
+    n = (23, 19, 11)[:dim]
+    common = _oblique(n, [1.2, 0.9, 1.7][:dim], [3.0, -4.0, 2.0][:dim], 0.3)
+    g = Geometry.from_image(common)
+    # rough (neighbouring voxels move apart), and exact in float32, as the cache holds frames
+    d = rng.normal(0.0, 1.5, (*n[::-1], dim)).astype(np.float32).astype(np.float64)
+    on_common = field_transform(field_image(d, common))
+    grid_t = _oblique([k - 6 for k in n], [1.1, 1.3, 0.8][:dim], [5.0, -2.0, 3.5][:dim], -0.5)
+    u = rng.normal(0.0, 2.0, (*grid_t.GetSize()[::-1], dim))
+    first, _, _, _ = affine(dim)
+    last = sitk.AffineTransform(dim)
+    last.SetTranslation(rng.normal(0.0, 3.0, dim).tolist())
+    t = chain_transform([first, field_transform(field_image(u, grid_t)), last])
+    expected = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            sitk.CompositeTransform([t, on_common]),
+            sitk.sitkVectorFloat64,
+            common.GetSize(),
+            common.GetOrigin(),
+            common.GetSpacing(),
+            common.GetDirection(),
+        )
+    )
+    got = displacement_after(t, d, g)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-11)
+    # points beyond the field's buffer (the identity there) and in its border both occur
+    ends = sitk.CompositeTransform([first, on_common])
+    moved = np.array([ends.TransformPoint(p) for p in _voxel_points(common)])
+    cidx = np.array([grid_t.TransformPhysicalPointToContinuousIndex(p) for p in moved])
+    size = np.array(grid_t.GetSize())
+    outside = ((cidx < -0.5) | (cidx >= size - 0.5)).any(axis=1)
+    border = ~outside & ((cidx < 0) | (cidx > size - 1)).any(axis=1)
+    assert outside.mean() > 0.1 and border.sum() > 5
+    np.testing.assert_array_equal(displacement_after(t, d.astype(np.float32), g), got)
+
+
+def _voxel_points(img: sitk.Image) -> list:
+    return [
+        img.TransformIndexToPhysicalPoint([int(i) for i in idx])
+        for idx in np.ndindex(*img.GetSize())
+    ]
+
+
+def test_displacement_after_refuses_what_it_cannot_apply():
+    from itk_nrreval._images import Geometry
+    from itk_nrreval.transforms import displacement_after
+
+    img = grid(2)
+    g = Geometry.from_image(img)
+    bspline = sitk.BSplineTransformInitializer(img, [3, 3])
+    with pytest.raises(ValueError, match="neither linear nor a displacement field"):
+        displacement_after(bspline, np.zeros((*g.shape, 2)), g)
+    with pytest.raises(ValueError, match="not the grid's"):
+        displacement_after(sitk.AffineTransform(2), np.zeros((3, 3, 2)), g)

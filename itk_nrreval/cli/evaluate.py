@@ -102,6 +102,13 @@ def _add_execution_options(p) -> None:
         help="local cluster: K worker processes (default: CPU count); address: wait for K workers",
     )
     p.add_argument(
+        "--threads",
+        type=integer(1),
+        metavar="K",
+        help="without --scheduler: K tasks at once on threads of this process (default: 2 on "
+        "two or more cores); each holds one image's fields",
+    )
+    p.add_argument(
         "--cache",
         metavar="CACHE",
         help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
@@ -303,6 +310,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.scheduler is None and args.workers is not None:
         raise InputError("--workers needs --scheduler (local or an address)")
+    if args.scheduler is not None and args.threads is not None:
+        raise InputError("--threads runs tasks in this process: not with --scheduler")
     manifest = _manifest(args)  # every problem, before DIR is created
     out = check_output_folder(args.out, inputs=manifest.files)
     cache = Path(args.cache) if args.cache is not None else out / "cache"
@@ -322,7 +331,9 @@ def run(args: argparse.Namespace) -> int:
             label_sigma_mm=args.label_sigma,
         ),
         progress=not args.quiet,
-        execution=Execution(scheduler=args.scheduler, workers=args.workers, cache=cache),
+        execution=Execution(
+            scheduler=args.scheduler, workers=args.workers, threads=args.threads, cache=cache
+        ),
         confidence=(
             False
             if args.no_confidence
@@ -342,7 +353,11 @@ def run(args: argparse.Namespace) -> int:
     )
     print(summary_table(result), end="")
     r = result.run
-    where = f"on {r['workers']} Dask workers" if r["scheduler"] else "in this process"
+    where = (
+        f"on {r['workers']} Dask workers"
+        if r["scheduler"]
+        else f"in this process ({r['threads']} task{'s' if r['threads'] > 1 else ''} at once)"
+    )
     print(
         f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
         f"{r['cache_computed']} computed"
