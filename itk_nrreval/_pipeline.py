@@ -116,7 +116,7 @@ _TASK_VERSIONS = {
     # memberships' sampling of the transform (issue 30)
     "label_sums": 1,
 }
-_BLOCK_BYTES = 1 << 27  # float64 bytes of one voxel block over all N images (128 MiB)
+_BLOCK_BYTES = 1 << 26  # float64 bytes of one voxel block over all N images (64 MiB)
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
 #: tests/test_pipeline.py bounds it against float64 entries).
@@ -624,6 +624,8 @@ class ReducedRegistration:
     overlap : OverlapTable or None
         None without labels.
     frame : FrameMapping
+        Its transform is None for an estimated frame until :func:`run_pipeline` returns
+        (the driver does not hold the field while it resamples and reduces).
     plausibility : list of Plausibility, length n_images
         Each transform's deformation plausibility on the registration's reference grid
         (every image, those left out of the scores too).
@@ -828,7 +830,22 @@ def run_pipeline(
             )
             for name, r in resampled.items()
         }
+        runs = _with_frame_transforms(runs, resampled, grid, disk)
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
+
+
+def _with_frame_transforms(
+    runs: dict[str, ReducedRegistration], resampled: Mapping, grid: Geometry, disk: DiskCache
+) -> dict[str, ReducedRegistration]:
+    """`runs` with each estimated frame's transform F read back from the cache, which the
+    driver did not hold while the images were resampled and reduced."""
+    out = {}
+    for name, run in runs.items():
+        if run.frame.transform is None:
+            f = _frame_transform(resampled[name].frame_spec, grid, disk)
+            run = dataclasses.replace(run, frame=dataclasses.replace(run.frame, transform=f))
+        out[name] = run
+    return out
 
 
 def _stored_mask(disk: DiskCache, mask: np.ndarray) -> str:
@@ -877,6 +894,11 @@ def _resample_registration(
         executor, ctx, disk, m, name, reg_grid, counts, progress
     )
     reg_mask_key = _registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
+    if frame_spec[0] == "field":
+        # The tasks read F from the cache; the driver holds its transform (a full-size
+        # field, 0.2 GB at 1 mm per registration) only once the reductions are done
+        # (:func:`_with_frame_transforms`).
+        frame = dataclasses.replace(frame, transform=None)
     calls = [
         (
             ctx,

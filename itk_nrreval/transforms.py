@@ -652,12 +652,12 @@ class PointwiseInverse:
         field_step: int = 1,
         refine_steps: int = 3,
     ):
-        self.dimension = chain_transform(transform).GetDimension()
+        pieces = leaves(chain_transform(transform))  # files read once; the chain is not kept
+        self.dimension = pieces[0].GetDimension()
         self.refine_steps = int(refine_steps)
         # sitk list [a, b] means a(b(p)): its inverse applies a^-1 first
-        self._pieces = [
-            _pointwise_piece(t, grid, int(field_step)) for t in leaves(chain_transform(transform))
-        ]
+        self._pieces = [_pointwise_piece(t, grid, int(field_step)) for t in pieces]
+        del pieces
 
     def map_points(self, points: np.ndarray) -> np.ndarray:
         """``T^-1`` at `points`.
