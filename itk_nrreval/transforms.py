@@ -760,7 +760,8 @@ def displacement_after(
     dim = grid.dimension
     if displacement.shape != (*grid.shape, dim):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
-    if not has_only_fields(transform):
+    pieces = leaves(transform)  # once: taking a composite apart copies its fields
+    if not all(_is_linear_or_field(t) for t in pieces):
         raise ValueError("transform: a piece is neither linear nor a displacement field")
     origin, matrix = np.zeros(3), np.zeros((3, 3))
     origin[:dim] = grid.origin
@@ -771,13 +772,16 @@ def displacement_after(
     y[:, :dim] = displacement.reshape(-1, dim)
     _add_voxel_points(y, origin, matrix, size, 1.0)  # D(p)
     # SimpleITK's list [a, b] is a(b(p)): the last piece acts first
-    for piece in reversed(leaves(transform)):
+    for piece in reversed(pieces):
         if piece.IsLinear():
             _affine_in_place(y, *_linear_parts(piece))
             continue
         field = piece.GetDisplacementField()
         u = sitk.GetArrayViewFromImage(field)  # `field` stays named while `u` is read
-        _field_in_place(y, _as_plane(u) if dim == 2 else u, *_index_map(field))
+        # ITK's IsInsideBuffer, -0.5 <= index < size - 0.5, in the kernel's 3D axes
+        lower, upper = np.full(3, -0.5), np.full(3, 0.5)
+        upper[:dim] = np.asarray(field.GetSize()) - 0.5
+        _field_in_place(y, _as_plane(u) if dim == 2 else u, *_index_map(field), lower, upper)
         del u, field
     _add_voxel_points(y, origin, matrix, size, -1.0)
     return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
@@ -785,32 +789,26 @@ def displacement_after(
 
 def has_only_fields(transform: sitk.Transform) -> bool:
     """Whether every piece of `transform` is linear or a displacement field."""
-    return all(
-        t.IsLinear() or isinstance(t, sitk.DisplacementFieldTransform) for t in leaves(transform)
-    )
+    return all(_is_linear_or_field(t) for t in leaves(transform))
+
+
+def _is_linear_or_field(t: sitk.Transform) -> bool:
+    return t.IsLinear() or isinstance(t, sitk.DisplacementFieldTransform)
 
 
 @numba.njit(cache=True, parallel=True)
-def _field_in_place(y, u, origin, to_index):  # pragma: no cover - compiled
-    """In place, each point p (row of `y` (m, 3)) -> ``p + u(p)`` by ITK's
-    DisplacementFieldTransform: inside the buffer (continuous index ``-0.5 <= c < size -
-    0.5`` on every axis) `u` (nz, ny, nx, 3) sampled linearly, clamped to its nodes;
-    unchanged outside. `origin`, `to_index`: u's grid (:func:`_index_map`)."""
-    nz, ny, nx, _ = u.shape
+def _field_in_place(y, u, origin, to_index, lower, upper):  # pragma: no cover - compiled
+    """In place, each point p (row of `y` (m, 3)) -> ``p + u(p)`` where p's continuous index
+    in u's grid lies in ``[lower, upper)`` on every axis (ITK's DisplacementFieldTransform:
+    the buffer's -0.5 to size - 0.5), `u` (nz, ny, nx, 3) sampled linearly, clamped to its
+    nodes; unchanged elsewhere. `origin`, `to_index`: u's grid (:func:`_index_map`)."""
     for f in numba.prange(y.shape[0]):
         p0, p1, p2 = y[f, 0], y[f, 1], y[f, 2]
-        d0, d1, d2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
-        cx = to_index[0, 0] * d0 + to_index[0, 1] * d1 + to_index[0, 2] * d2
-        cy = to_index[1, 0] * d0 + to_index[1, 1] * d1 + to_index[1, 2] * d2
-        cz = to_index[2, 0] * d0 + to_index[2, 1] * d1 + to_index[2, 2] * d2
-        inside = cx >= -0.5 and cx < nx - 0.5 and cy >= -0.5 and cy < ny - 0.5
-        if not (inside and cz >= -0.5 and cz < nz - 0.5):
+        c0, c1, c2 = _continuous_index(p0, p1, p2, origin, to_index)
+        if not _in_box(c0, c1, c2, lower, upper):
             continue
-        x0, x1, fx = _corner(cx, nx)
-        y0, y1, fy = _corner(cy, ny)
-        z0, z1, fz = _corner(cz, nz)
-        for c in range(3):
-            y[f, c] += _trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, c)
+        w0, w1, w2 = _linear_at_index(u, c0, c1, c2)
+        y[f, 0], y[f, 1], y[f, 2] = p0 + w0, p1 + w1, p2 + w2
 
 
 @numba.njit(cache=True, parallel=True)
@@ -947,13 +945,8 @@ def _fixed_point_at_points(
     threads."""
     for f in numba.prange(y.shape[0]):
         r0, r1, r2 = y[f, 0], y[f, 1], y[f, 2]
-        d0, d1, d2 = r0 - u_origin[0], r1 - u_origin[1], r2 - u_origin[2]
-        c0 = u_to_index[0, 0] * d0 + u_to_index[0, 1] * d1 + u_to_index[0, 2] * d2
-        c1 = u_to_index[1, 0] * d0 + u_to_index[1, 1] * d1 + u_to_index[1, 2] * d2
-        c2 = u_to_index[2, 0] * d0 + u_to_index[2, 1] * d1 + u_to_index[2, 2] * d2
-        if not (
-            lower[0] <= c0 < upper[0] and lower[1] <= c1 < upper[1] and lower[2] <= c2 < upper[2]
-        ):
+        c0, c1, c2 = _continuous_index(r0, r1, r2, u_origin, u_to_index)
+        if not _in_box(c0, c1, c2, lower, upper):
             continue
         w0, w1, w2 = _linear_at(v, r0, r1, r2, v_origin, v_to_index)
         a0, a1, a2 = r0 + w0, r1 + w1, r2 + w2
@@ -1073,14 +1066,39 @@ def _corner(x, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
+def _continuous_index(p0, p1, p2, origin, to_index):  # pragma: no cover - compiled
+    """Physical point p's continuous index (ITK axis order) in a grid of `origin` (3,) and
+    `to_index` (3, 3): mm -> index (:func:`_index_map`)."""
+    d0, d1, d2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
+    return (
+        to_index[0, 0] * d0 + to_index[0, 1] * d1 + to_index[0, 2] * d2,
+        to_index[1, 0] * d0 + to_index[1, 1] * d1 + to_index[1, 2] * d2,
+        to_index[2, 0] * d0 + to_index[2, 1] * d1 + to_index[2, 2] * d2,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _in_box(c0, c1, c2, lower, upper):  # pragma: no cover - compiled
+    """Whether a continuous index lies in ``[lower, upper)`` on every axis (NaN: no)."""
+    return lower[0] <= c0 < upper[0] and lower[1] <= c1 < upper[1] and lower[2] <= c2 < upper[2]
+
+
+@numba.njit(cache=True, inline="always")
 def _linear_at(a, p0, p1, p2, origin, to_index):  # pragma: no cover - compiled
     """The three components of `a` (nz, ny, nx, 3) at physical point p, sampled linearly and
     clamped to its grid (`origin` (3,), `to_index` (3, 3): mm -> index, ITK axis order)."""
+    c0, c1, c2 = _continuous_index(p0, p1, p2, origin, to_index)
+    return _linear_at_index(a, c0, c1, c2)
+
+
+@numba.njit(cache=True, inline="always")
+def _linear_at_index(a, c0, c1, c2):  # pragma: no cover - compiled
+    """The three components of `a` (nz, ny, nx, 3) at continuous index (c0, c1, c2) (ITK
+    axis order), sampled linearly and clamped to its grid."""
     nz, ny, nx, _ = a.shape
-    d0, d1, d2 = p0 - origin[0], p1 - origin[1], p2 - origin[2]
-    x0, x1, fx = _corner(to_index[0, 0] * d0 + to_index[0, 1] * d1 + to_index[0, 2] * d2, nx)
-    y0, y1, fy = _corner(to_index[1, 0] * d0 + to_index[1, 1] * d1 + to_index[1, 2] * d2, ny)
-    z0, z1, fz = _corner(to_index[2, 0] * d0 + to_index[2, 1] * d1 + to_index[2, 2] * d2, nz)
+    x0, x1, fx = _corner(c0, nx)
+    y0, y1, fy = _corner(c1, ny)
+    z0, z1, fz = _corner(c2, nz)
     return (
         _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0),
         _trilinear(a, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1),
