@@ -17,7 +17,10 @@ parts timed by wrapping the functions it calls:
   points; before, the plausibility call timed again without inverse consistency gives it);
 - ``affine fit``: the transform's closest affine map (since issue 30 from the
   plausibility's own sampling of the transform, and timed apart from it);
-- ``cache write``: the entry written (hashed and renamed into place);
+- ``coverage``: which common-grid voxels the transform brings the image's field of view to
+  (since issue 30, measured with the plausibility in a task of its own before any image is
+  resampled, :func:`itk_nrreval._pipeline._measures_task`; the two tasks are timed together);
+- ``cache write``: the entries written (hashed and renamed into place);
 - ``other``: the rest of the task.
 
 A third run times the frame-estimate task (:func:`itk_nrreval._pipeline._estimate_task`) of
@@ -63,6 +66,7 @@ PARTS = (
     "invert",
     "round trip",
     "affine fit",
+    "coverage",
     "cache write",
     "other",
 )
@@ -158,20 +162,37 @@ def _measure(info: dict, name: str) -> dict:
     labels = Path(info["labels"])
     own = [int(v) for v in label_values([labels]) if v != 0]
     item = Path(info["transforms"][name])
+    # since issue 30 the transform's measures are a task of their own, before resampling
+    two_tasks = hasattr(_pipeline, "_measures_task")
+    if two_tasks:
+        _pipeline.covered_voxels = timed("coverage", _pipeline.covered_voxels)
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
         ctx = _pipeline._Context(root, grid, None, True)
         args = (ctx, Path(info["image"]), labels, item, ("identity",), "identity", grid)
+
+        def run_tasks() -> list[tuple]:
+            if not two_tasks:
+                return [("resampled", *_pipeline._resample_task(*args, "linear", None, own))]
+            measured = _pipeline._measures_task(*args[:2], *args[3:], None)
+            return [
+                ("measures", *measured),
+                ("resampled", *_pipeline._resample_task(*args, "linear", own)),
+            ]
+
         # a first run compiles the numba kernels (when their disk cache is cold) and reads
         # the files into the page cache: not timed
-        _pipeline._resample_task(*args, "linear", None, own)
-        shutil.rmtree(Path(root) / "resampled")
+        run_tasks()
+        for kind in ("resampled", "measures"):
+            shutil.rmtree(Path(root) / kind, ignore_errors=True)
         spent.update(dict.fromkeys(PARTS, 0.0))
         t0 = time.process_time()
-        key, reused, _meta = _pipeline._resample_task(*args, "linear", None, own)
+        results = run_tasks()
         total = time.process_time() - t0
-        assert not reused
-        folder = DiskCache(root)._folder("resampled", key)
-        files = {p.name: p.stat().st_size for p in folder.iterdir()}
+        assert not any(reused for _kind, _key, reused, _meta in results)
+        files = {}
+        for kind, key, _reused, _meta in results:
+            folder = DiskCache(root)._folder(kind, key)
+            files.update({f"{kind}/{p.name}": p.stat().st_size for p in folder.iterdir()})
 
     nested = ("invert", "round trip", "other")  # parts of the plausibility
     if shared_fit:

@@ -66,6 +66,7 @@ __all__ = [
     "LABEL_INTERPOLATIONS",
     "MEMBERSHIPS_KIND",
     "SparseMemberships",
+    "covered_voxels",
     "membership_file_labels",
     "resample_label_memberships",
     "sidecar_path",
@@ -390,27 +391,103 @@ def _linear_memberships(
     NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
     transform's displacement on the whole grid, when the caller has it (then `transform`
     may be a function that builds it, called only for ITK's decisions near the border)."""
-    dim = g.dimension
-    # Grid voxel -> physical point: origin + D diag(spacing) index; label-map point ->
-    # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
-    g_matrix = np.asarray(g.direction, float).reshape(dim, dim) * np.asarray(g.spacing)
-    l_direction = np.asarray(label_map.GetDirection(), float).reshape(dim, dim)
-    l_inverse = np.linalg.inv(l_direction) / np.asarray(label_map.GetSpacing())[:, None]
-    l_origin = np.asarray(label_map.GetOrigin(), float)
-    l_size = np.asarray(label_map.GetSize(), np.int64)
-    g_origin = np.asarray(g.origin, float)
-
-    shape = g.shape
-    plane = int(np.prod(shape[1:]))
-    if plane >= 2**31:
-        raise InputError(f"grid: {plane} voxels per plane, more than this kernel indexes")
-    step = max(1, _SLAB_VOXELS // plane)
     n_labels = len(values)
     inside = None  # ITK's inside-buffer mask of the whole grid, computed only when needed
     pieces = []  # per slab: (first flat voxel, label starts, index, weight)
-    resampled = None if image is None else np.empty(int(np.prod(shape)))
-    for z0 in range(0, shape[0], step):
-        nz = min(step, shape[0] - z0)
+    resampled = None if image is None else np.empty(int(np.prod(g.shape)))
+    plane = int(np.prod(g.shape[1:]))
+    for z0, cidx, near_border in _slab_indices(
+        transform, g, Geometry.from_image(label_map), sampled
+    ):
+        nz = cidx.shape[0] // plane
+        if near_border and inside is None:
+            built = transform() if callable(transform) else transform
+            inside = _itk_inside(label_map, built, g)
+        mask = np.empty(0, np.uint8) if inside is None else inside[z0 * plane : (z0 + nz) * plane]
+        starts, index, weight = _slab_memberships(cidx, labels3, vmin, lut, mask, n_labels)
+        if image is not None:
+            _linear_values(cidx, image, mask, resampled[z0 * plane : (z0 + nz) * plane])
+        del cidx
+        pieces.append((z0 * plane, starts, index, weight))
+    return _assemble(values, g.shape, pieces), resampled
+
+
+def covered_voxels(
+    image_grid: Geometry,
+    transform: sitk.Transform | Callable[[], sitk.Transform],
+    grid: Geometry,
+    *,
+    displacement: np.ndarray | None = None,
+) -> np.ndarray:
+    """Which voxels of `grid` `transform` maps into the field of view of an image on
+    `image_grid`, as ITK decides it.
+
+    ITK's ``ResampleImageFilter`` gives a grid point a value when its continuous index in
+    the image lies in ``[-0.5, size - 0.5)`` on every axis (``IsInsideBuffer``): these are
+    the points where ``sitk.Resample`` and :func:`resample_image_and_memberships` give the
+    image a value, found without resampling it. Points within 1e-6 voxel of the border are
+    decided by ITK itself, as the resampling does.
+
+    Parameters
+    ----------
+    image_grid : Geometry
+        The image's grid (size, spacing, origin, direction).
+    transform : sitk.Transform or callable
+        Grid points -> image points (physical mm, LPS). With `displacement`, it may be a
+        function of no arguments that returns it, called only if ITK's decisions are needed.
+    grid : Geometry
+        The grid whose voxels are decided.
+    displacement : ndarray of shape ``(*grid.shape, dim)``, optional
+        ``transform(p) - p`` already sampled on `grid` (mm, ITK order last) when the
+        caller has it; default: sampled here, slab by slab.
+
+    Returns
+    -------
+    ndarray of shape (n_voxels,), bool
+        Flat, C order on `grid`: True where the image has a value.
+    """
+    if displacement is None and callable(transform):
+        raise ValueError("transform: a function only with displacement=")
+    covered = np.empty(int(np.prod(grid.shape)), np.bool_)
+    nz, ny, nx = _zyx(image_grid.shape)
+    for z0, cidx, near_border in _slab_indices(transform, grid, image_grid, displacement):
+        if near_border:
+            built = transform() if callable(transform) else transform
+            ones = sitk.Image(list(image_grid.size), sitk.sitkUInt8)
+            image_grid.apply_to(ones)
+            return _itk_inside(ones, built, grid).astype(bool)
+        start = z0 * int(np.prod(grid.shape[1:]))
+        _inside_flags(cidx, nz, ny, nx, covered[start : start + cidx.shape[0]])
+    return covered
+
+
+def _zyx(shape: tuple[int, ...]) -> tuple[int, int, int]:
+    """(nz, ny, nx) of a 2D (ny, nx) or 3D numpy shape (nz 1 in 2D)."""
+    return (1, *shape) if len(shape) == 2 else tuple(shape)
+
+
+def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndarray | None):
+    """Per slab of `g`'s planes: (first plane, continuous indices in `image_grid` of the
+    slab's voxels ``(m, dim)``, ITK order, the number within 1e-6 voxel of its border).
+
+    The points are ``transform(p)`` (from `sampled`, ``transform(p) - p`` on `g`, when
+    given; else sampled here, slab by slab).
+    """
+    dim = g.dimension
+    # Grid voxel -> physical point: origin + D diag(spacing) index; image point ->
+    # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
+    g_matrix = np.asarray(g.direction, float).reshape(dim, dim) * np.asarray(g.spacing)
+    l_direction = np.asarray(image_grid.direction, float).reshape(dim, dim)
+    l_inverse = np.linalg.inv(l_direction) / np.asarray(image_grid.spacing)[:, None]
+    l_origin = np.asarray(image_grid.origin, float)
+    l_size = np.asarray(image_grid.size, np.int64)
+    g_origin = np.asarray(g.origin, float)
+    plane = int(np.prod(g.shape[1:]))
+    if plane >= 2**31:
+        raise InputError(f"grid: {plane} voxels per plane, more than this kernel indexes")
+    step = max(1, _SLAB_VOXELS // plane)
+    for z0 in range(0, g.shape[0], step):
+        nz = min(step, g.shape[0] - z0)
         size = (*g.size[:-1], nz)
         origin = g_origin + g_matrix[:, -1] * z0
         if sampled is None:
@@ -432,16 +509,15 @@ def _linear_memberships(
             l_size,
             _BORDER_EPS,
         )
-        if near_border and inside is None:
-            built = transform() if callable(transform) else transform
-            inside = _itk_inside(label_map, built, g)
-        mask = np.empty(0, np.uint8) if inside is None else inside[z0 * plane : (z0 + nz) * plane]
-        starts, index, weight = _slab_memberships(cidx, labels3, vmin, lut, mask, n_labels)
-        if image is not None:
-            _linear_values(cidx, image, mask, resampled[z0 * plane : (z0 + nz) * plane])
-        del cidx
-        pieces.append((z0 * plane, starts, index, weight))
-    return _assemble(values, shape, pieces), resampled
+        yield z0, cidx, near_border
+
+
+@numba.njit(cache=True)
+def _inside_flags(cidx, nz, ny, nx, out):  # pragma: no cover - compiled
+    """ITK's IsInsideBuffer of each continuous index (:func:`_inside_at`), into `out`."""
+    none = np.empty(0, np.uint8)
+    for f in range(cidx.shape[0]):
+        out[f] = _inside_at(cidx, f, none, nz, ny, nx)[0]
 
 
 def _label_table(

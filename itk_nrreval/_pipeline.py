@@ -5,15 +5,20 @@
 them. The work is cut so that no process holds the N x n data (N images, n voxels):
 
 1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
-   other than the common one); then the image resampled into the common frame, its fuzzy
-   label memberships (sparse: the voxels where each label is nonzero), the per-image sums
-   the overlap needs (label gradients, presence) and the deformation's plausibility
-   (:mod:`itk_nrreval.plausibility`, on the registration's own reference grid). Each
+   other than the common one); the transform's measures (which voxels of the common grid
+   it brings the image's field of view to, and the deformation's plausibility,
+   :mod:`itk_nrreval.plausibility`, on the registration's own reference grid); then, once
+   every transform is measured and the region every image covers under every
+   registration is known, registration by registration: the image resampled into the
+   common frame, its fuzzy label memberships (sparse: the voxels where each label is
+   nonzero) and the per-image sums the overlap needs (label gradients, presence). Each
    result is written to a disk cache under a digest of everything it depends on (input
    file contents, transforms, the frame, grid, mask, settings, and the code version: the
    package's and the task's, ``_TASK_VERSIONS``; :mod:`itk_nrreval._cache`), so a rerun
    -- after an interruption, or with more images or registrations -- finds it there
-   instead of recomputing it;
+   instead of recomputing it. A registration's resampled images leave the cache once its
+   scores are taken (unless kept: ``keep_resampled``), so that the cache holds one
+   registration's images at a time;
 2. **per voxel block** (a few tasks per registration): every image's block is read back
    (memory-mapped) to add that block's share of the N x N Gram matrix of the centred
    images, the mean image, and the overlap pair sums per label;
@@ -49,9 +54,18 @@ from . import _version
 from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
 from ._executors import Executor
-from ._images import Geometry, label_like_values, mask_array, read_image, warn_label_like
+from ._images import (
+    Geometry,
+    InMemoryImage,
+    label_like_values,
+    mask_array,
+    read_header,
+    read_image,
+    warn_label_like,
+)
 from ._memberships import (
     SparseMemberships,
+    covered_voxels,
     resample_image_and_memberships,
     resample_label_memberships,
     shares_grid,
@@ -97,7 +111,7 @@ __all__ = [
     "run_pipeline",
 ]
 
-_FORMAT = 6  # bump when what a cache entry holds changes
+_FORMAT = 7  # bump when what a cache entry holds changes
 #: The computation version of each cached task: bump a task's number whenever what it
 #: computes changes (a fix, a new default), so that entries computed the old way are never
 #: reused. Every key also holds the package version (:func:`_task_key`).
@@ -114,6 +128,8 @@ _TASK_VERSIONS = {
     # image, uint32 label indices (issue 30)
     # 5: inverse consistency refined at the round trip's points; the image from the
     # memberships' sampling of the transform (issue 30)
+    # 6: the transform's measures in their own entry, "measures" (issue 30)
+    "measures": 1,  # coverage and plausibility, before any image is resampled (issue 30)
     "label_sums": 1,
 }
 _BLOCK_BYTES = 1 << 26  # float64 bytes of one voxel block over all N images (64 MiB)
@@ -201,95 +217,57 @@ def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, f
     return distance_sums(est, f_disp, ctx.mask_flat())
 
 
-def _resample_task(
+def _measures_task(
     ctx: _Context,
     image: Path,
-    labels: Path | None,
     item,
     frame: tuple,
     frame_digest: str,
     reg_grid: Geometry,
-    interpolation: str,
     reg_mask_key: str | None,
-    own_values: Sequence[int] | None,
-    label_resampling: tuple[str, float | None] = ("linear", None),
 ) -> tuple[str, bool, dict]:
-    """Resample one image (and its label memberships) into the common frame; cache it.
+    """One image's transform, measured without resampling the image; cache it.
 
-    The entry holds ``image`` (n,) over the whole grid (``_STORED_IMAGE``, float32; 0 outside
-    the image's field of view), ``covered`` (the voxels inside that field of view,
-    ``np.packbits`` of a bool (n,)), and for the labels the nonzero memberships of the image's
-    own nonzero label values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat
-    voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
-    (float32). Its metadata holds the label values, the
-    fraction of the mask (or grid) the image covers, and the deformation's plausibility
-    measures and the transform's closest affine map
+    The entry holds ``covered``: the common-grid voxels that ``T_i^R o F`` maps into the
+    image's field of view (``np.packbits`` of a bool (n,); ITK's decisions,
+    :func:`~itk_nrreval._memberships.covered_voxels`, where the resampled image has a
+    value), and ``detj_middle`` (float32: det J on the middle slice of `reg_grid`, NaN
+    outside its mask, for the report). Its metadata holds the fraction of the mask (or grid)
+    covered, the deformation's plausibility measures and the transform's closest affine map
     (:func:`~itk_nrreval.plausibility.affine_fit`, from the same sampling of the transform:
     ``deformation_measures(..., affine=True)``) on the registration's reference grid
-    `reg_grid` (inside the mask mapped there, `reg_mask_key`). `own_values` are the label
-    map's own nonzero values (found once by the driver); `label_resampling` is
-    ``(method, sigma_mm)`` of :func:`~itk_nrreval._memberships.resample_label_memberships`.
-    For the report, the entry also holds ``detj_middle`` (float32: det J on the middle slice
-    of `reg_grid`, NaN outside its mask) and the metadata ``log_jacobian_histogram``
-    (fixed-bin counts of log det J over the same voxels; both
-    from :func:`itk_nrreval.plausibility.deformation_measures`).
+    `reg_grid` (inside the mask mapped there, `reg_mask_key`), and the fixed-bin counts of
+    log det J over the same voxels (``log_jacobian_histogram``).
+
+    Every image's coverage is known before any image is resampled, so each registration's
+    resampled images can leave the cache once its scores are taken (:func:`run_pipeline`).
     """
     cache = ctx.cache()
     g = ctx.grid
     key = _task_key(
-        "resampled",
+        "measures",
         g,
         ctx.mask_key,
         image,
-        labels,
         item,
         frame_digest,
         reg_grid,
-        interpolation,
         reg_mask_key,
         ctx.inverse_consistency,
-        list(label_resampling),
-        np.dtype(_STORED_IMAGE).str,
     )
-    entry = cache.get("resampled", key)
+    entry = cache.get("measures", key)
     if entry is not None:
         return key, True, dict(entry.meta)
     t = chain_transform(item)
-    raw = read_image(image, what="image")
-    lab = None if labels is None else read_image(labels, what="label map")
-    own = None if labels is None else [int(v) for v in own_values]
-    one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
-    full, field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=one_sampling)
-    shared = sampled if frame[0] == "identity" else None  # T's own displacement on g
-    values, memb = _resampled_image_and_memberships(
-        raw,
-        lab,
-        full,
-        g,
-        interpolation=interpolation,
-        values=own,
-        labels=label_resampling,
-        one_sampling=one_sampling,
-        displacement=sampled,
-    )
-    covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
-    values[~covered] = 0.0
-    arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
+    full, field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=True)
+    covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
-    meta: dict = {
-        "label_like": label_like_values(raw),
-        "coverage": float(inside.mean()) if inside.size else 0.0,
-    }
-    if memb is not None:
-        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
-        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
-        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
-        meta.update(labels=own)
-    # what the plausibility does not read goes before it samples T on its own grid: two
-    # tasks at once at 1 mm stay under 3 GB
-    del values, covered, inside, memb, raw, lab, full
-    if shared is None:
+    arrays = {"covered": np.packbits(covered)}
+    meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
+    shared = sampled if frame[0] == "identity" else None  # T's own displacement on g
+    del covered, inside, full
+    if shared is None:  # freed before the plausibility samples T on its own grid
         sampled = field = None
     reg_mask = None
     if reg_mask_key is not None:
@@ -310,6 +288,88 @@ def _resample_task(
         affine_fit=fit.to_dict(),
         log_jacobian_histogram=jac.histogram(),
     )
+    cache.put("measures", key, arrays, meta)
+    return key, False, meta
+
+
+def _image_grid(image) -> Geometry:
+    """An image's grid from its header (a manifest's in-memory image: its own)."""
+    if isinstance(image, InMemoryImage):
+        return Geometry.from_image(image.image)
+    return Geometry.from_image(read_header(image))
+
+
+def _resample_task(
+    ctx: _Context,
+    image: Path,
+    labels: Path | None,
+    item,
+    frame: tuple,
+    frame_digest: str,
+    reg_grid: Geometry,
+    interpolation: str,
+    own_values: Sequence[int] | None,
+    label_resampling: tuple[str, float | None] = ("linear", None),
+) -> tuple[str, bool, dict]:
+    """Resample one image (and its label memberships) into the common frame; cache it.
+
+    The entry holds ``image`` (n,) over the whole grid (``_STORED_IMAGE``, float32; 0 outside
+    the image's field of view), ``covered`` (the voxels inside that field of view,
+    ``np.packbits`` of a bool (n,)), and for the labels the nonzero memberships of the image's
+    own nonzero label values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat
+    voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
+    (float32). Its metadata holds the label values and the image's label-like values
+    (:func:`~itk_nrreval._images.label_like_values`). `own_values` are the label map's own
+    nonzero values (found once by the driver); `label_resampling` is ``(method, sigma_mm)``
+    of :func:`~itk_nrreval._memberships.resample_label_memberships`. `reg_grid`, the
+    registration's reference grid, only says whether T's displacement on the common grid
+    can be sampled whole (:func:`_sampling`). The transform's measures are
+    :func:`_measures_task`'s.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    key = _task_key(
+        "resampled",
+        g,
+        image,
+        labels,
+        item,
+        frame_digest,
+        reg_grid,
+        interpolation,
+        list(label_resampling),
+        np.dtype(_STORED_IMAGE).str,
+    )
+    entry = cache.get("resampled", key)
+    if entry is not None:
+        return key, True, dict(entry.meta)
+    t = chain_transform(item)
+    raw = read_image(image, what="image")
+    lab = None if labels is None else read_image(labels, what="label map")
+    own = None if labels is None else [int(v) for v in own_values]
+    one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
+    full, _field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=one_sampling)
+    values, memb = _resampled_image_and_memberships(
+        raw,
+        lab,
+        full,
+        g,
+        interpolation=interpolation,
+        values=own,
+        labels=label_resampling,
+        one_sampling=one_sampling,
+        displacement=sampled,
+    )
+    del full, _field, sampled
+    covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
+    values[~covered] = 0.0
+    arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
+    meta: dict = {"label_like": label_like_values(raw)}
+    if memb is not None:
+        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
+        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
+        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
+        meta.update(labels=own)
     cache.put("resampled", key, arrays, meta)
     return key, False, meta
 
@@ -576,7 +636,7 @@ def _region(
         for i, k in enumerate(keys):
             if i in left_out:
                 continue
-            bits = disk.open("resampled", k).array("covered")
+            bits = disk.open("measures", k).array("covered")
             covered &= np.unpackbits(bits, count=n_vox).astype(bool)
         inside = covered[base] if base is not None else covered
         per_image = tuple(float(meta["coverage"]) for meta in metas)
@@ -729,6 +789,7 @@ def run_pipeline(
     label_sigma_mm: float | None = None,
     off_grid_coverage: float = 0.5,
     pictured_subjects: Callable[[ReducedRegistration, Callable], Sequence[int]] | None = None,
+    keep_resampled: bool = False,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -764,6 +825,12 @@ def run_pipeline(
         the subjects (manifest indices) whose resampled middle slice its thumbnails should
         also hold (``image_<i>``), e.g. the subjects its quality control flags: read from
         the cache before it goes, a few slices rather than all N.
+    keep_resampled : bool
+        Keep every registration's resampled images and memberships in the cache (about
+        50 MB per image and registration at 1 mm), so that a rerun does not resample them
+        again. By default each registration's go once its scores are taken: the cache then
+        holds one registration's at a time, and keeps the frames and every transform's
+        measures (coverage, plausibility).
 
     Returns
     -------
@@ -780,27 +847,15 @@ def run_pipeline(
         ctx = _Context(str(Path(cache).resolve()), grid, mask_key, inverse_consistency)
         counts = _Counts()
         values, own_values = _label_values(m, executor, progress)
-        resampled: dict[str, _Resampled] = {}
-        warned: set[int] = set()
-        for name in m.registrations:
-            resampled[name] = _resample_registration(
-                executor,
-                ctx,
-                disk,
-                m,
-                name,
-                mask=mask,
-                counts=counts,
-                warned=warned,
-                own_values=own_values,
-                interpolation=interpolation,
-                labels=(label_interpolation, label_sigma_mm),
-                progress=progress,
+        # Every transform measured first (frames, coverage, plausibility): the region the
+        # scores are taken on is known before any image is resampled.
+        measured = {
+            name: _measure_registration(
+                executor, ctx, disk, m, name, mask=mask, counts=counts, progress=progress
             )
-            if save_resampled is not None:
-                r = resampled[name]
-                _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
-        entries = {k: (r.keys, r.metas, r.frame) for k, r in resampled.items()}
+            for name in m.registrations
+        }
+        entries = {k: (r.keys, r.metas, r.frame) for k, r in measured.items()}
         left_out = _left_out_of_scores(m, entries, off_grid_coverage)
         scored = tuple(i for i in range(m.n_images) if i not in left_out)
         region, coverage = _region(disk, grid, mask, m, entries, left_out)
@@ -809,8 +864,27 @@ def run_pipeline(
         region_ctx = ctx
         if region is not None and (mask is None or not np.array_equal(region, mask)):
             region_ctx = dataclasses.replace(ctx, mask_key=_stored_mask(disk, region))
-        runs = {
-            name: _reduce_registration(
+        warned: set[int] = set()
+        runs = {}
+        for name, reg in measured.items():  # one registration's images in the cache at a time
+            r = _resample_registration(
+                executor,
+                ctx,
+                disk,
+                m,
+                name,
+                reg,
+                counts=counts,
+                warned=warned,
+                own_values=own_values,
+                interpolation=interpolation,
+                labels=(label_interpolation, label_sigma_mm),
+                progress=progress,
+            )
+            _check_region_covered(disk, name, r.keys, scored, region, grid)
+            if save_resampled is not None:
+                _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
+            runs[name] = _reduce_registration(
                 executor,
                 region_ctx,
                 disk,
@@ -828,9 +902,10 @@ def run_pipeline(
                 progress=progress,
                 pictured_subjects=pictured_subjects,
             )
-            for name, r in resampled.items()
-        }
-        runs = _with_frame_transforms(runs, resampled, grid, disk)
+            if not keep_resampled:
+                for key in set(r.keys):
+                    disk.remove("resampled", key)
+        runs = _with_frame_transforms(runs, measured, grid, disk)
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
 
 
@@ -871,8 +946,21 @@ def _label_values(m: Manifest, executor: Executor, progress: bool):
 
 
 @dataclass(frozen=True)
+class _Measured:
+    """One registration's frame and its transforms' measures (cache entries, metadata)."""
+
+    keys: list[str]
+    metas: list[dict]
+    frame: Any
+    frame_spec: tuple
+    frame_digest: str
+    reference_grid: Geometry
+
+
+@dataclass(frozen=True)
 class _Resampled:
-    """One registration's per-image cache entries and what resampling it again needs."""
+    """One registration's resampled images (cache entries; metadata with its measures')
+    and what resampling it again needs."""
 
     keys: list[str]
     metas: list[dict]
@@ -882,12 +970,11 @@ class _Resampled:
     thumbnails: dict[str, np.ndarray]
 
 
-def _resample_registration(
-    executor, ctx, disk, m, name, *, mask, counts, warned, own_values, interpolation, labels,
-    progress,
-) -> _Resampled:  # fmt: skip
-    """Every image of registration `name` resampled into the common frame (cached), with
-    its labels' memberships and deformation measures; label-like images warned once."""
+def _measure_registration(
+    executor, ctx, disk, m, name, *, mask, counts, progress
+) -> _Measured:  # fmt: skip
+    """Registration `name`'s frame F and every image's transform measured
+    (:func:`_measures_task`: coverage of the common grid, plausibility), cached."""
     reg = m.registrations[name]
     reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
     frame_spec, frame_digest, frame = _frame(
@@ -903,13 +990,41 @@ def _resample_registration(
         (
             ctx,
             m.scored_images[i],
-            m.labels[i] if m.labels is not None else None,
             reg.transforms[i],
             frame_spec,
             frame_digest,
             reg_grid,
-            interpolation,
             reg_mask_key,
+        )
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    metas: list[dict] = [{}] * m.n_images
+    for i, (key, reused, meta) in executor.map(
+        _measures_task, calls, desc=f"{name}: measures", progress=progress
+    ):
+        keys[i], metas[i] = key, meta
+        counts.add(reused)
+    return _Measured(keys, metas, frame, frame_spec, frame_digest, reg_grid)
+
+
+def _resample_registration(
+    executor, ctx, disk, m, name, reg: _Measured, *, counts, warned, own_values,
+    interpolation, labels, progress,
+) -> _Resampled:  # fmt: skip
+    """Every image of registration `name` resampled into the common frame (cached), with
+    its labels' memberships; label-like images warned once."""
+    items = m.registrations[name].transforms
+    calls = [
+        (
+            ctx,
+            m.scored_images[i],
+            m.labels[i] if m.labels is not None else None,
+            items[i],
+            reg.frame_spec,
+            reg.frame_digest,
+            reg.reference_grid,
+            interpolation,
             own_values[i],
             labels,
         )
@@ -920,13 +1035,38 @@ def _resample_registration(
     for i, (key, reused, meta) in executor.map(
         _resample_task, calls, desc=f"{name}: resampling", progress=progress
     ):
-        keys[i], metas[i] = key, meta
+        keys[i], metas[i] = key, {**reg.metas[i], **meta}
         counts.add(reused)
         if meta.get("label_like") and i not in warned:
             warned.add(i)
             warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=4)
-    thumbnails = _thumbnails(disk, ctx.grid, reg_grid, keys, metas)
-    return _Resampled(keys, metas, frame, frame_spec, reg_grid, thumbnails)
+    thumbnails = _thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
+    return _Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, thumbnails)
+
+
+def _check_region_covered(
+    disk: DiskCache,
+    name: str,
+    keys: Sequence[str],
+    scored: Sequence[int],
+    region: np.ndarray | None,
+    grid: Geometry,
+) -> None:
+    """Every scored image resampled has a value at every voxel of the region, which was
+    found from the measured coverage before any image was resampled (RuntimeError if not:
+    the two would disagree, and an image's 0 outside its field of view would be scored)."""
+    n_vox = int(np.prod(grid.shape))
+    where = None if region is None else region.reshape(-1)
+    for i in scored:
+        bits = disk.open("resampled", keys[i]).array("covered")
+        missing = ~np.unpackbits(bits, count=n_vox).astype(bool)
+        n_missing = int(missing.sum() if where is None else missing[where].sum())
+        if n_missing:
+            raise RuntimeError(
+                f"registration {name!r}, image {i}: its resampled image has no value at "
+                f"{n_missing} voxels of the evaluated region, which its measured coverage "
+                "includes (a defect of this toolkit: please report it)"
+            )
 
 
 def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple[int, ...]:
@@ -1437,9 +1577,11 @@ def _thumbnails(
     grid: Geometry,
     reg_grid: Geometry,
     keys: Sequence[str],
+    measures_key: str,
     metas: Sequence[dict],
 ) -> dict[str, np.ndarray]:
-    """The report's small arrays for one registration, read back from its cache entries.
+    """The report's small arrays for one registration, read back from its cache entries:
+    the resampled images' `keys` and the first subject's measures (`measures_key`).
 
     A constant number of 2D slices whatever N (the middle slice, numpy index
     ``shape[0] // 2``, of a 3D grid; the whole grid in 2D), each read from the memory-mapped
@@ -1482,7 +1624,7 @@ def _thumbnails(
             lab[at[better]] = v
         lab[best <= 1.0 - total] = 0
         out["labels_0"] = lab.reshape(shape)
-    out["detj_0"] = np.array(entry.array("detj_middle"), np.float32)
+    out["detj_0"] = np.array(disk.open("measures", measures_key).array("detj_middle"), np.float32)
     counts = np.zeros(LOG_JACOBIAN_BINS, np.int64)
     outside = np.zeros(3, np.int64)
     for meta in metas:

@@ -130,3 +130,18 @@ def test_overlap_is_taken_where_every_image_has_a_value(tmp_path):
         )
         got = res.scores[name].overlap["inverse_volume"]
         assert got == pytest.approx(expected, rel=1e-9), name
+
+
+def test_coverage_that_disagrees_with_the_resampling_is_an_error_not_a_score(tmp_path, monkeypatch):
+    """Issue 30: the region is found from each transform's measured coverage before any
+    image is resampled. Were the two to disagree, an image's 0 outside its field of view
+    would enter the scores: a silent wrong number. Simulated by a coverage that claims every
+    voxel of the cropped images."""
+    from itk_nrreval import _pipeline
+
+    cropped_case(tmp_path)
+    monkeypatch.setattr(
+        _pipeline, "covered_voxels", lambda image_grid, t, g, **kw: np.ones(np.prod(g.shape), bool)
+    )
+    with pytest.raises(RuntimeError, match=r"has no value at \d+ voxels of the evaluated region"):
+        nr.evaluate(tmp_path / "manifest.yaml", **KW)

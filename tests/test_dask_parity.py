@@ -157,8 +157,13 @@ def one_registration(tmp_path):
     return path, tmp_path / "cache"
 
 
-def resampled_metas(cache) -> list:
-    return sorted((cache / "resampled").glob("*/*/entry.json"))
+def measures_metas(cache) -> list:
+    return sorted((cache / "measures").glob("*/*/entry.json"))
+
+
+#: Entries of every kind kept, so that what a rerun reuses shows (issue 30: by default a
+#: registration's resampled images leave the cache once its scores are taken).
+KEPT = dict(keep_resampled=True)
 
 
 def inverse_consistency(result) -> dict:
@@ -184,8 +189,9 @@ def test_cache_not_reused_when_a_per_image_option_changes(tmp_path, first, secon
     The reference is a run of `second` on a fresh cache.
     """
     manifest, cache = one_registration(tmp_path)
-    nr.evaluate(manifest, execution=nr.Execution(cache=cache), **first, **FAST)
-    again = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **second, **FAST)
+    nr.evaluate(manifest, execution=nr.Execution(cache=cache, **KEPT), **first, **FAST)
+    again = nr.evaluate(manifest, execution=nr.Execution(cache=cache, **KEPT), **second, **FAST)
+    # the transforms' measures, or the resampled images: whichever the option changes
     assert again.run["cache_computed"] == N_IMAGES
     fresh = nr.evaluate(
         manifest, execution=nr.Execution(cache=tmp_path / "fresh"), **second, **FAST
@@ -199,36 +205,34 @@ def test_cache_not_reused_across_computation_versions(tmp_path, monkeypatch):
 
     The run under the older version number writes its entries, which are then changed to
     what the buggy code wrote (inverse_consistency_mm 0.0); that version reuses them, the
-    current one recomputes them.
+    current one recomputes them (the transforms' measures: since issue 30 their own task).
     """
     manifest, cache = one_registration(tmp_path)
-    current = _pipeline._TASK_VERSIONS["resampled"]
+    current = _pipeline._TASK_VERSIONS["measures"]
+    execution = nr.Execution(cache=cache, **KEPT)
     with monkeypatch.context() as patch:
-        patch.setitem(_pipeline._TASK_VERSIONS, "resampled", current - 1)
-        right = inverse_consistency(
-            nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
-        )
-        for path in resampled_metas(cache):
+        patch.setitem(_pipeline._TASK_VERSIONS, "measures", current - 1)
+        right = inverse_consistency(nr.evaluate(manifest, execution=execution, **FAST))
+        for path in measures_metas(cache):
             entry = json.loads(path.read_text())
             entry["meta"]["plausibility"]["inverse_consistency_mm"] = 0.0
             path.write_text(json.dumps(entry))
-        old = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
+        old = nr.evaluate(manifest, execution=execution, **FAST)
         assert old.run["cache_computed"] == 0  # the tampered entries are the ones read
         assert set(inverse_consistency(old).values()) == {0.0}
-    new = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
-    assert new.run["cache_computed"] == N_IMAGES
+    new = nr.evaluate(manifest, execution=execution, **FAST)
+    assert new.run["cache_computed"] == N_IMAGES  # the measures; the resampled images kept
     assert inverse_consistency(new) == pytest.approx(right, rel=1e-12)
     assert min(right.values()) > 1e-6  # measured, not the 0.0 of issue 25
 
 
 def test_cache_not_reused_across_package_versions(tmp_path, monkeypatch):
     manifest, cache = one_registration(tmp_path)
+    execution = nr.Execution(cache=cache, **KEPT)
     with monkeypatch.context() as patch:
         patch.setattr(_version, "__version__", "0.0.1")
-        nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
-    new = nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST)
-    assert new.run["cache_computed"] == N_IMAGES and new.run["cache_reused"] == 0
-    assert (
-        nr.evaluate(manifest, execution=nr.Execution(cache=cache), **FAST).run["cache_reused"]
-        == N_IMAGES
-    )
+        nr.evaluate(manifest, execution=execution, **FAST)
+    new = nr.evaluate(manifest, execution=execution, **FAST)
+    # every transform measured and every image resampled again
+    assert new.run["cache_computed"] == 2 * N_IMAGES and new.run["cache_reused"] == 0
+    assert nr.evaluate(manifest, execution=execution, **FAST).run["cache_reused"] == 2 * N_IMAGES

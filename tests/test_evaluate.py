@@ -205,6 +205,10 @@ def test_evaluate_python_api_common_random_numbers(tmp_path):
             r"threads: only without a scheduler \(a Dask worker runs one task\)",
         ),
         (
+            lambda: nr.Execution(keep_resampled="yes"),
+            "keep_resampled: expected True or False, got 'yes'",
+        ),
+        (
             lambda: nr.evaluate({}, resampling="bspline"),
             r"resampling: expected Resampling\(...\) or None, got str",
         ),

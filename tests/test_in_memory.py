@@ -237,7 +237,8 @@ def from_files(case, tmp_path_factory):
     """The population evaluated from its files, with its cache folder."""
     folder, _ = case
     cache = tmp_path_factory.mktemp("files_cache")
-    return nr.evaluate(folder / "manifest.yaml", execution=nr.Execution(cache=cache), **KW), cache
+    execution = nr.Execution(cache=cache, keep_resampled=True)  # every entry, to compare keys
+    return nr.evaluate(folder / "manifest.yaml", execution=execution, **KW), cache
 
 
 # ----------------------------------------------------------------------------- same numbers
@@ -247,18 +248,22 @@ def test_sitk_objects_give_the_files_scores_and_cache_keys(case, from_files, tmp
     folder, data = case
     files, files_cache = from_files
     manifest = sitk_objects(data, folder)
-    objects = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "c"), **KW)
+    kept = nr.Execution(cache=tmp_path / "c", keep_resampled=True)
+    objects = nr.evaluate(manifest, execution=kept, **KW)
     assert_identical(files, objects)
     assert cache_keys(tmp_path / "c") == cache_keys(files_cache)
     assert set(cache_keys(files_cache)) >= {
         "resampled",
+        "measures",
         "frame",
         "frame_spread",
         "mask",
         "reg_mask",
     }
     # the objects find the files' entries: nothing is computed again
-    again = nr.evaluate(manifest, execution=nr.Execution(cache=files_cache), **KW)
+    again = nr.evaluate(
+        manifest, execution=nr.Execution(cache=files_cache, keep_resampled=True), **KW
+    )
     assert again.run["cache_computed"] == 0
     assert again.run["cache_reused"] == files.run["cache_computed"] > 0
     assert_identical(files, again)
@@ -274,7 +279,9 @@ def test_itk_objects_give_the_files_scores_and_cache_keys(case, from_files, tmp_
     folder, data = case
     files, files_cache = from_files
     manifest = itk_objects(data, folder)
-    objects = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "c"), **KW)
+    objects = nr.evaluate(
+        manifest, execution=nr.Execution(cache=tmp_path / "c", keep_resampled=True), **KW
+    )
     assert_identical(files, objects)
     assert cache_keys(tmp_path / "c") == cache_keys(files_cache)
     assert objects.inputs["images"][2].startswith("<in-memory itk.Image images[2]")
@@ -315,7 +322,9 @@ def test_a_mixed_manifest_gives_the_files_scores_and_keys(case, from_files, tmp_
     assert loaded.in_memory and not nr.load_manifest(folder / "manifest.yaml").in_memory
     assert isinstance(loaded.images[3], InMemoryImage) and loaded.images[3].source == "array"
     assert isinstance(loaded.images[0], Path)
-    result = nr.evaluate(loaded, execution=nr.Execution(cache=tmp_path / "c"), **KW)
+    result = nr.evaluate(
+        loaded, execution=nr.Execution(cache=tmp_path / "c", keep_resampled=True), **KW
+    )
     assert_identical(files, result)
     assert cache_keys(tmp_path / "c") == cache_keys(files_cache)
 
@@ -327,7 +336,11 @@ def test_objects_on_dask_give_the_files_scores_and_keys(case, from_files, tmp_pa
     files, files_cache = from_files
     manifest = sitk_objects(data, folder)
     scaled = nr.evaluate(
-        manifest, execution=nr.Execution(scheduler="local", workers=1, cache=tmp_path / "c"), **KW
+        manifest,
+        execution=nr.Execution(
+            scheduler="local", workers=1, cache=tmp_path / "c", keep_resampled=True
+        ),
+        **KW,
     )
     assert scaled.run["scheduler"] == "local"
     assert_identical(files, scaled)

@@ -71,10 +71,11 @@ def test_distributed_equals_single_process(tmp_path, distance):
     assert_same_scores(single, scaled)
     assert scaled.run["workers"] == 2
     assert scaled.run["cache_reused"] == 0
-    # the frame estimates of the two non-common registrations, then every resampled image
-    assert scaled.run["cache_computed"] == 2 * 6 + 3 * 6
+    # the frame estimates of the two non-common registrations, every transform's measures,
+    # then every resampled image
+    assert scaled.run["cache_computed"] == 2 * 6 + 3 * 6 + 3 * 6
     assert scaled.options == single.options
-    assert single.run["scheduler"] is None and single.run["cache_computed"] == 2 * 6 + 3 * 6
+    assert single.run["scheduler"] is None and single.run["cache_computed"] == 2 * 6 + 3 * 6 * 2
 
 
 def test_running_cluster_by_address(tmp_path):
@@ -99,10 +100,11 @@ def test_running_cluster_by_address(tmp_path):
 def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
+    execution = nr.Execution(cache=cache, keep_resampled=True, **EXECUTORS[executor])
+    kw = dict(execution=execution, **KW)
     first = nr.evaluate(manifest, **kw)
     again = nr.evaluate(manifest, **kw)
-    assert again.run["cache_reused"] == first.run["cache_computed"] == 30
+    assert again.run["cache_reused"] == first.run["cache_computed"] == 12 + 18 + 18
     assert again.run["cache_computed"] == 0
     assert_same_scores(first, again, rel=0)
     # one more registration: only its own per-image results are new
@@ -114,8 +116,9 @@ def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, execut
     }
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
     extended = nr.evaluate(manifest, **kw)
-    assert extended.run["cache_computed"] == 6 + 6  # its frame estimates and resampled images
-    assert extended.run["cache_reused"] == 30
+    # its frame estimates, measures and resampled images
+    assert extended.run["cache_computed"] == 6 + 6 + 6
+    assert extended.run["cache_reused"] == 48
     # same images, same transforms, identity frame: the same scores as "truth"
     t, t2 = extended.scores["truth"], extended.scores["truth_again"]
     assert t2.specificity.value == pytest.approx(t.specificity.value, rel=1e-12)
@@ -135,17 +138,56 @@ def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(
     assert not list(cache.glob("frame_disp/*/*/entry.json"))
     assert len(list(cache.glob("frame/*/*/entry.json"))) == 1  # the group's estimate of F
     again = nr.evaluate(manifest, **kw)
-    assert again.run["cache_computed"] == 0
+    assert again.run["cache_computed"] == 18  # the resampled images, which left the cache too
     assert_same_scores(first, again, rel=0)
     # without the cache, the same numbers
     assert_same_scores(first, nr.evaluate(manifest, **KW), rel=0)
 
 
 @pytest.mark.parametrize("executor", EXECUTORS)
+def test_cache_holds_one_registrations_resampled_images_at_a_time(tmp_path, executor, monkeypatch):
+    """Issue 30: every transform's coverage is measured before any image is resampled, so a
+    registration's resampled images (50 MB each at 1 mm) leave the cache once its scores
+    are taken; the cache keeps the measures. Kept or not, and rerun, the same numbers."""
+    from itk_nrreval import _pipeline
+
+    manifest = with_mask(tmp_path)
+    cache = tmp_path / "c"
+    on_disk = []
+    reduce = _pipeline._reduce_registration
+
+    def observed(executor_, ctx, disk, m, name, r, **kw):
+        keys = {p.parent.name for p in (cache / "resampled").glob("*/*/entry.json")}
+        on_disk.append((name, keys, set(r.keys)))
+        return reduce(executor_, ctx, disk, m, name, r, **kw)
+
+    monkeypatch.setattr(_pipeline, "_reduce_registration", observed)
+    execution = nr.Execution(cache=cache, **EXECUTORS[executor])
+    first = nr.evaluate(manifest, execution=execution, **KW)
+    assert [name for name, _, _ in on_disk] == list(first.scores)
+    for _name, keys, own in on_disk:
+        assert keys == own and len(own) == 6  # its own images, and no other registration's
+    assert not list((cache / "resampled").glob("*/*/entry.json"))
+    assert len(list((cache / "measures").glob("*/*/entry.json"))) == 18
+    kept_cache = tmp_path / "k"
+    kept = nr.evaluate(
+        manifest,
+        execution=nr.Execution(cache=kept_cache, keep_resampled=True, **EXECUTORS[executor]),
+        **KW,
+    )
+    assert len(list((kept_cache / "resampled").glob("*/*/entry.json"))) == 18
+    assert_same_scores(first, kept, rel=0)
+    again = nr.evaluate(manifest, execution=execution, **KW)
+    assert again.run["cache_computed"] == 18 and again.run["cache_reused"] == 12 + 18
+    assert_same_scores(first, again, rel=0)
+
+
+@pytest.mark.parametrize("executor", EXECUTORS)
 def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
+    execution = nr.Execution(cache=cache, keep_resampled=True, **EXECUTORS[executor])
+    kw = dict(execution=execution, **KW)
     first = nr.evaluate(manifest, **kw)
     entries = sorted((cache / "resampled").glob("*/*/entry.json"))
     assert len(entries) == 18
@@ -156,9 +198,15 @@ def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
     arr.write_bytes(bytes(raw))
     entries[1].write_text(entries[1].read_text()[:20])
     (entries[2].parent / "lab_val.npy").unlink()
+    # and a transform's measures: a flipped bit of its coverage
+    measures = sorted((cache / "measures").glob("*/*/covered.npy"))
+    assert len(measures) == 18
+    raw = bytearray(measures[0].read_bytes())
+    raw[-1] ^= 0x01
+    measures[0].write_bytes(bytes(raw))
     again = nr.evaluate(manifest, **kw)
-    assert again.run["cache_computed"] == 3
-    assert again.run["cache_reused"] == 27
+    assert again.run["cache_computed"] == 4
+    assert again.run["cache_reused"] == 12 + 18 + 18 - 4
     assert_same_scores(first, again, rel=0)
 
 
@@ -205,7 +253,8 @@ def test_killed_run_restarts_from_cache(tmp_path, executor):
     )
 
     def per_image_entries() -> int:  # what the run's cache counts count
-        return sum(len(list(cache.glob(f"{k}/*/*/entry.json"))) for k in ("resampled", "estimate"))
+        kinds = ("resampled", "measures", "estimate")
+        return sum(len(list(cache.glob(f"{k}/*/*/entry.json"))) for k in kinds)
 
     try:
         deadline = time.monotonic() + 300
@@ -217,7 +266,7 @@ def test_killed_run_restarts_from_cache(tmp_path, executor):
         os.killpg(proc.pid, signal.SIGKILL)  # the driver and its worker processes
         proc.wait()
     done = per_image_entries()
-    total = 2 * 12 + 12  # resampled images of both registrations + frame estimates
+    total = 2 * 12 + 2 * 12 + 12  # both registrations' images resampled and measured, estimates
     assert 4 <= done < total
     assert not (out / "results.json").exists()
     assert main(cmd[3:]) == 0  # the same command again, in this process
@@ -257,8 +306,25 @@ def test_cli_local_scheduler_reports_cache(tmp_path, capsys):
     assert main(args + ["--scheduler", "local", "--workers", "2"]) == 0
     printed = capsys.readouterr().out
     assert "ran on 2 Dask workers; per-image results: 0 reused" in printed
-    assert (out / "cache" / "resampled").is_dir()
-    assert json.loads((out / "results.json").read_text())["run"]["cache_computed"] == 30
+    assert (out / "cache" / "measures").is_dir()
+    assert json.loads((out / "results.json").read_text())["run"]["cache_computed"] == 48
+
+
+def test_cli_keep_resampled(tmp_path):
+    """--keep-resampled keeps every registration's resampled images in the cache; without
+    it, none is left once the scores are taken, and the numbers are the same."""
+    manifest = with_mask(tmp_path)
+    base = ["evaluate", str(manifest), "--samples", "500", "--no-figures", "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "kept"), "--keep-resampled"]) == 0
+    assert main([*base, "--out", str(tmp_path / "default")]) == 0
+    kept = list((tmp_path / "kept" / "cache" / "resampled").glob("*/*/entry.json"))
+    assert len(kept) == 18
+    assert not list((tmp_path / "default" / "cache" / "resampled").glob("*/*/entry.json"))
+    scores = [
+        json.loads((tmp_path / name / "results.json").read_text())["registrations"]
+        for name in ("kept", "default")
+    ]
+    assert scores[0] == scores[1]
 
 
 # ----------------------------------------------------------------------------- the cache
@@ -327,10 +393,11 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     data = make_case(tmp_path)
     manifest = tmp_path / "manifest.yaml"
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
-    single = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache32"), **KW)
+    kept = dict(keep_resampled=True)
+    single = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache32", **kept), **KW)
     monkeypatch.setattr(_pipeline, "_STORED_IMAGE", np.float64)
     monkeypatch.setattr(_pipeline, "_STORED_ESTIMATE", np.float64)
-    double = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache64"), **KW)
+    double = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache64", **kept), **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
         # (the frame estimates, float32 too, are removed once F and its spread are kept)
         for kind, name in (("resampled", "image.npy"), ("frame", "disp.npy")):

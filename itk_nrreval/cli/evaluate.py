@@ -114,6 +114,13 @@ def _add_execution_options(p) -> None:
         help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
         "with more images or registrations, computes only what is new",
     )
+    p.add_argument(
+        "--keep-resampled",
+        action="store_true",
+        help="keep every registration's resampled images in the cache (about 50 MB per image "
+        "and registration at 1 mm) so that a rerun does not resample them; default: one "
+        "registration's at a time",
+    )
 
 
 def _add_confidence_options(p) -> None:
@@ -332,7 +339,11 @@ def run(args: argparse.Namespace) -> int:
         ),
         progress=not args.quiet,
         execution=Execution(
-            scheduler=args.scheduler, workers=args.workers, threads=args.threads, cache=cache
+            scheduler=args.scheduler,
+            workers=args.workers,
+            threads=args.threads,
+            cache=cache,
+            keep_resampled=args.keep_resampled,
         ),
         confidence=(
             False
