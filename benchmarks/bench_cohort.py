@@ -19,9 +19,9 @@ Each evaluation is the default in-process path with confidence and plausibility 
 (``nr.evaluate(manifest, execution=nr.Execution(cache=...))``, nothing else set), in a
 fresh process with a cold cache; it reports its wall time, its CPU time (user + system: the
 machine may be shared, which inflates the wall time but not the CPU time), its peak resident memory
-(``ru_maxrss``) and the size of its cache on disk when it ends. Targets (issue 30, two
-cores): N = 12 under 5 minutes; N = 36 under 15 minutes, peak RSS under 3 GB, cache under
-4 GB.
+(``ru_maxrss``) and the size of its cache on disk at its largest during the run (sampled
+every second; GB of 2^30 bytes) and when it ends. Targets (issue 30, two cores): N = 12
+under 5 minutes; N = 36 under 15 minutes, peak RSS under 3 GB, cache under 4 GB.
 
 ``python benchmarks/run_all.py cohort`` runs it (N = 12: about 8 minutes of CPU and 4.6 of
 wall time on two cores, two tasks at once; N = 36: 25 and 14; the cohort, 2.8 GB for N = 12
@@ -122,14 +122,27 @@ def run(n: int) -> dict:
     cmd = [sys.executable, __file__, "--run", str(manifest), str(cache)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t0 = time.perf_counter()
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+    with subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env
+    ) as proc:
+        largest = 0.0  # the cache's size at its largest, sampled every second
+        while proc.poll() is None:
+            try:
+                largest = max(largest, _size_mb(cache))
+            except OSError:  # an entry renamed or removed while it was listed
+                pass
+            time.sleep(1.0)
+        out = proc.stdout.read()
     wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"the evaluation exited with {proc.returncode}")
     res = json.loads(out.strip().splitlines()[-1])
-    res.update(n=n, wall_s=wall, cache_mb=_size_mb(cache))
+    res.update(n=n, wall_s=wall, cache_mb=_size_mb(cache), cache_peak_mb=largest)
     shutil.rmtree(cache, ignore_errors=True)
     print(
         f"| {n} | {res['evaluate_s'] / 60:.1f} | {res['cpu_s'] / 60:.1f} | "
-        f"{res['peak_mb'] / 1024:.2f} | {res['cache_mb'] / 1024:.2f} |",
+        f"{res['peak_mb'] / 1024:.2f} | {res['cache_peak_mb'] / 1024:.2f} | "
+        f"{res['cache_mb'] / 1024:.2f} |",
         flush=True,
     )
     return res
@@ -157,8 +170,11 @@ def _run_one(manifest: str, cache: str) -> None:
 
 def main() -> dict:
     print(f"1 mm phantom, five registrations, evaluate's defaults, {os.cpu_count()} cores\n")
-    print("| N | evaluate (min) | CPU (min) | peak RSS (GB) | cache (GB) |")
-    print("|---|---|---|---|---|")
+    print(
+        "| N | evaluate (min) | CPU (min) | peak RSS (GB) | cache at its largest (GB) "
+        "| cache at the end (GB) |"
+    )
+    print("|---|---|---|---|---|---|")
     return {"spacing_mm": SPACING_MM, "runs": [run(n) for n in SIZES]}
 
 

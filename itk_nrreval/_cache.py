@@ -183,6 +183,10 @@ class CacheEntry:
         """Load array `name` (memory-mapped read-only when `mmap`)."""
         return np.load(self.folder / f"{name}.npy", mmap_mode="r" if mmap else None)
 
+    def has(self, name: str) -> bool:
+        """Whether the entry holds array `name`."""
+        return (self.folder / f"{name}.npy").is_file()
+
 
 class DiskCache:
     """Entries by kind and key under `root` (created when missing).

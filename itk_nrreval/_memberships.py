@@ -449,15 +449,27 @@ def covered_voxels(
     if displacement is None and callable(transform):
         raise ValueError("transform: a function only with displacement=")
     covered = np.empty(int(np.prod(grid.shape)), np.bool_)
-    nz, ny, nx = _zyx(image_grid.shape)
-    for z0, cidx, near_border in _slab_indices(transform, grid, image_grid, displacement):
-        if near_border:
-            built = transform() if callable(transform) else transform
-            ones = sitk.Image(list(image_grid.size), sitk.sitkUInt8)
-            image_grid.apply_to(ones)
-            return _itk_inside(ones, built, grid).astype(bool)
-        start = z0 * int(np.prod(grid.shape[1:]))
-        _inside_flags(cidx, nz, ny, nx, covered[start : start + cidx.shape[0]])
+    if displacement is not None and displacement.shape != (*grid.shape, grid.dimension):
+        raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
+    if displacement is not None:  # one pass over the caller's sampling, no index copy
+        maps = _index_maps(grid, image_grid)
+        points = displacement.reshape(-1, grid.dimension)
+        size = np.asarray(grid.size, np.int64)
+        near_border = _covered_from(points, size, *maps, _BORDER_EPS, covered)
+    else:
+        nz, ny, nx = _zyx(image_grid.shape)
+        near_border = 0
+        for z0, cidx, near in _slab_indices(transform, grid, image_grid, None):
+            near_border += near
+            if near_border:
+                break
+            start = z0 * int(np.prod(grid.shape[1:]))
+            _inside_flags(cidx, nz, ny, nx, covered[start : start + cidx.shape[0]])
+    if near_border:
+        built = transform() if callable(transform) else transform
+        ones = sitk.Image(list(image_grid.size), sitk.sitkUInt8)
+        image_grid.apply_to(ones)
+        return _itk_inside(ones, built, grid).astype(bool)
     return covered
 
 
@@ -474,14 +486,7 @@ def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndar
     given; else sampled here, slab by slab).
     """
     dim = g.dimension
-    # Grid voxel -> physical point: origin + D diag(spacing) index; image point ->
-    # continuous index: (D diag(spacing))^-1 (point - origin), ITK's ImageBase mappings.
-    g_matrix = np.asarray(g.direction, float).reshape(dim, dim) * np.asarray(g.spacing)
-    l_direction = np.asarray(image_grid.direction, float).reshape(dim, dim)
-    l_inverse = np.linalg.inv(l_direction) / np.asarray(image_grid.spacing)[:, None]
-    l_origin = np.asarray(image_grid.origin, float)
-    l_size = np.asarray(image_grid.size, np.int64)
-    g_origin = np.asarray(g.origin, float)
+    g_origin, g_matrix, l_origin, l_inverse, l_size = _index_maps(g, image_grid)
     plane = int(np.prod(g.shape[1:]))
     if plane >= 2**31:
         raise InputError(f"grid: {plane} voxels per plane, more than this kernel indexes")
@@ -510,6 +515,62 @@ def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndar
             _BORDER_EPS,
         )
         yield z0, cidx, near_border
+
+
+def _index_maps(g: Geometry, image_grid: Geometry) -> tuple[np.ndarray, ...]:
+    """(g's origin, g's index -> point matrix, the image's origin, its point -> continuous
+    index matrix, its ITK size): ITK's ImageBase mappings, grid voxel -> physical point:
+    origin + D diag(spacing) index; image point -> continuous index: (D diag(spacing))^-1
+    (point - origin)."""
+    dim = g.dimension
+    g_matrix = np.asarray(g.direction, float).reshape(dim, dim) * np.asarray(g.spacing)
+    l_direction = np.asarray(image_grid.direction, float).reshape(dim, dim)
+    l_inverse = np.linalg.inv(l_direction) / np.asarray(image_grid.spacing)[:, None]
+    l_origin = np.asarray(image_grid.origin, float)
+    l_size = np.asarray(image_grid.size, np.int64)
+    return np.asarray(g.origin, float), g_matrix, l_origin, l_inverse, l_size
+
+
+@numba.njit(cache=True, parallel=True)
+def _covered_from(
+    points, size, g_origin, g_matrix, l_origin, l_inverse, l_size, eps, out
+):  # pragma: no cover - compiled
+    """Into `out` (flat bool): whether ``p + points[f]`` of each grid voxel p (the grid of
+    ITK size `size`, C order) lies in the image's buffer, ITK's IsInsideBuffer by the
+    arithmetic of :func:`_continuous_indices` and :func:`_inside_at`. Returns the number of
+    points within `eps` voxels of the border (ITK decides those)."""
+    d = points.shape[1]
+    nx = size[0]
+    ny = size[1]
+    n_planes = size[d - 1]
+    per_plane = nx * ny if d == 3 else nx
+    near = 0
+    for z in numba.prange(n_planes):
+        idx = np.zeros(d)
+        q = np.empty(d)
+        idx[d - 1] = z
+        n_mid = ny if d == 3 else 1
+        for y in range(n_mid):
+            if d == 3:
+                idx[1] = y
+            for x in range(nx):
+                idx[0] = x
+                f = z * per_plane + y * nx + x if d == 3 else z * nx + x
+                for i in range(d):
+                    p = g_origin[i]
+                    for j in range(d):
+                        p += g_matrix[i, j] * idx[j]
+                    q[i] = (points[f, i] + p) - l_origin[i]
+                ok = True
+                for i in range(d):
+                    c = 0.0
+                    for j in range(d):
+                        c += l_inverse[i, j] * q[j]
+                    if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
+                        near += 1
+                    ok = ok and (c >= -0.5 and c < l_size[i] - 0.5)
+                out[f] = ok
+    return near
 
 
 @numba.njit(cache=True)

@@ -78,6 +78,8 @@ from .frame import (
     distance_sums,
     frame_estimate,
     frame_method,
+    from_steps,
+    in_steps,
     label_values,
     points_minus_grid,
     resample_images,
@@ -102,6 +104,7 @@ from .transforms import (
     field_transform,
     has_only_fields,
     invert,
+    leaves,
 )
 
 __all__ = [
@@ -116,11 +119,13 @@ _FORMAT = 7  # bump when what a cache entry holds changes
 #: computes changes (a fix, a new default), so that entries computed the old way are never
 #: reused. Every key also holds the package version (:func:`_task_key`).
 _TASK_VERSIONS = {
-    "estimate": 3,  # 2: a coarse, refined inverse; stored float32 (issue 30)
+    "estimate": 4,  # 2: a coarse, refined inverse; stored float32 (issue 30)
     # 3: the coarse inverse refined at the common grid's points (issue 30)
+    # 4: float32 for the mean until added up, 16-bit steps for the spread (issue 30)
     "frame": 2,  # 2: stored float32, as its estimates (issue 30)
     "frame_disp": 1,
-    "frame_spread": 2,  # the spread of the estimates of F (issue 30); 2: per image (issue 27)
+    "frame_spread": 3,  # the spread of the estimates of F (issue 30); 2: per image (issue 27)
+    # 3: from estimates in 16-bit steps (issue 30)
     "reg_mask": 1,
     "resampled": 5,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
@@ -137,11 +142,19 @@ _BLOCK_BYTES = 1 << 26  # float64 bytes of one voxel block over all N images (64
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
 #: tests/test_pipeline.py bounds it against float64 entries).
 _STORED_IMAGE = np.float32
-#: The dtype of the frame estimates ``F_i(p) - p`` (mm) in the cache: float32 halves the
-#: entries (216 -> 108 MB at 1 mm) and rounds a displacement of up to 100 mm by less than
-#: 1e-5 mm, a thousandth of the coarse inverse's error (``frame.ESTIMATE_FIELD_STEP``); the
-#: frame and the spreads add them up in float64.
-_STORED_ESTIMATE = np.float32
+#: How the frame estimates ``F_i(p) - p`` (mm) are cached for their spread, until it is
+#: kept: ``np.uint16``, each vector component in 65535 equal steps between its least and
+#: largest value (54 MB at 1 mm, a quarter of float64: a registration's N estimates are the
+#: largest thing the cache holds at once), within half a step, ``(max - min) / 131070`` mm
+#: (8e-4 mm over a 100 mm range; the coarse inverse's own error is about 1e-2 mm,
+#: ``frame.ESTIMATE_FIELD_STEP``); or a float dtype, stored as that
+#: (:func:`_stored_estimate`). The mean F is added up from the estimates as F is stored
+#: (``_STORED_FRAME``), each removed once added (:class:`_MeanOfEstimates`).
+_STORED_ESTIMATE = np.uint16
+#: The dtype of the frame F (mean of the estimates, ``F(p) - p``, mm) in the cache, and of
+#: the estimates it is added up from: float32 halves the entries (216 -> 108 MB at 1 mm)
+#: and rounds a displacement of up to 100 mm by less than 1e-5 mm.
+_STORED_FRAME = np.float32
 #: Bytes of changed images (float64, over the region) the subject checks of
 #: :func:`_alternative_products` hold at once: 64 alternatives of a 1 mm brain region would
 #: otherwise take 2.5 GB.
@@ -196,23 +209,53 @@ def _estimate_key(ctx: _Context, common_item, item, reg_grid: Geometry) -> str:
     )
 
 
-def _estimate_task(ctx: _Context, key: str, common_item, item, reg_grid: Geometry) -> bool:
-    """Cache ``F_i(p) - p`` on the common grid (mm, ``_STORED_ESTIMATE``) under `key`
-    (:func:`_estimate_key`); return whether it was cached already."""
+def _estimate_task(
+    ctx: _Context, key: str, common_item, item, reg_grid: Geometry, for_mean: bool
+) -> bool:
+    """Cache ``F_i(p) - p`` on the common grid (mm) under `key` (:func:`_estimate_key`):
+    in 16-bit steps for the spread (kind ``"estimate_steps"``, :func:`_stored_estimate`)
+    and, `for_mean`, as F is stored (kind ``"estimate"``, ``_STORED_FRAME``) for the mean,
+    which the driver adds up and removes as the tasks finish. Return whether it was cached
+    already."""
     cache = ctx.cache()
-    if cache.get("estimate", key) is not None:
+    if cache.get("estimate_steps", key) is not None and (
+        not for_mean or cache.get("estimate", key) is not None
+    ):
         return True
     # the chain read where it is inverted: a composite held here too would keep a second
     # copy of its fields (0.2 GB at 1 mm) while the inverse holds its pieces
     disp = frame_estimate(chain_transform(common_item), item, ctx.grid, other_grid=reg_grid)
-    cache.put("estimate", key, {"disp": disp.astype(_STORED_ESTIMATE)})
+    cache.put("estimate_steps", key, _stored_estimate(disp))
+    if for_mean:
+        cache.put("estimate", key, {"disp": disp.astype(_STORED_FRAME)})
     return False
+
+
+def _stored_estimate(disp: np.ndarray) -> dict[str, np.ndarray]:
+    """The arrays of a frame estimate's entry for the spread (``_STORED_ESTIMATE``):
+    ``disp``, and when in steps, ``low`` and ``step`` (dim,)
+    (:func:`~itk_nrreval.frame.in_steps`; :func:`_estimate_values`). A field that is not
+    finite everywhere is stored as float32."""
+    stored = np.dtype(_STORED_ESTIMATE)
+    steps = in_steps(disp, levels=int(np.iinfo(stored).max)) if stored.kind == "u" else None
+    if steps is None:
+        return {"disp": disp.astype(np.float32 if stored.kind == "u" else stored)}
+    q, low, step = steps
+    return {"disp": q, "low": low, "step": step}
+
+
+def _estimate_values(entry) -> np.ndarray:
+    """A frame estimate's ``F_i(p) - p`` (mm, float64) from its entry for the spread."""
+    disp = entry.array("disp")
+    if entry.has("step"):
+        return from_steps(disp, entry.array("low"), entry.array("step"))
+    return np.asarray(disp, np.float64)
 
 
 def _spread_task(ctx: _Context, key: str, frame_disp_key: str) -> tuple[float, float, int]:
     """Sum and max over the mask of ``|F_i(p) - F(p)|`` (mm), and the voxel count."""
     cache = ctx.cache()
-    est = cache.open("estimate", key).array("disp")
+    est = _estimate_values(cache.open("estimate_steps", key))
     f_disp = cache.open("frame_disp", frame_disp_key).array("disp")
     return distance_sums(est, f_disp, ctx.mask_flat())
 
@@ -391,12 +434,13 @@ def _sampling(
     - F the identity and T on the common grid: T's displacement there also serves the
       plausibility (0.4 s at 1 mm).
     """
-    if one_sampling and frame[0] == "field" and has_only_fields(t):
+    pieces = leaves(t) if one_sampling and frame[0] == "field" else None  # taken apart once
+    if pieces is not None and has_only_fields(pieces):
         f_disp = cache.open("frame", frame[1]).array("disp")
         return (
             lambda: resampling_transform(t, _frame_transform(frame, g, cache)),
             None,
-            displacement_after(t, f_disp, g),
+            displacement_after(pieces, f_disp, g),
         )
     full = resampling_transform(t, _frame_transform(frame, g, cache))
     if one_sampling and frame[0] == "identity" and reg_grid == g:
@@ -692,7 +736,9 @@ class ReducedRegistration:
     coverage : Coverage
         How much of the common grid (inside the mask) its images cover.
     mean_image : ndarray of shape (*spatial_zyx,)
-        The mean resampled image on the common grid.
+        The mean resampled image on the common grid (until :func:`run_pipeline` returns,
+        once the registration is reduced, the key of its cache entry: the driver does not
+        hold it while the next registrations' images are resampled).
     gram : ndarray of shape (n_scored, n_scored)
         Gram matrix of the centred resampled images in the scores (`scored`; inside the
         region): the model of any subset of them follows from it
@@ -905,19 +951,28 @@ def run_pipeline(
             if not keep_resampled:
                 for key in set(r.keys):
                     disk.remove("resampled", key)
-        runs = _with_frame_transforms(runs, measured, grid, disk)
+            # on disk until the end, not in memory while the next registrations' tasks run
+            mean_key = digest_of([name, r.keys])
+            disk.put("mean_image", mean_key, {"mean": runs[name].mean_image})
+            runs[name] = dataclasses.replace(runs[name], mean_image=mean_key)
+        runs = _with_held_arrays(runs, measured, grid, disk)
     return PipelineRun(runs, values, grid, counts.reused, counts.computed)
 
 
-def _with_frame_transforms(
-    runs: dict[str, ReducedRegistration], resampled: Mapping, grid: Geometry, disk: DiskCache
+def _with_held_arrays(
+    runs: dict[str, ReducedRegistration], measured: Mapping, grid: Geometry, disk: DiskCache
 ) -> dict[str, ReducedRegistration]:
-    """`runs` with each estimated frame's transform F read back from the cache, which the
-    driver did not hold while the images were resampled and reduced."""
+    """`runs` with what the driver did not hold while the images were resampled and
+    reduced read back from the cache: each estimated frame's transform F (a full-size
+    field, 0.2 GB at 1 mm) and each mean image (its ``mean_image`` is its entry's key until
+    then; the entry goes once read)."""
     out = {}
     for name, run in runs.items():
+        mean = disk.open("mean_image", run.mean_image).array("mean")
+        disk.remove("mean_image", run.mean_image)
+        run = dataclasses.replace(run, mean_image=mean)
         if run.frame.transform is None:
-            f = _frame_transform(resampled[name].frame_spec, grid, disk)
+            f = _frame_transform(measured[name].frame_spec, grid, disk)
             run = dataclasses.replace(run, frame=dataclasses.replace(run.frame, transform=f))
         out[name] = run
     return out
@@ -984,7 +1039,7 @@ def _measure_registration(
     if frame_spec[0] == "field":
         # The tasks read F from the cache; the driver holds its transform (a full-size
         # field, 0.2 GB at 1 mm per registration) only once the reductions are done
-        # (:func:`_with_frame_transforms`).
+        # (:func:`_with_held_arrays`).
         frame = dataclasses.replace(frame, transform=None)
     calls = [
         (
@@ -1373,15 +1428,20 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
         for _ in keys:
             counts.add(True)
     else:
+        for_mean = frame_key is not None
         tasks = [
-            (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)
+            (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid, for_mean)
+            for i in range(m.n_images)
         ]
-        for _i, was_cached in executor.map(
+        mean = _MeanOfEstimates(disk, keys) if for_mean else None
+        for i, was_cached in executor.map(
             _estimate_task, tasks, desc=f"{name}: frame", progress=progress
         ):
             counts.add(was_cached)
-        if frame_key is not None and disk.get("frame", frame_key) is None:
-            _put_mean_frame(disk, frame_key, keys)
+            if mean is not None:
+                mean.arrived(i)
+        if mean is not None and disk.get("frame", frame_key) is None:
+            disk.put("frame", frame_key, {"disp": mean.result().astype(_STORED_FRAME)})
     if frame_key is not None:
         spec = ("field", frame_key)
     digest = digest_of([spec[0], spec[1:]])
@@ -1391,9 +1451,11 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     else:
         spread = _frame_spread(executor, ctx, disk, keys, f, digest, progress, name)
         disk.put("frame_spread", spread_key, {}, spread)
-        # The estimates are full-grid fields, about half of a 1 mm cohort's cache, and
-        # nothing else reads them: a rerun takes F and its spread from their own entries.
+        # The estimates are full-grid fields, a registration's N of them the largest thing
+        # in the cache, and nothing else reads them: a rerun takes F and its spread from
+        # their own entries.
         for k in keys:
+            disk.remove("estimate_steps", k)
             disk.remove("estimate", k)
     return (
         spec,
@@ -1409,16 +1471,36 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
     )
 
 
-def _put_mean_frame(disk: DiskCache, frame_key: str, keys: Sequence[str]) -> None:
-    """Cache F as the mean of the per-image estimates `keys` (``F(p) - p``, mm)."""
-    total = None
-    for k in keys:  # streamed: one field in memory at a time
-        est = disk.open("estimate", k).array("disp")
-        if total is None:  # summed in float64, whatever the entries' dtype
-            total = np.zeros(est.shape, np.float64)
-        total += est
-    # stored as its estimates are: float32 halves the 1 mm field (200 MB)
-    disk.put("frame", frame_key, {"disp": (total / len(keys)).astype(_STORED_ESTIMATE)})
+class _MeanOfEstimates:
+    """The mean of a registration's frame estimates ``F_i(p) - p``, added up in float64 in
+    image order (whatever order the tasks finish in: the same bits as adding them up after
+    the last) as they arrive; each estimate's ``"estimate"`` entry goes once added, so that
+    only the few that arrived before an earlier one are on disk at once."""
+
+    def __init__(self, disk: DiskCache, keys: Sequence[str]):
+        self._disk, self._keys = disk, list(keys)
+        self._total: np.ndarray | None = None
+        self._arrived: set[int] = set()
+        self._next = 0
+
+    def arrived(self, i: int) -> None:
+        """Estimate i is in the cache: add it, and every later one already there, in order."""
+        self._arrived.add(i)
+        while self._next in self._arrived:
+            key = self._keys[self._next]
+            est = self._disk.open("estimate", key).array("disp", mmap=True)
+            if self._total is None:
+                self._total = np.zeros(est.shape, np.float64)
+            self._total += est
+            del est
+            self._disk.remove("estimate", key)
+            self._next += 1
+
+    def result(self) -> np.ndarray:
+        """F(p) - p (float64, mm), once every estimate has arrived."""
+        if self._next != len(self._keys):
+            raise RuntimeError(f"frame: {self._next} of {len(self._keys)} estimates arrived")
+        return self._total / len(self._keys)
 
 
 def _frame_spread(executor, ctx, disk, keys, f, digest, progress, name) -> dict:

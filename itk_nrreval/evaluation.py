@@ -192,7 +192,8 @@ class Execution:
     cache : path, optional
         The folder of the per-image result cache (with a scheduler: shared by driver and
         workers): a rerun -- after an interruption, or with more images or registrations --
-        recomputes only what changed. Entries are keyed by the inputs' content (voxel values,
+        recomputes only what changed, and resamples the images again unless
+        `keep_resampled`. Entries are keyed by the inputs' content (voxel values,
         grids, transform parameters), so objects in memory find the entries of the same
         images and transforms given as files, and the same objects find them again in a new
         process. Default: ``out/cache`` with evaluate's `out`, else a temporary folder,

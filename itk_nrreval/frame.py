@@ -55,6 +55,8 @@ __all__ = [
     "needs_inversion_grid",
     "points_minus_grid",
     "distance_sums",
+    "in_steps",
+    "from_steps",
     "resampling_transform",
     "resample_onto",
     "resample_images",
@@ -251,6 +253,95 @@ def _distance_sums(a, b, mask):  # pragma: no cover - compiled
             total += partial
             partial = 0.0
     return total + partial, largest, count
+
+
+def in_steps(
+    disp: np.ndarray, *, levels: int = 65535
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A displacement field in equal steps: each vector component as integers from 0 to
+    `levels` between its least and largest value (a quarter of float64's bytes in uint16).
+
+    Parameters
+    ----------
+    disp : ndarray of shape (..., dim)
+        Displacements in mm, components last (any float dtype).
+    levels : int
+        The number of steps (65535: uint16; 255: uint8).
+
+    Returns
+    -------
+    (q, low, step) or None
+        `q` (disp's shape; uint16, or uint8 for ``levels <= 255``) with ``low + q * step``
+        (:func:`from_steps`) within half a step, ``(max - min) / (2 * levels)``, of every
+        value; `low` and `step` (dim,) float64 (a constant component: step 1, exact).
+        None when `disp` is not finite everywhere.
+    """
+    flat = np.ascontiguousarray(disp).reshape(-1, disp.shape[-1])
+    lows, highs, finite = _chunk_ranges(flat, max(1, min(256, flat.shape[0])))
+    if not finite.all():
+        return None
+    low, high = lows.min(axis=0), highs.max(axis=0)
+    step = np.where(high > low, (high - low) / levels, 1.0)
+    q = np.empty(flat.shape, np.uint8 if levels <= 255 else np.uint16)
+    _to_steps(flat, low, step, float(levels), q)
+    return q.reshape(disp.shape), low, step
+
+
+def from_steps(
+    q: np.ndarray, low: np.ndarray, step: np.ndarray, *, add_to: np.ndarray | None = None
+) -> np.ndarray:
+    """A displacement field back from :func:`in_steps`: ``low + q * step``.
+
+    Parameters
+    ----------
+    q : ndarray of shape (..., dim), unsigned integers
+    low, step : ndarray of shape (dim,)
+        As :func:`in_steps` returns them.
+    add_to : ndarray of float64, `q`'s shape, optional
+        Add the field to it in place (no full-size temporary) and return it.
+
+    Returns
+    -------
+    ndarray of float64, `q`'s shape
+        mm.
+    """
+    flat = q.reshape(-1, q.shape[-1])
+    out = np.zeros(q.shape, np.float64) if add_to is None else add_to
+    _add_from_steps(flat, low, step, out.reshape(-1, q.shape[-1]))
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _chunk_ranges(flat, n_chunks):  # pragma: no cover - compiled
+    m, d = flat.shape
+    lows = np.full((n_chunks, d), np.inf)
+    highs = np.full((n_chunks, d), -np.inf)
+    finite = np.ones(n_chunks, np.bool_)
+    size = (m + n_chunks - 1) // n_chunks
+    for c in numba.prange(n_chunks):
+        for f in range(c * size, min(m, (c + 1) * size)):
+            for k in range(d):
+                v = np.float64(flat[f, k])
+                if not np.isfinite(v):
+                    finite[c] = False
+                lows[c, k] = min(lows[c, k], v)
+                highs[c, k] = max(highs[c, k], v)
+    return lows, highs, finite
+
+
+@numba.njit(cache=True, parallel=True)
+def _to_steps(flat, low, step, levels, out):  # pragma: no cover - compiled
+    for f in numba.prange(flat.shape[0]):
+        for k in range(flat.shape[1]):
+            v = np.rint((np.float64(flat[f, k]) - low[k]) / step[k])
+            out[f, k] = min(max(v, 0.0), levels)
+
+
+@numba.njit(cache=True, parallel=True)
+def _add_from_steps(q, low, step, out):  # pragma: no cover - compiled
+    for f in numba.prange(q.shape[0]):
+        for k in range(q.shape[1]):
+            out[f, k] += low[k] + q[f, k] * step[k]
 
 
 def frame_method(registration: ManifestRegistration) -> str:

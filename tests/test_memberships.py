@@ -634,6 +634,15 @@ def test_covered_voxels_are_where_itk_resampling_gives_a_value(
     assert covered.dtype == np.bool_ and covered.shape == (int(np.prod(grid.shape)),)
     np.testing.assert_array_equal(covered, itk_covered(image, t, grid, interpolator))
     assert covered.any() and not covered.all()
+    sampled = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
+        )
+    )
+    from_sampled = _memberships.covered_voxels(
+        Geometry.from_image(image), t, grid, displacement=sampled
+    )
+    np.testing.assert_array_equal(from_sampled, covered)
     values, _ = _memberships.resample_image_and_memberships(
         image, label_map, t, grid, values=LARGE_VALUES
     )

@@ -454,7 +454,7 @@ def test_displacement_after_equals_itk_sampling_the_composite(dim):
     not cover the whole common grid, so points fall in their half-voxel borders and beyond)
     and D a rough field on the common grid."""
     from itk_nrreval._images import Geometry
-    from itk_nrreval.transforms import displacement_after
+    from itk_nrreval.transforms import displacement_after, leaves
 
     rng = np.random.default_rng(dim)
     n = (23, 19, 11)[:dim]
@@ -490,6 +490,11 @@ def test_displacement_after_equals_itk_sampling_the_composite(dim):
     border = ~outside & ((cidx < 0) | (cidx > size - 1)).any(axis=1)
     assert outside.mean() > 0.1 and border.sum() > 5
     np.testing.assert_array_equal(displacement_after(t, d.astype(np.float32), g), got)
+    # given T's pieces (taken apart once by the caller), the same bits
+    pieces = leaves(t)
+    assert len(pieces) == 3 and leaves(pieces) == pieces
+    assert all(a is b for a, b in zip(leaves(pieces), pieces, strict=True))
+    np.testing.assert_array_equal(displacement_after(pieces, d, g), got)
 
 
 def _voxel_points(img: sitk.Image) -> list:

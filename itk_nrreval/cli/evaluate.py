@@ -112,7 +112,8 @@ def _add_execution_options(p) -> None:
         "--cache",
         metavar="CACHE",
         help="per-image result cache (default DIR/cache): a rerun, after an interruption or "
-        "with more images or registrations, computes only what is new",
+        "with more images or registrations, reuses the frames and transforms' measures and "
+        "resamples the images again (none with --keep-resampled)",
     )
     p.add_argument(
         "--keep-resampled",
