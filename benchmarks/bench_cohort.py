@@ -121,10 +121,12 @@ def run(n: int) -> dict:
     shutil.rmtree(cache, ignore_errors=True)
     cmd = [sys.executable, __file__, "--run", str(manifest), str(cache)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    errors = cache.parent / f"cache_five_{n}.stderr"
     t0 = time.perf_counter()
-    with subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env
-    ) as proc:
+    with (
+        open(errors, "w") as err,
+        subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=env) as proc,
+    ):
         largest = 0.0  # the cache's size at its largest, sampled every second
         while proc.poll() is None:
             try:
@@ -135,7 +137,9 @@ def run(n: int) -> dict:
         out = proc.stdout.read()
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
-        raise RuntimeError(f"the evaluation exited with {proc.returncode}")
+        tail = errors.read_text().strip().splitlines()[-5:]
+        raise RuntimeError(f"the evaluation exited with {proc.returncode}: {' / '.join(tail)}")
+    errors.unlink()
     res = json.loads(out.strip().splitlines()[-1])
     res.update(n=n, wall_s=wall, cache_mb=_size_mb(cache), cache_peak_mb=largest)
     shutil.rmtree(cache, ignore_errors=True)
