@@ -23,8 +23,8 @@ machine may be shared, which inflates the wall time but not the CPU time), its p
 every second; GB of 2^30 bytes) and when it ends. Targets (issue 30, two cores): N = 12
 under 5 minutes; N = 36 under 15 minutes, peak RSS under 3 GB, cache under 4 GB.
 
-``python benchmarks/run_all.py cohort`` runs it (N = 12: about 8 minutes of CPU and 4.6 of
-wall time on two cores, two tasks at once; N = 36: 25 and 14; the cohort, 2.8 GB for N = 12
+``python benchmarks/run_all.py cohort`` runs it (N = 12: about 9 minutes of CPU and 5 of
+wall time on two cores, two tasks at once; N = 36: 28 and 15; the cohort, 2.8 GB for N = 12
 and 8.4 GB for N = 36, is generated once into ``benchmarks/out/cohort3d_1mm``, shared with
 ``bench_memory.py``, and reused).
 """

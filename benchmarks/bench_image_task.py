@@ -270,7 +270,7 @@ def _measure_estimate(info: dict) -> dict:
         # since issue 30: float32 for the mean (removed once added up) and 16-bit steps for
         # the spread, two entries
         kinds = ("estimate", "estimate_steps") if hasattr(frame, "in_steps") else ("estimate",)
-        args = (ctx, key, common, item, grid, *(("cache",) if len(kinds) == 2 else ()))
+        args = (ctx, key, common, item, grid, *((True,) if len(kinds) == 2 else ()))
         _pipeline._estimate_task(*args)  # warm-up, as in _measure
         for kind in kinds:
             shutil.rmtree(Path(root) / kind)
@@ -278,7 +278,7 @@ def _measure_estimate(info: dict) -> dict:
         t0 = time.process_time()
         reused = _pipeline._estimate_task(*args)
         total = time.process_time() - t0
-        assert not (reused[0] if isinstance(reused, tuple) else reused)
+        assert not reused
         size = sum(
             p.stat().st_size for kind in kinds for p in DiskCache(root)._folder(kind, key).iterdir()
         )

@@ -41,14 +41,9 @@ ITK_READ_LOCK = threading.Lock()
 
 
 class Executor(Protocol):
-    """Maps a task function over argument tuples; yields ``(index, result)`` as each ends.
-
-    ``in_process``: whether the tasks run in the driver's process, so that a large result
-    reaches the driver without being copied (else it travels, and tasks share the cache).
-    """
+    """Maps a task function over argument tuples; yields ``(index, result)`` as each ends."""
 
     n_workers: int
-    in_process: bool
 
     def map(
         self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
@@ -62,7 +57,6 @@ class InProcessExecutor:
     """
 
     n_workers = 1
-    in_process = True
 
     def map(
         self, fn: Callable, calls: Sequence[tuple], *, desc: str, progress: bool
@@ -79,8 +73,6 @@ class ThreadExecutor:
     Results are yielded as tasks end (any order). A task that raises stops the map: the
     tasks not yet started are cancelled and the error is raised.
     """
-
-    in_process = True
 
     def __init__(self, n_workers: int):
         self.n_workers = int(n_workers)

@@ -156,9 +156,6 @@ _STORED_ESTIMATE = np.uint16
 #: the estimates it is added up from: float32 halves the entries (216 -> 108 MB at 1 mm)
 #: and rounds a displacement of up to 100 mm by less than 1e-5 mm.
 _STORED_FRAME = np.float32
-#: Frame estimates that arrived before an earlier one, held in memory for the mean (more go
-#: to the cache): 108 MB each at 1 mm.
-_HELD_ESTIMATES = 2
 #: Bytes of changed images (float64, over the region) the subject checks of
 #: :func:`_alternative_products` hold at once: 64 alternatives of a 1 mm brain region would
 #: otherwise take 2.5 GB.
@@ -214,28 +211,25 @@ def _estimate_key(ctx: _Context, common_item, item, reg_grid: Geometry) -> str:
 
 
 def _estimate_task(
-    ctx: _Context, key: str, common_item, item, reg_grid: Geometry, for_mean: str | None
-) -> tuple[bool, np.ndarray | None]:
-    """Cache ``F_i(p) - p`` on the common grid (mm) under `key` (:func:`_estimate_key`)
-    in 16-bit steps for the spread (kind ``"estimate_steps"``, :func:`_stored_estimate`);
-    for the mean F, also as F is stored (``_STORED_FRAME``): cached (kind ``"estimate"``)
-    with `for_mean` ``"cache"``, returned with ``"return"`` (a task in the driver's
-    process). Returns (whether it was cached already, the returned estimate or None).
-
-    :class:`_MeanOfEstimates` adds the estimates up as the tasks finish.
-    """
+    ctx: _Context, key: str, common_item, item, reg_grid: Geometry, for_mean: bool
+) -> bool:
+    """Cache ``F_i(p) - p`` on the common grid (mm) under `key` (:func:`_estimate_key`):
+    in 16-bit steps for the spread (kind ``"estimate_steps"``, :func:`_stored_estimate`)
+    and, `for_mean`, as F is stored (kind ``"estimate"``, ``_STORED_FRAME``) for the mean,
+    which the driver adds up and removes as the tasks finish (:class:`_MeanOfEstimates`).
+    Return whether it was cached already."""
     cache = ctx.cache()
     if cache.get("estimate_steps", key) is not None and (
-        for_mean is None or (for_mean == "cache" and cache.get("estimate", key) is not None)
+        not for_mean or cache.get("estimate", key) is not None
     ):
-        return True, None
+        return True
     # the chain read where it is inverted: a composite held here too would keep a second
     # copy of its fields (0.2 GB at 1 mm) while the inverse holds its pieces
     disp = frame_estimate(chain_transform(common_item), item, ctx.grid, other_grid=reg_grid)
     cache.put("estimate_steps", key, _stored_estimate(disp))
-    if for_mean == "cache":
+    if for_mean:
         cache.put("estimate", key, {"disp": disp.astype(_STORED_FRAME)})
-    return False, disp.astype(_STORED_FRAME) if for_mean == "return" else None
+    return False
 
 
 def _stored_estimate(disp: np.ndarray) -> dict[str, np.ndarray]:
@@ -1435,19 +1429,18 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
         for _ in keys:
             counts.add(True)
     else:
-        # in this process, the estimates for the mean reach the driver without the cache
-        for_mean = None if frame_key is None else "return" if executor.in_process else "cache"
+        for_mean = frame_key is not None
         tasks = [
             (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid, for_mean)
             for i in range(m.n_images)
         ]
-        mean = None if for_mean is None else _MeanOfEstimates(disk, keys)
-        for i, (was_cached, estimate) in executor.map(
+        mean = _MeanOfEstimates(disk, keys) if for_mean else None
+        for i, was_cached in executor.map(
             _estimate_task, tasks, desc=f"{name}: frame", progress=progress
         ):
             counts.add(was_cached)
             if mean is not None:
-                mean.arrived(i, estimate)
+                mean.arrived(i)
         if mean is not None and disk.get("frame", frame_key) is None:
             disk.put("frame", frame_key, {"disp": mean.result().astype(_STORED_FRAME)})
     if frame_key is not None:
@@ -1482,43 +1475,29 @@ def _frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
 class _MeanOfEstimates:
     """The mean of a registration's frame estimates ``F_i(p) - p``, added up in float64 in
     image order (whatever order the tasks finish in: the same bits as adding them up after
-    the last) as they arrive, from the task's result or its ``"estimate"`` entry; an entry
-    goes once added, so that only the few that arrived before an earlier one are on disk
-    (or, returned, in memory: at most ``_HELD_ESTIMATES``, the others cached) at once."""
+    the last) as they arrive; each estimate's ``"estimate"`` entry goes once added, so that
+    only the few that arrived before an earlier one are on disk at once."""
 
     def __init__(self, disk: DiskCache, keys: Sequence[str]):
         self._disk, self._keys = disk, list(keys)
         self._total: np.ndarray | None = None
         self._arrived: set[int] = set()
-        self._held: dict[int, np.ndarray] = {}
         self._next = 0
         # images with the same inputs share an entry: it goes when the last is added
         self._uses = collections.Counter(self._keys)
 
-    def arrived(self, i: int, estimate: np.ndarray | None = None) -> None:
-        """Estimate i is in the cache (or is `estimate`): add it, and every later one
-        already there, in order."""
-        if estimate is not None and i != self._next:
-            if len(self._held) < _HELD_ESTIMATES:
-                self._held[i] = estimate
-            elif self._disk.get("estimate", self._keys[i]) is None:
-                self._disk.put("estimate", self._keys[i], {"disp": estimate})
-            estimate = None
+    def arrived(self, i: int) -> None:
+        """Estimate i is in the cache: add it, and every later one already there, in order."""
         self._arrived.add(i)
         while self._next in self._arrived:
             key = self._keys[self._next]
-            est = estimate if self._next == i and estimate is not None else None
-            if est is None:
-                est = self._held.pop(self._next, None)
-            cached = est is None
-            if cached:
-                est = self._disk.open("estimate", key).array("disp", mmap=True)
+            est = self._disk.open("estimate", key).array("disp", mmap=True)
             if self._total is None:
                 self._total = np.zeros(est.shape, np.float64)
             self._total += est
             del est
             self._uses[key] -= 1
-            if cached and not self._uses[key]:
+            if not self._uses[key]:
                 self._disk.remove("estimate", key)
             self._next += 1
 

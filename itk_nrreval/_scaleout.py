@@ -94,8 +94,6 @@ class DaskExecutor:
         From :func:`cluster_client`.
     """
 
-    in_process = False
-
     def __init__(self, client):
         self.client = client
         self.n_workers = len(client.scheduler_info()["workers"])

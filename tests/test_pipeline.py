@@ -413,15 +413,6 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
             on_disk.append(sum(disk.get("estimate", k) is not None for k in keys))
         assert on_disk == left
         np.testing.assert_array_equal(mean.result(), expected)
-    # estimates returned by their tasks (in this process): held until their turn, two at
-    # most, the others cached until then
-    mean = _pipeline._MeanOfEstimates(disk, keys)
-    on_disk = []
-    for i in [5, 3, 1, 0, 2, 4]:
-        mean.arrived(i, ests[i])
-        on_disk.append(sum(disk.get("estimate", k) is not None for k in keys))
-    assert on_disk == [0, 0, 1, 0, 0, 0]  # 1 arrived with 5 and 3 held
-    np.testing.assert_array_equal(mean.result(), expected)
     # two images with the same inputs share one entry: it stays until both are added
     disk.put("estimate", "k0", {"disp": ests[0]})
     twice = _pipeline._MeanOfEstimates(disk, ["k0", "k0"])
