@@ -287,9 +287,7 @@ def in_steps(
     return q.reshape(disp.shape), low, step
 
 
-def from_steps(
-    q: np.ndarray, low: np.ndarray, step: np.ndarray, *, add_to: np.ndarray | None = None
-) -> np.ndarray:
+def from_steps(q: np.ndarray, low: np.ndarray, step: np.ndarray) -> np.ndarray:
     """A displacement field back from :func:`in_steps`: ``low + q * step``.
 
     Parameters
@@ -297,17 +295,14 @@ def from_steps(
     q : ndarray of shape (..., dim), unsigned integers
     low, step : ndarray of shape (dim,)
         As :func:`in_steps` returns them.
-    add_to : ndarray of float64, `q`'s shape, optional
-        Add the field to it in place (no full-size temporary) and return it.
 
     Returns
     -------
     ndarray of float64, `q`'s shape
         mm.
     """
-    flat = q.reshape(-1, q.shape[-1])
-    out = np.zeros(q.shape, np.float64) if add_to is None else add_to
-    _add_from_steps(flat, low, step, out.reshape(-1, q.shape[-1]))
+    out = np.empty(q.shape, np.float64)
+    _from_steps(q.reshape(-1, q.shape[-1]), low, step, out.reshape(-1, q.shape[-1]))
     return out
 
 
@@ -338,10 +333,10 @@ def _to_steps(flat, low, step, levels, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, parallel=True)
-def _add_from_steps(q, low, step, out):  # pragma: no cover - compiled
+def _from_steps(q, low, step, out):  # pragma: no cover - compiled
     for f in numba.prange(q.shape[0]):
         for k in range(q.shape[1]):
-            out[f, k] += low[k] + q[f, k] * step[k]
+            out[f, k] = low[k] + q[f, k] * step[k]
 
 
 def frame_method(registration: ManifestRegistration) -> str:
