@@ -3,6 +3,7 @@ traceback, nothing written."""
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -254,6 +255,53 @@ def _case_transform_text_is_nonsense(tmp_path):
     m = _edit_manifest(tmp_path, edit)
     (tmp_path / "odd.tfm").write_text("#Insight Transform File V1.0\nTransform: Nonsense\n")
     return _evaluate(m), ["odd.tfm"]
+
+
+def _h5_case(tmp_path, write):
+    """The manifest with transforms[2] of 'identity' replaced by ``odd.h5``, `write` (path)."""
+
+    def edit(d):
+        d["registrations"]["identity"]["transforms"][2] = "odd.h5"
+
+    m = _edit_manifest(tmp_path, edit)
+    write(tmp_path / "odd.h5")
+    return _evaluate(m), ["odd.h5", "cannot read transform"]
+
+
+def _case_h5_transform_is_garbage(tmp_path):
+    return _h5_case(tmp_path, lambda p: p.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\xff" * 300))
+
+
+def _case_h5_transform_is_truncated(tmp_path):
+    def write(p):
+        field = sitk.Image([40, 40], sitk.sitkVectorFloat64, 2)
+        sitk.WriteTransform(sitk.DisplacementFieldTransform(field), str(p))
+        truncated(p, keep=0.5)
+
+    return _h5_case(tmp_path, write)
+
+
+def _case_h5_field_with_too_few_values(tmp_path):
+    # a well-formed file whose field has fewer values than its grid needs: read from its
+    # layout, the check must still refuse it, as reading it whole does
+    def write(p):
+        field = sitk.Image([40, 40], sitk.sitkVectorFloat64, 2)
+        composite = sitk.CompositeTransform([sitk.AffineTransform(2)])
+        composite.AddTransform(sitk.DisplacementFieldTransform(field))
+        sitk.WriteTransform(composite, str(p))
+        with h5py.File(p, "r+") as f:
+            del f["TransformGroup/2/TransformParameters"]
+            f["TransformGroup/2/TransformParameters"] = np.zeros(40 * 40 * 2 - 2)
+
+    return _h5_case(tmp_path, write)
+
+
+def _case_h5_file_is_not_a_transform(tmp_path):
+    def write(p):
+        with h5py.File(p, "w") as f:
+            f["TransformGroup/0/Something"] = np.zeros(3)
+
+    return _h5_case(tmp_path, write)
 
 
 def _case_field_of_wrong_dimension(tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -217,3 +218,47 @@ def test_register_names_the_images_that_do_not_match_the_manifest(t1_t2, tmp_pat
         "images[4] img/s01_t2.nii.gz (group t2) is not given",
     )
     assert not out.exists()  # refused before any registration
+
+
+def _oblique_field(dim: int, size: tuple[int, ...]) -> sitk.Image:
+    rng = np.random.default_rng(dim)
+    field = sitk.GetImageFromArray(rng.normal(size=(*size[::-1], dim)), isVector=True)
+    field.SetSpacing([0.8 + 0.3 * k for k in range(dim)])
+    field.SetOrigin([-5.0 + k for k in range(dim)])
+    q, _ = np.linalg.qr(rng.normal(size=(dim, dim)))
+    field.SetDirection(q.reshape(-1).tolist())
+    return field
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_hdf5_transform_dimension_from_the_layout_is_itks(tmp_path, dim):
+    """The manifest check reads an HDF5 transform's dimension from its layout (the fields'
+    values are not read); it must be what ITK reads whole, and a file whose layout is not
+    one it knows, or whose counts are off, must be left to ITK (None)."""
+    from itk_nrreval.manifest import _hdf5_transform_dimension
+
+    size = (7, 5, 4)[:dim]
+    affine = sitk.AffineTransform(dim)
+    affine.SetMatrix(np.eye(dim).reshape(-1) * 1.1)
+    field = sitk.DisplacementFieldTransform(_oblique_field(dim, size))
+    composite = sitk.CompositeTransform([affine])
+    composite.AddTransform(sitk.DisplacementFieldTransform(_oblique_field(dim, size)))
+    known = {"affine": affine, "field": field, "composite": composite}
+    for name, t in known.items():
+        path = tmp_path / f"{name}.h5"
+        sitk.WriteTransform(t, str(path))
+        assert _hdf5_transform_dimension(path) == sitk.ReadTransform(str(path)).GetDimension()
+    bspline = sitk.BSplineTransformInitializer(sitk.Image([9] * dim, sitk.sitkFloat32), [3] * dim)
+    sitk.WriteTransform(bspline, str(tmp_path / "bspline.hdf5"))
+    assert _hdf5_transform_dimension(tmp_path / "bspline.hdf5") is None  # read whole instead
+    short = tmp_path / "short.h5"
+    sitk.WriteTransform(composite, str(short))
+    with h5py.File(short, "r+") as f:
+        n = len(f["TransformGroup/2/TransformParameters"])
+        del f["TransformGroup/2/TransformParameters"]
+        f["TransformGroup/2/TransformParameters"] = np.zeros(n - 1)
+    assert _hdf5_transform_dimension(short) is None
+    with pytest.raises(RuntimeError):  # what the check then reports
+        sitk.ReadTransform(str(short))
+    (tmp_path / "text.h5").write_text("not HDF5\n")
+    assert _hdf5_transform_dimension(tmp_path / "text.h5") is None
