@@ -8,12 +8,15 @@ import signal
 import subprocess
 import sys
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_evaluate import image, make_case
 
 import itk_nrreval as nr
@@ -354,6 +357,44 @@ def test_disk_cache_round_trip_and_corruption(tmp_path):
     path.write_bytes(path.read_bytes()[:-8])  # truncated
     assert cache.get("k", "ab12") is None
     assert not got.folder.exists()  # removed, so it will be recomputed
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    dtype=st.sampled_from(["bool", "uint8", "uint16", "int32", "uint32", "float32", "float64"]),
+    shape=st.lists(st.integers(0, 7), min_size=0, max_size=3),
+    order=st.sampled_from(["C", "F", "strided"]),
+    seed=st.integers(0, 2**16),
+)
+def test_cache_checksum_from_memory_is_the_files(tmp_path_factory, dtype, shape, order, seed):
+    """An entry's CRC-32 is taken from the header read back and the array in memory; it
+    must be the CRC-32 of the file's bytes (what reading the entry checks), for any dtype
+    and memory layout, and the array must read back as written."""
+    from itk_nrreval._cache import _file_crc32, _save_array
+
+    rng = np.random.default_rng(seed)
+    a = (rng.random((*shape, 2)) * 300).astype(dtype)[..., 0]
+    if order == "F":
+        a = np.asfortranarray(a)
+    elif order == "strided" and a.ndim:
+        a = a[::2]
+    path = tmp_path_factory.mktemp("crc") / "a.npy"
+    assert _save_array(path, a) == _file_crc32(path)
+    assert zlib.crc32(path.read_bytes()) == int(_file_crc32(path).split(":")[1], 16)
+    back = np.load(path)
+    assert back.dtype == a.dtype and back.shape == a.shape
+    np.testing.assert_array_equal(back, a)
+
+
+def test_a_flipped_bit_of_the_same_size_is_caught(tmp_path):
+    cache = DiskCache(tmp_path)
+    a = np.random.default_rng(1).random(1000)
+    entry = cache.put("k", "cd34", {"a": a})
+    path = entry.folder / "a.npy"
+    raw = bytearray(path.read_bytes())
+    raw[-3000] ^= 0x10  # one bit of one value: same size, still a valid .npy
+    path.write_bytes(bytes(raw))
+    assert cache.get("k", "cd34") is None and not entry.folder.exists()
 
 
 def test_digest_follows_file_content_not_name(tmp_path):
