@@ -82,6 +82,9 @@ _GAUSSIAN_FLOOR = 1e-6
 _SLAB_VOXELS = 1 << 20
 #: Continuous indices closer than this (voxels) to the buffer border are decided by ITK.
 _BORDER_EPS = 1e-6
+#: Up to this many such points, ITK decides each one as its resampling does, point by point
+#: (:func:`_itk_inside_at`); beyond it, or for a linear transform, by resampling the grid.
+_POINTWISE_LIMIT = 10_000
 #: Continuous indices closer than this (voxels) to a voxel centre are put on it.
 _SNAP = 1e-9
 #: Label-value ranges up to this many values are mapped to channels with a lookup table.
@@ -392,18 +395,15 @@ def _linear_memberships(
     transform's displacement on the whole grid, when the caller has it (then `transform`
     may be a function that builds it, called only for ITK's decisions near the border)."""
     n_labels = len(values)
-    inside = None  # ITK's inside-buffer mask of the whole grid, computed only when needed
+    border = _BorderDecisions(transform, g, Geometry.from_image(label_map))
     pieces = []  # per slab: (first flat voxel, label starts, index, weight)
     resampled = None if image is None else np.empty(int(np.prod(g.shape)))
     plane = int(np.prod(g.shape[1:]))
-    for z0, cidx, near_border in _slab_indices(
-        transform, g, Geometry.from_image(label_map), sampled
-    ):
+    for z0, cidx, near_border in _slab_indices(transform, g, border.image_grid, sampled):
         nz = cidx.shape[0] // plane
-        if near_border and inside is None:
-            built = transform() if callable(transform) else transform
-            inside = _itk_inside(label_map, built, g)
-        mask = np.empty(0, np.uint8) if inside is None else inside[z0 * plane : (z0 + nz) * plane]
+        mask = np.empty(0, np.uint8)
+        if near_border or border.whole is not None:  # ITK's decisions, here or everywhere
+            mask = border.slab(z0 * plane, cidx, near_border).view(np.uint8)
         starts, index, weight = _slab_memberships(cidx, labels3, vmin, lut, mask, n_labels)
         if image is not None:
             _linear_values(cidx, image, mask, resampled[z0 * plane : (z0 + nz) * plane])
@@ -451,25 +451,22 @@ def covered_voxels(
     covered = np.empty(int(np.prod(grid.shape)), np.bool_)
     if displacement is not None and displacement.shape != (*grid.shape, grid.dimension):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
+    border = _BorderDecisions(transform, grid, image_grid)
+    plane = int(np.prod(grid.shape[1:]))
     if displacement is not None:  # one pass over the caller's sampling, no index copy
         maps = _index_maps(grid, image_grid)
         points = displacement.reshape(-1, grid.dimension)
         size = np.asarray(grid.size, np.int64)
-        near_border = _covered_from(points, size, *maps, _BORDER_EPS, covered)
-    else:
-        nz, ny, nx = _zyx(image_grid.shape)
-        near_border = 0
-        for z0, cidx, near in _slab_indices(transform, grid, image_grid, None):
-            near_border += near
-            if near_border:
-                break
-            start = z0 * int(np.prod(grid.shape[1:]))
-            _inside_flags(cidx, nz, ny, nx, covered[start : start + cidx.shape[0]])
-    if near_border:
-        built = transform() if callable(transform) else transform
-        ones = sitk.Image(list(image_grid.size), sitk.sitkUInt8)
-        image_grid.apply_to(ones)
-        return _itk_inside(ones, built, grid).astype(bool)
+        if not _covered_from(points, size, *maps, _BORDER_EPS, covered):
+            return covered
+    # some points lie on the border (or no sampling was given): slab by slab, ITK decides
+    # the points on the border
+    for z0, cidx, near in _slab_indices(transform, grid, image_grid, displacement):
+        start = z0 * plane
+        if near or border.whole is not None:
+            covered[start : start + cidx.shape[0]] = border.slab(start, cidx, near)
+        elif displacement is None:
+            _inside_flags(cidx, *_zyx(image_grid.shape), covered[start : start + cidx.shape[0]])
     return covered
 
 
@@ -885,6 +882,82 @@ def _by_label(code, index, weight, n_labels):  # pragma: no cover - compiled
         out_weight[cursor[k]] = weight[j]
         cursor[k] += 1
     return starts, out_index, out_weight
+
+
+class _BorderDecisions:
+    """ITK's own inside-buffer decisions where the kernels' arithmetic could disagree with it:
+    for the points within ``_BORDER_EPS`` voxel of an image's buffer border, one by one
+    (:func:`_itk_inside_at`), or, beyond ``_POINTWISE_LIMIT`` such points in a slab or for a
+    linear transform (which ITK's resampling maps by increments along each row, not point by
+    point), by resampling the whole grid once (:func:`_itk_inside`).
+
+    `transform` may be a function that builds it, called only when ITK must decide.
+    """
+
+    def __init__(self, transform, grid: Geometry, image_grid: Geometry):
+        self._transform, self.grid, self.image_grid = transform, grid, image_grid
+        self.whole: np.ndarray | None = None  # the whole grid's decisions, once taken
+
+    def _built(self) -> sitk.Transform:
+        if callable(self._transform):
+            self._transform = self._transform()
+        return self._transform
+
+    def slab(self, start: int, cidx: np.ndarray, near: int) -> np.ndarray:
+        """Inside-buffer flags (bool) of the voxels from flat index `start` whose continuous
+        indices in the image are `cidx` (m, dim); `near` of them (per axis) on the border."""
+        m = cidx.shape[0]
+        if self.whole is None:
+            t = self._built()
+            if near > _POINTWISE_LIMIT or t.IsLinear():
+                ones = sitk.Image(list(self.image_grid.size), sitk.sitkUInt8)
+                self.image_grid.apply_to(ones)
+                self.whole = _itk_inside(ones, t, self.grid).astype(bool)
+        if self.whole is not None:
+            return self.whole[start : start + m]
+        flags = np.empty(m, np.bool_)
+        _inside_flags(cidx, *_zyx(self.image_grid.shape), flags)
+        doubtful = _near_border_points(cidx, np.asarray(self.image_grid.size), _BORDER_EPS, near)
+        flags[doubtful] = _itk_inside_at(
+            self._built(), self.grid, self.image_grid, start + doubtful
+        )
+        return flags
+
+
+@numba.njit(cache=True)
+def _near_border_points(cidx, l_size, eps, capacity):  # pragma: no cover - compiled
+    """The rows of `cidx` within `eps` voxels of the buffer border on some axis (the test of
+    :func:`_continuous_indices`); at most `capacity` of them."""
+    out = np.empty(capacity, np.int64)
+    n = 0
+    for f in range(cidx.shape[0]):
+        for i in range(cidx.shape[1]):
+            c = cidx[f, i]
+            if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
+                out[n] = f
+                n += 1
+                break
+    return out[:n]
+
+
+def _itk_inside_at(
+    transform: sitk.Transform, grid: Geometry, image_grid: Geometry, flat: np.ndarray
+) -> np.ndarray:
+    """ITK's inside-buffer decision at the voxels `flat` (flat C-order indices of `grid`)
+    for an image on `image_grid`, by the calls ``ResampleImageFilter`` makes for each point
+    of a transform that is not linear: the voxel's physical point, `transform` at it, its
+    continuous index in the image, and the interpolator's half-open test ``-0.5 <= c <
+    size - 0.5``. bool (len(flat),)."""
+    dim = grid.dimension
+    here = grid.apply_to(sitk.Image([1] * dim, sitk.sitkUInt8))  # the same index -> point
+    there = image_grid.apply_to(sitk.Image([1] * dim, sitk.sitkUInt8))  # point -> index
+    upper = np.asarray(image_grid.size, float) - 0.5
+    out = np.empty(len(flat), np.bool_)
+    for k, index in enumerate(np.stack(np.unravel_index(flat, grid.shape), axis=1)):
+        point = transform.TransformPoint(here.TransformIndexToPhysicalPoint(index[::-1].tolist()))
+        c = there.TransformPhysicalPointToContinuousIndex(point)
+        out[k] = all(-0.5 <= c[i] < upper[i] for i in range(dim))
+    return out
 
 
 def _itk_inside(label_map: sitk.Image, transform: sitk.Transform, g: Geometry) -> np.ndarray:

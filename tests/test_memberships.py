@@ -367,6 +367,37 @@ def test_border_decided_by_itk_or_here_agree(monkeypatch):
     np.testing.assert_array_equal(ours.weight, itk.weight)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_itk_asked_point_by_point_or_for_the_whole_grid_agree(dim, monkeypatch):
+    """Every point handed to ITK (an infinite tolerance): asked point by point, as its
+    resampling maps a transform that is not linear, or by resampling the whole grid, the
+    same memberships, image and coverage, and the same as ITK's resampling."""
+    rng = np.random.default_rng(37 + dim)
+    label_map = oblique_label_map(dim, rng)
+    image = intensity_on(label_map, rng, np.float32)
+    grid = common_grid(dim)
+    transform = make_transform("composite", grid, rng)
+    monkeypatch.setattr(_memberships, "_BORDER_EPS", np.inf)
+    results = {}
+    for way, limit in (("whole", 0), ("points", 10**9)):
+        monkeypatch.setattr(_memberships, "_POINTWISE_LIMIT", limit)
+        if way == "points":  # the whole grid's resampling is not asked for
+            monkeypatch.setattr(_memberships, "_itk_inside", None)
+        results[way] = (
+            _memberships.resample_image_and_memberships(
+                image, label_map, transform, grid, values=LARGE_VALUES
+            ),
+            _memberships.covered_voxels(Geometry.from_image(image), transform, grid),
+        )
+    (values, sm), covered = results["points"]
+    (values_w, sm_w), covered_w = results["whole"]
+    np.testing.assert_array_equal(sm.index, sm_w.index)
+    np.testing.assert_array_equal(sm.weight, sm_w.weight)
+    np.testing.assert_array_equal(values, values_w)
+    np.testing.assert_array_equal(covered, covered_w)
+    np.testing.assert_array_equal(covered, itk_covered(image, transform, grid, sitk.sitkLinear))
+
+
 def test_grid_as_image_and_fully_outside():
     rng = np.random.default_rng(31)
     label_map = oblique_label_map(2, rng)
@@ -651,19 +682,31 @@ def test_covered_voxels_are_where_itk_resampling_gives_a_value(
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("flip", [False, True])
-@pytest.mark.parametrize("decided_by", ["itk", "here"])
-def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, monkeypatch):
+@pytest.mark.parametrize(
+    "decided_by, linear",
+    [("itk", True), ("itk", False), ("itk_points", False), ("here", True), ("here", False)],
+)
+def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, monkeypatch):
     """Points exactly on both half-voxel borders (ITK's half-open buffer): decided by ITK
-    (from a sampled displacement, with the transform built only then) or by the kernel's
-    own test in exact arithmetic, as ITK decides them."""
+    (from a sampled displacement, with the transform built only then; point by point for a
+    transform that is not linear, here a translation composed with a zero field, else by
+    resampling the whole grid) or by the kernel's own test in exact arithmetic, as ITK
+    decides them."""
     if decided_by == "here":
         monkeypatch.setattr(_memberships, "_BORDER_EPS", -1.0)
+    if decided_by == "itk_points":  # (a linear transform: ITK maps rows by increments)
+        monkeypatch.setattr(_memberships, "_itk_inside", None)  # point by point only
     label_map, grid = exact_border_case(dim, flip)
     built = []
 
     def transform():
         built.append(1)
-        return sitk.TranslationTransform(dim, [1.0, -0.5, 0.25][:dim])
+        shift = sitk.TranslationTransform(dim, [1.0, -0.5, 0.25][:dim])
+        if linear:
+            return shift
+        zero = sitk.Image(list(grid.size), sitk.sitkVectorFloat64, dim)
+        grid.apply_to(zero)
+        return sitk.CompositeTransform([shift, sitk.DisplacementFieldTransform(zero)])
 
     t = transform()
     sampled = sitk.GetArrayFromImage(
@@ -678,6 +721,6 @@ def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, monkeypatch)
     expected = itk_covered(label_map, t, grid, sitk.sitkLinear)
     np.testing.assert_array_equal(covered, expected)
     assert expected.any() and not expected.all()
-    assert len(built) == (1 if decided_by == "itk" else 0)
+    assert len(built) == (0 if decided_by == "here" else 1)
     with pytest.raises(ValueError, match="displacement"):
         _memberships.covered_voxels(Geometry.from_image(label_map), transform, grid)
