@@ -223,9 +223,9 @@ def _estimate_task(
         not for_mean or cache.get("estimate", key) is not None
     ):
         return True
-    # the chain read where it is inverted: a composite held here too would keep a second
-    # copy of its fields (0.2 GB at 1 mm) while the inverse holds its pieces
-    disp = frame_estimate(chain_transform(common_item), item, ctx.grid, other_grid=reg_grid)
+    # the chains read where they are used: a composite held here too would keep a second
+    # copy of its fields (0.2 GB at 1 mm) while the inverse and the sampling hold its pieces
+    disp = frame_estimate(common_item, item, ctx.grid, other_grid=reg_grid)
     cache.put("estimate_steps", key, _stored_estimate(disp))
     if for_mean:
         cache.put("estimate", key, {"disp": disp.astype(_STORED_FRAME)})

@@ -42,6 +42,7 @@ from .transforms import (
     displacement_field,
     field_transform,
     has_only_fields,
+    leaves,
 )
 
 __all__ = [
@@ -175,7 +176,7 @@ def frame_estimates(
 
 
 def frame_estimate(
-    common: sitk.Transform,
+    common,
     other,
     grid: Geometry,
     *,
@@ -183,14 +184,20 @@ def frame_estimate(
 ) -> np.ndarray:
     """One image's ``F_i(p) - p`` on the common grid (:func:`frame_estimates` for one
     image, without the stacked copy): ndarray of shape (*spatial_zyx, dim), float64, mm.
-    `other` (``T_i^R``) may also be a path or a chain (ANTs order), read here."""
+    `common` (``T_i^C``) and `other` (``T_i^R``) may also be paths or chains (ANTs order),
+    read here. ``T_i^C`` of linear pieces and displacement fields is sampled by the compiled
+    kernels, any other by ITK (:func:`~itk_nrreval.transforms.composed_displacement`)."""
     inverse = PointwiseInverse(
         other,
         grid=other_grid,
         field_step=ESTIMATE_FIELD_STEP,
         refine_steps=ESTIMATE_REFINE_STEPS,
     )
-    return composed_displacement(inverse, common, grid)  # R^-1(C(p)) - p
+    first = chain_transform(common)
+    pieces = leaves(first)  # taking it apart copies its fields: the chain then goes
+    first = pieces if has_only_fields(pieces) else first
+    del pieces
+    return composed_displacement(inverse, first, grid)  # R^-1(C(p)) - p
 
 
 def needs_inversion_grid(transform: sitk.Transform) -> bool:
