@@ -99,13 +99,16 @@ from .plausibility import (
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
 from .transforms import (
+    TransformPieces,
     chain_transform,
     displacement_after,
+    displacement_array,
     displacement_field,
     field_transform,
+    flatten,
     has_only_fields,
     invert,
-    leaves,
+    transform_pieces,
 )
 
 __all__ = [
@@ -302,8 +305,8 @@ def _measures_task(
     entry = cache.get("measures", key)
     if entry is not None:
         return key, True, dict(entry.meta)
-    t = chain_transform(item)
-    full, field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=True)
+    pieces = transform_pieces(item)
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True)
     covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
@@ -312,20 +315,20 @@ def _measures_task(
     shared = sampled if frame[0] == "identity" else None  # T's own displacement on g
     del covered, inside, full
     if shared is None:  # freed before the plausibility samples T on its own grid
-        sampled = field = None
+        sampled = None
     reg_mask = None
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
     # the affine fit from the measures' own sampling of the transform (one pass, not two)
     plaus, jac, fit = deformation_measures(
-        t,
+        pieces,
         reg_grid,
         mask=reg_mask,
         inverse_consistency=ctx.inverse_consistency,
         affine=True,
         displacement=shared,
     )
-    del shared, sampled, field
+    del shared, sampled, pieces
     arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
     meta.update(
         plausibility=plaus.to_dict(),
@@ -387,12 +390,13 @@ def _resample_task(
     entry = cache.get("resampled", key)
     if entry is not None:
         return key, True, dict(entry.meta)
-    t = chain_transform(item)
+    pieces = transform_pieces(item)
     raw = read_image(image, what="image")
     lab = None if labels is None else read_image(labels, what="label map")
     own = None if labels is None else [int(v) for v in own_values]
     one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
-    full, _field, sampled = _sampling(t, frame, g, reg_grid, cache, one_sampling=one_sampling)
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=one_sampling)
+    del pieces  # `full` holds them where it needs them
     values, memb = _resampled_image_and_memberships(
         raw,
         lab,
@@ -404,7 +408,7 @@ def _resample_task(
         one_sampling=one_sampling,
         displacement=sampled,
     )
-    del full, _field, sampled
+    del full, sampled
     covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
     values[~covered] = 0.0
     arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
@@ -419,35 +423,40 @@ def _resample_task(
 
 
 def _sampling(
-    t: sitk.Transform, frame: tuple, g: Geometry, reg_grid: Geometry, cache: DiskCache, *,
-    one_sampling: bool,
+    pieces: TransformPieces, frame: tuple, g: Geometry, reg_grid: Geometry,
+    cache: DiskCache, *, one_sampling: bool,
 ) -> tuple:  # fmt: skip
     """Image i's transform from the common frame, ``T_i^R o F`` (:func:`resampling_transform`),
-    and, where one sampling of it on the common grid `g` serves more than one use, that
-    displacement and the sitk image it views: ``(transform, image or None, displacement or
-    None)``; otherwise the memberships sample the transform slab by slab.
+    T given as its pieces (:func:`~itk_nrreval.transforms.transform_pieces`), and, where one
+    sampling of it on the common grid `g` serves more than one use, that displacement:
+    ``(transform, displacement or None)``; otherwise the memberships sample the transform
+    slab by slab.
 
-    - F a field the pipeline estimated (frame ``("field", key)``): the displacement is
-      composed from F's cache entry (:func:`~itk_nrreval.transforms.displacement_after`),
-      and the composite, which copies T's and F's fields (0.4 GB at 1 mm), is built only
-      if ITK's own decisions are needed: the transform returned is a function that builds
-      it;
-    - F the identity and T on the common grid: T's displacement there also serves the
-      plausibility (0.4 s at 1 mm).
+    One sampling is taken by the compiled kernels when T is linear maps and displacement
+    fields (:func:`~itk_nrreval.transforms.displacement_after`, to about 1e-13 mm of ITK's):
+    the transform returned is then a function that builds it, called only if ITK's own
+    decisions are needed at a buffer's border (a composite copies every field: 0.1 to
+    0.25 s per 1 mm field).
+
+    - F a field the pipeline estimated (frame ``("field", key)``): ``T(F(p)) - p`` composed
+      from F's cache entry;
+    - F the identity and T on the common grid: T's displacement there, which also serves
+      the plausibility.
     """
-    pieces = leaves(t) if one_sampling and frame[0] == "field" else None  # taken apart once
-    if pieces is not None and has_only_fields(pieces):
+    only_fields = has_only_fields(pieces)
+
+    def full() -> sitk.Transform:
+        return resampling_transform(flatten(pieces), _frame_transform(frame, g, cache))
+
+    if one_sampling and frame[0] == "field" and only_fields:
         f_disp = cache.open("frame", frame[1]).array("disp")
-        return (
-            lambda: resampling_transform(t, _frame_transform(frame, g, cache)),
-            None,
-            displacement_after(pieces, f_disp, g),
-        )
-    full = resampling_transform(t, _frame_transform(frame, g, cache))
+        return full, displacement_after(pieces, f_disp, g)
     if one_sampling and frame[0] == "identity" and reg_grid == g:
-        field = displacement_field(t, g)
-        return full, field, sitk.GetArrayViewFromImage(field)
-    return full, None, None
+        if only_fields:
+            return full, displacement_array(pieces, g)
+        t = flatten(pieces)
+        return t, sitk.GetArrayFromImage(displacement_field(t, g))  # F: the identity
+    return full(), None
 
 
 def _resampled_image_and_memberships(

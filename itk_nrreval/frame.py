@@ -41,8 +41,9 @@ from .transforms import (
     composed_displacement,
     displacement_field,
     field_transform,
+    flatten,
     has_only_fields,
-    leaves,
+    transform_pieces,
 )
 
 __all__ = [
@@ -193,9 +194,8 @@ def frame_estimate(
         field_step=ESTIMATE_FIELD_STEP,
         refine_steps=ESTIMATE_REFINE_STEPS,
     )
-    first = chain_transform(common)
-    pieces = leaves(first)  # taking it apart copies its fields: the chain then goes
-    first = pieces if has_only_fields(pieces) else first
+    pieces = transform_pieces(common)  # read as pieces: no composite built, none copied
+    first = pieces if has_only_fields(pieces) else flatten(pieces)
     del pieces
     return composed_displacement(inverse, first, grid)  # R^-1(C(p)) - p
 

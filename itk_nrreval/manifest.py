@@ -75,7 +75,6 @@ when needed.
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 from collections import Counter
@@ -84,7 +83,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 import SimpleITK as sitk
 import yaml
@@ -97,6 +95,7 @@ from ._elastix_files import (
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
 from ._images import InMemoryImage, dimension_problem, read_header
+from ._itk_hdf5 import transform_dimension as hdf5_transform_dimension
 from ._output import write_text
 from .transforms import (
     FIELD_SUFFIXES,
@@ -649,56 +648,10 @@ def transform_file_dimension(path: Path) -> int:
                 if m:
                     return int(m.group(1))
         raise ValueError("no 'Transform:' line")
-    if suffix in (".h5", ".hdf5") and (dim := _hdf5_transform_dimension(path)) is not None:
+    if suffix in (".h5", ".hdf5") and (dim := hdf5_transform_dimension(path)) is not None:
         return dim
     with ITK_READ_LOCK:
         return sitk.ReadTransform(str(path)).GetDimension()
-
-
-#: ITK HDF5 transform pieces whose parameter counts :func:`_hdf5_transform_dimension`
-#: checks from the file's layout: name -> (fixed, parameters) counts for dimension d
-#: and, for a displacement field, its grid size (the first d fixed parameters).
-_HDF5_PIECES = {
-    "CompositeTransform": lambda d, size: (0, 0),
-    "AffineTransform": lambda d, size: (d, d * d + d),
-    "DisplacementFieldTransform": lambda d, size: (d * (3 + d), math.prod(size) * d),
-}
-
-
-def _hdf5_transform_dimension(path: Path) -> int | None:
-    """The dimension of an ITK HDF5 transform file read from its layout alone: every
-    piece's type and its parameters' counts, not their values (a 1 mm displacement field
-    is 0.2 GB; reading them all took 44 s of a 36-image manifest's check of five
-    registrations).
-
-    None unless the file opens, every piece is a composite, an affine map or a displacement
-    field of one dimension, and each piece's parameter counts are the ones ITK reads for
-    its type and grid; the caller then reads the file whole, as before, and ITK's own
-    message names what is wrong.
-    """
-    try:
-        with h5py.File(path, "r") as f:
-            group = f["TransformGroup"]
-            dims = set()
-            for k in range(len(group)):
-                piece = group[str(k)]
-                kind = piece["TransformType"][0]
-                kind = kind.decode() if isinstance(kind, bytes) else str(kind)
-                m = re.fullmatch(r"(\w+?)_(?:double|float)_(\d)_(\d)", kind)
-                if m is None or m.group(1) not in _HDF5_PIECES or m.group(2) != m.group(3):
-                    return None
-                d = int(m.group(2))
-                dims.add(d)
-                if m.group(1) == "CompositeTransform":
-                    continue
-                fixed = piece["TransformFixedParameters"]
-                size = fixed[:d] if len(fixed) >= d else ()
-                expected = _HDF5_PIECES[m.group(1)](d, [int(v) for v in size])
-                if (len(fixed), len(piece["TransformParameters"])) != expected:
-                    return None
-    except (OSError, KeyError, ValueError, TypeError, IndexError):
-        return None
-    return dims.pop() if len(dims) == 1 else None
 
 
 def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:

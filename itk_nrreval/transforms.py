@@ -57,6 +57,7 @@ from ._images import (
     source_kind,
     to_sitk_image,
 )
+from ._itk_hdf5 import read_pieces as read_hdf5_pieces
 from ._output import atomic_path
 
 __all__ = [
@@ -70,6 +71,8 @@ __all__ = [
     "file_suffix",
     "leaves",
     "chain_transform",
+    "TransformPieces",
+    "transform_pieces",
     "flatten",
     "write_transform",
     "field_transform",
@@ -79,6 +82,7 @@ __all__ = [
     "PointwiseInverse",
     "composed_displacement",
     "displacement_after",
+    "displacement_array",
     "has_only_fields",
     "jacobian_determinant",
     "folded_fraction",
@@ -265,6 +269,16 @@ def _piece_digest(t: sitk.Transform) -> str:
 _FINITE_FILES: set[tuple] = set()
 
 
+def _check_finite_file(signature: tuple, transform) -> None:
+    """InputError unless the file of `signature`, read as `transform` (or its pieces), was
+    found finite before or is now (then remembered)."""
+    if signature not in _FINITE_FILES and not _finite(transform):
+        raise InputError("transform contains NaN or infinite values")
+    if len(_FINITE_FILES) >= 4096:
+        _FINITE_FILES.clear()
+    _FINITE_FILES.add(signature)
+
+
 def _file_signature(path: Path) -> tuple:
     """What changes when a file's content may have: its path, size, times and inode."""
     st = path.stat()
@@ -419,11 +433,7 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
             signature = _file_signature(path)  # before reading: a later change gets a new one
             with ITK_READ_LOCK:
                 t = sitk.ReadTransform(str(path)).Downcast()
-            if signature not in _FINITE_FILES and not _finite(t):
-                raise InputError("transform contains NaN or infinite values")
-            if len(_FINITE_FILES) >= 4096:
-                _FINITE_FILES.clear()
-            _FINITE_FILES.add(signature)
+            _check_finite_file(signature, t)
             return t
     except RuntimeError as exc:
         raise InputError(f"{path}: cannot read transform ({_reason(exc)})") from None
@@ -459,6 +469,8 @@ def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sit
     >>> chain_transform([shift, scale]).TransformPoint((1.0, 1.0))  # scale(shift(p))
     (4.0, 2.0)
     """
+    if isinstance(items, TransformPieces):
+        return flatten(items)
     if isinstance(items, (sitk.Transform, InMemoryTransform, str, os.PathLike)):
         return read_transform(items)
     items = list(items)
@@ -481,6 +493,72 @@ def chain_transform(items: sitk.Transform | str | os.PathLike | Sequence) -> sit
         chain.AddTransform(t)
     chain.FlattenTransform()
     return chain
+
+
+class TransformPieces(tuple):
+    """A transform held as its pieces, in SimpleITK list order (the last acts first), none a
+    composite: what :func:`transform_pieces` returns.
+
+    Every function here that takes a transform or a chain takes it as that transform
+    (:func:`chain_transform` builds its composite, :func:`transform_pieces` returns it as it
+    is), never as a chain in ANTs order, which a plain list is.
+    """
+
+    __slots__ = ()
+
+
+def transform_pieces(items: sitk.Transform | str | os.PathLike | Sequence) -> TransformPieces:
+    """A transform or a chain as its pieces, in SimpleITK list order (the last acts first).
+
+    What ``leaves(chain_transform(items))`` gives, without building a composite and taking it
+    apart again (each copies every displacement field: 0.1 to 0.25 s per 1 mm field), and
+    with ITK HDF5 files of affine maps and displacement fields (ANTs' ``Composite.h5``,
+    ``sitk.WriteTransform``'s ``.h5``) read by h5py
+    (:func:`itk_nrreval._itk_hdf5.read_pieces`: the same values in about a quarter of
+    ``sitk.ReadTransform``'s time); any other item is read by :func:`read_transform`.
+
+    Parameters
+    ----------
+    items : transform, path, or sequence of them
+        As :func:`chain_transform`: ``[t1, ..., tn]`` in ANTs order maps p to
+        ``tn(...t1(p))``.
+
+    Returns
+    -------
+    TransformPieces
+        Linear maps, displacement fields and other transforms, none a composite; `items`
+        itself when it is one.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_transform`, for the file or item at fault.
+    """
+    if isinstance(items, TransformPieces):
+        return items
+    if isinstance(items, (sitk.Transform, InMemoryTransform, str, os.PathLike)):
+        return TransformPieces(_file_pieces(items))
+    items = list(items)
+    if not items:
+        raise InputError("transform chain: empty")
+    # tn acts last, so its pieces come first in SimpleITK's list
+    return TransformPieces(piece for item in reversed(items) for piece in _file_pieces(item))
+
+
+def _file_pieces(item) -> list[sitk.Transform]:
+    """One item's pieces (:func:`transform_pieces`)."""
+    if isinstance(item, (str, os.PathLike)):
+        path = Path(item)
+        if file_suffix(path) in (".h5", ".hdf5") and path.is_file():
+            signature = _file_signature(path)  # before reading: a later change gets a new one
+            pieces = read_hdf5_pieces(path)
+            if pieces is not None:
+                try:
+                    _check_finite_file(signature, pieces)
+                except InputError as exc:
+                    raise InputError(f"{path}: {exc}") from None
+                return pieces
+    return leaves(read_transform(item))
 
 
 def leaves(transform: sitk.Transform | Sequence[sitk.Transform]) -> list[sitk.Transform]:
@@ -613,7 +691,7 @@ def invert(
     InputError
         A piece that is neither linear nor a displacement field, and no `grid`.
     """
-    parts = leaves(chain_transform(transform))
+    parts = transform_pieces(transform)
     inverted = [
         _invert_one(t, grid, (max_iterations, max_error, mean_error), field_step, refine_steps)
         for t in parts
@@ -637,7 +715,7 @@ class PointwiseInverse:
 
     Parameters
     ----------
-    transform : sitk.Transform, path or chain (ANTs order)
+    transform : sitk.Transform, path, chain (ANTs order) or TransformPieces
         Grid points -> image points (mm, LPS).
     grid : sitk.Image or Geometry, optional
         Where pieces that are neither linear nor displacement fields (B-splines) are sampled
@@ -663,12 +741,11 @@ class PointwiseInverse:
         field_step: int = 1,
         refine_steps: int = 3,
     ):
-        pieces = leaves(chain_transform(transform))  # files read once; the chain is not kept
+        pieces = transform_pieces(transform)  # files read once; no composite is built
         self.dimension = pieces[0].GetDimension()
         self.refine_steps = int(refine_steps)
         # sitk list [a, b] means a(b(p)): its inverse applies a^-1 first
         self._pieces = [_pointwise_piece(t, grid, int(field_step)) for t in pieces]
-        del pieces
 
     def map_points(self, points: np.ndarray) -> np.ndarray:
         """``T^-1`` at `points`.
@@ -790,6 +867,38 @@ def displacement_after(
     if displacement.shape != (*grid.shape, dim):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
     y = _points_after(transform, grid, displacement)
+    _add_voxel_points(y, *_voxel_point_map(grid), -1.0)
+    return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
+
+
+def displacement_array(
+    transform: sitk.Transform | Sequence[sitk.Transform], grid: Geometry
+) -> np.ndarray:
+    """``T(p) - p`` on `grid`'s voxels p, as an array: by the compiled kernels of
+    :func:`displacement_after` when T is linear maps and displacement fields only (to about
+    1e-13 mm of ITK's sampling, without its output image and the copy of it), otherwise by
+    ITK (:func:`displacement_field`).
+
+    Parameters
+    ----------
+    transform : sitk.Transform or list of sitk.Transform
+        T, or its pieces (:func:`leaves`, :func:`transform_pieces`): grid points -> image
+        points (mm, LPS).
+    grid : Geometry
+        The points p.
+
+    Returns
+    -------
+    ndarray of shape (*grid.shape, dim), float64
+        Displacements in mm, ITK (x, y[, z]) order last (as ``sitk.GetArrayFromImage`` of
+        :func:`displacement_field`).
+    """
+    dim = grid.dimension
+    pieces = leaves(transform)  # once: taking a composite apart copies its fields
+    if not has_only_fields(pieces):
+        t = transform if isinstance(transform, sitk.Transform) else flatten(pieces)
+        return sitk.GetArrayFromImage(displacement_field(t, grid))
+    y = _points_after(pieces, grid)
     _add_voxel_points(y, *_voxel_point_map(grid), -1.0)
     return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
 

@@ -235,7 +235,7 @@ def test_hdf5_transform_dimension_from_the_layout_is_itks(tmp_path, dim):
     """The manifest check reads an HDF5 transform's dimension from its layout (the fields'
     values are not read); it must be what ITK reads whole, and a file whose layout is not
     one it knows, or whose counts are off, must be left to ITK (None)."""
-    from itk_nrreval.manifest import _hdf5_transform_dimension
+    from itk_nrreval._itk_hdf5 import transform_dimension as _hdf5_transform_dimension
 
     size = (7, 5, 4)[:dim]
     affine = sitk.AffineTransform(dim)
