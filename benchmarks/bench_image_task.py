@@ -41,6 +41,10 @@ their disk cache is cold and brings the files into the page cache. The round tri
 directly where the code has it apart (``plausibility._mean_round_trip``), otherwise as the
 plausibility timed again without inverse consistency, subtracted.
 
+A fourth run times reading the ``field`` registration's ``.h5`` as its pieces: ITK's reader
+with the composite taken apart (what the tasks did before) against h5py
+(:func:`itk_nrreval.transforms.transform_pieces`, since issue 30), as a ratio.
+
 ``python benchmarks/run_all.py image_task`` runs it (about 4 minutes; the subject is
 generated once into ``benchmarks/out/image_task_1mm`` and reused).
 """
@@ -290,6 +294,31 @@ def _measure_estimate(info: dict) -> dict:
     }
 
 
+def _measure_read(info: dict, repeats: int = 5) -> dict:
+    """Reading the field registration's ``.h5`` (an affine map and a 1 mm displacement
+    field) as its pieces: ``leaves(sitk.ReadTransform(path))`` (ITK's reader, then the
+    composite taken apart: what the tasks did before) against
+    :func:`~itk_nrreval.transforms.transform_pieces` (h5py, since issue 30), the least CPU
+    seconds of `repeats` reads each, alternated, in this process."""
+    import SimpleITK as sitk
+
+    from itk_nrreval.transforms import leaves, transform_pieces
+
+    path = Path(info["transforms"]["field"])
+    spent = {"itk": [], "pieces": []}
+    for _ in range(repeats):
+        for name, read in (
+            ("itk", lambda: leaves(sitk.ReadTransform(str(path)))),
+            ("pieces", lambda: transform_pieces(path)),
+        ):
+            t0 = time.process_time()
+            pieces = read()
+            spent[name].append(time.process_time() - t0)
+            del pieces
+    itk, ours = min(spent["itk"]), min(spent["pieces"])
+    return {"registration": "read", "itk_s": itk, "pieces_s": ours, "ratio": itk / ours}
+
+
 def _one_thread_env() -> dict:
     env = dict(os.environ)
     env.update(
@@ -332,7 +361,12 @@ def main() -> dict:
         f"{estimate['total_s']:.2f} s (inversion {estimate['invert_s']:.2f} s), "
         f"cache entry {estimate['cache_mb']:.0f} MB"
     )
-    return {"spacing_mm": SPACING_MM, "runs": runs, "frame_estimate": estimate}
+    read = run("read")
+    print(
+        f"\nreading the field's .h5 as pieces (CPU s): ITK's reader and the composite taken "
+        f"apart {read['itk_s']:.2f}, h5py {read['pieces_s']:.2f} ({read['ratio']:.1f}x)"
+    )
+    return {"spacing_mm": SPACING_MM, "runs": runs, "frame_estimate": estimate, "read": read}
 
 
 if __name__ == "__main__":
@@ -342,7 +376,13 @@ if __name__ == "__main__":
         sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
         info = subject()
         name = sys.argv[2]
-        print(json.dumps(_measure_estimate(info) if name == "estimate" else _measure(info, name)))
+        if name == "estimate":
+            out = _measure_estimate(info)
+        elif name == "read":
+            out = _measure_read(info)
+        else:
+            out = _measure(info, name)
+        print(json.dumps(out))
     else:
         results = main()
         out = ROOT / "benchmarks" / "out" / "image_task.json"

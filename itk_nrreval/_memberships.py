@@ -60,7 +60,7 @@ from scipy import ndimage
 from ._errors import InputError, readable
 from ._images import Geometry, read_header
 from ._output import atomic_path, write_json
-from .transforms import file_stem
+from .transforms import TransformPieces, file_stem, flatten
 
 __all__ = [
     "LABEL_INTERPOLATIONS",
@@ -260,7 +260,7 @@ def resample_label_memberships(
 def resample_image_and_memberships(
     image: sitk.Image,
     label_map: sitk.Image,
-    transform: sitk.Transform | Callable[[], sitk.Transform],
+    transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
@@ -280,7 +280,9 @@ def resample_image_and_memberships(
         As :func:`resample_label_memberships` (``method="linear"``). With `displacement`,
         `transform` may be a function of no arguments that returns it: called only where
         ITK's own inside-buffer decisions are needed (a point within 1e-6 voxel of the label
-        map's border), for a transform costly to build (a composite copies its fields).
+        map's border), for a transform costly to build (a composite copies its fields); or
+        its pieces (:class:`~itk_nrreval.transforms.TransformPieces`), which ITK then maps
+        point by point without a composite.
     displacement : ndarray of shape ``(*grid.shape, dim)``, optional
         ``transform(p) - p`` already sampled on `grid` (mm, ITK order last; what
         ``sitk.GetArrayViewFromImage`` of ``sitk.TransformToDisplacementField`` gives) when
@@ -306,9 +308,9 @@ def resample_image_and_memberships(
     """
     if not shares_grid(image, label_map) or image.GetNumberOfComponentsPerPixel() != 1:
         raise ValueError("image: expected a scalar image on the label map's grid")
-    built = not callable(transform)
+    built = isinstance(transform, sitk.Transform)
     if not built and displacement is None:
-        raise ValueError("transform: a function only with displacement=")
+        raise ValueError("transform: a function or pieces only with displacement=")
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
     labels = _checked_labels(label_map, transform if built else None, g, "linear", None)
     lead = (1,) * (3 - g.dimension)  # 2D as one plane of 3D
@@ -384,7 +386,7 @@ def _linear_memberships(
     vmin: int,
     lut: np.ndarray,
     values: np.ndarray,
-    transform: sitk.Transform | Callable[[], sitk.Transform],
+    transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     g: Geometry,
     image: np.ndarray | None = None,
     sampled: np.ndarray | None = None,
@@ -414,7 +416,7 @@ def _linear_memberships(
 
 def covered_voxels(
     image_grid: Geometry,
-    transform: sitk.Transform | Callable[[], sitk.Transform],
+    transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     grid: Geometry,
     *,
     displacement: np.ndarray | None = None,
@@ -432,9 +434,10 @@ def covered_voxels(
     ----------
     image_grid : Geometry
         The image's grid (size, spacing, origin, direction).
-    transform : sitk.Transform or callable
+    transform : sitk.Transform, callable or TransformPieces
         Grid points -> image points (physical mm, LPS). With `displacement`, it may be a
-        function of no arguments that returns it, called only if ITK's decisions are needed.
+        function of no arguments that returns it, called only if ITK's decisions are needed,
+        or its pieces (ITK's point-by-point decisions then need no composite).
     grid : Geometry
         The grid whose voxels are decided.
     displacement : ndarray of shape ``(*grid.shape, dim)``, optional
@@ -446,8 +449,8 @@ def covered_voxels(
     ndarray of shape (n_voxels,), bool
         Flat, C order on `grid`: True where the image has a value.
     """
-    if displacement is None and callable(transform):
-        raise ValueError("transform: a function only with displacement=")
+    if displacement is None and not isinstance(transform, sitk.Transform):
+        raise ValueError("transform: a function or pieces only with displacement=")
     covered = np.empty(int(np.prod(grid.shape)), np.bool_)
     if displacement is not None and displacement.shape != (*grid.shape, grid.dimension):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
@@ -891,35 +894,50 @@ class _BorderDecisions:
     linear transform (which ITK's resampling maps by increments along each row, not point by
     point), by resampling the whole grid once (:func:`_itk_inside`).
 
-    `transform` may be a function that builds it, called only when ITK must decide.
+    `transform` may be its pieces (:class:`~itk_nrreval.transforms.TransformPieces`): ITK's
+    point-by-point calls are then made piece by piece (what a composite's ``TransformPoint``
+    does), and the composite, which copies every field, is built only for the whole grid's
+    decisions; or a function that returns it or its pieces, called only when ITK must
+    decide.
     """
 
     def __init__(self, transform, grid: Geometry, image_grid: Geometry):
         self._transform, self.grid, self.image_grid = transform, grid, image_grid
         self.whole: np.ndarray | None = None  # the whole grid's decisions, once taken
 
-    def _built(self) -> sitk.Transform:
+    def _pointwise(self) -> sitk.Transform | TransformPieces:
+        """The transform or its pieces, the function called if it was given one."""
         if callable(self._transform):
             self._transform = self._transform()
+        return self._transform
+
+    def _is_linear(self) -> bool:
+        t = self._pointwise()
+        if isinstance(t, TransformPieces):
+            return all(piece.IsLinear() for piece in t)
+        return t.IsLinear()
+
+    def _built(self) -> sitk.Transform:
+        """The transform itself (pieces: their composite, built once)."""
+        if isinstance(self._pointwise(), TransformPieces):
+            self._transform = flatten(self._transform)
         return self._transform
 
     def slab(self, start: int, cidx: np.ndarray, near: int) -> np.ndarray:
         """Inside-buffer flags (bool) of the voxels from flat index `start` whose continuous
         indices in the image are `cidx` (m, dim); `near` of them (per axis) on the border."""
         m = cidx.shape[0]
-        if self.whole is None:
-            t = self._built()
-            if near > _POINTWISE_LIMIT or t.IsLinear():
-                ones = sitk.Image(list(self.image_grid.size), sitk.sitkUInt8)
-                self.image_grid.apply_to(ones)
-                self.whole = _itk_inside(ones, t, self.grid).astype(bool)
+        if self.whole is None and (near > _POINTWISE_LIMIT or self._is_linear()):
+            ones = sitk.Image(list(self.image_grid.size), sitk.sitkUInt8)
+            self.image_grid.apply_to(ones)
+            self.whole = _itk_inside(ones, self._built(), self.grid).astype(bool)
         if self.whole is not None:
             return self.whole[start : start + m]
         flags = np.empty(m, np.bool_)
         _inside_flags(cidx, *_zyx(self.image_grid.shape), flags)
         doubtful = _near_border_points(cidx, np.asarray(self.image_grid.size), _BORDER_EPS, near)
         flags[doubtful] = _itk_inside_at(
-            self._built(), self.grid, self.image_grid, start + doubtful
+            self._pointwise(), self.grid, self.image_grid, start + doubtful
         )
         return flags
 
@@ -941,20 +959,27 @@ def _near_border_points(cidx, l_size, eps, capacity):  # pragma: no cover - comp
 
 
 def _itk_inside_at(
-    transform: sitk.Transform, grid: Geometry, image_grid: Geometry, flat: np.ndarray
+    transform: sitk.Transform | TransformPieces,
+    grid: Geometry,
+    image_grid: Geometry,
+    flat: np.ndarray,
 ) -> np.ndarray:
     """ITK's inside-buffer decision at the voxels `flat` (flat C-order indices of `grid`)
     for an image on `image_grid`, by the calls ``ResampleImageFilter`` makes for each point
-    of a transform that is not linear: the voxel's physical point, `transform` at it, its
-    continuous index in the image, and the interpolator's half-open test ``-0.5 <= c <
-    size - 0.5``. bool (len(flat),)."""
+    of a transform that is not linear: the voxel's physical point, `transform` at it (given
+    as pieces: each piece's, the last first, as a composite's ``TransformPoint`` calls
+    them), its continuous index in the image, and the interpolator's half-open test
+    ``-0.5 <= c < size - 0.5``. bool (len(flat),)."""
     dim = grid.dimension
     here = grid.apply_to(sitk.Image([1] * dim, sitk.sitkUInt8))  # the same index -> point
     there = image_grid.apply_to(sitk.Image([1] * dim, sitk.sitkUInt8))  # point -> index
     upper = np.asarray(image_grid.size, float) - 0.5
+    pieces = transform[::-1] if isinstance(transform, TransformPieces) else (transform,)
     out = np.empty(len(flat), np.bool_)
     for k, index in enumerate(np.stack(np.unravel_index(flat, grid.shape), axis=1)):
-        point = transform.TransformPoint(here.TransformIndexToPhysicalPoint(index[::-1].tolist()))
+        point = here.TransformIndexToPhysicalPoint(index[::-1].tolist())
+        for piece in pieces:
+            point = piece.TransformPoint(point)
         c = there.TransformPhysicalPointToContinuousIndex(point)
         out[k] = all(-0.5 <= c[i] < upper[i] for i in range(dim))
     return out

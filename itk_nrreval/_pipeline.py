@@ -108,6 +108,7 @@ from .transforms import (
     flatten,
     has_only_fields,
     invert,
+    leaves,
     transform_pieces,
 )
 
@@ -433,30 +434,36 @@ def _sampling(
     slab by slab.
 
     One sampling is taken by the compiled kernels when T is linear maps and displacement
-    fields (:func:`~itk_nrreval.transforms.displacement_after`, to about 1e-13 mm of ITK's):
-    the transform returned is then a function that builds it, called only if ITK's own
-    decisions are needed at a buffer's border (a composite copies every field: 0.1 to
-    0.25 s per 1 mm field).
+    fields (:func:`~itk_nrreval.transforms.displacement_after`, to about 1e-13 mm of ITK's).
+    The transform returned with it is then a function that gives ``T_i^R o F`` as its
+    pieces, called only if ITK's own decisions are needed at a buffer's border: ITK maps
+    those points piece by piece, and builds the composite, which copies every field (0.1 to
+    0.25 s and 0.2 GB per 1 mm field), only to resample the whole grid.
 
     - F a field the pipeline estimated (frame ``("field", key)``): ``T(F(p)) - p`` composed
       from F's cache entry;
     - F the identity and T on the common grid: T's displacement there, which also serves
       the plausibility.
     """
-    only_fields = has_only_fields(pieces)
 
-    def full() -> sitk.Transform:
-        return resampling_transform(flatten(pieces), _frame_transform(frame, g, cache))
+    def from_common() -> TransformPieces:
+        # resampling_transform's map as pieces: F acts first, so it comes last; F the
+        # identity is left out unless T is linear (ITK's resampler then keeps its path)
+        f = _frame_transform(frame, g, cache)
+        if frame[0] == "identity" and not all(piece.IsLinear() for piece in pieces):
+            return pieces
+        return TransformPieces((*pieces, *leaves(f)))
 
-    if one_sampling and frame[0] == "field" and only_fields:
-        f_disp = cache.open("frame", frame[1]).array("disp")
-        return full, displacement_after(pieces, f_disp, g)
+    if one_sampling and has_only_fields(pieces):
+        if frame[0] == "field":
+            f_disp = cache.open("frame", frame[1]).array("disp")
+            return from_common, displacement_after(pieces, f_disp, g)
+        if frame[0] == "identity" and reg_grid == g:
+            return from_common, displacement_array(pieces, g)
     if one_sampling and frame[0] == "identity" and reg_grid == g:
-        if only_fields:
-            return full, displacement_array(pieces, g)
         t = flatten(pieces)
         return t, sitk.GetArrayFromImage(displacement_field(t, g))  # F: the identity
-    return full(), None
+    return flatten(from_common()), None
 
 
 def _resampled_image_and_memberships(

@@ -398,6 +398,50 @@ def test_itk_asked_point_by_point_or_for_the_whole_grid_agree(dim, monkeypatch):
     np.testing.assert_array_equal(covered, itk_covered(image, transform, grid, sitk.sitkLinear))
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_itk_asked_point_by_point_through_the_pieces(dim, monkeypatch):
+    """A transform given as its pieces (TransformPieces, with its sampling): every point
+    handed to ITK is decided piece by piece, as the composite's TransformPoint calls them,
+    with no composite built and the whole grid never resampled: the same coverage as ITK's
+    resampling through the composite, and the same image and memberships as from the
+    composite's own sampling."""
+    from itk_nrreval.transforms import TransformPieces, transform_pieces
+
+    rng = np.random.default_rng(43 + dim)
+    label_map = oblique_label_map(dim, rng)
+    image = intensity_on(label_map, rng, np.float32)
+    grid = common_grid(dim)
+    transform = make_transform("composite", grid, rng)
+    sampled = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            transform, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing,
+            grid.direction,
+        )
+    )  # fmt: skip
+    values_t, sm_t = _memberships.resample_image_and_memberships(
+        image, label_map, transform, grid, values=LARGE_VALUES
+    )
+    pieces = transform_pieces(transform)
+    assert isinstance(pieces, TransformPieces) and len(pieces) == 2
+    monkeypatch.setattr(_memberships, "_BORDER_EPS", np.inf)
+    monkeypatch.setattr(_memberships, "_POINTWISE_LIMIT", 10**9)
+    monkeypatch.setattr(_memberships, "_itk_inside", None)  # the whole grid: not asked
+    monkeypatch.setattr(_memberships, "flatten", None)  # no composite built
+    covered = _memberships.covered_voxels(
+        Geometry.from_image(image), pieces, grid, displacement=sampled
+    )
+    np.testing.assert_array_equal(covered, itk_covered(image, transform, grid, sitk.sitkLinear))
+    assert covered.any() and not covered.all()
+    values, sm = _memberships.resample_image_and_memberships(
+        image, label_map, pieces, grid, values=LARGE_VALUES, displacement=sampled
+    )
+    np.testing.assert_array_equal(np.isnan(values), np.isnan(values_t))
+    np.testing.assert_allclose(values, values_t, rtol=1e-12, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(sm.dense(), sm_t.dense(), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="displacement"):
+        _memberships.covered_voxels(Geometry.from_image(image), pieces, grid)
+
+
 def test_grid_as_image_and_fully_outside():
     rng = np.random.default_rng(31)
     label_map = oblique_label_map(2, rng)
