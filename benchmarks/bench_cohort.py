@@ -29,8 +29,8 @@ their composed transforms ``T_i^R o F`` (F the frame the evaluation found), in C
 the cohort's floor is each registration's mean times N, and the evaluation's CPU time is
 reported as a ratio to it.
 
-``python benchmarks/run_all.py cohort`` runs it (N = 12: about 9 minutes of CPU and 5 of
-wall time on two cores, two tasks at once; N = 36: 28 and 15; the cohort, 2.8 GB for N = 12
+``python benchmarks/run_all.py cohort`` runs it (N = 12: about 7 minutes of CPU and 4.5 of
+wall time on two cores, two tasks at once; N = 36: 21 and 12; the cohort, 2.8 GB for N = 12
 and 8.4 GB for N = 36, is generated once into ``benchmarks/out/cohort3d_1mm``, shared with
 ``bench_memory.py``, and reused).
 """

@@ -45,7 +45,7 @@ A fourth run times reading the ``field`` registration's ``.h5`` as its pieces: I
 with the composite taken apart (what the tasks did before) against h5py
 (:func:`itk_nrreval.transforms.transform_pieces`, since issue 30), as a ratio.
 
-``python benchmarks/run_all.py image_task`` runs it (about 4 minutes; the subject is
+``python benchmarks/run_all.py image_task`` runs it (about 5 minutes; the subject is
 generated once into ``benchmarks/out/image_task_1mm`` and reused).
 """
 

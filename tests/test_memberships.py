@@ -398,6 +398,13 @@ def test_itk_asked_point_by_point_or_for_the_whole_grid_agree(dim, monkeypatch):
     np.testing.assert_array_equal(covered, itk_covered(image, transform, grid, sitk.sitkLinear))
 
 
+def assert_same_resampling(values, memberships, ref_values, ref_memberships) -> None:
+    """The same image (NaN where the reference's is, values to 1e-12) and memberships."""
+    np.testing.assert_array_equal(np.isnan(values), np.isnan(ref_values))
+    np.testing.assert_allclose(values, ref_values, rtol=1e-12, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(memberships.dense(), ref_memberships.dense(), rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_itk_asked_point_by_point_through_the_pieces(dim, monkeypatch):
     """A transform given as its pieces (TransformPieces, with its sampling): every point
@@ -435,9 +442,7 @@ def test_itk_asked_point_by_point_through_the_pieces(dim, monkeypatch):
     values, sm = _memberships.resample_image_and_memberships(
         image, label_map, pieces, grid, values=LARGE_VALUES, displacement=sampled
     )
-    np.testing.assert_array_equal(np.isnan(values), np.isnan(values_t))
-    np.testing.assert_allclose(values, values_t, rtol=1e-12, atol=1e-9, equal_nan=True)
-    np.testing.assert_allclose(sm.dense(), sm_t.dense(), rtol=0, atol=1e-6)
+    assert_same_resampling(values, sm, values_t, sm_t)
     with pytest.raises(ValueError, match="displacement"):
         _memberships.covered_voxels(Geometry.from_image(image), pieces, grid)
 
@@ -671,9 +676,7 @@ def test_image_and_memberships_from_the_callers_sampling(dim, monkeypatch):
     values, sm = _memberships.resample_image_and_memberships(
         image, label_map, t, grid, values=LARGE_VALUES, displacement=sampled
     )
-    np.testing.assert_array_equal(np.isnan(values), np.isnan(own_values))
-    np.testing.assert_allclose(values, own_values, rtol=1e-12, atol=1e-9, equal_nan=True)
-    np.testing.assert_allclose(sm.dense(), own.dense(), rtol=0, atol=1e-6)
+    assert_same_resampling(values, sm, own_values, own)
     with pytest.raises(ValueError, match="displacement"):
         _memberships.resample_image_and_memberships(
             image, label_map, t, grid, values=LARGE_VALUES, displacement=sampled[1:]
