@@ -108,7 +108,6 @@ from .transforms import (
     flatten,
     has_only_fields,
     invert,
-    leaves,
     transform_pieces,
 )
 
@@ -447,12 +446,7 @@ def _sampling(
     """
 
     def from_common() -> TransformPieces:
-        # resampling_transform's map as pieces: F acts first, so it comes last; F the
-        # identity is left out unless T is linear (ITK's resampler then keeps its path)
-        f = _frame_transform(frame, g, cache)
-        if frame[0] == "identity" and not all(piece.IsLinear() for piece in pieces):
-            return pieces
-        return TransformPieces((*pieces, *leaves(f)))
+        return resampling_transform(pieces, _frame_transform(frame, g, cache))
 
     if one_sampling and has_only_fields(pieces):
         if frame[0] == "field":

@@ -37,12 +37,14 @@ from ._progress import progress_bar
 from .manifest import Manifest, ManifestRegistration
 from .transforms import (
     PointwiseInverse,
+    TransformPieces,
     chain_transform,
     composed_displacement,
     displacement_field,
     field_transform,
     flatten,
     has_only_fields,
+    leaves,
     transform_pieces,
 )
 
@@ -439,22 +441,28 @@ def frame_mapping(
     return FrameMapping(name, method, f, *_spread(estimates, f_disp, mask))
 
 
-def resampling_transform(transform: sitk.Transform, frame: sitk.Transform) -> sitk.Transform:
+def resampling_transform(
+    transform: sitk.Transform | TransformPieces, frame: sitk.Transform
+) -> sitk.Transform | TransformPieces:
     """Image i's transform from the common frame: ``T_i^R o F`` (F acts first).
 
     Returns ``sitk.CompositeTransform([T_i^R, F])`` (SimpleITK applies its list from the back),
     or `transform` itself when F is the identity (a zero translation) and T_i^R is not linear:
     the same map to the bit, without the copy of every displacement field a composite makes
     (~0.1 s per 1 mm field). A linear T_i^R keeps the composite, so that ITK's resampler takes
-    the same (non-linear) path as before.
+    the same (non-linear) path as before. Given T_i^R as its pieces
+    (:class:`~itk_nrreval.transforms.TransformPieces`), the same map as pieces: F's last,
+    since it acts first, and no composite built.
     """
+    if isinstance(transform, TransformPieces):
+        linear = all(piece.IsLinear() for piece in transform)
+    else:
+        linear = transform.IsLinear()
     f = frame.Downcast()
-    if (
-        not transform.IsLinear()
-        and isinstance(f, sitk.TranslationTransform)
-        and not any(f.GetOffset())
-    ):
+    if not linear and isinstance(f, sitk.TranslationTransform) and not any(f.GetOffset()):
         return transform
+    if isinstance(transform, TransformPieces):
+        return TransformPieces((*transform, *leaves(frame)))
     return sitk.CompositeTransform([transform, frame])
 
 

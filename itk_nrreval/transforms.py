@@ -866,9 +866,7 @@ def displacement_after(
     dim = grid.dimension
     if displacement.shape != (*grid.shape, dim):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
-    y = _points_after(transform, grid, displacement)
-    _add_voxel_points(y, *_voxel_point_map(grid), -1.0)
-    return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
+    return _minus_voxel_points(_points_after(transform, grid, displacement), grid)
 
 
 def displacement_array(
@@ -893,12 +891,17 @@ def displacement_array(
         Displacements in mm, ITK (x, y[, z]) order last (as ``sitk.GetArrayFromImage`` of
         :func:`displacement_field`).
     """
-    dim = grid.dimension
     pieces = leaves(transform)  # once: taking a composite apart copies its fields
     if not has_only_fields(pieces):
         t = transform if isinstance(transform, sitk.Transform) else flatten(pieces)
         return sitk.GetArrayFromImage(displacement_field(t, grid))
-    y = _points_after(pieces, grid)
+    return _minus_voxel_points(_points_after(pieces, grid), grid)
+
+
+def _minus_voxel_points(y: np.ndarray, grid: Geometry) -> np.ndarray:
+    """Points ``q(p)`` at `grid`'s voxels (n_voxels, 3), as :func:`_points_after` gives
+    them, less the voxels' points p, in place: ``(*grid.shape, dim)``, ITK order last."""
+    dim = grid.dimension
     _add_voxel_points(y, *_voxel_point_map(grid), -1.0)
     return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
 

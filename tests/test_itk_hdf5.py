@@ -252,3 +252,25 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
 
     own = deformation_measures(reference, grid)[0].inverse_consistency_mm
     assert meta["plausibility"]["inverse_consistency_mm"] == pytest.approx(own, rel=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_transform_from_the_common_frame_as_pieces(dim):
+    """resampling_transform given T's pieces: the same map as given T, as pieces (F last),
+    and the same rule: F the identity is left out only when T is not linear."""
+    from itk_nrreval.frame import resampling_transform
+
+    points = _random_points(dim)
+    identity = sitk.TranslationTransform(dim)
+    field_frame = sitk.DisplacementFieldTransform(_oblique_field(dim, (8, 6, 5)[:dim], 21))
+    for name, t in _transforms(dim).items():
+        pieces = transform_pieces(t)
+        for frame in (identity, field_frame):
+            ours = resampling_transform(pieces, frame)
+            reference = resampling_transform(t, frame)
+            assert isinstance(ours, TransformPieces)
+            left_out = frame is identity and not t.IsLinear()
+            assert (ours is pieces) == left_out == (reference is t), (name, frame)
+            assert [flatten(ours).TransformPoint(p.tolist()) for p in points] == [
+                reference.TransformPoint(p.tolist()) for p in points
+            ], (name, frame)
