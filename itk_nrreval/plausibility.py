@@ -602,28 +602,52 @@ def _affine_sums(u, sel, every, start, step, parts):  # pragma: no cover - compi
     """For each slice k of `u` (nz, ny, nx, d; d 2 or 3, a 2D slab as nz = 1): with
     ``q1 = [start + step @ (i, j[, k]), 1]`` at every voxel selected by `sel` (all when
     `every`), ``parts[k, :, :d+1] = sum q1 q1^T``, ``parts[k, :, d+1:2d+1] = sum q1 u^T`` and
-    ``parts[k, 0, 2d+1] = sum |u|^2``."""
+    ``parts[k, 0, 2d+1] = sum |u|^2``.
+
+    Along a row (j, k fixed) ``q1 = a + i s`` with ``a = q1`` at i = 0 and ``s = [step[:, 0],
+    0]``, so a row adds ``n a a^T + (a s^T + s a^T) sum i + s s^T sum i^2`` and
+    ``a (sum u)^T + s (sum i u)^T``: a voxel costs its sums, not the outer products."""
     nz, ny, nx, d = u.shape
     for slice_ in numba.prange(nz):
         k = np.int64(slice_)  # prange's index is unsigned
-        q1 = np.ones(d + 1)
+        a = np.ones(d + 1)
+        s = np.zeros(d + 1)
+        for r in range(d):
+            s[r] = step[r, 0]
+        su = np.empty(d)
+        siu = np.empty(d)
         acc = parts[k]
         for j in range(ny):
+            for r in range(d):
+                q = start[r] + step[r, 1] * j
+                if d == 3:
+                    q += step[r, 2] * k
+                a[r] = q
+            n = si = sii = suu = 0.0
+            su[:] = 0.0
+            siu[:] = 0.0
             for i in range(nx):
                 if not every and not sel[k, j, i]:
                     continue
-                for r in range(d):
-                    q = start[r] + step[r, 0] * i + step[r, 1] * j
-                    if d == 3:
-                        q += step[r, 2] * k
-                    q1[r] = q
-                for r in range(d + 1):
-                    for c in range(d + 1):
-                        acc[r, c] += q1[r] * q1[c]
-                    for c in range(d):
-                        acc[r, d + 1 + c] += q1[r] * u[k, j, i, c]
+                x = np.float64(i)
+                n += 1.0
+                si += x
+                sii += x * x
                 for c in range(d):
-                    acc[0, 2 * d + 1] += u[k, j, i, c] * u[k, j, i, c]
+                    v = u[k, j, i, c]
+                    su[c] += v
+                    siu[c] += x * v
+                    suu += v * v
+            if n == 0.0:
+                continue
+            for r in range(d + 1):
+                for c in range(d + 1):
+                    acc[r, c] += (
+                        n * a[r] * a[c] + (a[r] * s[c] + s[r] * a[c]) * si + s[r] * s[c] * sii
+                    )
+                for c in range(d):
+                    acc[r, d + 1 + c] += a[r] * su[c] + s[r] * siu[c]
+            acc[0, 2 * d + 1] += suu
 
 
 #: The fit of a transform whose voxels determine no affine map.

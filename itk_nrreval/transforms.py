@@ -1412,60 +1412,75 @@ def jacobian_determinant(
 
 
 @numba.njit(cache=True, inline="always")
-def _index_derivative(u, k, j, i, c, axis):  # pragma: no cover - compiled
-    """d u[..., c] / d index along ITK `axis` (0: x = i, 1: y = j, 2: z = k) at (k, j, i):
-    np.gradient's numbers (central inside, one-sided at the border, 0 on an axis of one node)."""
-    if axis == 0:
-        n, at = u.shape[2], i
-    elif axis == 1:
-        n, at = u.shape[1], j
-    else:
-        n, at = u.shape[0], k
+def _difference_ends(at, n):  # pragma: no cover - compiled
+    """The nodes a derivative along an axis of `n` nodes differences at node `at`, and the
+    factor on their difference: np.gradient's (central, 1/2, inside; one-sided, 1, at the
+    border; 0 on an axis of one node)."""
     if n == 1:
-        return 0.0
-    lo, hi, half = at - 1, at + 1, True
+        return 0, 0, 0.0
     if at == 0:
-        lo, hi, half = 0, 1, False
-    elif at == n - 1:
-        lo, hi, half = n - 2, n - 1, False
-    if axis == 0:
-        diff = u[k, j, hi, c] - u[k, j, lo, c]
-    elif axis == 1:
-        diff = u[k, hi, i, c] - u[k, lo, i, c]
-    else:
-        diff = u[hi, j, i, c] - u[lo, j, i, c]
-    return diff / 2.0 if half else diff
+        return 0, 1, 1.0
+    if at == n - 1:
+        return n - 2, n - 1, 1.0
+    return at - 1, at + 1, 0.5
+
+
+@numba.njit(cache=True, inline="always")
+def _scaled(diff, factor):  # pragma: no cover - compiled
+    """`diff` times a factor of :func:`_difference_ends` (a halving as a division, so
+    that it rounds as np.gradient's does)."""
+    if factor == 0.5:
+        return diff / 2.0
+    return diff if factor == 1.0 else 0.0
 
 
 @numba.njit(cache=True, parallel=True)
-def _jacobian_determinant(u, index_per_mm, out):  # pragma: no cover - compiled
-    """``out = det(I + G @ index_per_mm)`` with ``G[c, a] = d u_c / d index_a`` of a field `u`
-    (nz, ny, nx, d), d 2 or 3 (a 2D field as nz = 1). Slices run in parallel; every voxel is
-    computed alone, so the numbers do not depend on the number of threads."""
+def _jacobian_determinant(u, m, out):  # pragma: no cover - compiled
+    """``out = det(I + G @ m)`` with ``G[c, a] = d u_c / d index_a`` of a field `u`
+    (nz, ny, nx, d), d 2 or 3 (a 2D field as nz = 1), `m` (d, d) index steps per mm.
+    Slices run in parallel; every voxel is computed alone, so the numbers do not depend on
+    the number of threads. Written out for d = 3 and d = 2 (a loop over the 3 x 3 entries
+    costs three times as much at 1 mm)."""
     nz, ny, nx, d = u.shape
     for slice_ in numba.prange(nz):
         k = np.int64(slice_)  # prange's index is unsigned
-        g = np.empty((d, d))
-        jac = np.empty((d, d))
+        zl, zh, zf = _difference_ends(k, nz)
         for j in range(ny):
+            yl, yh, yf = _difference_ends(j, ny)
             for i in range(nx):
-                for c in range(d):
-                    for a in range(d):
-                        g[c, a] = _index_derivative(u, k, j, i, c, a)
-                for r in range(d):
-                    for s in range(d):
-                        acc = 0.0
-                        for a in range(d):
-                            acc += g[r, a] * index_per_mm[a, s]
-                        jac[r, s] = acc + (1.0 if r == s else 0.0)
+                xl, xh, xf = _difference_ends(i, nx)
+                # g_ca: d u_c / d index a (x, y, z)
+                g00 = _scaled(u[k, j, xh, 0] - u[k, j, xl, 0], xf)
+                g10 = _scaled(u[k, j, xh, 1] - u[k, j, xl, 1], xf)
+                g01 = _scaled(u[k, yh, i, 0] - u[k, yl, i, 0], yf)
+                g11 = _scaled(u[k, yh, i, 1] - u[k, yl, i, 1], yf)
                 if d == 2:
-                    out[k, j, i] = jac[0, 0] * jac[1, 1] - jac[0, 1] * jac[1, 0]
-                else:
-                    out[k, j, i] = (
-                        jac[0, 0] * (jac[1, 1] * jac[2, 2] - jac[1, 2] * jac[2, 1])
-                        - jac[0, 1] * (jac[1, 0] * jac[2, 2] - jac[1, 2] * jac[2, 0])
-                        + jac[0, 2] * (jac[1, 0] * jac[2, 1] - jac[1, 1] * jac[2, 0])
-                    )
+                    j00 = (0.0 + g00 * m[0, 0] + g01 * m[1, 0]) + 1.0
+                    j01 = 0.0 + g00 * m[0, 1] + g01 * m[1, 1]
+                    j10 = 0.0 + g10 * m[0, 0] + g11 * m[1, 0]
+                    j11 = (0.0 + g10 * m[0, 1] + g11 * m[1, 1]) + 1.0
+                    out[k, j, i] = j00 * j11 - j01 * j10
+                    continue
+                g20 = _scaled(u[k, j, xh, 2] - u[k, j, xl, 2], xf)
+                g21 = _scaled(u[k, yh, i, 2] - u[k, yl, i, 2], yf)
+                g02 = _scaled(u[zh, j, i, 0] - u[zl, j, i, 0], zf)
+                g12 = _scaled(u[zh, j, i, 1] - u[zl, j, i, 1], zf)
+                g22 = _scaled(u[zh, j, i, 2] - u[zl, j, i, 2], zf)
+                # J = I + G m, each entry summed from 0 in the order a = x, y, z
+                j00 = (0.0 + g00 * m[0, 0] + g01 * m[1, 0] + g02 * m[2, 0]) + 1.0
+                j01 = 0.0 + g00 * m[0, 1] + g01 * m[1, 1] + g02 * m[2, 1]
+                j02 = 0.0 + g00 * m[0, 2] + g01 * m[1, 2] + g02 * m[2, 2]
+                j10 = 0.0 + g10 * m[0, 0] + g11 * m[1, 0] + g12 * m[2, 0]
+                j11 = (0.0 + g10 * m[0, 1] + g11 * m[1, 1] + g12 * m[2, 1]) + 1.0
+                j12 = 0.0 + g10 * m[0, 2] + g11 * m[1, 2] + g12 * m[2, 2]
+                j20 = 0.0 + g20 * m[0, 0] + g21 * m[1, 0] + g22 * m[2, 0]
+                j21 = 0.0 + g20 * m[0, 1] + g21 * m[1, 1] + g22 * m[2, 1]
+                j22 = (0.0 + g20 * m[0, 2] + g21 * m[1, 2] + g22 * m[2, 2]) + 1.0
+                out[k, j, i] = (
+                    j00 * (j11 * j22 - j12 * j21)
+                    - j01 * (j10 * j22 - j12 * j20)
+                    + j02 * (j10 * j21 - j11 * j20)
+                )
 
 
 def folded_fraction(
