@@ -60,7 +60,7 @@ from scipy import ndimage
 from ._errors import InputError, readable
 from ._images import Geometry, read_header
 from ._output import atomic_path, write_json
-from .transforms import TransformPieces, file_stem, flatten
+from .transforms import PointMap, TransformPieces, file_stem, flatten
 
 __all__ = [
     "LABEL_INTERPOLATIONS",
@@ -264,7 +264,7 @@ def resample_image_and_memberships(
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
-    displacement: np.ndarray | None = None,
+    displacement: np.ndarray | PointMap | None = None,
 ) -> tuple[np.ndarray, SparseMemberships]:
     """An image and its label map (on the same grid) resampled linearly through one
     sampling of `transform`.
@@ -283,10 +283,12 @@ def resample_image_and_memberships(
         map's border), for a transform costly to build (a composite copies its fields); or
         its pieces (:class:`~itk_nrreval.transforms.TransformPieces`), which ITK then maps
         point by point without a composite.
-    displacement : ndarray of shape ``(*grid.shape, dim)``, optional
+    displacement : ndarray of shape ``(*grid.shape, dim)`` or PointMap, optional
         ``transform(p) - p`` already sampled on `grid` (mm, ITK order last; what
         ``sitk.GetArrayViewFromImage`` of ``sitk.TransformToDisplacementField`` gives) when
-        the caller has it; default: sampled here, slab by slab.
+        the caller has it, or the transform as a
+        :class:`~itk_nrreval.transforms.PointMap` for the compiled kernels to sample slab
+        by slab (no array of the whole grid); default: sampled here by ITK, slab by slab.
 
     Returns
     -------
@@ -317,7 +319,7 @@ def resample_image_and_memberships(
     labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
     pixels = sitk.GetArrayViewFromImage(image)
     pixels = np.asarray(pixels, dtype=np.float64).reshape(lead + pixels.shape)
-    if displacement is not None and displacement.shape != (*g.shape, g.dimension):
+    if isinstance(displacement, np.ndarray) and displacement.shape != (*g.shape, g.dimension):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
     memberships, resampled = _linear_memberships(
         label_map, labels3, vmin, lut, values, transform, g, image=pixels, sampled=displacement
@@ -389,13 +391,14 @@ def _linear_memberships(
     transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     g: Geometry,
     image: np.ndarray | None = None,
-    sampled: np.ndarray | None = None,
+    sampled: np.ndarray | PointMap | None = None,
 ) -> tuple[SparseMemberships, np.ndarray | None]:
     """The linear memberships, slab by slab; with `image` (on the label map's grid, numpy
     order, float64), also the image linearly resampled at the same points (flat float64,
     NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
-    transform's displacement on the whole grid, when the caller has it (then `transform`
-    may be a function that builds it, called only for ITK's decisions near the border)."""
+    transform's displacement on the whole grid, or its PointMap, when the caller has it
+    (then `transform` may be a function that builds it, called only for ITK's decisions
+    near the border)."""
     n_labels = len(values)
     border = _BorderDecisions(transform, g, Geometry.from_image(label_map))
     pieces = []  # per slab: (first flat voxel, label starts, index, weight)
@@ -419,7 +422,7 @@ def covered_voxels(
     transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     grid: Geometry,
     *,
-    displacement: np.ndarray | None = None,
+    displacement: np.ndarray | PointMap | None = None,
 ) -> np.ndarray:
     """Which voxels of `grid` `transform` maps into the field of view of an image on
     `image_grid`, as ITK decides it.
@@ -440,9 +443,11 @@ def covered_voxels(
         or its pieces (ITK's point-by-point decisions then need no composite).
     grid : Geometry
         The grid whose voxels are decided.
-    displacement : ndarray of shape ``(*grid.shape, dim)``, optional
+    displacement : ndarray of shape ``(*grid.shape, dim)`` or PointMap, optional
         ``transform(p) - p`` already sampled on `grid` (mm, ITK order last) when the
-        caller has it; default: sampled here, slab by slab.
+        caller has it, or the transform as a :class:`~itk_nrreval.transforms.PointMap`
+        for the compiled kernels to sample slab by slab; default: sampled here by ITK, slab
+        by slab.
 
     Returns
     -------
@@ -452,23 +457,24 @@ def covered_voxels(
     if displacement is None and not isinstance(transform, sitk.Transform):
         raise ValueError("transform: a function or pieces only with displacement=")
     covered = np.empty(int(np.prod(grid.shape)), np.bool_)
-    if displacement is not None and displacement.shape != (*grid.shape, grid.dimension):
+    whole = isinstance(displacement, np.ndarray)  # the caller's sampling of the whole grid
+    if whole and displacement.shape != (*grid.shape, grid.dimension):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
     border = _BorderDecisions(transform, grid, image_grid)
     plane = int(np.prod(grid.shape[1:]))
-    if displacement is not None:  # one pass over the caller's sampling, no index copy
+    if whole:  # one pass over the caller's sampling, no index copy
         maps = _index_maps(grid, image_grid)
         points = displacement.reshape(-1, grid.dimension)
         size = np.asarray(grid.size, np.int64)
         if not _covered_from(points, size, *maps, _BORDER_EPS, covered):
             return covered
-    # some points lie on the border (or no sampling was given): slab by slab, ITK decides
-    # the points on the border
+    # some points lie on the border (or no whole sampling was given): slab by slab, ITK
+    # decides the points on the border
     for z0, cidx, near in _slab_indices(transform, grid, image_grid, displacement):
         start = z0 * plane
         if near or border.whole is not None:
             covered[start : start + cidx.shape[0]] = border.slab(start, cidx, near)
-        elif displacement is None:
+        elif not whole:
             _inside_flags(cidx, *_zyx(image_grid.shape), covered[start : start + cidx.shape[0]])
     return covered
 
@@ -478,12 +484,16 @@ def _zyx(shape: tuple[int, ...]) -> tuple[int, int, int]:
     return (1, *shape) if len(shape) == 2 else tuple(shape)
 
 
-def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndarray | None):
+def _slab_indices(
+    transform, g: Geometry, image_grid: Geometry, sampled: np.ndarray | PointMap | None
+):
     """Per slab of `g`'s planes: (first plane, continuous indices in `image_grid` of the
-    slab's voxels ``(m, dim)``, ITK order, the number within 1e-6 voxel of its border).
+    slab's voxels ``(m, dim)``, ITK order, the number within 1e-6 voxel of its border). The
+    indices are valid until the next slab (one buffer serves them all).
 
-    The points are ``transform(p)`` (from `sampled`, ``transform(p) - p`` on `g`, when
-    given; else sampled here, slab by slab).
+    The points are ``transform(p)``: from `sampled`, ``transform(p) - p`` on `g`, or a
+    :class:`~itk_nrreval.transforms.PointMap` the compiled kernels evaluate slab by slab;
+    without it, sampled here by ITK, slab by slab.
     """
     dim = g.dimension
     g_origin, g_matrix, l_origin, l_inverse, l_size = _index_maps(g, image_grid)
@@ -491,20 +501,30 @@ def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndar
     if plane >= 2**31:
         raise InputError(f"grid: {plane} voxels per plane, more than this kernel indexes")
     step = max(1, _SLAB_VOXELS // plane)
+    rows = min(step, g.shape[0]) * plane
+    cidx_buffer = np.empty((rows, dim))
+    points_buffer = np.empty((rows, 3)) if isinstance(sampled, PointMap) else None
     for z0 in range(0, g.shape[0], step):
         nz = min(step, g.shape[0] - z0)
         size = (*g.size[:-1], nz)
         origin = g_origin + g_matrix[:, -1] * z0
+        cidx = cidx_buffer[: nz * plane]
+        if isinstance(sampled, PointMap):
+            slab = Geometry(size, g.spacing, tuple(origin.tolist()), g.direction)
+            points = sampled.points(slab, z0, out=points_buffer)
+            near_border = _point_indices(points, l_origin, l_inverse, l_size, _BORDER_EPS, cidx)
+            yield z0, cidx, near_border
+            continue
         if sampled is None:
             field = sitk.TransformToDisplacementField(
                 transform, sitk.sitkVectorFloat64, size, origin.tolist(), g.spacing, g.direction
             )
-            cidx = sitk.GetArrayFromImage(field).reshape(-1, dim)  # T(p) - p, a writable copy
-            del field
+            disp = sitk.GetArrayViewFromImage(field).reshape(-1, dim)  # T(p) - p
         else:
-            cidx = sampled[z0 : z0 + nz].reshape(-1, dim).copy()
+            field = None
+            disp = sampled[z0 : z0 + nz].reshape(-1, dim)
         near_border = _continuous_indices(
-            cidx,
+            disp,
             np.asarray(size, np.int64),
             z0,
             g_origin,
@@ -513,7 +533,9 @@ def _slab_indices(transform, g: Geometry, image_grid: Geometry, sampled: np.ndar
             l_inverse,
             l_size,
             _BORDER_EPS,
+            cidx,
         )
+        del disp, field
         yield z0, cidx, near_border
 
 
@@ -650,9 +672,10 @@ def _mark_present(labels, vmin, seen):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def _continuous_indices(
-    points, size, z0, g_origin, g_matrix, l_origin, l_inverse, l_size, eps
+    points, size, z0, g_origin, g_matrix, l_origin, l_inverse, l_size, eps, out
 ):  # pragma: no cover - compiled
-    """In place: ``T(p) - p`` (mm, (m, dim)) of the slab's voxels -> label-map continuous indices.
+    """``T(p) - p`` (mm, `points` (m, dim)) of the slab's voxels -> their continuous indices
+    in the label map, into `out` (m, dim) (which may be `points` itself).
 
     `size` is the slab's ITK size, `z0` its first plane in the grid (the last ITK axis).
     Returns the number of points within `eps` voxels of the buffer border on some axis.
@@ -679,10 +702,32 @@ def _continuous_indices(
                     c = 0.0
                     for j in range(d):
                         c += l_inverse[i, j] * q[j]
-                    points[f, i] = c
+                    out[f, i] = c
                     if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
                         near += 1
                 f += 1
+    return near
+
+
+@numba.njit(cache=True)
+def _point_indices(points, l_origin, l_inverse, l_size, eps, out):  # pragma: no cover
+    """Physical points (`points` (m, 3), mm; a 2D point's third coordinate 0) -> their
+    continuous indices in the label map, ITK's ``(D diag(spacing))^-1 (q - origin)``, into
+    `out` (m, dim). Returns the number within `eps` voxels of the buffer border on some
+    axis (the test of :func:`_continuous_indices`)."""
+    d = out.shape[1]
+    q = np.empty(d)
+    near = 0
+    for f in range(out.shape[0]):
+        for i in range(d):
+            q[i] = points[f, i] - l_origin[i]
+        for i in range(d):
+            c = 0.0
+            for j in range(d):
+                c += l_inverse[i, j] * q[j]
+            out[f, i] = c
+            if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
+                near += 1
     return near
 
 

@@ -99,9 +99,9 @@ from .plausibility import (
 )
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
 from .transforms import (
+    PointMap,
     TransformPieces,
     chain_transform,
-    displacement_after,
     displacement_array,
     displacement_field,
     field_transform,
@@ -306,13 +306,16 @@ def _measures_task(
     if entry is not None:
         return key, True, dict(entry.meta)
     pieces = transform_pieces(item)
-    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True)
+    # with F the identity, T's displacement on the whole common grid also serves the
+    # plausibility when that is T's own grid
+    whole = frame[0] == "identity"
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True, whole=whole)
     covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
     arrays = {"covered": np.packbits(covered)}
     meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
-    shared = sampled if frame[0] == "identity" else None  # T's own displacement on g
+    shared = sampled if isinstance(sampled, np.ndarray) and whole else None  # T's on g
     del covered, inside, full
     if shared is None:  # freed before the plausibility samples T on its own grid
         sampled = None
@@ -424,25 +427,24 @@ def _resample_task(
 
 def _sampling(
     pieces: TransformPieces, frame: tuple, g: Geometry, reg_grid: Geometry,
-    cache: DiskCache, *, one_sampling: bool,
+    cache: DiskCache, *, one_sampling: bool, whole: bool = False,
 ) -> tuple:  # fmt: skip
     """Image i's transform from the common frame, ``T_i^R o F`` (:func:`resampling_transform`),
     T given as its pieces (:func:`~itk_nrreval.transforms.transform_pieces`), and, where one
-    sampling of it on the common grid `g` serves more than one use, that displacement:
-    ``(transform, displacement or None)``; otherwise the memberships sample the transform
-    slab by slab.
+    sampling of it on the common grid `g` serves more than one use (`one_sampling`), that
+    sampling: ``(transform, sampling or None)``; otherwise the memberships sample the
+    transform slab by slab.
 
-    One sampling is taken by the compiled kernels when T is linear maps and displacement
-    fields (:func:`~itk_nrreval.transforms.displacement_after`, to about 1e-13 mm of ITK's).
-    The transform returned with it is then a function that gives ``T_i^R o F`` as its
-    pieces, called only if ITK's own decisions are needed at a buffer's border: ITK maps
-    those points piece by piece, and builds the composite, which copies every field (0.1 to
-    0.25 s and 0.2 GB per 1 mm field), only to resample the whole grid.
-
-    - F a field the pipeline estimated (frame ``("field", key)``): ``T(F(p)) - p`` composed
-      from F's cache entry;
-    - F the identity and T on the common grid: T's displacement there, which also serves
-      the plausibility.
+    When T is linear maps and displacement fields, the compiled kernels sample it (to about
+    1e-13 mm of ITK's): a slab of `g` at a time, as a
+    :class:`~itk_nrreval.transforms.PointMap` of T after F's displacement (F a field the
+    pipeline estimated, frame ``("field", key)``, read from its cache entry) or after none
+    (F the identity); with `whole`, F the identity and T on the common grid, as T's
+    displacement on the whole grid, which also serves the plausibility. The transform
+    returned with it is then a function that gives ``T_i^R o F`` as its pieces, called only
+    if ITK's own decisions are needed at a buffer's border: ITK maps those points piece by
+    piece, and builds the composite, which copies every field (0.1 to 0.25 s and 0.2 GB
+    per 1 mm field), only to resample the whole grid.
     """
 
     def from_common() -> TransformPieces:
@@ -450,10 +452,11 @@ def _sampling(
 
     if one_sampling and has_only_fields(pieces):
         if frame[0] == "field":
-            f_disp = cache.open("frame", frame[1]).array("disp")
-            return from_common, displacement_after(pieces, f_disp, g)
-        if frame[0] == "identity" and reg_grid == g:
+            return from_common, PointMap(pieces, cache.open("frame", frame[1]).array("disp"))
+        if frame[0] == "identity" and whole and reg_grid == g:
             return from_common, displacement_array(pieces, g)
+        if frame[0] == "identity":
+            return from_common, PointMap(pieces)
     if one_sampling and frame[0] == "identity" and reg_grid == g:
         t = flatten(pieces)
         return t, sitk.GetArrayFromImage(displacement_field(t, g))  # F: the identity

@@ -83,6 +83,7 @@ __all__ = [
     "composed_displacement",
     "displacement_after",
     "displacement_array",
+    "PointMap",
     "has_only_fields",
     "jacobian_determinant",
     "folded_fraction",
@@ -906,19 +907,58 @@ def _minus_voxel_points(y: np.ndarray, grid: Geometry) -> np.ndarray:
     return (y if dim == 3 else y[:, :dim]).reshape(*grid.shape, dim)
 
 
+@dataclass(frozen=True, eq=False)
+class PointMap:
+    """The map ``p -> T(p + d(p))`` at a grid's voxels p, for the compiled kernels to
+    evaluate a slab of the grid at a time (:meth:`points`): no array of the whole grid's
+    points is built, where a caller needs each slab's points once.
+
+    Attributes
+    ----------
+    pieces : TransformPieces
+        T's pieces (:func:`transform_pieces`), linear maps and displacement fields only
+        (:func:`has_only_fields`): grid points -> image points (mm, LPS). Sampled as
+        :func:`displacement_after` samples them (to about 1e-13 mm of ITK's).
+    displacement : ndarray of shape ``(*grid.shape, dim)`` or None
+        d in mm on the whole grid, ITK (x, y[, z]) order last (a frame F's ``F(p) - p``), or
+        None for d = 0.
+    """
+
+    pieces: TransformPieces
+    displacement: np.ndarray | None = None
+
+    def __post_init__(self):
+        if not has_only_fields(self.pieces):
+            raise ValueError("transform: a piece is neither linear nor a displacement field")
+
+    def points(self, slab: Geometry, first: int, *, out: np.ndarray | None = None) -> np.ndarray:
+        """``T(p + d(p))`` at the voxels of `slab`, the whole grid's planes (numpy axis 0)
+        from `first` on: (m, 3) float64, mm, C order, a 2D point's third coordinate 0.
+        `out`, if given, is a float64 C-ordered array of at least m rows of 3 that the
+        points are written into (its first m rows are returned)."""
+        d = self.displacement
+        if d is not None:
+            d = d[first : first + slab.shape[0]]
+        return _points_after(self.pieces, slab, d, out=out)
+
+
 def _points_after(
     transform: sitk.Transform | Sequence[sitk.Transform],
     grid: Geometry,
     displacement: np.ndarray | None = None,
+    *,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """``T(p + d(p))`` (d = 0 when None) at `grid`'s voxels p: (n_voxels, 3) float64, mm,
-    C order, a 2D point's third coordinate 0 (:func:`displacement_after`)."""
+    C order, a 2D point's third coordinate 0 (:func:`displacement_after`); into the first
+    rows of `out` when given."""
     dim = grid.dimension
     pieces = leaves(transform)  # once: taking a composite apart copies its fields
     if not all(_is_linear_or_field(t) for t in pieces):
         raise ValueError("transform: a piece is neither linear nor a displacement field")
     origin, matrix, size = _voxel_point_map(grid)
-    y = np.empty((math.prod(grid.size), 3))
+    m = math.prod(grid.size)
+    y = np.empty((m, 3)) if out is None else out[:m]
     if displacement is None:
         _voxel_points(origin, matrix, size, y)  # p
     else:

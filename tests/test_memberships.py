@@ -683,6 +683,46 @@ def test_image_and_memberships_from_the_callers_sampling(dim, monkeypatch):
         )
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("frame", ["identity", "field"])
+def test_image_memberships_and_coverage_from_a_point_map(dim, frame, monkeypatch):
+    """The transform as a PointMap (T's pieces after F's displacement d, sampled by the
+    compiled kernels a slab at a time; several slabs here): the image, memberships and
+    coverage of ITK's resampling through the composite ``T o (p + d(p))``, F given to ITK as
+    a displacement-field transform. Oblique grids, an image not co-located with the grid."""
+    from itk_nrreval.transforms import PointMap, transform_pieces
+
+    monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 200)
+    rng = np.random.default_rng(47 + dim)
+    label_map = oblique_label_map(dim, rng)
+    image = intensity_on(label_map, rng, np.float32)
+    grid = common_grid(dim)
+    t = make_transform("composite", grid, rng)
+    pieces = transform_pieces(t)
+    if frame == "identity":
+        point_map, composite = PointMap(pieces), t
+    else:
+        f = smooth_field(grid, rng, amplitude=1.5)
+        d = sitk.GetArrayFromImage(f.GetDisplacementField())
+        point_map = PointMap(pieces, d)
+        composite = sitk.CompositeTransform([*pieces, f])
+    ref_values, ref_memberships = _memberships.resample_image_and_memberships(
+        image, label_map, composite, grid, values=LARGE_VALUES
+    )
+    np.testing.assert_allclose(
+        ref_values, itk_linear(image, composite, grid), rtol=1e-12, atol=1e-9, equal_nan=True
+    )
+    values, sm = _memberships.resample_image_and_memberships(
+        image, label_map, lambda: composite, grid, values=LARGE_VALUES, displacement=point_map
+    )
+    assert_same_resampling(values, sm, ref_values, ref_memberships)
+    covered = _memberships.covered_voxels(
+        Geometry.from_image(image), lambda: composite, grid, displacement=point_map
+    )
+    np.testing.assert_array_equal(covered, itk_covered(image, composite, grid, sitk.sitkLinear))
+    assert covered.any() and not covered.all()
+
+
 # ------------------------------------------------------------------ coverage, not resampling
 
 
@@ -733,12 +773,15 @@ def test_covered_voxels_are_where_itk_resampling_gives_a_value(
     "decided_by, linear",
     [("itk", True), ("itk", False), ("itk_points", False), ("here", True), ("here", False)],
 )
-def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, monkeypatch):
+@pytest.mark.parametrize("given", ["array", "point_map"])
+def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, given, monkeypatch):
     """Points exactly on both half-voxel borders (ITK's half-open buffer): decided by ITK
-    (from a sampled displacement, with the transform built only then; point by point for a
-    transform that is not linear, here a translation composed with a zero field, else by
-    resampling the whole grid) or by the kernel's own test in exact arithmetic, as ITK
-    decides them."""
+    (from a sampled displacement or a PointMap, with the transform built only then; point
+    by point for a transform that is not linear, here a translation composed with a zero
+    field, else by resampling the whole grid) or by the kernel's own test in exact
+    arithmetic, as ITK decides them."""
+    from itk_nrreval.transforms import PointMap, transform_pieces
+
     if decided_by == "here":
         monkeypatch.setattr(_memberships, "_BORDER_EPS", -1.0)
     if decided_by == "itk_points":  # (a linear transform: ITK maps rows by increments)
@@ -761,6 +804,8 @@ def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, monk
             t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
         )
     )
+    if given == "point_map":
+        sampled = PointMap(transform_pieces(t))
     built.clear()
     covered = _memberships.covered_voxels(
         Geometry.from_image(label_map), transform, grid, displacement=sampled
