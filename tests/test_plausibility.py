@@ -457,6 +457,32 @@ def test_affine_fit_from_the_measures_sampling_equals_affine_fit(masked):
     assert fit.linear_det == pytest.approx(np.linalg.det(np.eye(3) + coef[:3].T), rel=1e-12)
 
 
+def test_affine_fit_of_a_bspline_is_numpys_least_squares():
+    # A B-spline is sampled by ITK (linear maps and fields by the compiled kernels, above),
+    # slab by slab: numpy's least squares on ITK's sampling of the whole grid.
+    from itk_nrreval.plausibility import affine_fit
+
+    g = OBLIQUE_GRID
+    image = sitk.Image(list(g.size), sitk.sitkFloat32)
+    g.apply_to(image)
+    t = sitk.BSplineTransformInitializer(image, [3] * 3)
+    t.SetParameters(np.random.default_rng(9).normal(scale=2.0, size=len(t.GetParameters())))
+    fit = affine_fit(t, g, max_slab_voxels=36 * 40 * 7)
+    p = _points(g).reshape(-1, 3)
+    u = sitk.GetArrayFromImage(
+        sitk.TransformToDisplacementField(
+            t, sitk.sitkVectorFloat64, g.size, g.origin, g.spacing, g.direction
+        )
+    ).reshape(-1, 3)
+    design = np.hstack([p, np.ones((len(p), 1))])
+    coef, *_ = np.linalg.lstsq(design, u, rcond=None)
+    residual = u - design @ coef
+    assert fit.nonlinear_rms_mm > 0.1
+    assert fit.nonlinear_rms_mm == pytest.approx(np.sqrt((residual**2).sum(1).mean()), rel=1e-9)
+    assert fit.displacement_rms_mm == pytest.approx(np.sqrt((u**2).sum(1).mean()), rel=1e-12)
+    assert fit.linear_det == pytest.approx(np.linalg.det(np.eye(3) + coef[:3].T), rel=1e-12)
+
+
 def voxel_points(g: Geometry) -> np.ndarray:
     """The physical points of `g`'s voxels (m, dim), C order (x fastest): ITK's own
     TransformIndexToPhysicalPoint, one voxel at a time."""
