@@ -698,13 +698,7 @@ def _continuous_indices(
                     for j in range(d):
                         p += g_matrix[i, j] * idx[j]
                     q[i] = (points[f, i] + p) - l_origin[i]
-                for i in range(d):
-                    c = 0.0
-                    for j in range(d):
-                        c += l_inverse[i, j] * q[j]
-                    out[f, i] = c
-                    if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
-                        near += 1
+                near += _index_into(q, l_inverse, l_size, eps, out, f)
                 f += 1
     return near
 
@@ -721,13 +715,22 @@ def _point_indices(points, l_origin, l_inverse, l_size, eps, out):  # pragma: no
     for f in range(out.shape[0]):
         for i in range(d):
             q[i] = points[f, i] - l_origin[i]
-        for i in range(d):
-            c = 0.0
-            for j in range(d):
-                c += l_inverse[i, j] * q[j]
-            out[f, i] = c
-            if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
-                near += 1
+        near += _index_into(q, l_inverse, l_size, eps, out, f)
+    return near
+
+
+@numba.njit(cache=True, inline="always")
+def _index_into(q, l_inverse, l_size, eps, out, f):  # pragma: no cover - compiled
+    """Row f of `out` = ``l_inverse @ q`` (q: a point less the label map's origin, mm): its
+    continuous index. Returns on how many axes it lies within `eps` of the buffer border."""
+    near = 0
+    for i in range(q.shape[0]):
+        c = 0.0
+        for j in range(q.shape[0]):
+            c += l_inverse[i, j] * q[j]
+        out[f, i] = c
+        if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
+            near += 1
     return near
 
 
