@@ -10,7 +10,9 @@ parts timed by wrapping the functions it calls:
 - ``read``: the image and label map read from disk;
 - ``resample``: the image resampled onto the common grid (since issue 30, when it shares the
   label map's grid, from the memberships' own sampling of the transform: their kernel);
-- ``memberships``: the label map's sparse memberships on the common grid;
+- ``memberships``: the label map's sparse memberships on the common grid (since issue 30's
+  ``transforms.PointMap``, with the slab-by-slab sampling of the transform they and the
+  image's values share, which ``other`` held before);
 - ``plausibility``: folding, SDlogJ, the Jacobian histogram and inverse consistency, of
   which ``invert`` (the numerical inverse; since issue 30 the coarse inverse alone) and
   ``round trip`` (``T^-1(T(p))`` sampled; since issue 30 with the inverse refined at those
