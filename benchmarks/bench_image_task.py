@@ -2,10 +2,11 @@
 
 One 3D phantom subject at 1 mm (200 x 236 x 190 voxels, 9.0 M; 26 labels) and two
 registrations of it: ``field`` (its true template-to-subject transform, an affine map and a
-1 mm displacement field) and ``affine`` (the affine part alone). For each, the task the
-pipeline runs per image and registration (:func:`itk_nrreval._pipeline._resample_task`)
-runs on a cold cache, in a fresh process on one thread (SimpleITK and numba), with its
-parts timed by wrapping the functions it calls:
+1 mm displacement field) and ``affine`` (the affine part alone); and ``field, no labels``,
+the field registration of the image alone, as a cohort without label maps runs it. For
+each, the task the pipeline runs per image and registration
+(:func:`itk_nrreval._pipeline._resample_task`) runs on a cold cache, in a fresh process on
+one thread (SimpleITK and numba), with its parts timed by wrapping the functions it calls:
 
 - ``read``: the image and label map read from disk;
 - ``resample``: the image resampled onto the common grid (since issue 30, when it shares the
@@ -62,6 +63,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+UNLABELLED = ", no labels"
 DATA = ROOT / "benchmarks" / "out" / "image_task_1mm"
 SPACING_MM = 1.0
 PARTS = (
@@ -165,8 +167,10 @@ def _measure(info: dict, name: str) -> dict:
         plausibility._mean_round_trip = timed("round trip", plausibility._mean_round_trip)
 
     grid = Geometry.from_image(read_image(info["reference"], what="reference image"))
-    labels = Path(info["labels"])
-    own = [int(v) for v in label_values([labels]) if v != 0]
+    unlabelled = name.endswith(UNLABELLED)  # the image alone, without its label map
+    name = name.removesuffix(UNLABELLED)
+    labels = None if unlabelled else Path(info["labels"])
+    own = None if unlabelled else [int(v) for v in label_values([labels]) if v != 0]
     item = Path(info["transforms"][name])
     # since issue 30 the transform's measures are a task of their own, before resampling
     two_tasks = hasattr(_pipeline, "_measures_task")
@@ -235,7 +239,7 @@ def _measure(info: dict, name: str) -> dict:
     )
     floor = time.process_time() - t0
     return {
-        "registration": name,
+        "registration": name + (UNLABELLED if unlabelled else ""),
         "voxels": int(np.prod(grid.shape)),
         "total_s": total,
         "parts_s": spent,
@@ -345,7 +349,7 @@ def run(name: str) -> dict:
 
 
 def main() -> dict:
-    runs = [run(name) for name in ("field", "affine")]
+    runs = [run(name) for name in ("field", "affine", "field" + UNLABELLED)]
     estimate = run("estimate")
     print("| part (CPU s, one thread) | " + " | ".join(r["registration"] for r in runs) + " |")
     print("|---|" + "---|" * len(runs))

@@ -254,33 +254,38 @@ def resample_label_memberships(
             return _nearest_memberships(code_image, transform, g, values)
         return _gaussian_memberships(code_image, transform, g, values, float(sigma_mm))
 
-    return _linear_memberships(label_map, labels3, vmin, lut, values, transform, g)[0]
+    image_grid = Geometry.from_image(label_map)
+    return _linear_memberships(image_grid, labels3, vmin, lut, values, transform, g)[0]
 
 
 def resample_image_and_memberships(
     image: sitk.Image,
-    label_map: sitk.Image,
+    label_map: sitk.Image | None,
     transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     grid: Geometry | sitk.Image,
     *,
     values: Sequence[int] | None = None,
     displacement: np.ndarray | PointMap | None = None,
-) -> tuple[np.ndarray, SparseMemberships]:
+) -> tuple[np.ndarray, SparseMemberships | None]:
     """An image and its label map (on the same grid) resampled linearly through one
-    sampling of `transform`.
+    sampling of `transform`; or the image alone (`label_map` None), by the same kernels.
 
     The transform is sampled once per grid point for both, where resampling the image with
-    ``sitk.Resample`` would sample it again (a third of a 1 mm image's resampling cost).
+    ``sitk.Resample`` would sample it again (a third of a 1 mm image's resampling cost);
+    with `displacement` a :class:`~itk_nrreval.transforms.PointMap`, an image alone costs
+    about half of ``sitk.Resample`` through the composite (which, for a transform held as
+    its pieces, must be built first: a copy of every field).
 
     Parameters
     ----------
     image : sitk.Image
         Scalar, on `label_map`'s grid (:func:`shares_grid`).
     label_map, transform, grid, values
-        As :func:`resample_label_memberships` (``method="linear"``). With `displacement`,
+        As :func:`resample_label_memberships` (``method="linear"``); `label_map` None for
+        the image alone (`values` then unused). With `displacement`,
         `transform` may be a function of no arguments that returns it: called only where
-        ITK's own inside-buffer decisions are needed (a point within 1e-6 voxel of the label
-        map's border), for a transform costly to build (a composite copies its fields); or
+        ITK's own inside-buffer decisions are needed (a point within 1e-6 voxel of the
+        image's border), for a transform costly to build (a composite copies its fields); or
         its pieces (:class:`~itk_nrreval.transforms.TransformPieces`), which ITK then maps
         point by point without a composite.
     displacement : ndarray of shape ``(*grid.shape, dim)`` or PointMap, optional
@@ -297,32 +302,40 @@ def resample_image_and_memberships(
         ``sitk.sitkLinear`` (to about 1e-15 of its range: the same neighbours and weights,
         in another order of operations), NaN where ITK finds the point outside the image's
         buffer.
-    memberships : SparseMemberships
-        What :func:`resample_label_memberships` returns, to the bit.
+    memberships : SparseMemberships or None
+        What :func:`resample_label_memberships` returns, to the bit; None without a label
+        map.
 
     Raises
     ------
     ValueError
-        `image` is not on `label_map`'s grid, or not scalar; `transform` a function without
-        `displacement`.
+        `image` is not on `label_map`'s grid, or not scalar, or (without a label map) not of
+        the grid's dimension; `transform` a function without `displacement`.
     InputError
         As :func:`resample_label_memberships`.
     """
-    if not shares_grid(image, label_map) or image.GetNumberOfComponentsPerPixel() != 1:
+    if image.GetNumberOfComponentsPerPixel() != 1 or (
+        label_map is not None and not shares_grid(image, label_map)
+    ):
         raise ValueError("image: expected a scalar image on the label map's grid")
     built = isinstance(transform, sitk.Transform)
     if not built and displacement is None:
         raise ValueError("transform: a function or pieces only with displacement=")
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
-    labels = _checked_labels(label_map, transform if built else None, g, "linear", None)
     lead = (1,) * (3 - g.dimension)  # 2D as one plane of 3D
-    labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
+    labels3, vmin, lut = None, 0, None
+    if label_map is not None:
+        labels = _checked_labels(label_map, transform if built else None, g, "linear", None)
+        labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
+    elif image.GetDimension() != g.dimension:
+        raise ValueError(f"image: {image.GetDimension()}D on a {g.dimension}D grid")
     pixels = sitk.GetArrayViewFromImage(image)
     pixels = np.asarray(pixels, dtype=np.float64).reshape(lead + pixels.shape)
     if isinstance(displacement, np.ndarray) and displacement.shape != (*g.shape, g.dimension):
         raise ValueError(f"displacement: shape {displacement.shape}, not the grid's")
+    image_grid = Geometry.from_image(image)
     memberships, resampled = _linear_memberships(
-        label_map, labels3, vmin, lut, values, transform, g, image=pixels, sampled=displacement
+        image_grid, labels3, vmin, lut, values, transform, g, image=pixels, sampled=displacement
     )
     return resampled, memberships
 
@@ -383,24 +396,24 @@ def _checked_labels(
 
 
 def _linear_memberships(
-    label_map: sitk.Image,
-    labels3: np.ndarray,
+    image_grid: Geometry,
+    labels3: np.ndarray | None,
     vmin: int,
-    lut: np.ndarray,
-    values: np.ndarray,
+    lut: np.ndarray | None,
+    values: np.ndarray | None,
     transform: sitk.Transform | Callable[[], sitk.Transform] | TransformPieces,
     g: Geometry,
     image: np.ndarray | None = None,
     sampled: np.ndarray | PointMap | None = None,
-) -> tuple[SparseMemberships, np.ndarray | None]:
-    """The linear memberships, slab by slab; with `image` (on the label map's grid, numpy
-    order, float64), also the image linearly resampled at the same points (flat float64,
-    NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
+) -> tuple[SparseMemberships | None, np.ndarray | None]:
+    """The linear memberships of a label map on `image_grid` (`labels3` and its table,
+    :func:`_label_table`; None: no label map), slab by slab; with `image` (on that grid,
+    numpy order, float64), also the image linearly resampled at the same points (flat
+    float64, NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
     transform's displacement on the whole grid, or its PointMap, when the caller has it
     (then `transform` may be a function that builds it, called only for ITK's decisions
     near the border)."""
-    n_labels = len(values)
-    border = _BorderDecisions(transform, g, Geometry.from_image(label_map))
+    border = _BorderDecisions(transform, g, image_grid)
     pieces = []  # per slab: (first flat voxel, label starts, index, weight)
     resampled = None if image is None else np.empty(int(np.prod(g.shape)))
     plane = int(np.prod(g.shape[1:]))
@@ -409,12 +422,15 @@ def _linear_memberships(
         mask = np.empty(0, np.uint8)
         if near_border or border.whole is not None:  # ITK's decisions, here or everywhere
             mask = border.slab(z0 * plane, cidx, near_border).view(np.uint8)
-        starts, index, weight = _slab_memberships(cidx, labels3, vmin, lut, mask, n_labels)
+        if labels3 is not None:
+            pieces.append(
+                (z0 * plane, *_slab_memberships(cidx, labels3, vmin, lut, mask, len(values)))
+            )
         if image is not None:
             _linear_values(cidx, image, mask, resampled[z0 * plane : (z0 + nz) * plane])
         del cidx
-        pieces.append((z0 * plane, starts, index, weight))
-    return _assemble(values, g.shape, pieces), resampled
+    memberships = None if labels3 is None else _assemble(values, g.shape, pieces)
+    return memberships, resampled
 
 
 def covered_voxels(

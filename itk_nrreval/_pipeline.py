@@ -473,7 +473,7 @@ def _resampled_image_and_memberships(
     values: list[int] | None,
     labels: tuple[str, float | None],
     one_sampling: bool,
-    displacement: np.ndarray | None = None,
+    displacement: np.ndarray | PointMap | None = None,
 ) -> tuple[np.ndarray, SparseMemberships | None]:
     """The image on `g` (flat float64, NaN outside its field of view) and the label map's
     memberships (None without one): through one sampling of `full` with `one_sampling`
@@ -498,14 +498,13 @@ def _resampled_image_and_memberships(
 def _shares_sampling(
     raw: sitk.Image, lab: sitk.Image | None, interpolation: str, label_method: str
 ) -> bool:
-    """Whether a scalar image and its label map can be resampled linearly through one
-    sampling of the transform (:func:`resample_image_and_memberships`): both linear, one
+    """Whether a scalar image, and its label map if it has one, can be resampled linearly
+    through one sampling of the transform by the compiled kernels
+    (:func:`resample_image_and_memberships`): the image linear, the labels linear and on its
     grid."""
-    if lab is None or interpolation != "linear" or label_method != "linear":
+    if interpolation != "linear" or raw.GetNumberOfComponentsPerPixel() != 1:
         return False
-    if raw.GetNumberOfComponentsPerPixel() != 1:
-        return False
-    return shares_grid(raw, lab)
+    return lab is None or (label_method == "linear" and shares_grid(raw, lab))
 
 
 def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:

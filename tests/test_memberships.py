@@ -606,6 +606,10 @@ def check_image_and_memberships(image, label_map, transform, grid) -> np.ndarray
     own = resample_label_memberships(label_map, transform, grid, values=LARGE_VALUES)
     for a, b in ((sm.ptr, own.ptr), (sm.index, own.index), (sm.weight, own.weight)):
         np.testing.assert_array_equal(a, b)
+    # the image alone (no label map): the same values, by the same kernels
+    alone, none = _memberships.resample_image_and_memberships(image, None, transform, grid)
+    assert none is None
+    np.testing.assert_array_equal(alone, values)
     return values
 
 
@@ -716,6 +720,11 @@ def test_image_memberships_and_coverage_from_a_point_map(dim, frame, monkeypatch
         image, label_map, lambda: composite, grid, values=LARGE_VALUES, displacement=point_map
     )
     assert_same_resampling(values, sm, ref_values, ref_memberships)
+    alone, none = _memberships.resample_image_and_memberships(
+        image, None, lambda: composite, grid, displacement=point_map
+    )
+    assert none is None
+    np.testing.assert_array_equal(alone, values)
     covered = _memberships.covered_voxels(
         Geometry.from_image(image), lambda: composite, grid, displacement=point_map
     )

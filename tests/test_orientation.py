@@ -263,12 +263,15 @@ def test_validate_does_not_depend_on_the_physical_frame(tmp_path):
     assert a.rows[0].specificity < a.rows[-1].specificity  # the perturbation does something
 
 
+@pytest.mark.parametrize("labels", [True, False])
 def test_images_of_a_mean_frame_registration_equal_itk_resampling_through_the_composite(
-    tmp_path,
+    tmp_path, labels
 ):
     """The composed displacement the pipeline samples for a registration reached through its
     mean frame F (no composite built) gives what ITK's own resampling through
-    ``CompositeTransform([T_i^R, F])`` gives: oblique, anisotropic 3D, float32 as cached."""
+    ``CompositeTransform([T_i^R, F])`` gives: oblique, anisotropic 3D, float32 as cached;
+    with label maps (one sampling for both) and without (the image alone, by the same
+    kernels)."""
     from itk_nrreval.transforms import chain_transform
 
     (tmp_path / "plain").mkdir()
@@ -276,6 +279,9 @@ def test_images_of_a_mean_frame_registration_equal_itk_resampling_through_the_co
     folder = tmp_path / "moved"
     moved_copy(tmp_path / "plain", folder, ROTATION_3D, SHIFT_3D)
     data = yaml.safe_load((folder / "manifest.yaml").read_text())
+    if not labels:
+        assert data.pop("labels")
+        (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         result = nr.evaluate(
