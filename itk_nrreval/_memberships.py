@@ -60,7 +60,7 @@ from scipy import ndimage
 from ._errors import InputError, readable
 from ._images import Geometry, read_header
 from ._output import atomic_path, write_json
-from .transforms import PointMap, TransformPieces, file_stem, flatten
+from .transforms import PointMap, TransformPieces, file_stem, flatten, is_linear
 
 __all__ = [
     "LABEL_INTERPOLATIONS",
@@ -975,12 +975,6 @@ class _BorderDecisions:
             self._transform = self._transform()
         return self._transform
 
-    def _is_linear(self) -> bool:
-        t = self._pointwise()
-        if isinstance(t, TransformPieces):
-            return all(piece.IsLinear() for piece in t)
-        return t.IsLinear()
-
     def _built(self) -> sitk.Transform:
         """The transform itself (pieces: their composite, built once)."""
         if isinstance(self._pointwise(), TransformPieces):
@@ -991,7 +985,7 @@ class _BorderDecisions:
         """Inside-buffer flags (bool) of the voxels from flat index `start` whose continuous
         indices in the image are `cidx` (m, dim); `near` of them (per axis) on the border."""
         m = cidx.shape[0]
-        if self.whole is None and (near > _POINTWISE_LIMIT or self._is_linear()):
+        if self.whole is None and (near > _POINTWISE_LIMIT or is_linear(self._pointwise())):
             ones = sitk.Image(list(self.image_grid.size), sitk.sitkUInt8)
             self.image_grid.apply_to(ones)
             self.whole = _itk_inside(ones, self._built(), self.grid).astype(bool)

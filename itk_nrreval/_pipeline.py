@@ -306,16 +306,15 @@ def _measures_task(
     if entry is not None:
         return key, True, dict(entry.meta)
     pieces = transform_pieces(item)
-    # with F the identity, T's displacement on the whole common grid also serves the
-    # plausibility when that is T's own grid
-    whole = frame[0] == "identity"
-    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True, whole=whole)
+    # with F the identity on T's own grid, T's displacement on the whole common grid (an
+    # array) also serves the plausibility
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True, whole=True)
     covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
     mask = ctx.mask_flat()
     inside = covered[mask] if mask is not None else covered
     arrays = {"covered": np.packbits(covered)}
     meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
-    shared = sampled if isinstance(sampled, np.ndarray) and whole else None  # T's on g
+    shared = sampled if isinstance(sampled, np.ndarray) else None  # T's own on g
     del covered, inside, full
     if shared is None:  # freed before the plausibility samples T on its own grid
         sampled = None

@@ -44,6 +44,7 @@ from .transforms import (
     field_transform,
     flatten,
     has_only_fields,
+    is_linear,
     leaves,
     transform_pieces,
 )
@@ -454,12 +455,12 @@ def resampling_transform(
     (:class:`~itk_nrreval.transforms.TransformPieces`), the same map as pieces: F's last,
     since it acts first, and no composite built.
     """
-    if isinstance(transform, TransformPieces):
-        linear = all(piece.IsLinear() for piece in transform)
-    else:
-        linear = transform.IsLinear()
     f = frame.Downcast()
-    if not linear and isinstance(f, sitk.TranslationTransform) and not any(f.GetOffset()):
+    if (
+        not is_linear(transform)
+        and isinstance(f, sitk.TranslationTransform)
+        and not any(f.GetOffset())
+    ):
         return transform
     if isinstance(transform, TransformPieces):
         return TransformPieces((*transform, *leaves(frame)))

@@ -85,6 +85,7 @@ __all__ = [
     "displacement_array",
     "PointMap",
     "has_only_fields",
+    "is_linear",
     "jacobian_determinant",
     "folded_fraction",
 ]
@@ -982,6 +983,14 @@ def has_only_fields(transform: sitk.Transform | Sequence[sitk.Transform]) -> boo
     """Whether every piece of `transform` (or every one of its pieces, :func:`leaves`) is
     linear or a displacement field."""
     return all(_is_linear_or_field(t) for t in leaves(transform))
+
+
+def is_linear(transform: sitk.Transform | TransformPieces) -> bool:
+    """Whether `transform` is linear; given as its pieces, whether every piece is (what
+    their composite's ``IsLinear`` says), without building the composite."""
+    if isinstance(transform, TransformPieces):
+        return all(piece.IsLinear() for piece in transform)
+    return transform.IsLinear()
 
 
 def _is_linear_or_field(t: sitk.Transform) -> bool:
