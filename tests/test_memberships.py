@@ -170,6 +170,25 @@ def make_transform(kind: str, grid: Geometry, rng) -> sitk.Transform:
     raise AssertionError(kind)
 
 
+def resampling_case(dim: int, seed: int, kind: str = "composite") -> tuple:
+    """A seeded oblique label map, a float32 image on its grid, the common grid and a
+    transform of `kind`: ``(label_map, image, grid, transform)``."""
+    rng = np.random.default_rng(seed)
+    label_map = oblique_label_map(dim, rng)
+    image = intensity_on(label_map, rng, np.float32)
+    grid = common_grid(dim)
+    return label_map, image, grid, make_transform(kind, grid, rng)
+
+
+def itk_sampling(transform, grid: Geometry) -> np.ndarray:
+    """``transform(p) - p`` on `grid` as ITK samples it (``TransformToDisplacementField``):
+    ``(*grid.shape, dim)``, mm, ITK order last."""
+    field = sitk.TransformToDisplacementField(
+        transform, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
+    )
+    return sitk.GetArrayFromImage(field)
+
+
 # --------------------------------------------------------------------------------- the tests
 
 
@@ -372,11 +391,7 @@ def test_itk_asked_point_by_point_or_for_the_whole_grid_agree(dim, monkeypatch):
     """Every point handed to ITK (an infinite tolerance): asked point by point, as its
     resampling maps a transform that is not linear, or by resampling the whole grid, the
     same memberships, image and coverage, and the same as ITK's resampling."""
-    rng = np.random.default_rng(37 + dim)
-    label_map = oblique_label_map(dim, rng)
-    image = intensity_on(label_map, rng, np.float32)
-    grid = common_grid(dim)
-    transform = make_transform("composite", grid, rng)
+    label_map, image, grid, transform = resampling_case(dim, 37 + dim)
     monkeypatch.setattr(_memberships, "_BORDER_EPS", np.inf)
     results = {}
     for way, limit in (("whole", 0), ("points", 10**9)):
@@ -414,17 +429,8 @@ def test_itk_asked_point_by_point_through_the_pieces(dim, monkeypatch):
     composite's own sampling."""
     from itk_nrreval.transforms import TransformPieces, transform_pieces
 
-    rng = np.random.default_rng(43 + dim)
-    label_map = oblique_label_map(dim, rng)
-    image = intensity_on(label_map, rng, np.float32)
-    grid = common_grid(dim)
-    transform = make_transform("composite", grid, rng)
-    sampled = sitk.GetArrayFromImage(
-        sitk.TransformToDisplacementField(
-            transform, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing,
-            grid.direction,
-        )
-    )  # fmt: skip
+    label_map, image, grid, transform = resampling_case(dim, 43 + dim)
+    sampled = itk_sampling(transform, grid)
     values_t, sm_t = _memberships.resample_image_and_memberships(
         image, label_map, transform, grid, values=LARGE_VALUES
     )
@@ -665,15 +671,8 @@ def test_image_and_memberships_from_the_callers_sampling(dim, monkeypatch):
     """With the transform already sampled on the grid (displacement=), the same image and
     memberships as from their own slab-by-slab sampling (several slabs here)."""
     monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 200)
-    rng = np.random.default_rng(31 + dim)
-    label_map = oblique_label_map(dim, rng)
-    image = intensity_on(label_map, rng, np.float32)
-    grid = common_grid(dim)
-    t = make_transform("composite", grid, rng)
-    field = sitk.TransformToDisplacementField(
-        t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
-    )
-    sampled = sitk.GetArrayViewFromImage(field)
+    label_map, image, grid, t = resampling_case(dim, 31 + dim)
+    sampled = itk_sampling(t, grid)
     own_values, own = _memberships.resample_image_and_memberships(
         image, label_map, t, grid, values=LARGE_VALUES
     )
@@ -697,16 +696,12 @@ def test_image_memberships_and_coverage_from_a_point_map(dim, frame, monkeypatch
     from itk_nrreval.transforms import PointMap, transform_pieces
 
     monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 200)
-    rng = np.random.default_rng(47 + dim)
-    label_map = oblique_label_map(dim, rng)
-    image = intensity_on(label_map, rng, np.float32)
-    grid = common_grid(dim)
-    t = make_transform("composite", grid, rng)
+    label_map, image, grid, t = resampling_case(dim, 47 + dim)
     pieces = transform_pieces(t)
     if frame == "identity":
         point_map, composite = PointMap(pieces), t
     else:
-        f = smooth_field(grid, rng, amplitude=1.5)
+        f = smooth_field(grid, np.random.default_rng(53 + dim), amplitude=1.5)
         d = sitk.GetArrayFromImage(f.GetDisplacementField())
         point_map = PointMap(pieces, d)
         composite = sitk.CompositeTransform([*pieces, f])
@@ -752,20 +747,12 @@ def test_covered_voxels_are_where_itk_resampling_gives_a_value(
     covered are exactly those ITK's resampling (any interpolator) gives a value, and
     exactly those the shared sampling does not leave NaN."""
     monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 300)
-    rng = np.random.default_rng(41 + dim)
-    label_map = oblique_label_map(dim, rng)
-    image = intensity_on(label_map, rng, np.float32)
-    grid = common_grid(dim)
-    t = make_transform(kind, grid, rng)
+    label_map, image, grid, t = resampling_case(dim, 41 + dim, kind)
     covered = _memberships.covered_voxels(Geometry.from_image(image), t, grid)
     assert covered.dtype == np.bool_ and covered.shape == (int(np.prod(grid.shape)),)
     np.testing.assert_array_equal(covered, itk_covered(image, t, grid, interpolator))
     assert covered.any() and not covered.all()
-    sampled = sitk.GetArrayFromImage(
-        sitk.TransformToDisplacementField(
-            t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
-        )
-    )
+    sampled = itk_sampling(t, grid)
     from_sampled = _memberships.covered_voxels(
         Geometry.from_image(image), t, grid, displacement=sampled
     )
@@ -808,11 +795,7 @@ def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, give
         return sitk.CompositeTransform([shift, sitk.DisplacementFieldTransform(zero)])
 
     t = transform()
-    sampled = sitk.GetArrayFromImage(
-        sitk.TransformToDisplacementField(
-            t, sitk.sitkVectorFloat64, grid.size, grid.origin, grid.spacing, grid.direction
-        )
-    )
+    sampled = itk_sampling(t, grid)
     if given == "point_map":
         sampled = PointMap(transform_pieces(t))
     built.clear()
