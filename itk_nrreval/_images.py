@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from ._errors import InputError
+from ._errors import InputError, readable
 from ._executors import ITK_READ_LOCK
 
 __all__ = [
@@ -63,6 +63,9 @@ __all__ = [
     "dimension_problem",
     "label_like_values",
     "warn_label_like",
+    "voxel_range",
+    "LabelSummary",
+    "label_summary",
 ]
 
 ImageLike = "np.ndarray | sitk.Image | itk.Image | dict | str | os.PathLike"
@@ -115,7 +118,7 @@ class Geometry:
         for name in ("spacing", "origin", "direction"):
             a, b = np.asarray(getattr(self, name)), np.asarray(getattr(other, name))
             if not np.allclose(a, b, rtol=tol, atol=tol):
-                return f"{name} {tuple(np.round(b, 6))} differs from {tuple(np.round(a, 6))}"
+                return f"{name} {_plain(b)} differs from {_plain(a)}"
         return None
 
     def apply_to(self, image: sitk.Image) -> sitk.Image:
@@ -124,6 +127,12 @@ class Geometry:
         image.SetOrigin(self.origin)
         image.SetDirection(self.direction)
         return image
+
+
+def _plain(values: np.ndarray) -> str:
+    """Grid values as a person writes them, ``(4938.5, 14.25, 103.0)``: Python floats rounded
+    to 6 decimals (a numpy scalar's repr, ``np.float64(4938.5)``, is not for users)."""
+    return readable(tuple(float(v) for v in np.round(values, 6)))
 
 
 @dataclass(frozen=True)
@@ -480,7 +489,7 @@ def read_image(path: str | os.PathLike | InMemoryImage, *, what: str = "image") 
         first = str(exc).strip().splitlines()
         reason = next((ln for ln in first if "ERROR" not in ln and ln.strip()), "unreadable")
         raise InputError(f"{path}: cannot read {what} ({reason.strip()[:160]})") from None
-    if path.name.lower().endswith((".nii", ".nii.gz")):
+    if _is_nifti(path):
         stat = path.stat()
         _check_nifti(str(path.resolve()), stat.st_size, stat.st_mtime_ns, what, str(path))
     elif not is_finite(image):
@@ -491,13 +500,39 @@ def read_image(path: str | os.PathLike | InMemoryImage, *, what: str = "image") 
 _NIFTI_SLAB_BYTES = 1 << 26  # 64 MiB of voxel data per slab
 
 
-@functools.lru_cache(maxsize=4096)
-def _check_nifti(path: str, size: int, mtime_ns: int, what: str, shown: str) -> None:
+class _NonFinite(Exception):
+    """A NIfTI file holds a NaN or an infinite voxel value."""
+
+
+class _Unreadable(Exception):
+    """A NIfTI file's voxels cannot all be read (its text: why)."""
+
+
+def _check_nifti(path: str, size: int, mtime_ns: int, what: str, shown: str) -> tuple[float, float]:
     """Read a NIfTI file's voxels with nibabel, slab by slab: every byte there, all finite.
 
-    `size` and `mtime_ns` are part of the cache key, so a file that changes is checked again;
-    `shown` is the path as the user gave it, for messages.
+    Returns the smallest and largest voxel value (:func:`voxel_range`). The pass is made once
+    per process and file version (:func:`_nifti_range`, keyed by `size` and `mtime_ns`, so a
+    file that changes is read again); `what` and `shown` (the path as the user gave it) only
+    word the message.
+
+    Raises
+    ------
+    InputError
+        A NaN or infinite voxel value, or a truncated or corrupt file.
     """
+    try:
+        return _nifti_range(path, size, mtime_ns)
+    except _NonFinite:
+        raise InputError(f"{shown}: {what} contains NaN or infinite voxel values") from None
+    except _Unreadable as exc:
+        raise InputError(f"{shown}: {what} file is truncated or corrupt ({exc})") from None
+
+
+@functools.lru_cache(maxsize=4096)
+def _nifti_range(path: str, size: int, mtime_ns: int) -> tuple[float, float]:
+    """(min, max) of a NIfTI file's voxels, read slab by slab; :class:`_NonFinite` or
+    :class:`_Unreadable` when they cannot be used (not cached: raised again on a rerun)."""
     import nibabel as nib
     from nibabel.filebasedimages import ImageFileError
 
@@ -511,15 +546,152 @@ def _check_nifti(path: str, size: int, mtime_ns: int, what: str, shown: str) -> 
         # NIfTI stores the first axis fastest: slabs along the last axis are contiguous.
         per_index = int(np.prod(shape[:-1])) * img.get_data_dtype().itemsize
         step = max(1, _NIFTI_SLAB_BYTES // max(per_index, 1))
+        low, high = np.inf, -np.inf
         for start in range(0, shape[-1], step):
             block = np.asarray(proxy[..., start : start + step])
-            if floating and not np.isfinite(block).all():
-                raise InputError(f"{shown}: {what} contains NaN or infinite voxel values")
-    except InputError:
+            # min and max carry a NaN or an infinity through: two passes check the values
+            # and give the range a constant image is told by
+            lo, hi = float(block.min()), float(block.max())
+            if floating and not (np.isfinite(lo) and np.isfinite(hi)):
+                raise _NonFinite
+            low, high = min(low, lo), max(high, hi)
+    except _NonFinite:
         raise
     except (EOFError, OSError, ValueError, zlib.error, ImageFileError) as exc:
         reason = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"{shown}: {what} file is truncated or corrupt ({reason})") from None
+        raise _Unreadable(reason) from None
+    return low, high
+
+
+def _is_nifti(path: Path) -> bool:
+    return path.name.lower().endswith((".nii", ".nii.gz"))
+
+
+def _version(path: Path) -> tuple[str, int, int] | None:
+    """A file's cache key for what is read from its voxels (resolved path, size, modification
+    time); None for header + data pairs (``.mhd``, ``.nhdr``), whose data file's changes do
+    not show in the header's times: those are read every time."""
+    if path.name.lower().endswith((".mhd", ".nhdr")):
+        return None
+    stat = path.stat()
+    return str(path.resolve()), stat.st_size, stat.st_mtime_ns
+
+
+def voxel_range(
+    item: str | os.PathLike | InMemoryImage, *, what: str = "image"
+) -> tuple[float, float]:
+    """The smallest and largest voxel value of an image file or in-memory image.
+
+    Every voxel is looked at once and checked as :func:`read_image` checks it: a NaN or an
+    infinite value, or a truncated NIfTI file, is an :class:`InputError` with its message. A
+    NIfTI file's range comes from the nibabel pass :func:`read_image` makes anyway (kept per
+    process and file version, so a later :func:`read_image` of it does not read it again);
+    another file is read by ITK once per process and file version.
+
+    Parameters
+    ----------
+    item : path or InMemoryImage
+        The image (its header already known to be readable).
+    what : str
+        What it is, for messages (``"image"``).
+
+    Returns
+    -------
+    (float, float)
+        Its minimum and maximum; equal for a constant image, which carries no texture.
+    """
+    if isinstance(item, InMemoryImage):
+        arr = sitk.GetArrayViewFromImage(read_image(item, what=what))
+        return float(arr.min()), float(arr.max())
+    path = Path(item)
+    if not path.is_file():
+        read_image(path, what=what)  # its message: not found, a folder
+    if _is_nifti(path):
+        return _check_nifti(str(path.resolve()), *_version(path)[1:], what, str(path))
+    key = _version(path)
+    if key is None:
+        return _file_range(str(path), what)
+    return _cached_file_range(*key, what, str(path))
+
+
+def _file_range(path: str, what: str) -> tuple[float, float]:
+    arr = sitk.GetArrayViewFromImage(read_image(path, what=what))
+    return float(arr.min()), float(arr.max())
+
+
+@functools.lru_cache(maxsize=4096)
+def _cached_file_range(
+    resolved: str, size: int, mtime_ns: int, what: str, shown: str
+) -> tuple[float, float]:
+    return _file_range(shown, what)
+
+
+@dataclass(frozen=True)
+class LabelSummary:
+    """What a label map holds, from one read of its voxels (:func:`label_summary`).
+
+    Attributes
+    ----------
+    values : tuple of int
+        Its distinct values, ascending (background 0 included when present).
+    foreground : tuple of (tuple of int, tuple of int), or None
+        The first and last index, in ITK (x, y[, z]) order, of its nonzero voxels along each
+        axis (the box they lie in); None when every voxel is 0.
+    """
+
+    values: tuple[int, ...]
+    foreground: tuple[tuple[int, ...], tuple[int, ...]] | None
+
+
+def label_summary(
+    item: str | os.PathLike | InMemoryImage, *, what: str = "label map"
+) -> LabelSummary:
+    """The values of a label map and the box its labelled voxels lie in, from one read.
+
+    A file's summary is kept per process and file version (as :func:`voxel_range`'s range).
+
+    Raises
+    ------
+    InputError
+        The file cannot be read (:func:`read_image`), or it holds a value that is not an
+        integer (an intensity image given as a label map, most likely).
+    """
+    if isinstance(item, InMemoryImage):
+        return _summarise_labels(read_image(item, what=what), item.name)
+    path = Path(item)
+    if not path.is_file() or (key := _version(path)) is None:
+        return _summarise_labels(read_image(path, what=what), str(path))
+    return _cached_label_summary(*key, what, str(path))
+
+
+@functools.lru_cache(maxsize=4096)
+def _cached_label_summary(
+    resolved: str, size: int, mtime_ns: int, what: str, shown: str
+) -> LabelSummary:
+    return _summarise_labels(read_image(shown, what=what), shown)
+
+
+def _summarise_labels(image: sitk.Image, name: str) -> LabelSummary:
+    arr = sitk.GetArrayViewFromImage(image)
+    found = np.unique(arr)
+    if found.dtype.kind == "f":
+        bad = found[found != np.round(found)]  # read_image refused non-finite values
+        if bad.size:
+            raise InputError(
+                f"{name}: label map holds non-integer values (e.g. {float(bad[0]):g}; "
+                f"{bad.size} of {found.size} distinct values): is it an intensity image?"
+            )
+    nonzero = arr != 0
+    if not nonzero.any():
+        return LabelSummary(tuple(int(v) for v in found), None)
+    # numpy axes are ITK's reversed: the box along ITK axis k is along numpy axis d - 1 - k
+    d = arr.ndim
+    first, last = [], []
+    for k in range(d):
+        along = np.flatnonzero(nonzero.any(axis=tuple(a for a in range(d) if a != d - 1 - k)))
+        first.append(int(along[0]))
+        last.append(int(along[-1]))
+    return LabelSummary(tuple(int(v) for v in found), (tuple(first), tuple(last)))
 
 
 def _as_sitk(item, name: str, what: str) -> sitk.Image:

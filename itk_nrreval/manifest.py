@@ -62,12 +62,13 @@ object do not reach the manifest), named after its place for messages
 (``registrations.fluid.transforms[3]``), and keyed in the result cache by its content --
 the key a file with the same content gets, so files and objects share cache entries.
 
-:func:`load_manifest` checks everything that can be checked without heavy work (keys,
-counts, files present, image / transform dimensions, the ``common_frame`` name) and reports
-every problem at once in one :class:`InputError`; objects get the same checks and the same
-messages (the item named instead of the file), and, like files, their voxel values (NaN,
-label values) are checked when they are read. :func:`write_manifest` writes paths
-relative to the manifest's folder (a manifest with objects cannot be written);
+:func:`load_manifest` checks everything that can be checked before the heavy work (keys,
+counts, files present, image / transform dimensions, the ``common_frame`` name, and what the
+images and label maps hold: an image listed twice, a constant image, NaN, label values, a
+label map off its image) and reports every problem at once in one :class:`InputError`;
+objects get the same checks and the same messages (the item named instead of the file).
+:func:`write_manifest` writes paths relative to the manifest's folder (a manifest with
+objects cannot be written);
 :func:`add_registration` adds or replaces one registration in a manifest file, creating it
 when needed.
 """
@@ -75,8 +76,10 @@ when needed.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
+import warnings
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -87,6 +90,7 @@ import numpy as np
 import SimpleITK as sitk
 import yaml
 
+from ._cache import content_digest
 from ._elastix_files import (
     elastix_file_dimension,
     is_elastix_parameter_file,
@@ -94,7 +98,14 @@ from ._elastix_files import (
 )
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
-from ._images import InMemoryImage, dimension_problem, read_header
+from ._images import (
+    InMemoryImage,
+    LabelSummary,
+    dimension_problem,
+    label_summary,
+    read_header,
+    voxel_range,
+)
 from ._itk_hdf5 import transform_dimension as hdf5_transform_dimension
 from ._output import write_text
 from .transforms import (
@@ -304,8 +315,10 @@ def load_manifest(
         directory). Ignored for a file: its paths are relative to its own folder.
     check_files : bool
         Also check that every file exists and that image and transform dimensions agree,
-        files and objects alike (reads image headers and transform files, never voxel data
-        of images). False checks the structure only (used when editing a manifest).
+        files and objects alike (image headers, transform files), and what the images and
+        label maps hold (:func:`_check_voxels`: each image and label map read once, and
+        kept, with the reader's checks, for the run that follows). False checks the
+        structure only (used when editing a manifest).
 
     Returns
     -------
@@ -316,8 +329,17 @@ def load_manifest(
     InputError
         One message, ``"<manifest>: N problems: a; b; c"``, listing every problem found:
         unreadable YAML, unknown keys, missing files, objects of a kind not accepted, wrong
-        counts, dimensions that differ, a ``reference_index`` out of range, an unknown
-        ``common_frame``.
+        counts, fewer than 3 images, dimensions that differ, a ``reference_index`` out of
+        range, an unknown ``common_frame``; an image listed twice (the same file, or the
+        same voxels on the same grid), a constant image, a NaN or infinite voxel value, a
+        damaged NIfTI file, a label map with negative or non-integer values or off its
+        image.
+
+    Warns
+    -----
+    UserWarning
+        A label found in one subject's label map only (a lesion, say: it lowers the
+        overlap of every pair with that subject). One line for all of them.
     """
     if isinstance(source, Manifest):
         return source
@@ -346,13 +368,16 @@ def load_manifest(
             raise InputError(f"{label}: expected a mapping with 'images' and 'registrations'")
         base = src_path.parent
     problems: list[str] = []
+    notes: list[str] = []  # warnings, given only for a manifest that is not refused
     manifest = _parse(data, base.absolute(), problems)
     if manifest is not None:
         manifest = replace(manifest, source=src_path)
         if check_files:
-            _check_files(manifest, problems)
+            notes = _check_files(manifest, problems)
     _raise(label, problems)
     assert manifest is not None
+    for note in notes:
+        warnings.warn(f"{label}: {note}", UserWarning, stacklevel=2)
     return manifest
 
 
@@ -687,11 +712,12 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
             problems.append(f"{what}: {d}D transform for {dim}D images")
 
 
-def _image_header(item, what: str, problems: list[str]) -> tuple[int, str] | None:
-    """(dimension, name to show) of an image file or object, its components checked.
+def _image_header(item, what: str, problems: list[str]) -> tuple[int, str, bool] | None:
+    """(dimension, name to show, whether scalar) of an image file or object.
 
     The name is the file's name, or the object's label (``the in-memory sitk.Image``);
-    None when the file is missing or unreadable (a problem is added).
+    None when the file is missing or unreadable. A problem is added for each of these, and
+    for an image of more than one component (not scalar).
     """
     if isinstance(item, InMemoryImage):
         d, comps = item.image.GetDimension(), item.image.GetNumberOfComponentsPerPixel()
@@ -711,7 +737,7 @@ def _image_header(item, what: str, problems: list[str]) -> tuple[int, str] | Non
         shown = item.name
     if comps != 1:
         problems.append(f"{what}: {shown} has {comps} components, expected a scalar image")
-    return d, shown
+    return d, shown, comps == 1
 
 
 _SAME_SPACE = 0.5
@@ -723,22 +749,49 @@ def _shown(item) -> str:
     return item.label if isinstance(item, InMemoryImage) else Path(item).name
 
 
+@dataclass(frozen=True)
+class _Grid:
+    """An image's grid from its header: size, spacing, origin (ITK order) and direction."""
+
+    size: np.ndarray
+    spacing: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray  # d x d
+
+    @classmethod
+    def of(cls, item) -> _Grid | None:
+        """The grid of an image file or object; None when it cannot be read (another check
+        reports that)."""
+        try:
+            info = item.image if isinstance(item, InMemoryImage) else read_header(item)
+        except RuntimeError:
+            return None
+        d = len(info.GetSize())
+        return cls(
+            np.asarray(info.GetSize()),
+            np.asarray(info.GetSpacing()),
+            np.asarray(info.GetOrigin()),
+            np.asarray(info.GetDirection()).reshape(d, d),
+        )
+
+    def box(
+        self, voxels: tuple[tuple[int, ...], tuple[int, ...]] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (mm, LPS) of the grid's voxels, or of those in the index
+        box `voxels` (first and last index per axis, ITK order), voxel corners included."""
+        first, last = (np.zeros_like(self.size), self.size - 1) if voxels is None else voxels
+        d = len(self.size)
+        ends = [(f - 0.5, n + 0.5) for f, n in zip(first, last, strict=True)]
+        corners = np.array(np.meshgrid(*ends)).reshape(d, -1)
+        points = self.origin[:, None] + self.direction @ (self.spacing[:, None] * corners)
+        return points.min(axis=1), points.max(axis=1)
+
+
 def _physical_box(item) -> tuple[np.ndarray, np.ndarray] | None:
     """Axis-aligned bounding box (mm, LPS) of an image's voxels, corners included, from its
     header; None when it cannot be read (another check reports that)."""
-    try:
-        if isinstance(item, InMemoryImage):
-            info = item.image
-        else:
-            info = read_header(item)
-        size, spacing = np.asarray(info.GetSize()), np.asarray(info.GetSpacing())
-        origin, d = np.asarray(info.GetOrigin()), len(info.GetSize())
-        direction = np.asarray(info.GetDirection()).reshape(d, d)
-    except RuntimeError:
-        return None
-    corners = np.array(np.meshgrid(*[(-0.5, n - 0.5) for n in size])).reshape(d, -1)
-    points = origin[:, None] + direction @ (spacing[:, None] * corners)
-    return points.min(axis=1), points.max(axis=1)
+    grid = _Grid.of(item)
+    return None if grid is None else grid.box()
 
 
 def _shared_extent(a, b) -> float | None:
@@ -751,51 +804,108 @@ def _shared_extent(a, b) -> float | None:
     return float(np.prod(inter) / smaller) if smaller > 0 else None
 
 
-def _check_image(item, what: str, dim: int | None, problems: list[str]) -> None:
+def _outside_mm(box, of) -> float:
+    """How far (mm) bounding box `box` reaches outside bounding box `of`, along any axis."""
+    return float(np.max(np.maximum(np.maximum(of[0] - box[0], box[1] - of[1]), 0.0)))
+
+
+def _off_image_mm(image, label_map, labels: LabelSummary) -> float | None:
+    """How far (mm) a label map's labelled voxels reach outside its image, or None when the
+    label map lies on its image.
+
+    Compared as bounding boxes (mm), give or take one voxel of the coarser of the two grids
+    along each of its axes: a label map resampled to another resolution over the same field
+    of view has its edges that close to the image's (its size rounded to whole voxels, its
+    first voxel's centre kept or moved by half a voxel), and on an oblique grid one voxel's
+    offset spreads over up to sqrt(d) axes of the bounding box. A label map lies on its
+    image when its box lies within the image's (the same field of view, or a crop); when
+    its box holds the image's (a larger field of view: the image cropped after labelling, a
+    padded or atlas grid) and some of its labelled voxels lie on the image; or when its
+    labelled voxels lie within the image's box. Otherwise its box is moved against the
+    image's (a wrong origin, or an origin in RAS read as LPS): the labels would be scored
+    where they are not.
+    """
+    img, lab = _Grid.of(image), _Grid.of(label_map)
+    if img is None or lab is None or len(img.size) != len(lab.size) or labels.foreground is None:
+        return None
+    tolerance = math.sqrt(len(img.size)) * max(float(img.spacing.max()), float(lab.spacing.max()))
+    on, box = img.box(), lab.box()
+    if _outside_mm(box, on) <= tolerance:  # the same field of view, or a crop
+        return None
+    labelled = lab.box(labels.foreground)
+    off = _outside_mm(labelled, on)
+    if off <= tolerance:
+        return None
+    holds_image = _outside_mm(on, box) <= tolerance
+    meets_image = bool(np.all(np.minimum(labelled[1], on[1]) > np.maximum(labelled[0], on[0])))
+    return None if holds_image and meets_image else off
+
+
+def _check_image(item, what: str, dim: int | None, problems: list[str]) -> bool:
+    """Check an image's header; whether its voxels can be looked at (read, scalar, and of
+    the images' dimension)."""
     header = _image_header(item, what, problems)
     if header is not None and dim is not None and header[0] != dim:
         problems.append(f"{what}: {header[1]} is {header[0]}D, the images are {dim}D")
+        return False
+    return header is not None and dim is not None and header[2]
 
 
-def _images_dimension(images, problems: list[str]) -> int | None:
-    """The images' dimension, set by the majority; each image that differs is named.
+def _images_dimension(images, problems: list[str]) -> tuple[int | None, set[int]]:
+    """The images' dimension, set by the majority; each image that differs is named. With
+    it, the images whose voxels can be looked at (read, scalar, of that dimension).
 
-    Returns None when no image could be read or the majority's dimension is not 2 or 3
-    (one problem then says so; nothing else is compared with it).
+    The dimension is None when no image could be read or the majority's dimension is not
+    2 or 3 (one problem then says so; nothing else is compared with it).
     """
     headers = {}
     for i, item in enumerate(images):
         if (header := _image_header(item, f"images[{i}]", problems)) is not None:
             headers[i] = header
     if not headers:
-        return None
-    counts = Counter(d for d, _ in headers.values())
+        return None, set()
+    counts = Counter(d for d, _, _ in headers.values())
     # ties go to a usable dimension, then to the first image's
     dim = max(counts, key=lambda d: (counts[d], dimension_problem(d) is None))
     if (problem := dimension_problem(dim)) is not None:
-        first = next(i for i, (d, _) in headers.items() if d == dim)
+        first = next(i for i, (d, _, _) in headers.items() if d == dim)
         which = "all" if counts[dim] == len(headers) else f"{counts[dim]} of"
         problems.append(
             f"images: {which} {len(headers)} images are {dim}D (images[{first}]: "
             f"{headers[first][1]} {problem})"
         )
-        return None
+        return None, set()
     others = len(headers) - 1
     agree = (
         f"the other {others}" if counts[dim] == others else f"{counts[dim]} of the other {others}"
     )
-    for i, (d, shown) in headers.items():
+    for i, (d, shown, _) in headers.items():
         if d != dim:
             problems.append(f"images[{i}]: {shown} is {d}D; {agree} images are {dim}D")
-    return dim
+    return dim, {i for i, (d, _, scalar) in headers.items() if d == dim and scalar}
 
 
-def _check_files(m: Manifest, problems: list[str]) -> None:
-    dim = _images_dimension(m.images, problems)
-    for i, p in enumerate(m.labels or ()):
-        _check_image(p, f"labels[{i}]", dim, problems)
+MIN_IMAGES = 3
+"""The fewest images a manifest may list: a texture model of 2 images has one mode, and
+every score compares an image with the others."""
+
+
+def _check_files(m: Manifest, problems: list[str]) -> list[str]:
+    """The file checks: headers first, then what the images and label maps hold
+    (:func:`_check_voxels`). Returns the warnings to give if nothing is refused."""
+    if m.n_images < MIN_IMAGES:
+        problems.append(
+            f"images: {m.n_images} image{'s' if m.n_images != 1 else ''}; a texture model "
+            f"needs at least {MIN_IMAGES}"
+        )
+    dim, images_ok = _images_dimension(m.images, problems)
+    labels_ok = {
+        i for i, p in enumerate(m.labels or ()) if _check_image(p, f"labels[{i}]", dim, problems)
+    }
+    scored_ok = set()
     for i, p in enumerate(m.evaluation_images or ()):
-        _check_image(p, f"evaluation_images[{i}]", dim, problems)
+        if _check_image(p, f"evaluation_images[{i}]", dim, problems):
+            scored_ok.add(i)
         if (shared := _shared_extent(m.images[i], p)) is not None and shared < _SAME_SPACE:
             problems.append(
                 f"evaluation_images[{i}]: {_shown(p)} shares {shared:.0%} of its physical "
@@ -813,6 +923,165 @@ def _check_files(m: Manifest, problems: list[str]) -> None:
                 _check_item(item, w, dim, problems)
         if r.frame_transform is not None:
             _check_item(r.frame_transform, f"{where}.frame_transform", dim, problems)
+    return _check_voxels(m, images_ok, scored_ok, labels_ok, problems)
+
+
+# ----------------------------------------------------------------------------- voxel checks
+
+
+def _check_voxels(
+    m: Manifest, images_ok: set[int], scored_ok: set[int], labels_ok: set[int], problems: list
+) -> list[str]:
+    """What the images and label maps hold, for those whose headers passed (the `_ok`
+    indices): each is read once, before any heavy work, so that what would change the
+    numbers without a word is refused with every other problem.
+
+    Images and evaluation images (:func:`_check_images_held`): NaN or infinite values, a
+    damaged NIfTI file, a constant image, an image listed twice. Label maps
+    (:func:`_check_labels_held`): values that are not integers or are negative, a label map
+    off its image; a label of one subject only is a warning (returned).
+
+    Cost per image: a NIfTI file's slab-by-slab read (:func:`~itk_nrreval._images.voxel_range`)
+    and ITK's read for its content digest (:func:`~itk_nrreval._cache.content_digest`), both
+    kept for the process: the run that follows makes both anyway (its reader's checks, its
+    cache keys) and finds them done. Per label map: one read, its values sorted once.
+    """
+    _check_images_held(m.images, "images", images_ok, problems)
+    if m.evaluation_images is not None:
+        _check_images_held(m.evaluation_images, "evaluation_images", scored_ok, problems)
+    if m.labels is None:
+        return []
+    return _check_labels_held(m, labels_ok, images_ok, problems)
+
+
+def _reader_problem(exc: InputError, item) -> str:
+    """The reader's message about `item`, which names a file by its path, as it does
+    everywhere; an object, which it names by its item (``images[2]: ...``), by what the
+    manifest's other problems call it (``the in-memory sitk.Image: ...``): the item leads
+    the problem already."""
+    text = str(exc)
+    if isinstance(item, InMemoryImage):
+        text = f"{item.label}: {text.removeprefix(f'{item.name}: ')}"
+    return text
+
+
+def _file_identity(item) -> tuple[int, int] | None:
+    """(device, inode) of an image file, the same through links and spellings; None for an
+    object."""
+    if isinstance(item, InMemoryImage):
+        return None
+    stat = os.stat(item)
+    return stat.st_dev, stat.st_ino
+
+
+def _check_images_held(items: Sequence, key: str, ok: set[int], problems: list[str]) -> None:
+    """Refuse an image with a NaN or an infinity, a constant one (no texture: an all-zero
+    image scores as an outlier of the model), and an image listed twice, as the same file or
+    as the same voxels on the same grid (a subject counted twice: the model's samples fall
+    near it twice as often)."""
+    files: dict[tuple[int, int], int] = {}
+    contents: dict[str, int] = {}
+    for i in sorted(ok):
+        item, what = items[i], f"{key}[{i}]"
+        if (identity := _file_identity(item)) is not None:
+            if identity in files:
+                j = files[identity]
+                problems.append(
+                    f"{what} {_shown(item)} is the same file as {key}[{j}] {_shown(items[j])}: "
+                    "list each image once (twice, its subject weighs twice in the model)"
+                )
+                continue  # its content is that image's, checked there
+            files[identity] = i
+        try:
+            low, high = voxel_range(item, what="image")
+        except InputError as exc:
+            problems.append(f"{what}: {_reader_problem(exc, item)}")
+            continue
+        if low == high:
+            problems.append(
+                f"{what}: {_shown(item)} is constant (every voxel is {low:g}): it holds no "
+                "texture to score"
+            )
+            continue
+        digest = item.content_digest if isinstance(item, InMemoryImage) else content_digest(item)
+        if digest in contents:
+            j = contents[digest]
+            problems.append(
+                f"{what}: {_shown(item)} holds the same voxels on the same grid as {key}[{j}] "
+                f"{_shown(items[j])}: list each image once (twice, its subject weighs twice in "
+                "the model)"
+            )
+        else:
+            contents[digest] = i
+
+
+_LABELS_NAMED = 4  # labels of one subject named in the warning; the rest are counted
+
+
+def _check_labels_held(
+    m: Manifest, ok: set[int], images_ok: set[int], problems: list[str]
+) -> list[str]:
+    """Refuse a label map with negative values or off its image (reported with the other
+    problems); warn about a label found in one subject only (returned)."""
+    assert m.labels is not None
+    found: dict[int, list[int]] = {}  # nonzero label value -> the label maps holding it
+    for i in sorted(ok):
+        item, what = m.labels[i], f"labels[{i}]"
+        try:
+            summary = label_summary(item)
+        except InputError as exc:
+            problems.append(f"{what}: {_reader_problem(exc, item)}")
+            continue
+        negative = [v for v in summary.values if v < 0]
+        if negative:
+            problems.append(
+                f"{what}: {_shown(item)} holds negative label values "
+                f"({', '.join(map(str, negative[:3]))}{', ...' if len(negative) > 3 else ''}): "
+                "labels are 0 (background) and positive integers"
+            )
+            continue
+        if i in images_ok and (off := _off_image_mm(m.images[i], item, summary)) is not None:
+            problems.append(
+                f"{what}: {_shown(item)} is not on images[{i}] {_shown(m.images[i])}: its "
+                f"labelled voxels reach {off:.1f} mm outside that image (another resolution "
+                "over the same field of view is fine; check its origin and direction)"
+            )
+            continue
+        for v in summary.values:
+            if v != 0:
+                found.setdefault(v, []).append(i)
+    return _single_subject_labels(m, found, len(ok))
+
+
+def _single_subject_labels(m: Manifest, found: dict[int, list[int]], n_maps: int) -> list[str]:
+    """The warning (a list of 0 or 1 line) that labels are found in one subject only.
+
+    A subject is one of ``subjects`` where the manifest names them, else one image. Such a
+    label has no counterpart to overlap with: every pair with that subject counts it as a
+    mismatch, lowering the overlap. It may be meant (a lesion), so it is not refused.
+    """
+    assert m.labels is not None
+    subject = m.subjects if m.subjects is not None else tuple(range(m.n_images))
+    if len({subject[i] for ids in found.values() for i in ids}) < 2 or n_maps < 2:
+        return []
+    alone = []
+    for v in sorted(found):
+        maps = found[v]
+        if len({subject[i] for i in maps}) != 1:
+            continue
+        held = ", ".join(f"labels[{i}] {_shown(m.labels[i])}" for i in maps)
+        if m.subjects is None:
+            alone.append(f"label {v} is only in {held}")
+        else:
+            alone.append(f"label {v} is only in subject {m.subjects[maps[0]]!r} ({held})")
+    if not alone:
+        return []
+    more = len(alone) - _LABELS_NAMED
+    listed = "; ".join(alone[:_LABELS_NAMED]) + (f"; and {more} more" if more > 0 else "")
+    return [
+        f"{listed}: a label of one subject counts as a mismatch in every pair with that "
+        "subject and lowers the overlap; remove it unless it is meant (a lesion, say)"
+    ]
 
 
 # ----------------------------------------------------------------------------- matching

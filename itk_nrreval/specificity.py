@@ -198,13 +198,41 @@ class SpecificityComparison:
     difference_stderr: float
 
 
-def _check_options(n_samples: int, distance: str, exponent: float) -> None:
+MAX_SEED = 2**63
+"""Seeds are integers in ``[0, MAX_SEED)``: the sampler mixes a seed into a 64-bit stream key
+(:func:`itk_nrreval._sampling.stream_key`)."""
+
+
+def checked_seed(seed, *, name: str = "seed") -> int:
+    """`seed` as a Python int, or an :class:`InputError` naming parameter `name`.
+
+    The one check of a seed: an integer (Python or numpy, not a bool) in ``[0, 2**63)``. A
+    string, a float or a bool is refused rather than converted: ``int("abc")`` fails with a
+    message that names no parameter, and ``int(1.5)`` would quietly run seed 1.
+
+    Raises
+    ------
+    InputError
+        "seed must be an integer in [0, 2**63), got 'abc'".
+    """
+    if (
+        isinstance(seed, (bool, np.bool_))
+        or not isinstance(seed, (int, np.integer))
+        or not 0 <= seed < MAX_SEED
+    ):
+        raise InputError(f"{name} must be an integer in [0, 2**63), got {readable(seed)}")
+    return int(seed)
+
+
+def _check_options(n_samples: int, distance: str, exponent: float, seed) -> int:
+    """Check the options; return the seed as an int (:func:`checked_seed`)."""
     if distance not in _DISTANCES:
         raise ValueError(f"distance must be one of {_DISTANCES}, got {distance!r}")
     if not (isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _sampling.MAX_SAMPLES):
         raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if not (exponent > 0 and math.isfinite(exponent)):
         raise ValueError(f"exponent must be a positive number, got {readable(exponent)}")
+    return checked_seed(seed)
 
 
 def _model(images, mask) -> TextureModel:
@@ -383,7 +411,7 @@ def texture_measures(
     N = 36-40, 1.0-1.6x at N = 300, 1.3-2x at N = 1000). One group runs exactly the
     single-Gaussian kernels.
     """
-    _check_options(n_samples, distance, exponent)
+    seed = _check_options(n_samples, distance, exponent, seed)
     _search.check_backend(backend)
     model = _fit(images, mask, groups)
     joint = _joint(model)
@@ -392,16 +420,14 @@ def texture_measures(
     found = _search.search(
         [model],
         samples_per_group=group_samples,
-        seed=int(seed),
+        seed=seed,
         distance=distance,
         exponent=float(exponent),
         backend=backend,
         progress=progress,
         desc=desc,
     )
-    common = dict(
-        n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed)
-    )
+    common = dict(n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=seed)
     (stats,) = found.models
     spec = _specificity_result(model, stats, found, group_samples, common)
     values = _generalization_values(stats.gen, distance, exponent)
@@ -412,7 +438,7 @@ def texture_measures(
         n_images=joint.n_images,
         distance=distance,
         exponent=float(exponent),
-        seed=int(seed),
+        seed=seed,
         nearest_distances=values,
         groups=None if spec.mixture is None else spec.mixture.groups,
     )
@@ -475,7 +501,8 @@ TextureModel or MixtureModel
         ``backend="torch"`` without PyTorch installed.
     InputError
         Bad `groups`: not one hashable label per image, a group of 1 image, or a group whose
-        images are all identical; or an `n_samples` that leaves a group fewer than 2 samples.
+        images are all identical; an `n_samples` that leaves a group fewer than 2 samples;
+        or a `seed` that is not an integer in ``[0, 2**63)`` (:func:`checked_seed`).
 
     Notes
     -----
@@ -576,7 +603,7 @@ def compare_specificity(
     -------
     SpecificityComparison
     """
-    _check_options(n_samples, distance, exponent)
+    seed = _check_options(n_samples, distance, exponent, seed)
     ma, mb = _fit(a_images, mask, groups), _fit(b_images, mask, groups)
     _check_modes(_joint(ma))
     _check_modes(_joint(mb))
@@ -591,14 +618,12 @@ def compare_specificity(
     found = _search.search(
         [ma, mb],
         samples_per_group=group_samples,
-        seed=int(seed),
+        seed=seed,
         distance=distance,
         exponent=float(exponent),
         backend="cpu",
     )
-    common = dict(
-        n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=int(seed)
-    )
+    common = dict(n_samples=int(n_samples), distance=distance, exponent=float(exponent), seed=seed)
     ra, rb = (
         _specificity_result(model, stats, found, group_samples, common)
         for model, stats in zip((ma, mb), found.models, strict=True)

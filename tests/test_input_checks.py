@@ -19,6 +19,7 @@ import yaml
 from test_bad_inputs import assert_one_line, run_cli
 
 from data_synth import make_population, write_population
+from itk_nrreval import InputError
 from itk_nrreval.cli import main
 from itk_nrreval.manifest import load_manifest
 
@@ -262,3 +263,307 @@ def test_hdf5_transform_dimension_from_the_layout_is_itks(tmp_path, dim):
         sitk.ReadTransform(str(short))
     (tmp_path / "text.h5").write_text("not HDF5\n")
     assert _hdf5_transform_dimension(tmp_path / "text.h5") is None
+
+
+# ----------------------------------------------------------------------------- issue 44
+# Inputs accepted until now that change the numbers silently: refused by the manifest's
+# upfront check (one line, exit 2, nothing written), or warned about where a legitimate use
+# exists. A small 3D cohort on a realistic grid: anisotropic voxels, an origin far from 0,
+# an oblique direction.
+
+SIZE_3D = (14, 12, 8)  # ITK (x, y, z)
+SPACING_3D = (1.2, 0.9, 2.5)  # mm
+ORIGIN_3D = (-61.5, 14.25, 103.0)  # mm, LPS
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    """The rotation by `degrees` about `axis` (Rodrigues)."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * cross + (1 - np.cos(t)) * cross @ cross
+
+
+DIRECTION_3D = _rotation((1.0, 2.0, 3.0), 25.0)
+
+
+def _on_grid(arr: np.ndarray, *, spacing=SPACING_3D, origin=ORIGIN_3D) -> sitk.Image:
+    """`arr` (numpy (z, y, x)) as an image on the cohort's oblique grid (or `spacing`/`origin`)."""
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing(spacing)
+    img.SetOrigin(origin)
+    img.SetDirection(DIRECTION_3D.reshape(-1).tolist())
+    return img
+
+
+def _subject_arrays(i: int) -> tuple[np.ndarray, np.ndarray]:
+    """Subject i's float32 image and int16 label map (labels 1..3 in every subject)."""
+    rng = np.random.default_rng(100 + i)
+    z, y, x = np.mgrid[0 : SIZE_3D[2], 0 : SIZE_3D[1], 0 : SIZE_3D[0]].astype(float)
+    labels = np.zeros(SIZE_3D[::-1], np.int16)
+    labels[((x - 7) / 5) ** 2 + ((y - 6) / 4.5) ** 2 + ((z - 3.5) / 3) ** 2 <= 1] = 1
+    labels[2:5, 3 : 6 + i % 2, 2:5] = 2
+    labels[3:6, 6:9, 9 : 12 - i % 2] = 3
+    image = 100.0 * (labels == 1) + 160.0 * (labels == 2) + 60.0 * (labels == 3)
+    image = image * rng.uniform(0.9, 1.1) + rng.normal(0.0, 4.0, image.shape)
+    return image.astype(np.float32), labels
+
+
+def _cohort(folder: Path, n: int = 5, *, labels: bool = True) -> dict:
+    """Write n subjects (img{i}.nii.gz, lab{i}.nii.gz) and an identity registration; return
+    the manifest's data (written to folder/manifest.yaml by :func:`_write`)."""
+    data: dict = {"images": [], "labels": [] if labels else None}
+    for i in range(n):
+        image, lab = _subject_arrays(i)
+        sitk.WriteImage(_on_grid(image), str(folder / f"img{i}.nii.gz"))
+        data["images"].append(f"img{i}.nii.gz")
+        if labels:
+            sitk.WriteImage(_on_grid(lab), str(folder / f"lab{i}.nii.gz"))
+            data["labels"].append(f"lab{i}.nii.gz")
+        sitk.WriteTransform(sitk.AffineTransform(3), str(folder / f"id{i}.tfm"))
+    if not labels:
+        del data["labels"]
+    tfm = [f"id{i}.tfm" for i in range(n)]
+    data["registrations"] = {
+        "identity": {"reference": "img0.nii.gz", "reference_index": 0, "transforms": tfm}
+    }
+    return data
+
+
+def _write(folder: Path, data: dict) -> Path:
+    path = folder / "manifest.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _refused(folder: Path, capsys, *fragments: str) -> str:
+    """evaluate the folder's manifest through the CLI: exit 2, one line holding `fragments`,
+    nothing written (refused before any heavy work); the line."""
+    out = folder / "out"
+    before = set(folder.rglob("*"))
+    code, err = run_cli(
+        ["evaluate", str(folder / "manifest.yaml"), "--out", str(out), "--samples", "200"]
+        + ["--quiet", "--no-figures"],
+        capsys,
+    )
+    assert code == 2, err
+    assert_one_line(err, *fragments)
+    assert set(folder.rglob("*")) == before  # no output folder, no cache
+    return err
+
+
+def _manifest_error(path: Path) -> str:
+    with pytest.raises(InputError) as info:
+        load_manifest(path)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_cohort_of_the_issue_44_checks_is_accepted(tmp_path):
+    """The baseline: the checks below refuse what they refuse, not this cohort."""
+    m = load_manifest(_write(tmp_path, _cohort(tmp_path)))
+    assert m.n_images == 5
+
+
+# ----------------------------------------------------------------------------- item 6
+
+
+def test_the_same_image_file_listed_twice_is_refused(tmp_path, capsys):
+    data = _cohort(tmp_path)
+    data["images"][3] = "./img1.nii.gz"  # the same file, written another way
+    path = _write(tmp_path, data)
+    message = _manifest_error(path)
+    assert "images[1]" in message and "images[3]" in message and "img1.nii.gz" in message
+    assert "same file" in message
+    _refused(tmp_path, capsys, "images[1]", "images[3]", "same file")
+
+
+def test_the_same_image_linked_under_another_name_is_refused(tmp_path):
+    data = _cohort(tmp_path)
+    (tmp_path / "alias.nii.gz").symlink_to(tmp_path / "img1.nii.gz")
+    data["images"][4] = "alias.nii.gz"
+    message = _manifest_error(_write(tmp_path, data))
+    assert "images[1]" in message and "images[4]" in message and "alias.nii.gz" in message
+
+
+def test_two_files_with_the_same_voxels_on_the_same_grid_are_refused(tmp_path, capsys):
+    data = _cohort(tmp_path)
+    # another file, other bytes (uncompressed), the same image: the same subject twice
+    sitk.WriteImage(sitk.ReadImage(str(tmp_path / "img1.nii.gz")), str(tmp_path / "copy.nii"))
+    assert (tmp_path / "copy.nii").read_bytes() != (tmp_path / "img1.nii.gz").read_bytes()
+    data["images"][3] = "copy.nii"
+    message = _manifest_error(_write(tmp_path, data))
+    assert "images[3]" in message and "copy.nii" in message
+    assert "images[1]" in message and "img1.nii.gz" in message
+    _refused(tmp_path, capsys, "images[3]", "copy.nii", "images[1]", "same voxels")
+
+
+def test_an_image_that_differs_in_one_voxel_is_not_a_duplicate(tmp_path):
+    data = _cohort(tmp_path)
+    arr = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "img1.nii.gz")))
+    arr[4, 5, 6] += 1.0
+    sitk.WriteImage(_on_grid(arr), str(tmp_path / "near.nii.gz"))
+    data["images"][3] = "near.nii.gz"
+    assert load_manifest(_write(tmp_path, data)).n_images == 5
+
+
+# ----------------------------------------------------------------------------- item 7
+
+
+@pytest.mark.parametrize("value", [0.0, 37.5])
+def test_a_constant_image_is_refused(tmp_path, capsys, value):
+    data = _cohort(tmp_path)
+    flat = np.full(SIZE_3D[::-1], value, np.float32)
+    sitk.WriteImage(_on_grid(flat), str(tmp_path / "img2.nii.gz"))
+    message = _manifest_error(_write(tmp_path, data))
+    assert "images[2]" in message and "img2.nii.gz" in message
+    assert f"every voxel is {value:g}" in message
+    _refused(tmp_path, capsys, "images[2]", "img2.nii.gz", f"every voxel is {value:g}")
+
+
+def test_non_finite_and_constant_images_and_others_are_reported_at_once(tmp_path, capsys):
+    data = _cohort(tmp_path, n=6)
+    arr, _ = _subject_arrays(1)
+    arr[2, 3:5, 4] = np.nan
+    sitk.WriteImage(_on_grid(arr), str(tmp_path / "img1.nii.gz"))
+    arr, _ = _subject_arrays(3)
+    arr[0, 0, 0] = np.inf
+    sitk.WriteImage(_on_grid(arr), str(tmp_path / "img3.nrrd"))  # not NIfTI: read by ITK
+    data["images"][3] = "img3.nrrd"
+    sitk.WriteImage(_on_grid(np.zeros(SIZE_3D[::-1], np.int16)), str(tmp_path / "img5.nii.gz"))
+    data["registrations"]["identity"]["transforms"][2] = "gone.tfm"  # a header-level problem
+    message = _manifest_error(_write(tmp_path, data))
+    assert "4 problems" in message, message
+    for fragment in ("img1.nii.gz", "img3.nrrd", "NaN or infinite", "img5.nii.gz", "gone.tfm"):
+        assert fragment in message, (fragment, message)
+    _refused(tmp_path, capsys, "4 problems", "img1.nii.gz", "img3.nrrd", "img5.nii.gz")
+
+
+def test_evaluation_images_are_checked_as_images(tmp_path):
+    data = _cohort(tmp_path)
+    data["evaluation_images"] = list(data["images"])
+    sitk.WriteImage(_on_grid(np.zeros(SIZE_3D[::-1], np.float32)), str(tmp_path / "t2.nii.gz"))
+    data["evaluation_images"][4] = "t2.nii.gz"
+    message = _manifest_error(_write(tmp_path, data))
+    assert "evaluation_images[4]" in message and "t2.nii.gz" in message
+
+
+def test_two_images_are_too_few_for_a_model_and_said_upfront(tmp_path, capsys):
+    data = _cohort(tmp_path, n=2)
+    message = _manifest_error(_write(tmp_path, data))
+    assert "2 images" in message and "at least 3" in message
+    _refused(tmp_path, capsys, "2 images", "at least 3")
+
+
+# ----------------------------------------------------------------------------- item 8
+
+
+def test_negative_label_values_are_refused(tmp_path, capsys):
+    data = _cohort(tmp_path)
+    _, lab = _subject_arrays(2)
+    lab[lab == 3] = -3
+    sitk.WriteImage(_on_grid(lab), str(tmp_path / "lab2.nii.gz"))
+    message = _manifest_error(_write(tmp_path, data))
+    assert "labels[2]" in message and "lab2.nii.gz" in message and "negative" in message
+    assert "-3" in message
+    _refused(tmp_path, capsys, "labels[2]", "lab2.nii.gz", "negative")
+
+
+def test_a_label_of_one_subject_only_is_warned_about_not_refused(tmp_path, capsys):
+    data = _cohort(tmp_path)
+    _, lab = _subject_arrays(3)
+    lab[5:7, 2:4, 10:12] = 9  # a lesion, say: legitimate, but it lowers the overlap
+    sitk.WriteImage(_on_grid(lab), str(tmp_path / "lab3.nii.gz"))
+    path = _write(tmp_path, data)
+    with pytest.warns(UserWarning, match=r"label 9 is only in labels\[3\] lab3\.nii\.gz"):
+        load_manifest(path)
+    out = tmp_path / "out"
+    args = ["evaluate", str(path), "--out", str(out), "--samples", "200", "--quiet"]
+    code, err = run_cli([*args, "--no-figures", "--no-confidence"], capsys)
+    assert code == 0, err
+    found = [w for w in warnings_of(err) if "label 9" in w]
+    assert len(found) == 1, err
+    assert found[0].startswith("nrreval evaluate: warning: ")
+    assert "lab3.nii.gz" in found[0]
+
+
+def test_a_label_of_one_subject_with_several_images_is_that_subjects(tmp_path):
+    """With ``subjects``, a label in both images of one subject is still one subject's."""
+    data = _cohort(tmp_path, n=6)
+    data["subjects"] = ["a", "a", "b", "b", "c", "c"]
+    for i in (0, 1):
+        _, lab = _subject_arrays(i)
+        lab[5:7, 2:4, 10:12] = 9
+        sitk.WriteImage(_on_grid(lab), str(tmp_path / f"lab{i}.nii.gz"))
+    with pytest.warns(UserWarning, match=r"label 9 is only in subject 'a'"):
+        load_manifest(_write(tmp_path, data))
+
+
+@pytest.mark.parametrize("how", ["moved", "labels-moved-on-a-larger-grid"])
+def test_a_label_map_30_mm_off_its_image_is_refused(tmp_path, capsys, how):
+    data = _cohort(tmp_path)
+    _, lab = _subject_arrays(2)
+    if how == "moved":
+        moved = np.asarray(ORIGIN_3D) + 30.0 * DIRECTION_3D[:, 0]  # 30 mm along the image's x
+        off = _on_grid(lab, origin=tuple(moved))
+    else:  # a grid 25 voxels (30 mm) wider on each side in x, the labels in its left part
+        wide = np.zeros((SIZE_3D[2], SIZE_3D[1], SIZE_3D[0] + 50), np.int16)
+        wide[..., : SIZE_3D[0]] = lab
+        moved = np.asarray(ORIGIN_3D) - 25 * SPACING_3D[0] * DIRECTION_3D[:, 0]
+        off = _on_grid(wide, origin=tuple(moved))
+    sitk.WriteImage(off, str(tmp_path / "lab2.nii.gz"))
+    message = _manifest_error(_write(tmp_path, data))
+    assert "labels[2]" in message and "lab2.nii.gz" in message and "images[2]" in message
+    assert "np." not in message
+    _refused(tmp_path, capsys, "labels[2]", "lab2.nii.gz", "outside")
+
+
+def test_a_label_map_at_another_resolution_on_the_same_field_of_view_is_accepted(tmp_path):
+    data = _cohort(tmp_path)
+    _, lab = _subject_arrays(2)
+    fine = _on_grid(lab)
+    # 2 x 1.5 x 1.6 times coarser, its first voxel's centre where ITK's shrink puts it
+    spacing = np.array(SPACING_3D) * (2.0, 1.5, 1.6)
+    size = np.ceil(np.array(SIZE_3D) * SPACING_3D / spacing).astype(int)
+    origin = np.asarray(ORIGIN_3D) + DIRECTION_3D @ ((spacing - SPACING_3D) / 2)
+    coarse = sitk.Resample(
+        fine, size.tolist(), sitk.Transform(), sitk.sitkNearestNeighbor, origin.tolist(),
+        spacing.tolist(), DIRECTION_3D.reshape(-1).tolist(), 0, sitk.sitkInt16,
+    )  # fmt: skip
+    sitk.WriteImage(coarse, str(tmp_path / "lab2.nii.gz"))
+    # and one on a larger (padded) grid: its extent is not on the image, its labels are
+    padded = sitk.ConstantPad(_on_grid(_subject_arrays(4)[1]), [6, 6, 3], [6, 6, 3], 0)
+    sitk.WriteImage(padded, str(tmp_path / "lab4.nii.gz"))
+    # and an image cropped after labelling (8 columns of x gone): its labels reach past it
+    image = sitk.ReadImage(str(tmp_path / "img3.nii.gz"))
+    cropped = sitk.RegionOfInterest(image, [SIZE_3D[0] - 8, *SIZE_3D[1:]], [0, 0, 0])
+    sitk.WriteImage(cropped, str(tmp_path / "img3.nii.gz"))
+    assert load_manifest(_write(tmp_path, data)).n_images == 5
+
+
+# ----------------------------------------------------------------------------- item 14
+
+
+def test_a_mask_off_the_grid_is_named_with_plain_numbers(tmp_path, capsys):
+    data = _cohort(tmp_path)
+    mask = _on_grid(
+        np.ones(SIZE_3D[::-1], np.uint8), origin=(ORIGIN_3D[0] + 5000.0, *ORIGIN_3D[1:])
+    )
+    sitk.WriteImage(mask, str(tmp_path / "mask.nii.gz"))
+    data["mask"] = "mask.nii.gz"
+    _write(tmp_path, data)
+    err = _refused(tmp_path, capsys, "mask.nii.gz", "grid", "origin (4938.5, 14.25, 103.0)")
+    assert "np." not in err
+
+
+def test_a_seed_that_is_not_an_integer_is_an_input_error_naming_it():
+    import itk_nrreval as nr
+
+    images = np.random.default_rng(0).normal(size=(5, 6, 7))
+    for seed in ("abc", 1.5, -1, True, 2**63, None):
+        with pytest.raises(InputError, match=r"^seed must be an integer in \[0, 2\*\*63\), got"):
+            nr.specificity(images, n_samples=50, seed=seed)
+        with pytest.raises(InputError, match=r"^seed"):
+            nr.compare_specificity(images, images[::-1], n_samples=50, seed=seed)
+    assert nr.specificity(images, n_samples=50, seed=np.int64(3)).n_samples == 50
