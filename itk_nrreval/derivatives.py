@@ -388,23 +388,50 @@ def manifest_from_derivatives(
         # a subject's sessions are one subject: the jackknife leaves them out together
         **({"subjects": [f"sub-{k[0]}" for k in kept]} if any(k[1] for k in kept) else {}),
         **({"mask": str(Path(mask).absolute())} if mask is not None else {}),
-        "registrations": {
-            f.name: {
-                "reference": str(ref),
-                # every folder's template images are on one grid in one space (checked by
-                # _references): the frames are the same, not to be estimated
-                **({"frame_transform": IDENTITY_FRAME} if i > 0 else {}),
-                "transforms": [str(r[k]) for k in kept],
-                "parameters": {
-                    "generated_by": f.generated_by or None,
-                    "folder": str(f.root),
-                    "space": space_name,
-                },
+        # every folder's template images are on one grid in one space (checked by
+        # _references): the frames are the same
+        "registrations": _in_one_frame(
+            {
+                f.name: {
+                    "reference": str(ref),
+                    "transforms": [str(r[k]) for k in kept],
+                    "parameters": {
+                        "generated_by": f.generated_by or None,
+                        "folder": str(f.root),
+                        "space": space_name,
+                    },
+                }
+                for f, r, ref in zip(scanned, registered, references, strict=True)
             }
-            for i, (f, r, ref) in enumerate(zip(scanned, registered, references, strict=True))
-        },
+        ),
     }
     return load_manifest(data)
+
+
+def _in_one_frame(registrations: dict[str, dict]) -> dict[str, dict]:
+    """Manifest entries of registrations whose references lie in one space on one grid: the
+    first is the common frame, and every other one's frame is that frame itself
+    (``frame_transform: identity``), not to be estimated.
+
+    An estimate of a frame that is the common frame can only be worse than the identity:
+    its error would change the scores of a registration that is not at fault.
+
+    Parameters
+    ----------
+    registrations : dict
+        Name -> entry (``reference``, ``transforms``, ...), the common frame first; the
+        caller has made sure the references share the space and the grid (one file, or
+        images on the same grid).
+
+    Returns
+    -------
+    dict
+        The entries, every one after the first with ``frame_transform: identity``.
+    """
+    return {
+        name: {**entry, "frame_transform": IDENTITY_FRAME} if i > 0 else entry
+        for i, (name, entry) in enumerate(registrations.items())
+    }
 
 
 def _references(
@@ -470,7 +497,10 @@ def _matches(pattern: str, tail: str = "", *, what: str) -> dict[tuple, list[tup
     label (what the wildcards matched): label -> [(path, tail's groups)]."""
     pattern = os.path.expanduser(pattern)
     if not any(c in pattern for c in "*?["):
-        raise InputError(f"{what} {pattern}: no * in the pattern to stand for the subject")
+        raise InputError(
+            f"{what} {pattern}: no * in the pattern to stand for the subject (quote the "
+            "pattern: the shell replaces an unquoted one by the files it matches)"
+        )
     regex = re.compile(_pattern_regex(pattern.rstrip("/")) + tail + "/?$")
     n_wild = re.compile(_pattern_regex(pattern.rstrip("/"))).groups
     out: dict[tuple, list] = {}
@@ -570,7 +600,8 @@ def manifest_from_transforms(
     -------
     Manifest
         Subjects in label order; registrations in the order given, ANTs first; the first is
-        the common frame.
+        the common frame, and the others, registered to the same reference, are in it
+        (``frame_transform: identity``), so no frame is estimated.
 
     Raises
     ------
@@ -634,12 +665,16 @@ def manifest_from_transforms(
         "images": [str(image_of[k]) for k in kept],
         **({"labels": label_files} if label_files else {}),
         **({"mask": str(Path(mask).absolute())} if mask is not None else {}),
-        "registrations": {
-            name: {
-                "reference": str(Path(reference).absolute()),
-                "transforms": [[str(p) for p in chains[k]] for k in kept],
+        # every subject was registered to the one reference: every registration's frame
+        # is the first one's
+        "registrations": _in_one_frame(
+            {
+                name: {
+                    "reference": str(Path(reference).absolute()),
+                    "transforms": [[str(p) for p in chains[k]] for k in kept],
+                }
+                for name, chains in registrations.items()
             }
-            for name, chains in registrations.items()
-        },
+        ),
     }
     return load_manifest(data)

@@ -57,6 +57,7 @@ from ._images import (
     source_kind,
     to_sitk_image,
 )
+from ._itk_hdf5 import check_file as check_hdf5_file
 from ._itk_hdf5 import read_pieces as read_hdf5_pieces
 from ._output import atomic_path
 
@@ -389,7 +390,9 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
         (:func:`itk_nrreval._elastix_files.read_elastix_transform`); ``.nii.gz`` / ``.nii``
         / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
         fields. An in-memory transform is returned as is; a manifest's transform object
-        (:class:`InMemoryTransform`) gives its transform.
+        (:class:`InMemoryTransform`) gives its transform. An HDF5 file is first checked
+        with h5py (:func:`itk_nrreval._itk_hdf5.check_file`): one HDF5 cannot read is
+        refused without HDF5's error stack on stderr.
 
     Returns
     -------
@@ -430,6 +433,11 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
         if not _finite(t):
             raise InputError(f"{path}: transform contains NaN or infinite values")
         return t
+    if suffix in (".h5", ".hdf5"):
+        try:  # before ITK, whose HDF5 library would print its error stack on stderr
+            check_hdf5_file(path)
+        except ValueError as exc:
+            raise InputError(f"{path}: cannot read transform ({exc})") from None
     try:
         if suffix in TRANSFORM_SUFFIXES:
             signature = _file_signature(path)  # before reading: a later change gets a new one

@@ -8,6 +8,8 @@ are described in :mod:`itk_nrreval.derivatives`.
 from __future__ import annotations
 
 import argparse
+import os
+import string
 
 
 def add_parser(sub) -> None:
@@ -86,7 +88,10 @@ def manifest_of(args: argparse.Namespace):
 
     pipelines = bool(getattr(args, "ants", None) or getattr(args, "elastix", None))
     if args.derivatives and pipelines:
-        raise InputError("give derivatives folders, or --ants/--elastix with --images, not both")
+        raise InputError(
+            _shell_expanded(args)
+            or "give derivatives folders, or --ants/--elastix with --images, not both"
+        )
     if args.derivatives:
         given = [o for o in ("images", "labels", "reference") if getattr(args, o, None) is not None]
         if given:
@@ -115,6 +120,57 @@ def manifest_of(args: argparse.Namespace):
         labels=args.labels,
         mask=args.mask,
     )
+
+
+#: The options given as patterns, with an example of each for the messages.
+_PATTERNS = {
+    "images": "img/sub-*_T1w.nii.gz",
+    "labels": "lab/sub-*_dseg.nii.gz",
+    "ants": "out/sub-*_",
+    "elastix": "out/sub-*/",
+}
+
+
+def _shell_expanded(args: argparse.Namespace) -> str | None:
+    """The message for a pattern the shell expanded, or None.
+
+    An unquoted ``--images img/sub-*_T1w.nii.gz`` reaches nrreval as the files it matches:
+    the first is the option's value, the others are taken for derivatives folders. Such a
+    value has no wildcard (a pattern needs one), and the arguments after it lie in its
+    folder.
+    """
+    after = args.derivatives
+
+    def folder(path: str) -> str:
+        return os.path.dirname(os.path.normpath(path))
+
+    for option, example in _PATTERNS.items():
+        values = getattr(args, option, None) or []
+        for value in [values] if isinstance(values, str) else values:
+            name, pattern = _named([value])[0]
+            if any(c in pattern for c in "*?[") or folder(pattern) != folder(after[0]):
+                continue
+            paths = [pattern, *(p for p in after if folder(p) == folder(pattern))]
+            shown = f"{'' if name is None else name + '='}{_as_pattern(paths) or example}"
+            return (
+                f"--{option} {value} {after[0]} ...: looks like a pattern your shell expanded "
+                f"into {len(paths)} paths; quote it, e.g. --{option} '{shown}'"
+            )
+    return None
+
+
+_WORD = string.ascii_letters + string.digits
+
+
+def _as_pattern(paths: list[str]) -> str | None:
+    """The pattern `paths` (two or more) probably came from: their common start and end,
+    cut back to a word's boundary, around a ``*`` (``img/sub-01_T1w.nii.gz``,
+    ``img/sub-02_T1w.nii.gz`` -> ``img/sub-*_T1w.nii.gz``); None when they overlap."""
+    start = os.path.commonprefix(paths).rstrip(_WORD)
+    end = os.path.commonprefix([p[::-1] for p in paths])[::-1].lstrip(_WORD)
+    if len(start) + len(end) >= min(len(p) for p in paths):
+        return None
+    return f"{start}*{end}"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -78,7 +78,13 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--name",
-        help="registration name in the manifest (default: the method; multimodal-STRATEGY)",
+        help="registration name in the manifest (default: the method; multimodal-STRATEGY); "
+        "a name the manifest has already is refused, unless --replace",
+    )
+    p.add_argument(
+        "--replace",
+        action="store_true",
+        help="replace the manifest's registration of that name with this one",
     )
     p.add_argument(
         "--seed", type=seed, default=0, metavar="S", help="random seed (default %(default)s)"
@@ -102,6 +108,13 @@ def run(args: argparse.Namespace) -> int:
     # --images may come in any order (a shell glob lists s00_t1 s00_t2 s01_t1 ...): they are
     # registered, named and recorded in the manifest's order, which its groups follow.
     order = None if old is None else order_as_in_manifest(args.images, old, what="--images")
+    name = _registration_name(args)
+    if old is not None and name in old.registrations and not args.replace:
+        # the registration it names may be hours of work, its transforms listed nowhere else
+        raise InputError(
+            f"{manifest}: has a registration named {name!r} already; give another --name, "
+            "or --replace to replace it (nothing was written)"
+        )
     images = list(args.images) if order is None else [args.images[k] for k in order]
     if args.method == "multimodal":
         result = _register_multimodal(args, manifest, old, images, order)
@@ -127,12 +140,6 @@ def run(args: argparse.Namespace) -> int:
         "transforms": [out / p.name for p in staged["transforms"]],
     }
     multimodal = args.method == "multimodal"
-    if args.name:
-        name = args.name
-    elif multimodal:  # the two strategies side by side in one manifest by default
-        name = f"multimodal-{result.strategy}"
-    else:
-        name = f"{args.method}-{args.reference_choice}" if args.reference_choice else args.method
     add_registration(
         manifest,
         name,
@@ -154,6 +161,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 _MULTIMODAL_ONLY = ("strategy", "groups", "reference_group")
+
+
+def _strategy(args: argparse.Namespace) -> str:
+    """``--strategy``, or the first of :data:`STRATEGIES` (the default)."""
+    from ..registration import STRATEGIES
+
+    return args.strategy or STRATEGIES[0]
+
+
+def _registration_name(args: argparse.Namespace) -> str:
+    """The registration's name in the manifest: ``--name``, or one from the method."""
+    if args.name:
+        return args.name
+    if args.method == "multimodal":  # the two strategies side by side in one manifest
+        return f"multimodal-{_strategy(args)}"
+    return f"{args.method}-{args.reference_choice}" if args.reference_choice else args.method
 
 
 def _register_multimodal(
@@ -191,7 +214,7 @@ def _register_multimodal(
     return register_multimodal(  # an EngineError becomes one line and exit code 1
         images,
         groups,
-        strategy=args.strategy or "joint",
+        strategy=_strategy(args),
         engine=args.engine,
         reference_group=args.reference_group,
         seed=args.seed,

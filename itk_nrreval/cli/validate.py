@@ -126,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--slice needs 3D data: add --dim 3 to --synthetic")
     if args.manifest and args.dim is not None:
         raise InputError("--dim applies to --synthetic only (a manifest has its own)")
-    inputs = load_manifest(args.manifest).files if args.manifest else ()
+    manifest = load_manifest(args.manifest) if args.manifest else None
+    inputs = manifest.files if manifest is not None else ()
     out = check_output_folder(args.out, inputs=inputs)
     weightings = tuple(args.weighting) if args.weighting else ("complexity", "inverse_volume")
     options = dict(
@@ -152,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         source = str(args.manifest)
+        # a manifest may list several registrations: the one whose registered images are
+        # perturbed is the common frame's, said before the (long) run
+        perturbed = manifest.common_frame
+        print(f"perturbing registration {perturbed!r} (the common frame) of {source}", flush=True)
         result = validate_manifest(args.manifest, section=args.slice, source=source, **options)
     with staged_folder(out, keep=()) as stage:
         paths = [out / p.name for p in result.write(stage)]
