@@ -26,10 +26,15 @@ Each measure is compared with the cohort by a robust z-score, ``z = (x - median)
 MAD)`` over the subjects (the median and MAD of a normal sample estimate its mean and
 standard deviation, and a few failed subjects barely move them); scale-like measures
 (distances, SDlogJ, displacement, inverse consistency) are compared on the log scale, where
-their spread is about symmetric. :class:`itk_nrreval.plausibility.SubjectThresholds` says
-when a subject is flagged, and a common cause of failure that explains the flags is named
-in words (the diagnosis): left off the common grid, duplicated image, mirrored, stopped
-early / affine only, scaled displacements.
+their spread is about symmetric. Each z-score's scale has a floor in its measure's units
+(a tenth of a mm for lengths, 0.01 for SDlogJ and the overlap, 1% of the median model
+distance: :func:`robust_z`'s `least_spread`), so a cohort that barely varies never makes
+a departure too small to matter infinitely many standard deviations; and an
+inverse-consistency error below a tenth of a mm counts as a tenth of a mm.
+:class:`itk_nrreval.plausibility.SubjectThresholds` says when a subject is flagged, and a
+common cause of failure that explains the flags is named in words (the diagnosis): left off
+the common grid, duplicated image, mirrored, stopped early / affine only, scaled
+displacements.
 
 Two causes need images resampled through changed transforms, and are looked for among the
 flagged subjects only (:func:`transform_mixups`, at most :data:`MAX_MIXUP_SUBJECTS` of them,
@@ -76,16 +81,35 @@ _AFFINE_COHORT_MM = 1e-3
 
 #: Floors of the log-scale measures: values below are no variation at all (SDlogJ of a
 #: linear map), and are compared as the floor, in the z-scores and as the least median a
-#: subject is measured against. An inverse-consistency error below a hundredth of a mm is
-#: the numerical inverse's own: a smooth field, inverted pointwise, measures 1e-4 to 0.007
-#: mm (generated 2D cohorts; issue 30), which against a cohort median of 0.001 mm would be
-#: z-scores in the hundreds.
+#: subject is measured against. An inverse-consistency error below a tenth of a mm means
+#: nothing: a smooth field, inverted pointwise, measures 1e-4 to 0.007 mm (generated 2D
+#: cohorts; issue 30), and a B-spline registration's transforms a few hundredths of a mm
+#: (issue 44), all far below the 1-2 mm voxels of the images compared; at the floor of a
+#: hundredth of a mm that issue's cohort scored 16 of 36 such subjects z = +inf.
 _LOG_FLOORS = {
     "sdlogj": 1e-3,
     "nonlinear_rms_mm": 1e-3,
-    "inverse_consistency_mm": 1e-2,
+    "inverse_consistency_mm": 0.1,
     "frame_deviation_mm": 1e-3,
 }
+
+#: The least spread a z-score is taken over, in each measure's units: a cohort whose values
+#: lie closer together than this is as spread as this for its z-scores, so a departure far
+#: below any meaningful size is never many "standard deviations" (a MAD of 0, over half the
+#: cohort at one value, made every other subject z = +inf; issue 44). Lengths a tenth of a
+#: mm (a tenth of the voxel of 1 mm images, the finest here; the inverse-consistency floor
+#: above); SDlogJ 0.01 (log det J varying by 1%: a volume change of 1%, which no
+#: registration's quality turns on); the overlap 0.01 (the spread of a clean cohort's
+#: overlaps: 0.889 to 0.899 over the clean 3D cohorts of 12 at 2 mm, docs/subject-qc.md);
+#: the model distance, in intensity units of no known scale, 1% of the cohort's median.
+_LEAST_SPREAD = {
+    "sdlogj": 0.01,
+    "nonlinear_rms_mm": 0.1,
+    "inverse_consistency_mm": 0.1,
+    "frame_deviation_mm": 0.1,
+    "overlap": 0.01,
+}
+_LEAST_SPREAD_OF_SCORE = 0.01  # times the cohort's median model distance
 
 
 @dataclass(frozen=True)
@@ -167,8 +191,10 @@ class SubjectQC:
         }
 
 
-def robust_z(values, *, log: bool = False, floor: float = 0.0) -> np.ndarray:
-    """Robust z-scores over a cohort: ``(x - median) / (1.4826 MAD)``.
+def robust_z(
+    values, *, log: bool = False, floor: float = 0.0, least_spread: float = 0.0
+) -> np.ndarray:
+    """Robust z-scores over a cohort: ``(x - median) / max(1.4826 MAD, least spread)``.
 
     Parameters
     ----------
@@ -178,13 +204,18 @@ def robust_z(values, *, log: bool = False, floor: float = 0.0) -> np.ndarray:
         Score ``log(max(x, floor))`` instead of x (for positive, scale-like measures).
     floor : float
         With `log`, values below it are taken as it (must then be > 0).
+    least_spread : float
+        The least spread, in the units of `values`, the z-scores are taken over: the scale
+        is at least this (linear) or, with `log`, at least ``log(1 + least_spread / m)``,
+        ``m`` the median (in the units of `values`) or `least_spread` if larger -- the log
+        distance from the median to a value `least_spread` above it, at most ``log 2``.
 
     Returns
     -------
     ndarray of float, shape (n,)
-        When the MAD is 0 (over half of the cohort share one value), values at the median
-        score 0 and any other +-inf: a cohort that does not vary at all makes any departure
-        from it extreme.
+        Finite for finite values when `least_spread` > 0. With `least_spread` 0 and a MAD of
+        0 (over half of the cohort share one value), values at the median score 0 and any
+        other +-inf: a cohort that does not vary at all makes any departure from it extreme.
     """
     x = np.asarray(values, np.float64).copy()
     if log:
@@ -195,6 +226,12 @@ def robust_z(values, *, log: bool = False, floor: float = 0.0) -> np.ndarray:
         return z
     median = float(np.median(x[ok]))
     scale = MAD_TO_SD * float(np.median(np.abs(x[ok] - median)))
+    if least_spread > 0:
+        if log:
+            at = max(math.exp(median), least_spread)
+            scale = max(scale, math.log1p(least_spread / at))
+        else:
+            scale = max(scale, least_spread)
     if scale > 0:
         z[ok] = (x[ok] - median) / scale
     else:
@@ -358,11 +395,14 @@ def assess_subjects(
     * its log SDlogJ, log non-linear displacement or log inverse consistency has z >
       ``th.deformation_z`` and is above ``th.deformation_ratio`` times the cohort's median
       (or the measure's floor, when the median is below it: 0.001 for SDlogJ and mm of
-      displacement, 0.01 mm of inverse consistency);
+      displacement, 0.1 mm of inverse consistency);
     * its non-linear displacement is below ``th.affine_only_ratio`` times the cohort's
       median (when that median is above 0.001 mm);
     * its overlap has z < ``-th.overlap_z`` and its mismatch ``1 - overlap`` is above
       ``th.overlap_ratio`` times the cohort's median mismatch.
+
+    Every z-score's scale has a floor in its measure's units (:func:`robust_z`'s
+    `least_spread`: :data:`_LEAST_SPREAD`), so none is infinite.
 
     The diagnosis is the first that applies of: off the common grid; duplicated image;
     mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
@@ -430,7 +470,8 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
         # a duplicate is at distance 0 from the others' span: log of a tiny floor, not -inf
         tiny = max(float(np.max(dist)), 1.0) * 1e-12
         score[scored] = dist
-        z[scored] = robust_z(dist, log=True, floor=tiny)
+        least = _LEAST_SPREAD_OF_SCORE * float(np.median(dist))
+        z[scored] = robust_z(dist, log=True, floor=tiny, least_spread=least)
     nearest = {}
     if len(scored) >= 3:
         pairs = pair_distances(gram)
@@ -441,14 +482,14 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
             j = int(np.argmin(pairs[row]))
             ratio = pairs[row, j] / median_pair if median_pair > 0 else math.nan
             nearest[i] = (scored[j], ratio)
+    names = [name for name, _ in _DEFORMATION_FLAGS]
+    names += ["frame_deviation_mm"] if "frame_deviation_mm" in defo else []
     deformation_z = {
-        name: robust_z(defo[name], log=True, floor=_LOG_FLOORS[name])
-        for name, _ in _DEFORMATION_FLAGS
-    }
-    if "frame_deviation_mm" in defo:
-        deformation_z["frame_deviation_mm"] = robust_z(
-            defo["frame_deviation_mm"], log=True, floor=_LOG_FLOORS["frame_deviation_mm"]
+        name: robust_z(
+            defo[name], log=True, floor=_LOG_FLOORS[name], least_spread=_LEAST_SPREAD[name]
         )
+        for name in names
+    }
     medians = {name: _median(defo[name]) for name in defo}
     medians["coverage"] = float(np.median(cov))
     overlap = None
@@ -457,7 +498,7 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
         overlap = np.full(n_all, np.nan)
         values = subject_overlaps(*overlap_sums)
         overlap[scored] = values
-        overlap_z[scored] = robust_z(values)
+        overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"])
         medians["overlap"] = _median(overlap)
     return _Cohort(
         frozenset(scored), cov, defo, score, z, nearest, deformation_z, medians, overlap, overlap_z

@@ -144,8 +144,9 @@ def test_an_inverse_consistency_error_too_small_to_matter_flags_no_one(tmp_path)
 
 def test_a_clean_3d_cohort_of_12_flags_no_one(tmp_path):
     """2 mm voxels, N = 12: its overlaps with the others lie within 0.009 of each other, so
-    a subject 0.009 below the median has z = -7 without being any worse registered (the
-    true transforms); a flag needs the overlap to be materially lower too."""
+    a subject 0.009 below the median had z = -7 without being any worse registered (the
+    true transforms). Two guards: the overlap z-score's scale is at least 0.01 (issue 44),
+    and a flag needs the overlap to be materially lower too (the ratio)."""
     pop = make_population("phantom", dim=3, n=12, seed=17, size=32)
     clean, _ = write_damaged(pop, tmp_path, {3: "mirrored"})
     with warnings.catch_warnings():
@@ -154,9 +155,12 @@ def test_a_clean_3d_cohort_of_12_flags_no_one(tmp_path):
     subjects = result.scores["truth"].subjects
     overlaps = np.array([q.overlap for q in subjects])
     assert overlaps.max() - overlaps.min() < 0.02  # the premise: all alike
-    assert min(q.overlap_z for q in subjects) < -3.5  # ... yet far apart in z
+    assert min(robust_z(overlaps)) < -3.5  # ... yet far apart in z over their own MAD
+    z = np.array([q.overlap_z for q in subjects])
+    np.testing.assert_allclose(z, robust_z(overlaps, least_spread=0.01))
+    assert min(z) > -3.5  # over a spread of at least 0.01, they are not
     assert [q.flags for q in subjects] == [()] * 12
-    # the z alone (no ratio asked for) flags the subjects far below the others in z
+    # the z alone (no ratio asked for) flags only the subjects far below the others in z
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         z_alone = nr.evaluate(
@@ -513,3 +517,82 @@ def test_each_subjects_frame_estimate_deviation_is_reported(tmp_path):
     assert result.scores["shifted"].frame.spread_mean_mm == pytest.approx(
         np.mean(expected), abs=0.015
     )
+
+
+# ----------------------------------------------------------------------------- issue 44
+
+
+def _cohort_numbers(ic_mm, seed=0):
+    """One registration's per-subject numbers as assess_subjects takes them: a Gram matrix
+    of generated phantom images (the cohort's own texture), deformation measures of the
+    size a good registration has, and the inverse-consistency errors given."""
+    n = len(ic_mm)
+    pop = make_population("phantom", dim=2, n=n, seed=seed, size=32)
+    flat = np.stack([sitk.GetArrayFromImage(s.image).ravel() for s in pop.subjects])
+    centred = flat - flat.mean(axis=0)
+    rng = np.random.default_rng(seed)
+    deformation = {
+        "folded_fraction": [0.0] * n,
+        "sdlogj": list(0.1 * np.exp(0.2 * rng.standard_normal(n))),
+        "jacobian_min": [0.6] * n,
+        "jacobian_max": [1.6] * n,
+        "inverse_consistency_mm": list(ic_mm),
+        "linear_det": list(1 + 0.05 * rng.standard_normal(n)),
+        "nonlinear_rms_mm": list(2.0 * np.exp(0.2 * rng.standard_normal(n))),
+        "displacement_rms_mm": list(3.0 * np.exp(0.2 * rng.standard_normal(n))),
+    }
+    return dict(
+        images=[f"s{i:02d}.nii.gz" for i in range(n)],
+        scored=list(range(n)),
+        gram=centred @ centred.T,
+        deformation=deformation,
+        coverage=[1.0] * n,
+        thresholds=nr.SubjectThresholds(),
+    )
+
+
+def test_inverse_consistency_errors_far_below_a_voxel_are_no_flag_and_no_infinite_z():
+    """The issue's cohort: over half the subjects' inverse-consistency errors below a
+    hundredth of a mm, the others a few hundredths (16 of 36); the MAD was 0 and those 16
+    scored z = +inf and were flagged. Every z is finite now and none of them is flagged;
+    a subject off by 3 mm among them still is."""
+    from itk_nrreval.subject_qc import assess_subjects
+
+    rng = np.random.default_rng(1)
+    ic = np.concatenate([rng.uniform(0.001, 0.009, 20), rng.uniform(0.02, 0.09, 16)])
+    subjects = assess_subjects(**_cohort_numbers(ic))
+    z = np.array([q.deformation["inverse_consistency_z"] for q in subjects])
+    assert np.all(np.isfinite(z)), z
+    assert [q.flags for q in subjects] == [()] * len(ic)
+    ic[7] = 3.0  # a meaningful failure: 3 mm, where the others are below a tenth of a mm
+    subjects = assess_subjects(**_cohort_numbers(ic))
+    flagged = {q.index: q.flags for q in subjects if q.flags}
+    assert list(flagged) == [7] and "inverse-consistency error" in flagged[7][0]
+    assert "inf" not in flagged[7][0]
+    assert all(math.isfinite(q.deformation["inverse_consistency_z"]) for q in subjects)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    values=st.lists(st.one_of(st.just(0.005), st.floats(1e-4, 10.0)), min_size=1, max_size=40),
+    least=st.sampled_from([0.01, 0.1, 1.0]),
+    log=st.booleans(),
+)
+def test_a_robust_z_with_a_least_spread_is_finite_and_never_wider_than_it_allows(
+    values, least, log
+):
+    """With a least spread the z-scores are finite whatever the cohort (over half of it at
+    one value included); a departure d from the median in the measure's units is at most
+    d / least spread standard deviations (linear), or at most as many as the log distance
+    from the median to a value `least` above it allows (log); where the cohort's own
+    spread is wider, the z-scores are those without the floor."""
+    x = np.array(values)
+    z = robust_z(x, log=log, floor=1e-3, least_spread=least)
+    assert np.all(np.isfinite(z))
+    y = np.log(np.maximum(x, 1e-3)) if log else x
+    med = float(np.median(y))
+    mad_scale = 1.4826 * float(np.median(np.abs(y - med)))
+    floor_scale = math.log1p(least / max(math.exp(med), least)) if log else least
+    assert np.all(np.abs(z) <= np.abs(y - med) / floor_scale * (1 + 1e-9) + 1e-12)
+    if mad_scale > floor_scale:
+        np.testing.assert_allclose(z, robust_z(x, log=log, floor=1e-3), rtol=1e-12)
