@@ -64,9 +64,14 @@ __all__ = [
     "overlap_replicates",
     "compare",
     "probability_best",
+    "tie_groups",
+    "TIE_Z",
 ]
 
 LEVEL = 0.95
+
+#: A difference within this many combined standard errors is noise (two-sided 95%).
+TIE_Z = 1.96
 
 
 @dataclass(frozen=True)
@@ -492,3 +497,79 @@ def probability_best(
     best = np.argmax(draws, axis=1) if higher_is_better else np.argmin(draws, axis=1)
     counts = np.bincount(best, minlength=len(names))
     return {k: float(c) / n_draws for k, c in zip(names, counts, strict=True)}
+
+
+def tie_groups(
+    scores: Mapping[str, float],
+    *,
+    higher_is_better: bool,
+    stderr: Mapping[str, float] | None = None,
+    comparisons: Sequence[Comparison] = (),
+) -> list[tuple[str, ...]]:
+    """The registrations in order, best first, in groups whose scores are not told apart.
+
+    Parameters
+    ----------
+    scores : dict of str to float
+        One measure's score per registration.
+    higher_is_better : bool
+    stderr : dict of str to float, optional
+        Each score's standard error (same units as the scores), e.g. the Monte-Carlo
+        standard error of specificity. Missing or NaN: not used.
+    comparisons : sequence of Comparison
+        This measure's pairwise comparisons (:func:`compare`); a pair not among them is
+        judged by `stderr` alone.
+
+    Returns
+    -------
+    list of tuple of str
+        Best group first; NaN scores are in no group.
+
+    Notes
+    -----
+    A pair with a comparison is told apart exactly when the comparison is separable (its
+    subject-level 95% interval excludes 0): the verdict's test
+    (:func:`itk_nrreval.verdict.verdict`), so a rank never ties two registrations the
+    verdict may decide between by this measure, nor separates two it calls not separable.
+    A pair without one is tied when its scores are equal or
+    ``|a - b| <= 1.96 sqrt(se_a^2 + se_b^2)`` (:data:`TIE_Z`).
+
+    A group is a run in score order: every registration between two tied ones joins their
+    group, and ties chain, except across a separable pair: a group never holds two
+    registrations whose comparison is separable. A run ends before the first registration
+    separable from one already in it, or where nothing in it is tied with anything after
+    it. (Chaining across a separable pair tied two registrations that the verdict decided
+    between by this measure, 1.28x apart; issue 44.)
+    """
+    valid = {k: float(v) for k, v in scores.items() if not math.isnan(float(v))}
+    order = sorted(valid, key=lambda k: -valid[k] if higher_is_better else valid[k])
+    se = {k: float(v) for k, v in (stderr or {}).items() if v is not None and math.isfinite(v)}
+    separable = {frozenset((c.a, c.b)): c.separable for c in comparisons}
+
+    def tied(a: str, b: str) -> bool:
+        pair = frozenset((a, b))
+        if pair in separable:
+            return not separable[pair]
+        if valid[a] == valid[b]:
+            return True
+        if a in se and b in se:
+            return abs(valid[a] - valid[b]) <= TIE_Z * math.hypot(se[a], se[b])
+        return False
+
+    def last_tied(i: int) -> int:
+        """The last position tied with position i (i itself when none after it is)."""
+        return max((j for j in range(i + 1, len(order)) if tied(order[i], order[j])), default=i)
+
+    groups: list[tuple[str, ...]] = []
+    start = 0
+    while start < len(order):
+        end, reach = start, last_tied(start)
+        while end < reach:
+            nxt = order[end + 1]
+            if any(separable.get(frozenset((m, nxt)), False) for m in order[start : end + 1]):
+                break  # it is told apart from one in the run: it starts the next run
+            end += 1
+            reach = max(reach, last_tied(end))
+        groups.append(tuple(order[start : end + 1]))
+        start = end + 1
+    return groups

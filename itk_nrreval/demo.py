@@ -80,7 +80,8 @@ class DemoResult:
 def _table(evaluation: EvaluationResult, error: dict[str, float]) -> str:
     from .report import format_number, format_percent, format_rank
 
-    names = list(evaluation.scores)
+    # the verdict's order, as summary.md and report.html list them: one order everywhere
+    names = list(evaluation.verdict.ranking) if evaluation.verdict else list(evaluation.scores)
     err_rank = ranks(error, higher_is_better=False)
     err_rel = relative_ranks(error, higher_is_better=False)
     header = ["Registration"]

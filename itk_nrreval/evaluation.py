@@ -29,6 +29,7 @@ from ._memberships import LABEL_INTERPOLATIONS
 from ._output import check_output_folder, json_number, staged_folder
 from ._pipeline import Coverage, run_pipeline
 from ._progress import progress_bar
+from .confidence import TIE_Z as TIE_Z  # read from here before tie_groups moved there
 from .confidence import (
     Comparison,
     Interval,
@@ -39,6 +40,7 @@ from .confidence import (
     overlap_replicates,
     probability_best,
     specificity_replicates,
+    tie_groups,
 )
 from .frame import FrameMapping
 from .manifest import Manifest, load_manifest
@@ -459,74 +461,6 @@ class EvaluationResult:
 def higher_is_better(measure: str) -> bool:
     """Overlap measures: higher is better; specificity and generalization: lower is better."""
     return measure.startswith("overlap")
-
-
-#: A difference within this many combined standard errors is noise (two-sided 95%).
-TIE_Z = 1.96
-
-
-def tie_groups(
-    scores: Mapping[str, float],
-    *,
-    higher_is_better: bool,
-    stderr: Mapping[str, float] | None = None,
-    comparisons: Sequence[Comparison] = (),
-) -> list[tuple[str, ...]]:
-    """The registrations in order, best first, in groups whose scores are not told apart.
-
-    Parameters
-    ----------
-    scores : dict of str to float
-        One measure's score per registration.
-    higher_is_better : bool
-    stderr : dict of str to float, optional
-        Each score's standard error (same units as the scores), e.g. the Monte-Carlo
-        standard error of specificity. Missing or NaN: not used.
-    comparisons : sequence of Comparison
-        This measure's pairwise comparisons (:func:`itk_nrreval.confidence.compare`); a pair
-        not among them is judged by `stderr` alone.
-
-    Returns
-    -------
-    list of tuple of str
-        Best group first; NaN scores are in no group.
-
-    Notes
-    -----
-    Two registrations ``a``, ``b`` are tied when their difference is within noise:
-    ``|a - b| <= 1.96 sqrt(se_a^2 + se_b^2)`` (:data:`TIE_Z`), or their paired comparison
-    is not separable (its subject-level 95% interval includes 0, the verdict's test); equal
-    scores always are. A group is a run in score order: every registration between two tied
-    ones joins their group, and ties chain, so a group may span more than the noise between
-    its two ends -- a tie claims less than the data could show, never more.
-    """
-    valid = {k: float(v) for k, v in scores.items() if not math.isnan(float(v))}
-    order = sorted(valid, key=lambda k: -valid[k] if higher_is_better else valid[k])
-    se = {k: float(v) for k, v in (stderr or {}).items() if v is not None and math.isfinite(v)}
-    not_separable = {frozenset((c.a, c.b)) for c in comparisons if not c.separable}
-
-    def tied(a: str, b: str) -> bool:
-        if valid[a] == valid[b] or frozenset((a, b)) in not_separable:
-            return True
-        if a in se and b in se:
-            return abs(valid[a] - valid[b]) <= TIE_Z * math.hypot(se[a], se[b])
-        return False
-
-    # reach[i]: the last position in score order tied with position i or an earlier one
-    reach = list(range(len(order)))
-    for i, a in enumerate(order):
-        for j in range(i + 1, len(order)):
-            if tied(a, order[j]):
-                reach[i] = j
-        if i:
-            reach[i] = max(reach[i], reach[i - 1])
-    groups: list[tuple[str, ...]] = []
-    start = 0
-    for i in range(len(order)):
-        if reach[i] == i:  # nothing at or before i is tied with anything after it
-            groups.append(tuple(order[start : i + 1]))
-            start = i + 1
-    return groups
 
 
 def ranks(

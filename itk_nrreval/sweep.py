@@ -4,11 +4,12 @@ The paper's stated purpose is to "select the best method and tune any parameters
 ground truth. :func:`sweep` registers the same images once per setting of a grid over one
 method's options (for instance the demons smoothing, or the B-spline grid spacing), writes
 every registration into one manifest with its setting recorded, evaluates them side by side
-(:func:`itk_nrreval.evaluate`, same seed: common random numbers) and names the setting
-specificity prefers, with the settings it cannot separate from it (subject-level
-intervals). When the true transforms are known (generated data), the true correspondence
-error and its best setting are reported beside it, so one can see whether specificity
-chose well.
+(:func:`itk_nrreval.evaluate`, same seed: common random numbers) and recommends a setting
+only where the verdict (:mod:`itk_nrreval.verdict`) decides it better than every other
+setting and it is not flagged implausible; otherwise it recommends none, says why, and
+names the settings the verdict leaves open. When the true transforms are known (generated
+data), the true correspondence error and its best setting are reported beside it, so one
+can see whether the verdict chose well.
 
 Work is reused: the affine stage is computed once for all settings (and kept on disk), a
 setting whose registration is already in the output folder with the same options is not
@@ -89,17 +90,22 @@ class SweepResult:
         The manifest with every setting's registration.
     evaluation : EvaluationResult
         The side-by-side evaluation (``evaluation.verdict`` holds the ranking).
-    recommended : str
-        The verdict's choice (:func:`itk_nrreval.verdict.verdict`): with `decided`, the
-        setting decided better than every other; otherwise the one with the lowest
-        specificity among the open set.
+    recommended : str or None
+        The setting the verdict decides better than every other setting
+        (:func:`itk_nrreval.verdict.verdict`: ``verdict.decided``), when it is not flagged
+        implausible; None otherwise: then no setting is recommended, and `reason` says why.
+        (Recommending the lowest specificity of an open set recommended a setting the
+        verdict did not decide for, a flagged one included; issue 44.)
+    reason : str
+        Why `recommended` is recommended, or why no setting is, in words.
+    lowest_specificity : str
+        The setting with the lowest specificity among `not_separable`: what specificity
+        alone would pick there, not a recommendation.
     not_separable : tuple of str
         The open set: the settings no other setting is decided better than (the verdict's
-        ``best``), the recommended first. One setting when `decided`.
+        ``best``), lowest specificity first. One setting when the verdict decides the best.
     decided : bool
-        Whether the verdict decides the recommended setting better than every other; when
-        False, the evidence leaves `not_separable` open and the recommendation is only the
-        lowest specificity among them.
+        Whether a setting is recommended (`recommended` is not None).
     truth_error_mm : dict of str to float or None
         The true mean correspondence error per setting (mm; lower is better), when the
         true transforms were given.
@@ -117,7 +123,9 @@ class SweepResult:
     settings: tuple[SweepSetting, ...]
     manifest: Path
     evaluation: EvaluationResult = field(repr=False)
-    recommended: str
+    recommended: str | None
+    reason: str
+    lowest_specificity: str
     not_separable: tuple[str, ...]
     decided: bool
     truth_error_mm: dict[str, float] | None
@@ -147,6 +155,8 @@ class SweepResult:
             "parameters": {k: list(v) for k, v in self.parameters.items()},
             "manifest": str(self.manifest),
             "recommended": self.recommended,
+            "reason": self.reason,
+            "lowest_specificity": self.lowest_specificity,
             "not_separable": list(self.not_separable),
             "decided": self.decided,
             "best_by": dict(self.best_by),
@@ -653,19 +663,60 @@ def _summarise(method, parameters, settings, manifest, evaluation, truth_error) 
         best_by[_TRUTH_MEASURE] = min(names, key=lambda n: truth_error[n])
         spearman[_TRUTH_MEASURE] = _spearman(spec, [truth_error[n] for n in names])
     verdict = evaluation.verdict
+    recommended, reason = _recommendation(evaluation)
     return SweepResult(
         method=method,
         parameters=dict(parameters),
         settings=settings,
         manifest=manifest,
         evaluation=evaluation,
-        recommended=verdict.best[0],
+        recommended=recommended,
+        reason=reason,
+        lowest_specificity=verdict.best[0],
         not_separable=tuple(verdict.best),
-        decided=verdict.decided,
+        decided=recommended is not None,
         truth_error_mm=truth_error,
         best_by=best_by,
         spearman=spearman,
     )
+
+
+def _recommendation(evaluation: EvaluationResult) -> tuple[str | None, str]:
+    """The setting to recommend and why, or None and why none.
+
+    Only a setting the verdict decides better than every other setting, one by one, is
+    recommended, and never one flagged implausible (a flag is a warning, not a decision,
+    but a recommendation is a claim the warning would contradict).
+    """
+    verdict = evaluation.verdict
+    names = list(evaluation.scores)
+    top = verdict.best[0]
+    if verdict.decided:
+        flags = evaluation.scores[top].flags
+        if not flags:
+            return top, verdict.text[0]
+        return None, (
+            f"the verdict decides {top} better than every other setting, but {top} is "
+            f"flagged implausible ({'; '.join(flags)}): a flagged setting is not recommended"
+        )
+    if len(verdict.best) > 1:
+        among = [p for p in verdict.open_pairs if {p.a, p.b} <= set(verdict.best)]
+        why = f" ({among[0].a} and {among[0].b}: {among[0].reason})" if among else ""
+        return None, (
+            "the verdict decides no setting better than every other: it leaves "
+            f"{_join(verdict.best)} open, none decided better than these{why}"
+        )
+    beaten = {d.worse for d in verdict.decisions if d.better == top}
+    undecided = [n for n in names if n != top and n not in beaten]
+    return None, (
+        f"the verdict decides no setting better than every other: no setting is decided "
+        f"better than {top}, but neither is {top} decided better than {_join(undecided)}"
+    )
+
+
+def _join(names: Sequence[str]) -> str:
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
 def _csv(result: SweepResult) -> str:

@@ -30,6 +30,10 @@ decisions go round in a cycle (a > b > c > a by different evidence: one of them 
 wrong). A plausibility flag by itself decides nothing: on the benchmark a B-spline
 registration that folds 2.4% of its voxels had the best true error of its case, and
 "flagged after every unflagged registration" decided it wrong twice.
+
+Below :data:`MIN_SAMPLES` specificity samples the verdict decides nothing: every pair is
+open, and the text says that the scores have not converged (a small M stays legal for a
+quick try).
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ __all__ = [
     "EXCHANGE_RATE",
     "SEVERE_FOLDED_FRACTION",
     "NO_FOLDING_FRACTION",
+    "MIN_SAMPLES",
 ]
 
 EXCHANGE_RATE = 5.5
@@ -70,6 +75,23 @@ tears the image: decided worse than every registration that does not fold."""
 NO_FOLDING_FRACTION = 0.01
 """Below this mean folded fraction a registration counts as not folding (for the severe
 folding rule)."""
+
+MIN_SAMPLES = 1000
+"""The fewest specificity samples M with which the verdict decides anything.
+
+The subject-level intervals the verdict decides by share one set of samples across their
+replicates (common random numbers), so they leave out specificity's Monte-Carlo error,
+``CV / sqrt(M)`` of its value with CV the relative spread of one sample's distance to its
+nearest image: 0.13-0.27 on generated cohorts (phantom N = 12 and 36, MNI-based N = 12, a
+demons sweep of five settings; issue 44). At M = 1000 that error is at most 0.9% of the
+specificity, at most a fifth of its subject-level standard error there (2.3% at N = 36,
+6-10% at N = 12), so leaving it out narrows the intervals by 2% at most. At M = 100 it is
+up to 0.58 of the subject-level error at N = 36 (the intervals 16% too narrow), and at M =
+2 it exceeds it, while its own estimate is noise (CV estimated 0.01-0.26 from two samples).
+Generalization is further from converged: the nearest of M samples to each image comes
+closer as M grows, slowly in N - 1 dimensions (on the sweep above 14 at M = 2, 5.7 at
+1000, 3.4 at 100,000), so its value, and its interval, hold only for the M it was
+computed with; the verdict does not use it."""
 
 _SPECIFICITY = "specificity"
 _OVERLAP = "overlap.inverse_volume"
@@ -124,10 +146,11 @@ class Verdict:
     Attributes
     ----------
     ranking : tuple of str
-        Every registration, by level (first the registrations no other is decided better
-        than, then those only they are decided better than, ...), by specificity within a
-        level (lower first). Only the decided pairs are claims; the order within a level is
-        not one.
+        Every registration in the verdict's order: the better of every decided pair
+        before the worse (an order that extends the decisions), and where the decisions
+        leave a choice the lower specificity first (:func:`verdict_order`). Only the
+        decided pairs are claims; the order between registrations the decisions do not
+        order is not one. The reports list registrations in this order.
     best : tuple of str
         The registrations no other registration is decided better than, by specificity:
         one name where the evidence decides the best, more where it leaves them open.
@@ -166,6 +189,48 @@ def _join(names: Sequence[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
+def verdict_order(names: Sequence[str], decisions: Sequence[Decision], spec) -> tuple[str, ...]:
+    """The verdict's order: a linear order that extends the decided-better partial order.
+
+    Step by step, of the registrations that no remaining one is decided better than, the
+    one with the lowest specificity comes next (equal ones in the order of `names`). So
+    the better of every decided pair comes first, and a registration comes as early as the
+    decisions allow: it follows a worse-scoring one only where a decision puts a
+    registration it must follow after that one. (The order level by level of the decision
+    graph put a registration last in every measure above one that only waited for a
+    decision to clear; issue 44.)
+
+    Parameters
+    ----------
+    names : sequence of str
+    decisions : sequence of Decision
+        Acyclic (the verdict withdraws decisions on a cycle).
+    spec : mapping of str to float
+        Each registration's specificity (the tie-break; NaN last).
+
+    Returns
+    -------
+    tuple of str
+    """
+
+    position = {n: k for k, n in enumerate(names)}
+
+    def key(n: str) -> tuple:
+        v = float(spec[n])
+        return (math.isnan(v), 0.0 if math.isnan(v) else v, position[n])
+
+    remaining = list(names)
+    order: list[str] = []
+    while remaining:
+        blocked = {d.worse for d in decisions if d.better in remaining}
+        # every one blocked: a cycle (the verdict leaves none): the tie-break alone decides
+        free = [n for n in remaining if n not in blocked] or remaining
+        nxt = min(free, key=key)
+        order.append(nxt)
+        remaining.remove(nxt)
+    return tuple(order)
+
+
 def verdict(
     scores: Mapping[str, Any],
     comparisons: Sequence[Comparison],
@@ -193,6 +258,9 @@ def verdict(
     """
     names = list(scores)
     spec = {n: scores[n].specificity.value for n in names}
+    n_samples = min((int(scores[n].specificity.n_samples) for n in names), default=MIN_SAMPLES)
+    if n_samples < MIN_SAMPLES:
+        return _unconverged(scores, n_samples, has_labels)
     rough = {n: float(scores[n].plausibility.sdlogj) for n in names}
     folded = {n: float(scores[n].plausibility.folded_fraction) for n in names}
     overlap = {n: scores[n].measures().get(_OVERLAP, math.nan) for n in names}
@@ -226,7 +294,8 @@ def verdict(
         reason = f"the evidence contradicts itself: {d.better} > {d.worse} by {d.basis}, yet "
         open_pairs.append(OpenPair(a, b, reason + f"{d.worse} > {d.better} through others"))
 
-    ranking, best = _levels(names, decisions, spec)
+    ranking = verdict_order(names, decisions, spec)
+    best = _best(names, decisions, spec)
     text = _sentences(scores, best, decisions, open_pairs, has_labels, bool(comparisons))
     return Verdict(ranking, best, text, tuple(decisions), tuple(open_pairs))
 
@@ -373,22 +442,69 @@ def _decided_best(best, decisions, names) -> bool:
     return beaten == set(names) - {best[0]}
 
 
-def _levels(names, decisions, spec) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """Ranking by level of the decision graph (registrations no remaining one is decided
-    better than come first), by specificity within a level; and the first level."""
-    remaining = set(names)
-    ranking: list[str] = []
-    best: tuple[str, ...] = ()
-    while remaining:
-        level = [n for n in remaining if not any(
-            d.worse == n and d.better in remaining for d in decisions
-        )] or list(remaining)  # fmt: skip
-        level.sort(key=spec.get)
-        if not best:
-            best = tuple(level)
-        ranking += level
-        remaining -= set(level)
-    return tuple(ranking), best
+def _best(names, decisions, spec) -> tuple[str, ...]:
+    """The registrations no other is decided better than, by specificity (lower first)."""
+    beaten = {d.worse for d in decisions}
+    return tuple(n for n in verdict_order(names, (), spec) if n not in beaten)
+
+
+def _too_few_samples(n_samples: int) -> str:
+    return (
+        f"M = {n_samples:,} samples is below the minimum of {MIN_SAMPLES:,} for a verdict: "
+        "the scores have not converged"
+    )
+
+
+def _unconverged(scores, n_samples: int, has_labels: bool) -> Verdict:
+    """The verdict with too few specificity samples: every pair open, and why."""
+    names = list(scores)
+    spec = {n: scores[n].specificity.value for n in names}
+    reason = _too_few_samples(n_samples)
+    open_pairs = [
+        OpenPair(*sorted((a, b), key=spec.get), reason) for a, b in itertools.combinations(names, 2)
+    ]
+    ranking = verdict_order(names, (), spec)
+    if len(names) == 1:
+        return Verdict(ranking, ranking, (f"{names[0]} is the only registration.",), (), ())
+    text = [
+        f"Not decided: {reason} (rerun with at least {MIN_SAMPLES:,} specificity samples, "
+        "--samples or n_samples, for a verdict; the scores below are for a quick look).",
+        f"0 of {len(open_pairs)} pairs decided, {len(open_pairs)} open.",
+        *_closing(scores, names, has_labels),
+    ]
+    return Verdict(ranking, ranking, tuple(text), (), tuple(open_pairs))
+
+
+def _closing(scores, names, has_labels) -> list[str]:
+    """The verdict's last sentences: the highest overlap, and each flagged registration."""
+    text = []
+    if has_labels and all(_OVERLAP in scores[n].measures() for n in names):
+        value = {n: scores[n].measures()[_OVERLAP] for n in names}
+        top_o = max(names, key=lambda n: value[n])
+        text.append(f"Highest inverse-volume overlap (the ground-truth reference): {top_o}.")
+    for n in names:
+        if scores[n].flags:
+            text.append(
+                f"{n} is flagged: {'; '.join(scores[n].flags)}. A flag is a warning, not a "
+                "decision: only severe folding decides against it."
+            )
+    return text
+
+
+def _by_what(top: str, decisions) -> str:
+    """The measures by which `top` was decided better than each other registration, in
+    words: those every one of its decisions shares, or, when none is shared, each measure
+    with the registrations it decided (never a measure that decided only some of them as
+    if it decided all; issue 44)."""
+    mine = [d for d in decisions if d.better == top]
+    words = {d.worse: _basis_words(d.basis) for d in mine}
+    shared = sorted(set.intersection(*(set(w) for w in words.values())))
+    if shared:
+        return f"by {_join(shared)}"
+    by_basis: dict[str, list[str]] = {}
+    for d in mine:
+        by_basis.setdefault(" and ".join(_basis_words(d.basis)), []).append(d.worse)
+    return "; ".join(f"by {basis} over {_join(worse)}" for basis, worse in by_basis.items())
 
 
 def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> tuple[str, ...]:
@@ -398,11 +514,9 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
         return (f"{names[0]} is the only registration.",)
     top = best[0]
     if _decided_best(best, decisions, names):
-        bases = sorted(
-            {word for d in decisions if d.better == top for word in _basis_words(d.basis)}
-        )
         text.append(
-            f"{top} is best: decided better than every other registration (by {_join(bases)})."
+            f"{top} is best: decided better than every other registration "
+            f"({_by_what(top, decisions)})."
         )
     elif len(best) == 1:
         text.append(
@@ -426,14 +540,4 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
         )
     n_pairs = len(decisions) + len(open_pairs)
     text.append(f"{len(decisions)} of {n_pairs} pairs decided, {len(open_pairs)} open.")
-    if has_labels and all(_OVERLAP in scores[n].measures() for n in names):
-        value = {n: scores[n].measures()[_OVERLAP] for n in names}
-        top_o = max(names, key=lambda n: value[n])
-        text.append(f"Highest inverse-volume overlap (the ground-truth reference): {top_o}.")
-    for n in names:
-        if scores[n].flags:
-            text.append(
-                f"{n} is flagged: {'; '.join(scores[n].flags)}. A flag is a warning, not a "
-                "decision: only severe folding decides against it."
-            )
-    return tuple(text)
+    return tuple(text + _closing(scores, names, has_labels))

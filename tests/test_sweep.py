@@ -63,7 +63,7 @@ def test_sweep_writes_one_registration_per_setting_and_reuses_them(population, t
     for row in first["settings"]:
         assert row["specificity"] > 0 and 0 < row["overlap.inverse_volume"] <= 1
         assert row["true_correspondence_error_mm"] > 0
-    assert first["recommended"] in names and first["not_separable"][0] == first["recommended"]
+    assert set(first["not_separable"]) <= set(names)
     assert (out / "sweep.png").stat().st_size > 0
     _check_report(out, first)
     logs = {n: (out / "registrations" / n / "registration.json").stat().st_mtime_ns for n in names}
@@ -100,10 +100,12 @@ def _check_report(out, summary: dict) -> None:
     check_self_contained(page, raw)
     text = " ".join(" ".join(page.text).split())
     assert "<script" not in raw.lower()
+    _check_recommendation(out, summary, raw)
     rec = summary["recommended"]
-    head = "The verdict recommends" if summary["decided"] else "The verdict leaves open"
+    head = "The verdict recommends" if rec is not None else "No setting is recommended"
     verdict = text.index(head)
-    assert text.index(rec, verdict) < text.index("Every setting", verdict)
+    named = rec if rec is not None else summary["not_separable"][0]
+    assert text.index(named, verdict) < text.index("Every setting", verdict)
     assert "The truth's choice" in text
     truth_best = summary["best_by"]["true_correspondence_error_mm"]
     assert truth_best in text[verdict : text.index("Every setting", verdict)]
@@ -117,6 +119,30 @@ def _check_report(out, summary: dict) -> None:
     inner, inner_raw = parse(out / "evaluation" / "report.html")
     check_self_contained(inner, inner_raw)
     assert not list(out.glob(".*tmp*"))  # no temporary left behind
+
+
+def _check_recommendation(out, summary: dict, raw: str) -> None:
+    """A setting is recommended (sweep.json, the star in the page's table) exactly when the
+    evaluation's verdict (its results.json) decides it better than every other setting,
+    one by one, and it is not flagged; never otherwise (issue 26, issue 44)."""
+    import re
+
+    results = json.loads((out / "evaluation" / "results.json").read_text())
+    decided = {(d["better"], d["worse"]) for d in results["verdict"]["decisions"]}
+    names = [row["registration"] for row in summary["settings"]]
+    flagged = {n for n in names if results["registrations"][n]["plausibility"]["flags"]}
+    deserve = [
+        n for n in names if n not in flagged and all((n, m) in decided for m in names if m != n)
+    ]
+    assert summary["recommended"] == (deserve[0] if deserve else None)
+    assert summary["decided"] == bool(deserve)
+    assert summary["reason"]
+    starred = [
+        rid
+        for rid, cells in re.findall(r'<tr[^>]* id="(setting-[^"]+)"[^>]*>(.*?)</tr>', raw)
+        if "&#9733; recommended" in cells
+    ]
+    assert starred == ["setting-" + n.replace(":", "-") for n in deserve]
 
 
 @pytest.mark.parametrize(
@@ -163,3 +189,29 @@ def test_an_option_the_engine_cannot_honour_is_refused_before_any_registration(
         "--param bending_weight=0.5: pairwise options: bending_weight needs the elastix engine",
     )
     assert not (out / "registrations").exists()
+
+
+def test_a_flagged_setting_is_never_recommended_even_when_decided_best(tmp_path):
+    """The verdict decides `truth` better than every other registration; flagged
+    implausible (a flag the thresholds could raise on any setting), it is not recommended,
+    and the reason says so. Unflagged, it is."""
+    import dataclasses
+
+    from test_evaluate import make_case
+
+    from itk_nrreval.evaluation import verdict
+    from itk_nrreval.sweep import _recommendation
+
+    make_case(tmp_path)
+    result = nr.evaluate(tmp_path / "manifest.yaml", n_samples=3000, seed=2, progress=False)
+    assert result.verdict.decided and result.verdict.best == ("truth",)
+    assert _recommendation(result)[0] == "truth"
+    flag = "SDlogJ 0.90 is 3.0x the median of the registrations compared (0.30)"
+    scores = dict(result.scores)
+    scores["truth"] = dataclasses.replace(scores["truth"], flags=(flag,))
+    v = verdict(scores, result.comparisons, has_labels=True)
+    assert v.decided and v.best == ("truth",)  # a flag decides nothing
+    flagged = dataclasses.replace(result, scores=scores, verdict=v)
+    recommended, reason = _recommendation(flagged)
+    assert recommended is None
+    assert "truth" in reason and "flagged implausible" in reason and flag in reason

@@ -45,6 +45,7 @@ from ._plot import png_bytes
 from .evaluation_figures import figure_pngs, images_figure, jacobian_figure, subject_figure
 from .evaluation_text import (
     FLAGGED_SUBJECTS_SHOWN,
+    ORDER_WORDS,
     TABLE_OVERLAPS,
     TIES_WORDS,
     format_rank,
@@ -587,14 +588,15 @@ def report_html(result, *, figures: Mapping[str, bytes] | None = None) -> str:
             "verdict",
             "Verdict",
             f'<div class="verdict{" flagged" if flagged else ""}">{verdict}</div>'
-            f"<p>Ranking (by level of the decisions: first the registrations no other is "
-            f"decided better than; by specificity within a level): {ranking}</p>" + subjects,
+            "<p>The verdict's order (the better of every decided pair first; where the "
+            f"decisions leave a choice, the lower specificity first): {ranking}</p>" + subjects,
         ),
         (
             "scores",
             "Scores, with their legend",
-            "<p>Rows in the verdict's order. Each registration's name links to its section."
-            "</p>" + _scores_table(result, names, slugs) + _legend(result),
+            f"<p>{escape(ORDER_WORDS)} Each registration's name links to its section.</p>"
+            + _scores_table(result, names, slugs)
+            + _legend(result),
         ),
         ("figures", "Summary figures", _summary_figures(result, names, figures)),
         *[(slugs[n], f"Registration: {n}", _registration_section(result, n)) for n in names],

@@ -26,6 +26,7 @@ __all__ = [
     "FLAGGED_SUBJECTS_SHOWN",
     "TABLE_OVERLAPS",
     "TIES_WORDS",
+    "ORDER_WORDS",
     "format_rank",
     "frame_spread_words",
     "frame_spread_flagged",
@@ -59,13 +60,21 @@ def format_rank(result, measure: str, name: str) -> str:
 
 #: How the reports explain the relative rank and its ties (summary.md and report.html).
 TIES_WORDS = (
-    "Scores not told apart from noise are tied: in score order, neighbours whose difference "
-    "is within 1.96 combined standard errors (the Monte-Carlo s.e. for specificity; the "
-    "s.e. for generalization when no subject-level interval was computed) or whose "
-    "subject-level 95% interval of the difference includes 0 (not separable, as in the "
-    "verdict). Tied scores share the better rank, marked (tied), and one relative rank, "
-    "that of their mean, so a spread within the noise is never shown as the whole 0-100% "
-    "range; when every score is tied, all are 100%."
+    "Scores not told apart are tied: two registrations whose subject-level 95% interval "
+    "of the difference includes 0 (not separable: the verdict's test), or, where no such "
+    "interval was computed, whose difference is within 1.96 combined standard errors (the "
+    "Monte-Carlo s.e. for specificity, the s.e. for generalization). In score order, ties "
+    "chain through neighbours, but never across a separable pair: two registrations whose "
+    "difference is separable never share a rank. Tied scores share the better rank, marked "
+    "(tied), and one relative rank, that of their mean, so a spread within the noise is "
+    "never shown as the whole 0-100% range; when every score is tied, all are 100%."
+)
+
+#: How the reports say in which order they list the registrations (the verdict's).
+ORDER_WORDS = (
+    "Rows in the verdict's order: the better of every decided pair above the worse, and "
+    "where the decisions leave a choice, the lower specificity first (only the decided "
+    "pairs listed in results.json are claims; verdict.ranking there is this order)."
 )
 
 
@@ -172,9 +181,8 @@ def summary_table(result) -> str:
     o = result.options
     notes = [
         "",
-        f"Rows in the verdict's order (by level of its decisions, by specificity within a "
-        f"level: only the decided pairs listed in results.json are claims). Common "
-        f"frame: {result.common_frame}. Specificity and generalization: lower is better "
+        f"{ORDER_WORDS} Common frame: {result.common_frame}. Specificity and "
+        "generalization: lower is better "
         f"({o['distance'].upper()} distance in the model's parameter space, in the images' "
         f"intensity units; M = {o['n_samples']} samples, seed {o['seed']}); overlap: higher "
         "is better. 95% CI: subject-level interval (jackknife over the subjects: would the "
@@ -233,7 +241,9 @@ def subjects_summary(result) -> list[str]:
             f"Left out of every registration's scores (off the common grid): subject {names}.",
             "",
         ]
-    for name, s in result.scores.items():
+    order = list(result.verdict.ranking) if result.verdict is not None else list(result.scores)
+    for name in order:  # the order of the table above: the verdict's
+        s = result.scores[name]
         flagged = [q for q in s.subjects if q.flags]
         if not flagged:
             lines.append(f"- {name}: none of the {len(s.subjects)} subjects is flagged.")

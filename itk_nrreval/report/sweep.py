@@ -75,7 +75,7 @@ def sweep_figure(result, *, truth_measure: str):
 
     Subject-level 95% intervals as error bars (when computed; each title says when they are
     smaller than the markers or missing), flagged settings as red crosses, each measure's
-    best setting ringed, specificity's recommendation starred.
+    best setting ringed, the verdict's recommendation (when there is one) starred.
 
     Returns
     -------
@@ -118,7 +118,7 @@ def sweep_figure(result, *, truth_measure: str):
                     ax.plot(xv, yv, "x", color="red", ms=10, mew=2)
                 if result.best_by.get(measure) == s.name:
                     ax.plot(xv, yv, "o", mfc="none", mec="black", ms=13, mew=1.5)
-                if measure == "specificity" and s.name == result.recommended:
+                if measure == "specificity" and s.name == result.recommended:  # None: no star
                     ax.plot(xv, yv, "*", color="gold", mec="black", ms=15)
         ax.set_xlabel(first)
         if numeric and min(xs) > 0 and max(xs) / min(xs) >= 8:
@@ -145,8 +145,8 @@ def sweep_figure(result, *, truth_measure: str):
     fig.suptitle(
         f"{result.method} sweep (M = {o['n_samples']:,} specificity samples, N = "
         f"{result.evaluation.scores[result.settings[0].name].specificity.n_images} images): "
-        "ringed = best by each measure, star = specificity's choice, red x = flagged "
-        "implausible",
+        "ringed = best by each measure, star = the verdict's recommendation "
+        f"({result.recommended or 'none'}), red x = flagged implausible",
         fontsize=8,
     )
     return fig
@@ -196,24 +196,28 @@ def _overlaps(result) -> list[str]:
 
 
 def _verdict(result, slugs: Mapping[str, str], truth_measure: str) -> str:
-    """The verdict in words, in its box: the setting recommended or the open set, the open
-    pairs among them, the best by overlap and, with the truth, the truth's choice."""
+    """The verdict in words, in its box: the setting recommended, or why none is and the
+    open set; the open pairs among them, the best by overlap and, with the truth, the
+    truth's choice."""
     overlaps = _overlaps(result)
     rec = result.recommended
-    others = [n for n in result.not_separable if n != rec]
-    if result.decided:
+    if rec is not None:
         verdict = [
             f"<p><b>The verdict recommends {_link(slugs, rec)}</b> ({_values(result, rec)}): "
             "decided better than every other setting.</p>"
         ]
     else:
-        verdict = [
-            "<p><b>The verdict leaves open</b> "
-            + ", ".join(_link(slugs, n) for n in [rec, *others])
-            + f": no setting is decided better than these, and the evidence does not order "
-            f"them. {_link(slugs, rec)} ({_values(result, rec)}) has the lowest specificity "
-            "among them.</p>"
-        ]
+        # never a star for a setting the verdict did not decide for (issue 44): say why
+        verdict = [f"<p><b>No setting is recommended</b>: {escape(result.reason)}.</p>"]
+        if len(result.not_separable) > 1:
+            low = result.lowest_specificity
+            verdict.append(
+                "<p>The verdict leaves open "
+                + ", ".join(_link(slugs, n) for n in result.not_separable)
+                + f": no setting is decided better than these. {_link(slugs, low)} "
+                f"({_values(result, low)}) has the lowest specificity among them, which "
+                "alone decides nothing.</p>"
+            )
     candidates = set(result.not_separable)
     open_pairs = result.evaluation.verdict.open_pairs
     among = [p for p in open_pairs if {p.a, p.b} <= candidates]
@@ -233,18 +237,17 @@ def _verdict(result, slugs: Mapping[str, str], truth_measure: str) -> str:
     truth = result.truth_error_mm
     if truth is not None:
         best = result.best_by[truth_measure]
-        where = (
-            "the same setting"
-            if best == rec
-            else "in the open set"
-            if best in result.not_separable
-            else "a different setting"
-        )
+        if rec is not None:
+            where = "the same setting" if best == rec else "a different setting"
+            chosen = f"the verdict's choice has {format_number(truth[rec], 3)} mm"
+        else:
+            where = "in the open set" if best in result.not_separable else "not in the open set"
+            chosen = "the verdict recommends none"
         verdict.append(
             "<p><b>The truth's choice</b> (lowest true correspondence error): "
             f"{_link(slugs, best)}, "
-            f"{format_number(truth[best], 3)} mm, {where}; the verdict's choice has "
-            f"{format_number(truth[rec], 3)} mm. Spearman correlation over the settings "
+            f"{format_number(truth[best], 3)} mm, {where}; {chosen}. "
+            "Spearman correlation over the settings "
             "between specificity and the true error: "
             f"{format_number(result.spearman.get(truth_measure, math.nan), 3)} (1: the same "
             "order).</p>"
@@ -281,13 +284,7 @@ def _settings_table(result, slugs: Mapping[str, str], units: str) -> str:
         row += [value_ci(sc.measures()[m], sc.intervals.get(m)) for m in shown]
         if truth is not None:
             row.append(format_number(truth[st.name], 3))
-        row.append(
-            "&#9733; recommended"
-            if st.name == rec
-            else "not separable"
-            if st.name in result.not_separable
-            else "separably worse"
-        )
+        row.append(_verdict_says(result, st.name))
         row.append("; ".join(escape(f) for f in sc.flags) if sc.flags else "none")
         rows.append(row)
         classes.append("flagged" if sc.flags else "best" if st.name == rec else "")
@@ -321,13 +318,24 @@ def _settings_table(result, slugs: Mapping[str, str], units: str) -> str:
             ),
             (
                 "Verdict says",
-                "the recommended setting (&#9733;), the open set the verdict cannot order "
-                "(none decided better than them), and the rest.",
+                "&#9733; recommended: decided better than every other setting, and not "
+                "flagged (at most one, often none); open: no setting is decided better than "
+                "it; decided worse than: the settings the verdict decides better than it.",
             ),
             ("Flags", "physically implausible deformations: a warning, not a decision."),
         ]
     )
     return table + legend
+
+
+def _verdict_says(result, name: str) -> str:
+    """What the verdict says about one setting, for its row of the table."""
+    if name == result.recommended:
+        return "&#9733; recommended"
+    if name in result.not_separable:
+        return "open: none decided better"
+    better = [d.better for d in result.evaluation.verdict.decisions if d.worse == name]
+    return "decided worse than " + ", ".join(escape(b) for b in better)
 
 
 def _figures(figures: Mapping[str, bytes], specificity_figure: str) -> str:
@@ -336,8 +344,9 @@ def _figures(figures: Mapping[str, bytes], specificity_figure: str) -> str:
         specificity_figure: (
             "Each measure against the first swept option (other options as lines); error "
             "bars: subject-level 95% intervals where computed (the titles say when they are "
-            "smaller than the markers); ringed: the best by each measure; star: "
-            "specificity's choice; red cross: flagged implausible."
+            "smaller than the markers); ringed: the best by each measure; star: the "
+            "verdict's recommendation (none when it decides no setting better than every "
+            "other); red cross: flagged implausible."
         ),
         "mean_images.png": (
             "The mean image of every setting in the common frame, one grey scale, with the "
@@ -401,9 +410,9 @@ def sweep_report_html(
 ) -> str:
     """The text of ``report.html`` for a :class:`~itk_nrreval.sweep.SweepResult`.
 
-    The verdict in words first (the setting specificity recommends, the settings it cannot
-    separate from it, the best by overlap and, when the true transforms were known, by the
-    true correspondence error), then the table of every setting, the figures, the
+    The verdict in words first (the setting it recommends, or why none, and the settings it
+    leaves open, the best by overlap and, when the true transforms were known, by the true
+    correspondence error), then the table of every setting, the figures, the
     agreement between measures and the options. The evaluation's own ``report.html``
     (per-setting images and Jacobians) is in ``evaluation/`` beside it.
 
