@@ -567,3 +567,27 @@ def test_a_seed_that_is_not_an_integer_is_an_input_error_naming_it():
         with pytest.raises(InputError, match=r"^seed"):
             nr.compare_specificity(images, images[::-1], n_samples=50, seed=seed)
     assert nr.specificity(images, n_samples=50, seed=np.int64(3)).n_samples == 50
+
+
+def test_objects_in_memory_get_the_same_voxel_checks_as_files(tmp_path):
+    """A dict manifest mixing files and objects: the same image as a file and as an object
+    is one image listed twice (the cache's content digest is the same); a constant array
+    and an object with NaN are refused, named as the manifest names objects."""
+    data = _cohort(tmp_path)
+    data["images"][3] = sitk.ReadImage(str(tmp_path / "img1.nii.gz"))
+    flat = np.zeros(SIZE_3D[::-1], np.float32)
+    grid = {"spacing": SPACING_3D, "origin": ORIGIN_3D, "direction": DIRECTION_3D}
+    data["images"][2] = {"array": flat, **grid}
+    nan, _ = _subject_arrays(4)
+    nan[1, 2, 3] = np.nan
+    data["images"][4] = _on_grid(nan)
+    with pytest.raises(InputError) as info:
+        load_manifest(data, base_dir=tmp_path)
+    message = str(info.value)
+    assert message.startswith("manifest: 3 problems: "), message
+    assert "images[2]: the in-memory array is constant (every voxel is 0)" in message
+    assert (
+        "images[3]: the in-memory sitk.Image holds the same voxels on the same grid as "
+        "images[1] img1.nii.gz" in message
+    )
+    assert "images[4]: the in-memory sitk.Image: image contains NaN or infinite" in message
