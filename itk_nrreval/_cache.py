@@ -21,10 +21,17 @@ random change once in 4e9 and a burst of up to 32 bits never, at twice the speed
 cryptographic digest): an entry that fails (truncated, bit-flipped, missing file,
 unreadable JSON) is reported as absent and removed, so the caller recomputes it -- a
 corrupt entry is never trusted.
+
+Several runs may share one cache (a cluster's ``--cache``). A run marks the cache as in use
+(:meth:`DiskCache.in_use`) while it lasts; an entry it no longer needs is removed only while
+no other run uses the cache, so an entry another run has found is never pulled from under
+it. Removals held off that way are tried again when the run ends.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import functools
 import hashlib
 import json
@@ -33,7 +40,7 @@ import shutil
 import socket
 import uuid
 import zlib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -226,6 +233,67 @@ class DiskCache:
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
+        self._lease: Path | None = None  # this run's mark, while in_use
+        self._held_off: set[tuple[str, str]] = set()  # removals another run held off
+
+    @contextlib.contextmanager
+    def in_use(self) -> Iterator[DiskCache]:
+        """Mark the cache as used by this run until the block ends.
+
+        While another run's mark is alive, :meth:`remove` leaves entries in place (that run
+        may have found them and be about to read them); they are removed when this block
+        ends if this run is then alone. A mark is a file under ``.runs/`` locked (``flock``)
+        by its process: a process that dies releases it, and the next run removes the file.
+        """
+        runs = self.root / ".runs"
+        runs.mkdir(parents=True, exist_ok=True)
+        with self._gate():
+            lease = runs / f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex}"
+            fd = os.open(lease, os.O_CREAT | os.O_RDWR, 0o644)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        self._lease = lease
+        try:
+            yield self
+        finally:
+            held_off, self._held_off = self._held_off, set()
+            with self._gate():
+                if self._alone():
+                    for kind, key in sorted(held_off):
+                        if self._folder(kind, key).is_dir():
+                            self._discard(self._folder(kind, key))
+                lease.unlink(missing_ok=True)
+                os.close(fd)
+                self._lease = None
+
+    @contextlib.contextmanager
+    def _gate(self) -> Iterator[None]:
+        """Exclusive while a run registers its mark or removes entries (a few ms)."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.root / ".gate", os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            yield
+        finally:
+            os.close(fd)  # releases the lock
+
+    def _alone(self) -> bool:
+        """Whether no other run's mark is alive (under the gate); dead marks are removed."""
+        for mark in (self.root / ".runs").glob("*"):
+            if mark == self._lease:
+                continue
+            try:
+                fd = os.open(mark, os.O_RDWR)
+            except OSError:  # removed meanwhile by its run
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return False
+            else:
+                mark.unlink(missing_ok=True)  # its process is gone
+            finally:
+                os.close(fd)
+        return True
 
     def _folder(self, kind: str, key: str) -> Path:
         return self.root / kind / key[:2] / key
@@ -285,10 +353,19 @@ class DiskCache:
         return CacheEntry(folder, dict(meta or {}))
 
     def remove(self, kind: str, key: str) -> None:
-        """Remove an entry this package wrote, when no run needs it again (absent: nothing)."""
+        """Remove an entry this run no longer needs (absent: nothing).
+
+        While another run uses the cache (:meth:`in_use`), the entry stays: that run may
+        have found it already. It is tried again when this run's :meth:`in_use` ends.
+        """
         folder = self._folder(kind, key)
-        if folder.is_dir():
-            self._discard(folder)
+        if not folder.is_dir():
+            return
+        with self._gate():
+            if self._alone():
+                self._discard(folder)
+                return
+        self._held_off.add((kind, key))
 
     def remove_stale(self) -> int:
         """Remove temporary folders left by killed processes of this host; return how many.

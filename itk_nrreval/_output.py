@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import math
 import os
 import shutil
+import signal
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -38,8 +40,35 @@ def json_number(value: Any) -> Any:
 
 
 MARKER = ".nrreval-output.json"
-"""The record, inside every output folder the toolkit makes, of the entries it wrote there:
-the only entries a later run may replace."""
+"""The record, inside every output folder the toolkit makes, of the command that made it
+and the entries it wrote there: the only entries a later run of the same command may
+replace."""
+
+
+def _refuse_other_command(
+    folder: Path, given: str | os.PathLike, option: str, command: str
+) -> None:
+    """Refuse `folder` when its record says another command made it (or does not say which).
+
+    A rerun replaces what the same command wrote; another command's output -- a synth
+    folder's images, a register folder's transforms, hours of 3D work -- is never replaced.
+    """
+    from ._errors import InputError
+
+    if _read_record(folder) is None:
+        return
+    made_by = _record_command(folder)
+    if made_by == command:
+        return
+    who = (
+        f"`nrreval {made_by}`"
+        if made_by
+        else "an earlier nrreval version that did not record which command wrote it"
+    )
+    raise InputError(
+        f"{option} {given}: holds the output of {who}; `nrreval {command}` may replace only "
+        "its own output: choose another folder (nothing was written)"
+    )
 
 
 def check_output_folder(
@@ -48,12 +77,15 @@ def check_output_folder(
     inputs: Iterable[str | os.PathLike] = (),
     option: str = "--out",
     shared: bool = False,
+    command: str | None = None,
 ) -> Path:
     """Refuse, before any work, an output folder that cannot be one or could cost a file.
 
-    A folder is accepted when it does not exist yet, is empty, or was made by this toolkit
-    (it holds :data:`MARKER`; a rerun into it resumes). Writing into it later
-    (:func:`staged_folder`) replaces only the entries the record names.
+    A folder is accepted when it does not exist yet, is empty, or was made by the same
+    command of this toolkit (it holds :data:`MARKER` naming `command`; a rerun into it
+    resumes). Writing into it later (:func:`staged_folder`) replaces only the entries the
+    record names. A folder another command made (a ``synth`` folder given to ``evaluate``)
+    is refused: its files are that command's work, not this one's to replace.
 
     Parameters
     ----------
@@ -67,6 +99,9 @@ def check_output_folder(
     shared : bool, keyword-only
         Accept any folder that holds no input: for a folder whose writer touches only
         entries of its own naming (the per-image cache), which may hold other things.
+    command : str, keyword-only
+        The command that will write there (``"evaluate"``, ``"synth"``, ...); required
+        unless `shared`.
 
     Returns
     -------
@@ -78,10 +113,13 @@ def check_output_folder(
     ------
     InputError
         `path` is an existing file, holds or is an input, is a non-empty folder this toolkit
-        did not make, or is not writable (nor is its nearest existing parent).
+        did not make or another command made, or is not writable (nor is its nearest
+        existing parent).
     """
     from ._errors import InputError
 
+    if command is None and not shared:
+        raise TypeError("check_output_folder: command= is required for an output folder")
     given = Path(path)
     path = given.resolve()
     if path.exists() and not path.is_dir():
@@ -105,6 +143,8 @@ def check_output_folder(
             f"{option} {given}: a folder that nrreval did not make, and not empty; "
             "choose a new or empty folder (nothing was written)"
         )
+    if not shared and existing == path:
+        _refuse_other_command(path, given, option, command)
     return path
 
 
@@ -184,10 +224,83 @@ def _read_record(folder: Path) -> set[str] | None:
     return {e for e in entries if e and "/" not in e and e not in (".", "..", MARKER)}
 
 
-def _write_record(folder: Path, entries: Iterable[str]) -> None:
+def _record_command(folder: Path) -> str | None:
+    """The command the record of `folder` names as its writer (None: not named, as in the
+    records of versions before it was kept)."""
+    try:
+        data = json.loads((folder / MARKER).read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return None
+    command = data.get("command") if isinstance(data, dict) else None
+    return command if isinstance(command, str) else None
+
+
+def _write_record(folder: Path, entries: Iterable[str], *, command: str | None) -> None:
     from ._version import __version__
 
-    write_json(folder / MARKER, {"tool": TOOL, "version": __version__, "entries": sorted(entries)})
+    record = {"tool": TOOL, "version": __version__, "command": command}
+    write_json(folder / MARKER, {**record, "entries": sorted(entries)})
+
+
+_HELD_LOCKS: dict[Path, int] = {}
+"""Folders this process holds locked for its lifetime (:func:`claim_output_folder`), by
+path: a second claim in the same process does not lock itself out."""
+
+
+def _lock_folder(folder: Path) -> int | None:
+    """Lock `folder` against other nrreval processes writing into it; the lock's descriptor
+    (close it to release), or None where this process already holds it.
+
+    An advisory ``flock`` on the folder itself: no lock file to leave behind, and a process
+    that dies releases it with its descriptors.
+
+    Raises
+    ------
+    InputError
+        Another process holds the lock (two runs into one ``--out`` would each replace the
+        other's entries and remove cache entries the other is reading).
+    """
+    from ._errors import InputError
+
+    if folder in _HELD_LOCKS:
+        return None
+    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise InputError(
+            f"{folder}: another nrreval run is writing into this folder; wait for it to end, "
+            "or choose another folder (nothing was written)"
+        ) from None
+    return fd
+
+
+def _unlock(fd: int | None) -> None:
+    if fd is not None:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all; an
+    interrupt that arrives meanwhile is raised once they are done.
+
+    Only the main thread can set signal handlers; elsewhere (a Slicer or Dask thread) the
+    block runs as it is.
+    """
+    pending: list[int] = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if pending:
+        raise KeyboardInterrupt
 
 
 def _default_mode() -> int:
@@ -231,8 +344,8 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
     write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
-def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str]) -> Path:
-    """Make `out` this toolkit's folder for a run that writes `entries` in place.
+def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str], command: str) -> Path:
+    """Make `out` this toolkit's folder for a run of `command` that writes `entries` in place.
 
     For the commands whose results are written where they stay (``demo``, ``sweep``: a
     rerun reuses their registrations), rather than staged (:func:`staged_folder`). `out`
@@ -244,32 +357,44 @@ def claim_output_folder(out: str | os.PathLike, *, entries: Iterable[str]) -> Pa
         The output folder: created where missing.
     entries : str, keyword-only
         The top-level names the run writes (files or folders).
+    command : str, keyword-only
+        The command writing there: a folder another command made is refused.
 
     Returns
     -------
     Path
-        `out`, absolute.
+        `out`, absolute. It stays locked against other nrreval processes until this one
+        ends.
 
     Raises
     ------
     InputError
-        `out` is a non-empty folder the toolkit did not make, or one of `entries` exists
-        there and was not written by the toolkit.
+        `out` is a non-empty folder the toolkit did not make or another command made, one of
+        `entries` exists there and was not written by the toolkit, or another nrreval
+        process is writing there.
     """
     from ._errors import InputError
 
     out = Path(out).resolve()
-    previous, _ = _claim(out)
-    previous = previous or set()
-    entries = set(entries)
-    foreign = sorted(n for n in entries - previous if os.path.lexists(out / n))
-    if foreign:
-        raise InputError(f"{out / foreign[0]}: was not written by nrreval and would be replaced")
-    _write_record(out, previous | entries)
+    previous, _, lock = _claim(out, command=command)
+    try:
+        previous = previous or set()
+        entries = set(entries)
+        foreign = sorted(n for n in entries - previous if os.path.lexists(out / n))
+        if foreign:
+            raise InputError(
+                f"{out / foreign[0]}: was not written by nrreval and would be replaced"
+            )
+        _write_record(out, previous | entries, command=command)
+    except BaseException:
+        _unlock(lock)
+        raise
+    if lock is not None:
+        _HELD_LOCKS[out] = lock
     return out
 
 
-def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
+def claim_entries(folder: str | os.PathLike, names: Iterable[str], *, command: str) -> Path:
     """Before a result's ``write`` into `folder`: refuse, before anything is written, to
     replace an entry the toolkit did not write; then record `names` as the toolkit's.
 
@@ -286,6 +411,9 @@ def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
         Created where missing.
     names : str
         The top-level names about to be written there.
+    command : str, keyword-only
+        The command (or the API's counterpart of one) writing them: a folder whose record
+        names another command is refused.
 
     Returns
     -------
@@ -295,8 +423,8 @@ def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
     Raises
     ------
     InputError
-        `folder` is a file, or one of `names` exists there and was not written by the
-        toolkit (nothing is written).
+        `folder` is a file, another command's output folder, or one of `names` exists
+        there and was not written by the toolkit (nothing is written).
     """
     from ._errors import InputError
 
@@ -307,6 +435,7 @@ def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
     if _inside_an_entry_of_ours(folder):
         folder.mkdir(parents=True, exist_ok=True)
         return folder
+    _refuse_other_command(folder, folder, "the output folder", command)
     record = _read_record(folder) or set()
     foreign = sorted(n for n in names - record if os.path.lexists(folder / n))
     if foreign:
@@ -315,7 +444,7 @@ def claim_entries(folder: str | os.PathLike, names: Iterable[str]) -> Path:
             "write into a new folder, or move the file (nothing was written)"
         )
     folder.mkdir(parents=True, exist_ok=True)
-    _write_record(folder, record | names)
+    _write_record(folder, record | names, command=command)
     return folder
 
 
@@ -330,7 +459,9 @@ def _inside_an_entry_of_ours(folder: Path) -> bool:
 
 
 @contextlib.contextmanager
-def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",)) -> Iterator[Path]:
+def staged_folder(
+    out: str | os.PathLike, *, command: str, keep: tuple[str, ...] = ("cache",)
+) -> Iterator[Path]:
     """Yield a temporary folder to write a whole result into; move it into `out` on success.
 
     `out` is claimed on entry: created where missing, and marked as this toolkit's
@@ -342,62 +473,82 @@ def staged_folder(out: str | os.PathLike, *, keep: tuple[str, ...] = ("cache",))
     (:class:`InputError`), `out` is put back as it was: what this run added to the `keep`
     entries, and `out` itself if this run made it, are removed. An interrupted run keeps them
     (a rerun resumes). The temporary folder is a hidden entry of `out`; a process killed
-    mid-run leaves it there, and the next run removes it.
+    mid-run leaves it there, and the next run removes it. `out` is locked against other
+    nrreval processes while the run lasts, and the final swap is not cut short by Ctrl-C
+    (an interrupt then arrives after it).
 
     Raises
     ------
     InputError
-        `out` is a non-empty folder the toolkit did not make, or a new entry would replace a
-        file the toolkit did not write (the new result is then left in the temporary folder,
-        whose name the message gives).
+        `out` is a non-empty folder the toolkit did not make or another command made,
+        another nrreval process is writing there, or a new entry would replace a file the
+        toolkit did not write (the new result is then left in the temporary folder, whose
+        name the message gives).
     """
     from ._errors import InputError
 
     out = Path(out).resolve()
-    previous, made = _claim(out)
-    before = {k: _names_below(out / k) for k in keep}
-    _write_record(out, (previous or set()) | {k for k, names in before.items() if names is None})
-    _remove_stale_stages(out)
-    tmp = Path(tempfile.mkdtemp(prefix=f"{_STAGE}tmp-{os.getpid()}-", dir=out))
+    previous, made, lock = _claim(out, command=command)
     try:
-        yield tmp
-    except InputError:
-        shutil.rmtree(tmp, ignore_errors=True)
-        _restore(out, before, previous=previous, made=made)
-        raise
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    staged = sorted(os.listdir(tmp))
-    record = _read_record(out) or set()
-    foreign = [n for n in staged if os.path.lexists(out / n) and n not in record]
-    if foreign:
-        raise InputError(
-            f"{out / foreign[0]}: was not written by nrreval and would be replaced; "
-            f"the new results are in {tmp}"
-        )
-    old = Path(tempfile.mkdtemp(prefix=f"{_STAGE}old-{os.getpid()}-", dir=out))
-    for name in sorted(record):
-        if os.path.lexists(out / name) and (name in staged or name not in keep):
-            os.rename(out / name, old / name)
-    for name in staged:
-        os.rename(tmp / name, out / name)
-    _write_record(out, [*staged, *(k for k in keep if (out / k).exists())])
-    os.rmdir(tmp)
-    shutil.rmtree(old, ignore_errors=True)
+        before = {k: _names_below(out / k) for k in keep}
+        new_keeps = {k for k, names in before.items() if names is None}
+        _write_record(out, (previous or set()) | new_keeps, command=command)
+        _remove_stale_stages(out)
+        tmp = Path(tempfile.mkdtemp(prefix=f"{_STAGE}tmp-{os.getpid()}-", dir=out))
+        try:
+            yield tmp
+        except InputError:
+            shutil.rmtree(tmp, ignore_errors=True)
+            _restore(out, before, previous=previous, made=made, command=command)
+            raise
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        staged = sorted(os.listdir(tmp))
+        record = _read_record(out) or set()
+        foreign = [n for n in staged if os.path.lexists(out / n) and n not in record]
+        if foreign:
+            raise InputError(
+                f"{out / foreign[0]}: was not written by nrreval and would be replaced; "
+                f"the new results are in {tmp}"
+            )
+        with _interrupts_deferred():  # the swap: all of it, never half a result
+            old = Path(tempfile.mkdtemp(prefix=f"{_STAGE}old-{os.getpid()}-", dir=out))
+            for name in sorted(record):
+                if os.path.lexists(out / name) and (name in staged or name not in keep):
+                    os.rename(out / name, old / name)
+            for name in staged:
+                os.rename(tmp / name, out / name)
+            kept = [k for k in keep if (out / k).exists()]
+            _write_record(out, [*staged, *kept], command=command)
+            os.rmdir(tmp)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        _unlock(lock)
 
 
-def _claim(out: Path) -> tuple[set[str] | None, bool]:
-    """Create `out` where missing; its record (None: the toolkit has not written there) and
-    whether this call made it. Refuses a non-empty folder the toolkit did not make."""
+def _claim(out: Path, *, command: str) -> tuple[set[str] | None, bool, int | None]:
+    """Create `out` where missing and lock it; its record (None: the toolkit has not written
+    there), whether this call made it, and the lock (:func:`_lock_folder`). Refuses a
+    non-empty folder the toolkit did not make, one another command made, and one another
+    process is writing into."""
     from ._errors import InputError
 
     made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    previous = _read_record(out)
-    if previous is None and any(out.iterdir()):
-        raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
-    return previous, made
+    lock = _lock_folder(out)
+    try:
+        previous = _read_record(out)
+        if previous is None and any(out.iterdir()):
+            raise InputError(f"{out}: a folder that nrreval did not make, and not empty")
+        _refuse_other_command(out, out, "the output folder", command)
+    except BaseException:
+        _unlock(lock)
+        if made:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+    return previous, made, lock
 
 
 def _names_below(path: Path) -> set[str] | None:
@@ -408,7 +559,12 @@ def _names_below(path: Path) -> set[str] | None:
 
 
 def _restore(
-    out: Path, before: dict[str, set[str] | None], *, previous: set[str] | None, made: bool
+    out: Path,
+    before: dict[str, set[str] | None],
+    *,
+    previous: set[str] | None,
+    made: bool,
+    command: str,
 ) -> None:
     """Undo what a failed run added to `out`: to its `keep` entries, its record (`previous`,
     None where `out` had none), and `out` itself where the run made it."""
@@ -424,7 +580,7 @@ def _restore(
                 elif os.path.lexists(p):
                     p.unlink()
     if previous is not None:
-        _write_record(out, previous)
+        _write_record(out, previous, command=command)
         return
     (out / MARKER).unlink(missing_ok=True)
     if made:

@@ -899,7 +899,7 @@ def run_pipeline(
     with contextlib.ExitStack() as stack:
         if cache is None:
             cache = stack.enter_context(tempfile.TemporaryDirectory(prefix="nrreval-cache-"))
-        disk = DiskCache(cache)
+        disk = stack.enter_context(DiskCache(cache).in_use())
         disk.remove_stale()
         mask_key = None if mask is None else _stored_mask(disk, mask)
         ctx = _Context(str(Path(cache).resolve()), grid, mask_key, inverse_consistency)

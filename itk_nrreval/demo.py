@@ -188,7 +188,11 @@ def run_demo(
     from .registration._elastix_worker import ElastixWorker, elastix_available
 
     say = log or (lambda line: print(line, file=sys.stderr, flush=True))
-    out = claim_output_folder(check_output_folder(out, option="out"), entries=DEMO_OUTPUTS)
+    out = claim_output_folder(
+        check_output_folder(out, option="out", command="demo"),
+        entries=DEMO_OUTPUTS,
+        command="demo",
+    )
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     say(f"[demo] generating {n} {kind} subjects ({dim}D)")

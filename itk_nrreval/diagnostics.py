@@ -122,7 +122,7 @@ def diagnose(
     from ._version import __version__
 
     if out is not None:
-        check_output_folder(out, option="out")
+        check_output_folder(out, option="out", command="diagnose")
     m = load_manifest(manifest)  # every problem, before any work
     names = list(dict.fromkeys(registrations if registrations is not None else m.names))
     unknown = [n for n in names if n not in m.registrations]

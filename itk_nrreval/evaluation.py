@@ -685,9 +685,11 @@ def evaluate(
     cache = execution.cache
     m = load_manifest(manifest)
     if out is not None:
-        out = check_output_folder(out, inputs=m.files, option="out")
+        out = check_output_folder(out, inputs=m.files, option="out", command="evaluate")
     # with `out`, everything is written into a temporary sibling swapped in at the end
-    stage_or_none = staged_folder(out) if out is not None else contextlib.nullcontext()
+    stage_or_none = (
+        staged_folder(out, command="evaluate") if out is not None else contextlib.nullcontext()
+    )
     with stage_or_none as stage:
         if stage is not None:
             cache = out / "cache" if cache is None else cache

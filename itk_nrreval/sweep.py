@@ -394,7 +394,9 @@ def sweep(
     inputs = [*images, *(labels or ()), mask, truth_reference]
     inputs = [p for p in inputs if isinstance(p, (str, os.PathLike))]
     out = claim_output_folder(
-        check_output_folder(out, inputs=inputs, option="out"), entries=SWEEP_OUTPUTS
+        check_output_folder(out, inputs=inputs, option="out", command="sweep"),
+        entries=SWEEP_OUTPUTS,
+        command="sweep",
     )
     registrations = _Registrations(
         out / "registrations", images, method, engine, seed, reference_choice

@@ -269,7 +269,7 @@ class ValidationResult:
         """
         from ._version import __version__
 
-        out = claim_entries(out_dir, OUTPUT_FILES)
+        out = claim_entries(out_dir, OUTPUT_FILES, command="validate")
         paths = [out / name for name in OUTPUT_FILES[:2]]
         write_text(paths[0], self.to_csv())
         write_json(paths[1], {"version": __version__, **self.to_dict()})
@@ -499,13 +499,19 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
     Returns
     -------
     ValidationResult
-        ``source`` the manifest; ``parameters["section"]`` the slice taken.
+        ``source`` the manifest; ``parameters["registration"]`` the registration whose
+        registered set was perturbed (the common frame); ``parameters["section"]`` the
+        slice taken.
     """
+    from .manifest import load_manifest
+
     for key in ("spacing", "section", "mask"):
         if key in options:
             raise TypeError(f"validate_manifest() got an unexpected keyword argument {key!r}")
     from ._pipeline import COVERAGE_WARNING
 
+    source = str(manifest)
+    manifest = load_manifest(manifest)  # once: its checks read every image
     images, members, grid, taken, (region, fraction, where, masked) = _manifest_arrays(
         manifest, section, options.get("progress", True)
     )
@@ -519,11 +525,11 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
     spacing = grid.spacing
     if taken is not None:
         spacing = _without_axis(spacing, _AXES.index(taken[0]))
-    options.setdefault("source", str(manifest))
+    options.setdefault("source", source)
     result = validate(images, members, spacing=spacing, mask=region, **options)
-    if taken is None:
-        return result
-    parameters = {**result.parameters, "section": _section_record(taken)}
+    parameters = {**result.parameters, "registration": manifest.common_frame}
+    if taken is not None:
+        parameters["section"] = _section_record(taken)
     return replace(result, parameters=parameters)
 
 

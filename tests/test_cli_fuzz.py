@@ -12,6 +12,7 @@ checks, whatever happened:
 from __future__ import annotations
 
 import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -194,7 +195,7 @@ def _sandbox(base: Path, root: Path) -> None:
     (root / "notes.txt").write_text("the user's notes\n")
     (root / "foreign").mkdir()
     (root / "foreign" / "thesis.tex").write_text("\\documentclass{article}\n")
-    with staged_folder(root / "own") as stage:  # what an earlier run left
+    with staged_folder(root / "own", command="evaluate") as stage:  # what an earlier run left
         (stage / "results.json").write_text("{}\n")
 
 
@@ -282,3 +283,152 @@ def test_output_onto_the_inputs_is_refused_before_any_work(base, tmp_path, capsy
     else:
         assert code == 2, err
     assert _tree(tmp_path) == before
+
+
+# ---- another command's output, concurrent runs, Ctrl-C -------------------------------
+
+# Every command that writes an output folder, and a valid run of it into `out` (`data`: a
+# folder `synth` made, whose manifest holds the true transforms of its images).
+FOLDER_COMMANDS = ["synth", "register", "evaluate", "validate", "diagnose", "sweep", "demo"]
+
+
+def _folder_command(name: str, data: Path, out: Path) -> list[str]:
+    images = [str(p) for p in sorted((data / "img").glob("s*.nii.gz"))]
+    manifest = str(data / "manifest.yaml")
+    small = ["--samples", "100", "--quiet"]
+    return {
+        "synth": ["synth", "--n", "4", "--spacing", "4", "--out", str(out)],
+        "register": ["register", "--images", *images, "--method", "affine", "--out", str(out),
+                     "--manifest", str(out.parent / f"{out.name}-manifest.yaml"), "--quiet"],
+        "evaluate": ["evaluate", manifest, "--out", str(out), "--no-figures", "--no-confidence",
+                     *small],
+        "validate": ["validate", manifest, "--out", str(out), "--displacements", "0.5",
+                     "--repeats", "1", *small],
+        "diagnose": ["diagnose", manifest, "--registration", "truth", "--out", str(out), *small],
+        "sweep": ["sweep", "--from", manifest, "--truth", "truth", "--method", "affine",
+                  "--param", "iterations=5", "--out", str(out), *small],
+        "demo": ["demo", "--quick", "--n", "4", "--out", str(out)],
+    }[name]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def folders_of_each_command(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
+    """A folder made by a real run of each command but ``demo`` (a minute even when quick);
+    the demo's folder is claimed as ``run_demo`` claims it before its first registration."""
+    from itk_nrreval._output import claim_output_folder
+    from itk_nrreval.demo import DEMO_OUTPUTS
+
+    root = tmp_path_factory.mktemp("made")
+    data = root / "data"
+    assert main(_folder_command("synth", data, data)) == 0
+    made = {"synth": data}
+    for name in FOLDER_COMMANDS[1:-1]:
+        made[name] = root / name
+        assert main(_folder_command(name, data, made[name])) == 0, name
+    made["demo"] = claim_output_folder(root / "demo", entries=DEMO_OUTPUTS, command="demo")
+    (made["demo"] / "demo.json").write_text("{}\n")  # what a finished demo would leave
+    return root, made
+
+
+@pytest.mark.parametrize("command", FOLDER_COMMANDS)
+def test_out_at_another_commands_folder_is_refused_and_loses_nothing(
+    folders_of_each_command, capsys, command
+):
+    """Issue 44, 1: a rerun replaces only what the same command wrote there. `evaluate
+    --out` at a register folder deleted its transforms; `synth --out` at an evaluate folder
+    its results."""
+    root, made = folders_of_each_command
+    for producer, folder in made.items():
+        if producer == command:
+            continue
+        before = _tree(root)
+        capsys.readouterr()
+        code = main(_folder_command(command, made["synth"], folder))
+        err = capsys.readouterr().err
+        assert code == 2, (command, producer, err)
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert _tree(root) == before, (command, producer)
+
+
+def test_out_record_without_its_command_is_refused(tmp_path, capsys):
+    """A folder whose record does not say which command made it (an earlier version's) is
+    not replaced: it could be any command's work."""
+    from itk_nrreval._output import MARKER
+
+    out = tmp_path / "old"
+    out.mkdir()
+    (out / "results.json").write_text("{}\n")
+    (out / MARKER).write_text('{"tool": "itk-nrreval", "entries": ["results.json"]}\n')
+    before = _tree(tmp_path)
+    assert main(["synth", "--n", "4", "--spacing", "4", "--out", str(out)]) == 2
+    assert "earlier nrreval version" in capsys.readouterr().err
+    assert _tree(tmp_path) == before
+
+
+def _nrreval_program() -> str:
+    """The installed ``nrreval`` program (its entry point, not ``python -m``)."""
+    import sys
+
+    program = Path(sys.executable).parent / "nrreval"
+    assert program.is_file(), f"{program}: not installed (pip install -e .)"
+    return str(program)
+
+
+def test_two_runs_into_one_out_the_second_is_refused(base, tmp_path, capsys):
+    """Issue 44, 3: a second evaluate into an --out another is writing died with a 40-line
+    traceback (cache entries removed under it). It is refused with one line, and the first
+    run completes."""
+    import subprocess
+    import time
+
+    _sandbox(base, tmp_path)
+    out = tmp_path / "results"
+    first = subprocess.Popen(
+        [_nrreval_program(), *_command("evaluate", tmp_path, out, ["--samples", "200000"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".nrreval-stage-tmp-*")):  # the first run is under way
+        assert first.poll() is None and time.monotonic() < deadline, first.communicate()
+        time.sleep(0.02)
+    code = main(_command("evaluate", tmp_path, out, []))
+    err = capsys.readouterr().err
+    assert first.poll() is None, "the first run ended before the second was tried"
+    assert code == 2 and "another nrreval run is writing" in err, err
+    assert len(err.strip().splitlines()) == 1
+    _, first_err = first.communicate(timeout=300)
+    assert first.returncode == 0, first_err
+    assert (out / "results.json").is_file()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_ctrl_c_at_a_random_point_ends_in_one_line_or_a_complete_result(base, tmp_path, seed):
+    """Issue 44, 4: SIGINT anywhere in an evaluate run (imports, checks, tasks in threads,
+    numba kernels, the final swap) ends with exit code 130 and one line, or exit 0 and the
+    whole result; the previous result and every input stay byte-identical."""
+    import signal
+    import subprocess
+    import time
+
+    _sandbox(base, tmp_path)
+    out = tmp_path / "own"  # holds an earlier run's result
+    command = [_nrreval_program(), *_command("evaluate", tmp_path, out, ["--samples", "20000"])]
+    before = {p: d for p, d in _tree(tmp_path).items() if not p.startswith("own/cache")}
+    delay = np.random.default_rng(seed).uniform(0.2, 6.0)
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=300)
+    lines = [line for line in err.splitlines() if ": warning: " not in line]
+    assert "Traceback" not in err and "FATAL" not in err, (delay, err)
+    assert run.returncode in (0, 130), (delay, run.returncode, err)
+    after = {p: d for p, d in _tree(tmp_path).items() if not p.startswith("own/cache")}
+    if run.returncode == 130:
+        assert lines == [lines[-1]] and lines[-1].endswith("interrupted"), (delay, err)
+        stale = [p for p in after if ".nrreval-stage-" in p]
+        assert {p: d for p, d in after.items() if p not in stale} == before, delay
+    else:
+        results = json.loads((out / "results.json").read_text())
+        assert results["verdict"]["text"] and (out / "summary.md").is_file()

@@ -65,14 +65,14 @@ def test_staged_folder_replaces_only_its_own_entries_and_keeps_the_cache(tmp_pat
     from itk_nrreval._output import MARKER, staged_folder
 
     out = tmp_path / "out"
-    with staged_folder(out) as stage:  # a first run: `out` made and marked
+    with staged_folder(out, command="evaluate") as stage:  # a first run: `out` made and marked
         assert stage.parent == out and stage.name.startswith(".")
         (out / "cache").mkdir()
         (out / "cache" / "entry").write_text("cached")
         (stage / "results.json").write_text("old")
         (stage / "stale.png").write_text("old figure")
     (out / "notes.txt").write_text("the user's")  # not the toolkit's: never touched
-    with staged_folder(out) as stage:
+    with staged_folder(out, command="evaluate") as stage:
         (stage / "results.json").write_text("new")
     assert sorted(p.name for p in out.iterdir()) == [MARKER, "cache", "notes.txt", "results.json"]
     assert (out / "results.json").read_text() == "new"
@@ -90,7 +90,7 @@ def test_staged_folder_refuses_a_folder_it_did_not_make(tmp_path):
     (out / "image.nii.gz").write_text("the user's")
     before = _tree(tmp_path)
     with pytest.raises(InputError, match="did not make"):
-        with staged_folder(out) as stage:
+        with staged_folder(out, command="evaluate") as stage:
             (stage / "results.json").write_text("new")
     assert _tree(tmp_path) == before
 
@@ -102,7 +102,7 @@ def test_staged_folder_never_replaces_a_file_it_did_not_write(tmp_path):
 
     out = tmp_path / "out"
     with pytest.raises(InputError, match="not written by nrreval"):
-        with staged_folder(out) as stage:
+        with staged_folder(out, command="evaluate") as stage:
             (stage / "report.html").write_text("new")
             (out / "report.html").write_text("the user's")
     assert (out / "report.html").read_text() == "the user's"
@@ -112,10 +112,10 @@ def test_staged_folder_interrupted_keeps_the_previous_result_and_the_cache(tmp_p
     from itk_nrreval._output import staged_folder
 
     out = tmp_path / "out"
-    with staged_folder(out) as stage:
+    with staged_folder(out, command="evaluate") as stage:
         (stage / "results.json").write_text("old")
     with pytest.raises(KeyboardInterrupt):
-        with staged_folder(out) as stage:
+        with staged_folder(out, command="evaluate") as stage:
             (out / "cache").mkdir()
             (out / "cache" / "entry").write_text("computed before the interruption")
             (stage / "results.json").write_text("half")
@@ -126,7 +126,7 @@ def test_staged_folder_interrupted_keeps_the_previous_result_and_the_cache(tmp_p
     # a stage left by a killed process is removed by the next run
     dead = out / ".nrreval-stage-tmp-999999999-abc"
     dead.mkdir()
-    with staged_folder(out):
+    with staged_folder(out, command="evaluate"):
         pass
     assert not dead.exists()
 
@@ -138,21 +138,21 @@ def test_staged_folder_bad_input_leaves_out_as_it_was(tmp_path):
 
     new = tmp_path / "new"
     with pytest.raises(InputError):
-        with staged_folder(new):
+        with staged_folder(new, command="evaluate"):
             (new / "cache" / "ab").mkdir(parents=True)
             (new / "cache" / "ab" / "entry").write_text("x")
             raise InputError("bad image")
     assert not new.exists()
 
     out = tmp_path / "out"
-    with staged_folder(out) as stage:
+    with staged_folder(out, command="evaluate") as stage:
         (out / "cache" / "aa").mkdir(parents=True)
         (out / "cache" / "aa" / "entry").write_text("kept")
         (stage / "results.json").write_text("old")
     (out / "notes.txt").write_text("the user's")
     before = _tree(out)
     with pytest.raises(InputError):
-        with staged_folder(out):
+        with staged_folder(out, command="evaluate"):
             (out / "cache" / "bb").mkdir()
             (out / "cache" / "bb" / "entry").write_text("x")
             (out / "cache" / "aa" / "other").write_text("x")
@@ -310,3 +310,54 @@ def test_add_to_manifest_refuses_a_hand_written_manifest(tmp_path):
     from itk_nrreval.manifest import load_manifest
 
     assert set(load_manifest(ours).registrations) == {"a", "b"}
+
+
+def test_staged_folder_refuses_another_commands_folder(tmp_path):
+    """Issue 44, 1: the record names the command that made the folder; another command's
+    staged write is refused before anything is written or moved."""
+    from itk_nrreval._errors import InputError
+    from itk_nrreval._output import staged_folder
+
+    out = tmp_path / "out"
+    with staged_folder(out, command="synth", keep=()) as stage:
+        (stage / "manifest.yaml").write_text("images: []\n")
+    before = _tree(out)
+    with pytest.raises(InputError, match="holds the output of `nrreval synth`"):
+        with staged_folder(out, command="evaluate") as stage:
+            (stage / "manifest.yaml").write_text("replaced\n")
+    assert _tree(out) == before
+    with staged_folder(out, command="synth", keep=()) as stage:  # the same command reruns
+        (stage / "manifest.yaml").write_text("images: [a]\n")
+    assert (out / "manifest.yaml").read_text() == "images: [a]\n"
+
+
+def test_a_folder_another_process_writes_into_is_refused(tmp_path):
+    """Issue 44, 3: two runs into one folder at once. The second is refused with one line
+    while the first holds the folder; once it has ended, the folder is free."""
+    import subprocess
+    import sys
+
+    from itk_nrreval._errors import InputError
+    from itk_nrreval._output import staged_folder
+
+    out = tmp_path / "out"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", (
+            "import sys; from itk_nrreval._output import staged_folder\n"
+            f"with staged_folder({str(out)!r}, command='evaluate') as stage:\n"
+            "    print('in', flush=True); sys.stdin.readline()\n"
+        )],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline() == "in\n"
+        before = _tree(out)
+        with pytest.raises(InputError, match="another nrreval run is writing into"):
+            with staged_folder(out, command="evaluate"):
+                pass
+        assert _tree(out) == before
+    finally:
+        holder.communicate("\n", timeout=60)
+    with staged_folder(out, command="evaluate") as stage:
+        (stage / "results.json").write_text("{}\n")
+    assert (out / "results.json").is_file()

@@ -114,3 +114,26 @@ def test_readme_links_resolve_and_keeps_what_a_newcomer_needs():
             elif anchor and resolved.suffix == ".md" and anchor not in _heading_anchors(resolved):
                 broken.append(f"{md.name}: {target} (no such heading)")
     assert not broken, broken
+
+
+def test_the_readmes_python_snippets_run_as_written(tmp_path, monkeypatch):
+    """Issue 44: the README's snippets used names they never defined, and one line built a
+    stray tuple. Run each block, in order, in one namespace, on the population their first
+    comment names, as a reader who pastes them would."""
+    import ast
+
+    from itk_nrreval.cli import main
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert len(blocks) >= 2
+    monkeypatch.chdir(tmp_path)
+    assert main(["synth", "--n", "6", "--spacing", "4", "--out", "population"]) == 0
+    namespace: dict = {}
+    for block in blocks:
+        for statement in ast.parse(block).body:  # a bare tuple is a line that does nothing
+            assert not (
+                isinstance(statement, ast.Expr) and isinstance(statement.value, ast.Tuple)
+            ), ast.get_source_segment(block, statement)
+        exec(compile(block, "README.md", "exec"), namespace)
+    assert (tmp_path / "results" / "results.json").is_file()

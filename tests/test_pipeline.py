@@ -359,6 +359,36 @@ def test_disk_cache_round_trip_and_corruption(tmp_path):
     assert not got.folder.exists()  # removed, so it will be recomputed
 
 
+def test_an_entry_another_run_may_read_is_not_removed_under_it(tmp_path):
+    """Issue 44, 3: one run's removal of its frame estimates pulled entries from under
+    another run sharing the cache (FileNotFoundError on the second). While another run
+    uses the cache an entry stays; the run that held off removes it once alone."""
+    first, second = DiskCache(tmp_path), DiskCache(tmp_path)
+    with first.in_use():
+        first.put("frame_disp", "ab12", {"disp": np.arange(6.0)})
+        with second.in_use():
+            assert second.get("frame_disp", "ab12") is not None  # the second run found it
+            first.remove("frame_disp", "ab12")  # the first needs it no more
+            entry = second.open("frame_disp", "ab12")  # FileNotFoundError before
+            np.testing.assert_array_equal(entry.array("disp"), np.arange(6.0))
+        assert first.get("frame_disp", "ab12") is not None  # held off until the run ends
+    assert DiskCache(tmp_path).get("frame_disp", "ab12") is None
+    assert list((tmp_path / ".runs").iterdir()) == []
+
+
+def test_a_dead_runs_mark_does_not_hold_off_removals(tmp_path):
+    """A run killed mid-way leaves its mark unlocked: it neither holds off removals nor
+    stays."""
+    cache = DiskCache(tmp_path)
+    (tmp_path / ".runs").mkdir()
+    (tmp_path / ".runs" / "otherhost-123-abc").write_text("")  # nobody holds its lock
+    with cache.in_use():
+        cache.put("estimate", "cd34", {"disp": np.zeros(3)})
+        cache.remove("estimate", "cd34")
+        assert cache.get("estimate", "cd34") is None
+    assert list((tmp_path / ".runs").iterdir()) == []
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     dtype=st.sampled_from(["bool", "uint8", "uint16", "int32", "uint32", "float32", "float64"]),

@@ -109,6 +109,8 @@ def test_validate_a_3d_manifest_where_one_image_lacks_a_label(case):
     # warping moves labels: overlap falls, but stays well defined
     assert res.rows[2].overlap["volume"] < res.rows[0].overlap["volume"]
     assert all(0 < r.min_jacobian <= 1 for r in res.rows)
+    # issue 44: the result says whose registered set it perturbed (the common frame)
+    assert res.parameters["registration"] == "truth"
 
 
 def test_large_label_values_give_the_same_numbers_as_small_ones():

@@ -4,13 +4,16 @@ Each sub-command lives in its own module of this package and provides
 ``add_parser(subparsers)``, which registers its arguments and sets ``func`` to a function
 taking the parsed arguments and returning an exit code. Bad input (:class:`InputError`)
 becomes one line on stderr and exit code 2, a failed registration engine
-(:class:`EngineError`) one line and exit code 1: never a traceback.
+(:class:`EngineError`) one line and exit code 1, Ctrl-C one line and exit code 130: never a
+traceback.
 """
 
 from __future__ import annotations
 
 import sys
 import warnings
+
+from nrreval_console import INTERRUPTED, caused_by_interrupt
 
 from .._errors import EngineError, InputError
 from . import (
@@ -82,7 +85,15 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         print(f"nrreval {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return INTERRUPTED
+    except Exception as exc:
+        # Ctrl-C that lands inside compiled code (a numba kernel, ITK) surfaces as the error
+        # that code raises on the way out (numba's SystemError "returned a result with an
+        # exception set"), with the KeyboardInterrupt as its cause or context.
+        if not caused_by_interrupt(exc):
+            raise
+        print(f"nrreval {args.command}: interrupted", file=sys.stderr)
+        return INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     samples = args.samples if args.samples is not None else (50_000 if args.quick else 500_000)
     if n < 4:
         raise InputError(f"--n must be at least 4, got {n}")
-    check_output_folder(args.out)
+    check_output_folder(args.out, command="demo")
     result = run_demo(
         out=args.out, kind=args.kind, dim=args.dim, n=n, n_samples=samples, seed=args.seed
     )

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from ..manifest import load_manifest
 
     manifest = load_manifest(args.manifest)  # every problem, before any work
-    out = check_output_folder(args.out, inputs=manifest.files)
+    out = check_output_folder(args.out, inputs=manifest.files, command="diagnose")
     _warn_label_like_images(manifest)
     names = list(dict.fromkeys(args.registration))
     unknown = [n for n in names if n not in manifest.registrations]
@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=not args.quiet,
     )
-    with staged_folder(out, keep=()) as stage:
+    with staged_folder(out, keep=(), command="diagnose") as stage:
         paths = [out / p.name for p in result.write(stage)]
     print(result.table_markdown(), end="")
     print(f"results written to {out}/ ({', '.join(p.name for p in paths)})")

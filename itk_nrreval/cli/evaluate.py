@@ -321,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler is not None and args.threads is not None:
         raise InputError("--threads runs tasks in this process: not with --scheduler")
     manifest = _manifest(args)  # every problem, before DIR is created
-    out = check_output_folder(args.out, inputs=manifest.files)
+    out = check_output_folder(args.out, inputs=manifest.files, command="evaluate")
     cache = Path(args.cache) if args.cache is not None else out / "cache"
     if args.cache is not None:
         check_output_folder(cache, inputs=manifest.files, option="--cache", shared=True)

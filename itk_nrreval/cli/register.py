@@ -101,7 +101,9 @@ def run(args: argparse.Namespace) -> int:
     from ..transforms import file_stem
 
     inputs = [*args.images, *(p for p in (args.reference, args.manifest) if p is not None)]
-    out = check_output_folder(args.out, inputs=inputs)  # before the (long) registration
+    out = check_output_folder(
+        args.out, inputs=inputs, command="register"
+    )  # before the (long) registration
     manifest = Path(args.manifest) if args.manifest else out.parent / "manifest.yaml"
     check_rewritable(manifest)  # before the (long) registration
     old = load_manifest(manifest, check_files=False) if manifest.exists() else None
@@ -133,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         )
     names = [file_stem(p) for p in images]
     # Written into a sibling folder swapped in when complete: `out` never mixes two runs.
-    with staged_folder(out, keep=()) as stage:
+    with staged_folder(out, keep=(), command="register") as stage:
         staged = result.write(stage, names=names)
     paths = {
         "reference": out / staged["reference"].name,

@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from ..sweep import sweep
     from ..transforms import chain_transform
 
-    out = check_output_folder(args.out)
+    out = check_output_folder(args.out, command="sweep")
     truth = truth_reference = None
     if args.source is not None:
         if args.labels is not None or args.mask is not None:
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--truth: only with --from (a manifest holding the true transforms)")
         images, labels, mask = args.images, args.labels, args.mask
     if args.source is not None:  # its every file, not only the images
-        check_output_folder(args.out, inputs=m.files)
+        check_output_folder(args.out, inputs=m.files, command="sweep")
     parameters: dict = {}
     for name, values in args.param:
         if name in parameters:

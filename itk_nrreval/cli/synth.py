@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from data_synth.population import make_population
     from data_synth.writing import write_population
 
-    out = check_output_folder(args.out)
+    out = check_output_folder(args.out, command="synth")
     if args.kind not in ("phantom", "mni"):
         raise InputError(f"--kind must be 'phantom' or 'mni', got {args.kind!r}")
     if args.dim not in (2, 3):
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         )
     except (ValueError, FileNotFoundError) as exc:
         raise InputError(str(exc).splitlines()[0]) from None
-    with staged_folder(out, keep=()) as stage:
+    with staged_folder(out, keep=(), command="synth") as stage:
         manifest = out / write_population(pop, stage).name
     what = f"{args.kind}, {args.dim}D" + (
         "" if contrasts == ("t1",) else f", {'+'.join(contrasts)}"

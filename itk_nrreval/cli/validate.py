@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--dim applies to --synthetic only (a manifest has its own)")
     manifest = load_manifest(args.manifest) if args.manifest else None
     inputs = manifest.files if manifest is not None else ()
-    out = check_output_folder(args.out, inputs=inputs)
+    out = check_output_folder(args.out, inputs=inputs, command="validate")
     weightings = tuple(args.weighting) if args.weighting else ("complexity", "inverse_volume")
     options = dict(
         displacements=args.displacements,
@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         perturbed = manifest.common_frame
         print(f"perturbing registration {perturbed!r} (the common frame) of {source}", flush=True)
         result = validate_manifest(args.manifest, section=args.slice, source=source, **options)
-    with staged_folder(out, keep=()) as stage:
+    with staged_folder(out, keep=(), command="validate") as stage:
         paths = [out / p.name for p in result.write(stage)]
     s = result.summary
     taken = result.parameters.get("section")

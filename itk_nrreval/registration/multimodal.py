@@ -129,7 +129,11 @@ class MultimodalResult(RegistrationResult):
         """
         link_names = self.link_names()
         # every name claimed before any is written: a refused link leaves nothing behind
-        claim_entries(out, [*link_names.values(), *self.file_names(names), *self.FILES])
+        claim_entries(
+            out,
+            [*link_names.values(), *self.file_names(names), *self.FILES],
+            command="register",
+        )
         paths = super().write(out, names=names)
         out = Path(out)
         links = {g: write_transform(self.links[g], out / name) for g, name in link_names.items()}

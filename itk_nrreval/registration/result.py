@@ -148,7 +148,7 @@ class RegistrationResult:
             (nothing is written; files of other names in `out` are left alone).
         """
         files = self.file_names(names)
-        out = claim_entries(out, [*files, *self.FILES])
+        out = claim_entries(out, [*files, *self.FILES], command="register")
         paths = [write_transform(t, out / f) for t, f in zip(self.transforms, files, strict=True)]
         reference = out / self.FILES[0]
         with atomic_path(reference) as tmp:

@@ -42,7 +42,7 @@ def write_diagnostics(result, out_dir: str | os.PathLike) -> list[Path]:
         "appearance_diagnostics.json",
         "appearance_cells.png",
     ]
-    out = claim_entries(out_dir, names)
+    out = claim_entries(out_dir, names, command="diagnose")
     paths = [out / names[0], out / names[1]]
     write_text(paths[0], table1_markdown(result.results))
     write_text(paths[1], table1_csv(result.results))

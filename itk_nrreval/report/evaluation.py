@@ -51,7 +51,7 @@ def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) ->
     if any(s.subjects for s in result.scores.values()):
         texts["subjects.csv"] = subjects_csv(result)
     page = {"report.html": report_html(result, figures=pngs)} if figures else {}
-    out = claim_entries(out, [*pngs, *page, *texts])
+    out = claim_entries(out, [*pngs, *page, *texts], command="evaluate")
     written = []
     for fname, data in pngs.items():
         with atomic_path(out / fname) as tmp:

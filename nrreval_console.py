@@ -1,0 +1,63 @@
+"""The ``nrreval`` program's entry point.
+
+It lives outside the package so that Ctrl-C while the package imports (SimpleITK, ITK, numba:
+about two seconds) ends as an interrupt at any other moment does: one line on stderr and
+exit code 130, never a traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+INTERRUPTED = 130
+"""The exit code after Ctrl-C (SIGINT): 128 + 2, as shells report it."""
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is anywhere in `exc`'s chain of causes and contexts.
+
+    Ctrl-C that lands inside compiled code (a numba kernel, ITK, an extension module being
+    imported) surfaces as the error that code raises on the way out -- numba's SystemError
+    "returned a result with an exception set" -- with the KeyboardInterrupt as its context.
+    """
+    seen: set[int] = set()
+    todo: list[BaseException | None] = [exc]
+    while todo:
+        e = todo.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        todo += [e.__cause__, e.__context__]
+    return False
+
+
+def main() -> None:
+    """Run ``nrreval`` and exit with its code.
+
+    After Ctrl-C the process ends at once (``os._exit``), once the command has cleaned up
+    and printed its line: worker threads still inside ITK or numba would otherwise be stopped
+    mid-call by the interpreter's shutdown, which can abort the process ("FATAL: exception
+    not rethrown") or print their tracebacks. Everything written so far went through
+    temporary names, and a stale temporary is removed by the next run.
+    """
+    try:
+        from itk_nrreval.cli import main as command
+
+        code = command()
+    except BaseException as exc:
+        if isinstance(exc, SystemExit) or not caused_by_interrupt(exc):
+            raise
+        print("nrreval: interrupted", file=sys.stderr)
+        code = INTERRUPTED
+    if code == INTERRUPTED:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()
