@@ -95,7 +95,7 @@ def _case(label: str, intensity: dict) -> dict:
             "flagged": bool(scores.flags),
         }
     return {
-        "specificity_choice": value_of[res.recommended],
+        "specificity_choice": value_of[res.lowest_specificity],
         "lowest_specificity": value_of[res.best_by["specificity"]],
         "truth_choice": value_of[res.best_by["true_correspondence_error_mm"]],
         "spearman_truth": res.spearman["true_correspondence_error_mm"],

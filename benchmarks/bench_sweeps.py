@@ -101,7 +101,7 @@ def main() -> dict:
         results[case] = {
             "parameter": name,
             "values": list(values),
-            "specificity_choice": value_of[res.recommended],
+            "specificity_choice": value_of[res.lowest_specificity],
             "not_separable": [value_of[s] for s in res.not_separable],
             "lowest_specificity": value_of[by["specificity"]],
             "truth_choice": value_of[truth_best],

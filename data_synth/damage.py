@@ -9,7 +9,9 @@ the way registration pipelines fail. Each damage acts on the subject's true tran
 * ``"affine_only"``: ``A`` alone (the registration stopped after its affine step);
 * ``"scaled"``: ``A o phi_s``, the warp's displacement multiplied by `scale`;
 * ``"duplicated"``: the subject's image and labels are a copy of another subject's (the
-  one before it), with that subject's transform;
+  one before it), with that subject's transform; the image's copy differs by a faint seeded
+  noise (standard deviation 1e-3 of its intensity range), as a re-exported or re-saved copy
+  does (a byte-identical copy is refused by the manifest's check, before any work);
 * ``"off_grid"``: ``Shift o T``, shifted 10 fields of view away: the image lands outside
   the common grid;
 * ``"inverted"``: ``T^-1 = phi^-1 o A^-1`` (the population's own ``subject_to_template``),
@@ -57,6 +59,18 @@ def _centre(image: sitk.Image) -> np.ndarray:
     return np.asarray(
         image.TransformContinuousIndexToPhysicalPoint([(s - 1) / 2 for s in image.GetSize()])
     )
+
+
+def _near_copy(source: Path, target: Path, *, seed: int) -> None:
+    """`source` written to `target` with seeded Gaussian noise of 1e-3 of its intensity
+    range: the same image to any measure that matters, not the same voxels."""
+    image = sitk.ReadImage(str(source), sitk.sitkFloat32)
+    values = sitk.GetArrayFromImage(image)
+    spread = float(values.max() - values.min()) or 1.0
+    noise = np.random.default_rng(seed).normal(0.0, 1e-3 * spread, values.shape)
+    copy = sitk.GetImageFromArray((values + noise).astype(np.float32))
+    copy.CopyInformation(image)
+    sitk.WriteImage(copy, str(target))
 
 
 def damaged_transform(
@@ -124,7 +138,7 @@ def write_damaged(
         if damage == "duplicated":
             images[i] = out / f"damaged/{names[i]}_copy.nii.gz"
             labels[i] = out / f"damaged/{names[i]}_copy_labels.nii.gz"
-            shutil.copyfile(out / f"img/{names[i - 1]}.nii.gz", images[i])
+            _near_copy(out / f"img/{names[i - 1]}.nii.gz", images[i], seed=i)
             shutil.copyfile(out / f"lab/{names[i - 1]}.nii.gz", labels[i])
             transforms[i] = transforms[i - 1]
         elif damage == "swapped":

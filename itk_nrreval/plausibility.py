@@ -761,7 +761,7 @@ class SubjectThresholds:
     deformation_ratio : float
         ... and is more than this many times the cohort's median (default 1.5; the median
         taken no lower than the measure's floor: 0.001 for SDlogJ and mm of displacement,
-        0.01 mm of inverse consistency): in a cohort whose deformations are much alike (a
+        0.1 mm of inverse consistency): in a cohort whose deformations are much alike (a
         small MAD), a z-score alone would flag differences too small to mean a failure.
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default

@@ -415,6 +415,15 @@ def error_of(manifest) -> str:
     return message
 
 
+def load_error(manifest: dict, folder: Path) -> str:
+    """The one-line error of the manifest's check (before any work)."""
+    with pytest.raises(InputError) as info:
+        nr.load_manifest(manifest, base_dir=folder)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
 def same_apart_from_names(file_msg: str, obj_msg: str, path: Path, item: str, label: str = ""):
     """Replace the file's name (full path or name) and the object's (its item, where the file
     message has the path; its label, where it has the name) by one placeholder."""
@@ -448,10 +457,11 @@ def test_an_image_with_nan_fails_like_the_file(case, tmp_path, form):
     with_file, with_obj = small_manifest(data), small_manifest(data)
     with_file["images"][2] = str(bad_file)
     with_obj["images"][2] = obj
-    f = error_of(nr.load_manifest(with_file, base_dir=folder))
-    o = error_of(nr.load_manifest(with_obj, base_dir=folder))
-    assert f == f"{bad_file}: image contains NaN or infinite voxel values"
-    assert o == "images[2]: image contains NaN or infinite voxel values"
+    # refused by the manifest's check, before any work (issue 44)
+    f = load_error(with_file, folder)
+    o = load_error(with_obj, folder)
+    assert f == f"manifest: images[2]: {bad_file}: image contains NaN or infinite voxel values"
+    assert o == f"manifest: images[2]: {label}: image contains NaN or infinite voxel values"
     same_apart_from_names(f, o, bad_file, "images[2]", label)
 
 
@@ -544,10 +554,10 @@ def test_a_non_integer_label_map_fails_like_the_file(case, tmp_path):
     with_file, with_obj = small_manifest(data), small_manifest(data)
     with_file["labels"][1] = str(bad_file)
     with_obj["labels"][1] = lab
-    f = error_of(nr.load_manifest(with_file, base_dir=folder))
-    o = error_of(nr.load_manifest(with_obj, base_dir=folder))
-    assert o.startswith("labels[1]: label map holds non-integer values (e.g. 1.25;")
-    same_apart_from_names(f, o, bad_file, "labels[1]")
+    f = load_error(with_file, folder)  # refused by the manifest's check (issue 44)
+    o = load_error(with_obj, folder)
+    assert "labels[1]: " in o and "non-integer values (e.g. 1.25" in o, o
+    same_apart_from_names(f, o, bad_file, "labels[1]", "the in-memory sitk.Image")
 
 
 def test_a_scalar_image_as_a_transform_fails_like_the_file(case):

@@ -128,13 +128,10 @@ def run(args: argparse.Namespace) -> int:
     )
     reused = sum(s.reused for s in result.settings)
     head = f"{len(result.settings)} settings ({reused} already registered); "
-    if result.decided:
+    if result.recommended is not None:
         print(f"{head}the verdict recommends {result.recommended} (decided better than the rest)")
     else:
-        print(
-            head + f"the verdict leaves open {', '.join(result.not_separable)} "
-            f"({result.recommended} has the lowest specificity among them)"
-        )
+        print(f"{head}no setting is recommended: {result.reason}")
     for measure, best in result.best_by.items():
         flagged = " (flagged implausible)" if result.evaluation.scores[best].flags else ""
         print(f"  best by {measure}: {best}{flagged}")
