@@ -52,6 +52,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from . import _version
+from ._brain_masks import BrainMaskDice, resample_mask, subject_mask_dice
 from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
 from ._executors import Executor
@@ -140,6 +141,7 @@ _TASK_VERSIONS = {
     # 6: the transform's measures in their own entry, "measures" (issue 30)
     "measures": 1,  # coverage and plausibility, before any image is resampled (issue 30)
     "label_sums": 1,
+    "brain_mask": 1,  # a subject's brain mask in the common frame (issue 42)
 }
 _BLOCK_BYTES = 1 << 26  # float64 bytes of one voxel block over all N images (64 MiB)
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
@@ -772,6 +774,9 @@ class ReducedRegistration:
     scored : tuple of int
         The images in the scores (manifest indices, ascending; every image but those off
         the common grid, :func:`off_grid_subjects`): the rows of `gram` and `overlap_sums`.
+    brain_masks : BrainMaskDice or None
+        Every subject's brain-mask Dice in the common frame against the common mask
+        (:func:`_brain_mask_dice`); None when the manifest has no ``masks``.
     """
 
     name: str
@@ -787,6 +792,7 @@ class ReducedRegistration:
     thumbnails: Mapping[str, np.ndarray] = field(default_factory=dict, repr=False)
     affine_fits: list[AffineFit] = field(default_factory=list, repr=False)
     scored: tuple[int, ...] = ()
+    brain_masks: BrainMaskDice | None = None
 
 
 @dataclass(frozen=True)
@@ -960,6 +966,11 @@ def run_pipeline(
                 progress=progress,
                 pictured_subjects=pictured_subjects,
             )
+            brain_masks = _brain_mask_dice(
+                executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
+                method=label_interpolation, progress=progress,
+            )  # fmt: skip
+            runs[name] = dataclasses.replace(runs[name], brain_masks=brain_masks)
             if not keep_resampled:
                 for key in set(r.keys):
                     disk.remove("resampled", key)
@@ -1109,6 +1120,66 @@ def _resample_registration(
             warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=4)
     thumbnails = _thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
     return _Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, thumbnails)
+
+
+def _brain_mask_task(
+    ctx: _Context, mask, item, frame: tuple, frame_digest: str, method: str
+) -> tuple[str, bool]:
+    """One subject's brain mask brought into the common frame through ``T_i^R o F`` (as its
+    image is), cached as ``mask``: ``np.packbits`` of a bool (n,) over the common grid
+    (numpy order). `method` is :func:`~itk_nrreval._brain_masks.resample_mask`'s. Returns
+    ``(key, reused)``."""
+    cache = ctx.cache()
+    g = ctx.grid
+    key = _task_key("brain_mask", g, mask, item, frame_digest, method)
+    if cache.get("brain_mask", key) is not None:
+        return key, True
+    full = flatten(resampling_transform(transform_pieces(item), _frame_transform(frame, g, cache)))
+    inside = resample_mask(read_image(mask, what="brain mask"), full, g, method=method)
+    cache.put("brain_mask", key, {"mask": np.packbits(inside.reshape(-1))})
+    return key, False
+
+
+class _CachedMasks(Sequence):
+    """The subjects' resampled brain masks read from the cache one at a time (bool, the
+    common grid's numpy shape): N masks are never held at once."""
+
+    def __init__(self, disk: DiskCache, keys: Sequence[str], shape: tuple[int, ...]):
+        self._disk, self._keys, self._shape = disk, list(keys), tuple(shape)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __getitem__(self, i):
+        bits = self._disk.open("brain_mask", self._keys[i]).array("mask")
+        n = math.prod(self._shape)
+        return np.unpackbits(bits, count=n).astype(bool).reshape(self._shape)
+
+
+def _brain_mask_dice(
+    executor, ctx, disk, m, name, reg: _Measured, *, mask, counts, method, progress
+) -> BrainMaskDice | None:  # fmt: skip
+    """Every subject's brain mask (the manifest's ``masks``) in the common frame under
+    registration `name`, and its Dice against the common mask: the manifest's `mask` (on
+    the common grid) where given, else the majority vote of the resampled masks
+    (:func:`~itk_nrreval._brain_masks.subject_mask_dice`). Resampled as the label maps are:
+    nearest neighbour for ``label_interpolation="nearest"``, else linear and inside at 0.5
+    (`method`). None without ``masks``."""
+    if m.masks is None:
+        return None
+    items = m.registrations[name].transforms
+    method = "nearest" if method == "nearest" else "linear"
+    calls = [
+        (ctx, m.masks[i], items[i], reg.frame_spec, reg.frame_digest, method)
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    for i, (key, reused) in executor.map(
+        _brain_mask_task, calls, desc=f"{name}: brain masks", progress=progress
+    ):
+        keys[i] = key
+        counts.add(reused)
+    return subject_mask_dice(_CachedMasks(disk, keys, ctx.grid.shape), common=mask)
 
 
 def _check_region_covered(

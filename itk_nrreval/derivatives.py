@@ -8,6 +8,8 @@
 ``sub-<l>[_ses-<l>]_desc-preproc_T1w.nii.gz``              the image (no ``space`` entity)
 ``sub-<l>[_ses-<l>]_dseg.nii.gz``                          its labels (no ``space``, no
                                                            ``desc``: fMRIPrep's tissue classes)
+``sub-<l>[_ses-<l>]_desc-brain_mask.nii.gz``               its brain mask (no ``space``: on
+                                                           the T1w image's grid)
 ``sub-<l>[_ses-<l>]_from-T1w_to-<SPACE>_mode-image_xfm.h5``  the transform (``.h5`` or ``.txt``)
 ``sub-<l>[_ses-<l>]_space-<SPACE>_desc-preproc_T1w.nii.gz``  on the template's grid: the frame
 =========================================================  ==================================
@@ -18,9 +20,12 @@ with the template as the reference. The folder's ``dataset_description.json`` mu
 ``GeneratedBy`` (name and version) names the registration. The images and labels are the
 first folder's; the T1w image of every other folder must lie on the same grid (its
 transforms map into that T1w space). Subjects (and sessions) are matched across folders; a
-subject missing from one folder is left out with a one-line warning. Per-subject brain masks
-(``desc-brain_mask``) lie in each subject's space, and a manifest's mask is one image on the
-common grid: give it (``mask=``, e.g. the template's own brain mask) where wanted.
+subject missing from one folder is left out with a one-line warning. The per-subject brain
+masks (``desc-brain_mask``, the first folder's, beside each T1w image) become the manifest's
+``masks``, where every subject kept has one: each subject's mask is then compared, in the
+template space, with the common mask (:mod:`itk_nrreval._brain_masks`). A manifest's
+``mask`` is one image on the common grid: give it (``mask=``, e.g. the template's own brain
+mask) where wanted; it is then also the common mask the subjects' masks are compared with.
 
 **ANTs and elastix** (:func:`manifest_from_transforms`): shell-style patterns, where what the
 ``*`` (and ``?``) stand for is the subject's label, matched across the patterns:
@@ -126,6 +131,7 @@ class _Folder:
     generated_by: str
     t1w: dict  # SubjectKey -> [Path]
     dseg: dict
+    brain_mask: dict  # SubjectKey -> [Path]: desc-brain_mask in the T1w image's space
     xfm: dict  # SubjectKey -> {space: [Path]}
     space_images: dict  # space -> [(Path, BidsName)]
 
@@ -154,7 +160,7 @@ def _generated_by(root: Path) -> str:
 
 def _scan(root: Path) -> _Folder:
     generated_by = _generated_by(root)
-    found = _Folder(root, "", generated_by, {}, {}, {}, {})
+    found = _Folder(root, "", generated_by, {}, {}, {}, {}, {})
     files = sorted([*root.glob("sub-*/anat/*"), *root.glob("sub-*/ses-*/anat/*")])
     for path in files:
         parsed = parse_bids_name(path.name)
@@ -170,6 +176,8 @@ def _scan(root: Path) -> _Folder:
                 found.space_images.setdefault(e["space"], []).append((path, parsed))
         elif suffix == "dseg" and ext in _IMAGE_EXTENSIONS and native and "desc" not in e:
             found.dseg.setdefault(key, []).append(path)
+        elif suffix == "mask" and ext in _IMAGE_EXTENSIONS and native and e.get("desc") == "brain":
+            found.brain_mask.setdefault(key, []).append(path)
         elif (
             suffix == "xfm"
             and ext in _XFM_EXTENSIONS
@@ -307,15 +315,17 @@ def manifest_from_derivatives(
         its images (``MNI152NLin6Asym:res-2``); default: the one space every folder's
         transforms go into.
     mask : path, optional
-        A mask on the template's grid.
+        A mask on the template's grid (also the common mask the subjects' brain masks are
+        compared with).
 
     Returns
     -------
     Manifest
-        Images (and labels, where every subject kept has a ``dseg``) of the first folder,
-        subjects in label order (then session); per folder a registration named after its
-        ``GeneratedBy`` whose reference is a ``space-<SPACE>`` image and whose parameters
-        record the pipeline, folder and space. The first folder's is the common frame; the
+        Images (and labels, where every subject kept has a ``dseg``; brain masks, where
+        every one has a ``desc-brain_mask``) of the first folder, subjects in label order
+        (then session); per folder a registration named after its ``GeneratedBy`` whose
+        reference is a ``space-<SPACE>`` image and whose parameters record the pipeline,
+        folder and space. The first folder's is the common frame; the
         others are in the same template space (``frame_transform: identity``), so no frame
         is estimated.
 
@@ -331,7 +341,8 @@ def manifest_from_derivatives(
     Warns
     -----
     UserWarning
-        One line per subject left out (missing from a folder), and when labels are left out.
+        One line per subject left out (missing from a folder), when labels are left out, and
+        when brain masks are left out (some subjects have one, not every one).
     """
     if not folders:
         raise InputError("no derivatives folder given")
@@ -380,11 +391,13 @@ def manifest_from_derivatives(
         )
     else:
         labels = [_one(first.dseg[k], "dseg label maps") for k in kept]
+    masks = _brain_masks(first, kept)
 
     references = _references(scanned, kept, space_name, space_entities)
     data = {
         "images": [str(p) for p in images],
         **({"labels": [str(p) for p in labels]} if labels else {}),
+        **({"masks": [str(p) for p in masks]} if masks else {}),
         # a subject's sessions are one subject: the jackknife leaves them out together
         **({"subjects": [f"sub-{k[0]}" for k in kept]} if any(k[1] for k in kept) else {}),
         **({"mask": str(Path(mask).absolute())} if mask is not None else {}),
@@ -406,6 +419,22 @@ def manifest_from_derivatives(
         ),
     }
     return load_manifest(data)
+
+
+def _brain_masks(folder: _Folder, kept: list[SubjectKey]) -> list[Path] | None:
+    """Each kept subject's ``desc-brain_mask`` image beside its T1w image, in `kept`'s order;
+    None when a subject has none (one-line warning, unless no subject has one: a pipeline
+    that writes no masks)."""
+    lacking = [k for k in kept if k not in folder.brain_mask]
+    if not lacking:
+        return [_one(folder.brain_mask[k], "desc-brain_mask images") for k in kept]
+    if len(lacking) < len(kept):
+        warnings.warn(
+            f"{folder.root}: brain masks left out ({_key_name(lacking[0])} has no "
+            "_desc-brain_mask image)",
+            stacklevel=3,
+        )
+    return None
 
 
 def _in_one_frame(registrations: dict[str, dict]) -> dict[str, dict]:

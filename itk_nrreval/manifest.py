@@ -8,6 +8,7 @@ A manifest is a YAML (or JSON) file::
     subjects: [s00, s01, s00, s01]                   # optional: each image's subject
     evaluation_images: [img/s00_t2.nii.gz, img/s01_t2.nii.gz]  # optional: scored in their place
     mask: mask.nii.gz                                # optional, on the common frame's grid
+    masks: [msk/s00.nii.gz, msk/s01.nii.gz]          # optional brain masks, on the images' grids
     common_frame: fluid                              # optional; default the first registration
     registrations:
       fluid:
@@ -35,6 +36,11 @@ registration's own). Noise and bias that a registration fitted in the images it 
 not carry over to another scan, so rougher fields gain less from fitting them (the verdict's
 known-truth benchmark, ``docs/verdict.md``, measures how much less).
 
+``masks`` (optional) gives, per image, its brain mask (0 outside, 1 inside) on that image's
+grid: each is brought into the common frame through its image's transform, and its Dice
+with the common mask (``mask`` where given, else the majority vote of the subjects' masks)
+is computed per subject under each registration (:mod:`itk_nrreval._brain_masks`).
+
 ``subjects`` (optional) names, per image, the subject it shows, where a subject has several
 images (its contrasts in ``groups``, or repeat scans). Subject-level confidence then leaves
 out a subject with all its images; without it each image is a subject, and a manifest with
@@ -48,7 +54,7 @@ in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(w
 The same content may be given as a dict (:func:`load_manifest`), and there, wherever a path
 is accepted, an object in memory is too, mixed freely with paths:
 
-* images, labels, mask, references: a ``SimpleITK.Image``, an ITK Python image, or a numpy
+* images, labels, mask, masks, references: a ``SimpleITK.Image``, an ITK Python image, or a numpy
   array with its grid, ``{"array": a, "spacing": s, "origin": o, "direction": d}`` (numpy
   order ``(z, y, x)``; spacing and origin in ITK (x, y[, z]) order, mm, LPS; direction
   row-major; see :mod:`itk_nrreval._images`);
@@ -99,11 +105,13 @@ from ._elastix_files import (
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
 from ._images import (
+    Geometry,
     InMemoryImage,
     LabelSummary,
     dimension_problem,
     label_summary,
     read_header,
+    read_image,
     voxel_range,
 )
 from ._itk_hdf5 import transform_dimension as hdf5_transform_dimension
@@ -139,6 +147,7 @@ _TOP_KEYS = (
     "subjects",
     "evaluation_images",
     "mask",
+    "masks",
     "common_frame",
     "registrations",
 )
@@ -207,6 +216,10 @@ class Manifest:
     evaluation_images : tuple of (Path or InMemoryImage), length n_images, or None
         Per image, another scan of the same subject in the same physical space, scored in
         the image's place (module docstring); None: the images themselves are scored.
+    masks : tuple of (Path or InMemoryImage), length n_images, or None
+        Per image, its brain mask on the image's own grid (values 0 and 1), brought into
+        the common frame through the image's transforms for the per-subject mask Dice
+        (:mod:`itk_nrreval._brain_masks`); None: no brain masks.
     """
 
     images: tuple[Any, ...]
@@ -218,6 +231,7 @@ class Manifest:
     groups: tuple[str, ...] | None = None
     evaluation_images: tuple[Any, ...] | None = None
     subjects: tuple[str, ...] | None = None
+    masks: tuple[Any, ...] | None = None
 
     @property
     def n_images(self) -> int:
@@ -237,7 +251,13 @@ class Manifest:
     @property
     def in_memory(self) -> bool:
         """Whether any image or transform was given as an object rather than a file."""
-        items = [*self.images, *(self.labels or ()), *(self.evaluation_images or ()), self.mask]
+        items = [
+            *self.images,
+            *(self.labels or ()),
+            *(self.evaluation_images or ()),
+            *(self.masks or ()),
+            self.mask,
+        ]
         for r in self.registrations.values():
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
         return any(isinstance(item, _IN_MEMORY) for item in items)
@@ -251,6 +271,7 @@ class Manifest:
             *self.images,
             *(self.labels or ()),
             *(self.evaluation_images or ()),
+            *(self.masks or ()),
             self.mask,
         ]
         for r in self.registrations.values():
@@ -271,6 +292,7 @@ class Manifest:
             if self.evaluation_images is None
             else [_describe_item(p) for p in self.evaluation_images],
             "mask": _describe_item(self.mask),
+            "masks": None if self.masks is None else [_describe_item(p) for p in self.masks],
             "common_frame": self.common_frame,
             "registrations": {
                 name: {
@@ -333,7 +355,7 @@ def load_manifest(
         range, an unknown ``common_frame``; an image listed twice (the same file, or the
         same voxels on the same grid), a constant image, a NaN or infinite voxel value, a
         damaged NIfTI file, a label map with negative or non-integer values or off its
-        image.
+        image; a brain mask (``masks``) not on its image's grid, not binary, or empty.
 
     Warns
     -----
@@ -469,6 +491,12 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         evaluation_images = _path_list(data[what], base, what, problems)
         if evaluation_images is not None and n is not None and len(evaluation_images) != n:
             problems.append(f"{what}: {len(evaluation_images)} images for {n} images")
+    masks = None
+    if data.get("masks") is not None:
+        masks = _path_list(data["masks"], base, "masks", problems)
+        if masks is not None and n is not None and len(masks) != n:
+            problems.append(f"masks: {len(masks)} brain masks for {n} images")
+            masks = None  # which mask is whose is unknown: none is checked further
 
     regs: dict[str, ManifestRegistration] = {}
     raw = data.get("registrations")
@@ -499,6 +527,7 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         groups=groups,
         evaluation_images=evaluation_images,
         subjects=subjects,
+        masks=masks,
     )
 
 
@@ -914,6 +943,12 @@ def _check_files(m: Manifest, problems: list[str]) -> list[str]:
             )
     if m.mask is not None:
         _check_image(m.mask, "mask", dim, problems)
+    masks_ok = {
+        i
+        for i, p in enumerate(m.masks or ())
+        if _check_image(p, f"masks[{i}]", dim, problems)
+        and _mask_on_its_image(p, i, m.images[i], i in images_ok, problems)
+    }
     for name, r in m.registrations.items():
         where = f"registrations.{name}"
         _check_image(r.reference, f"{where}.reference", dim, problems)
@@ -923,7 +958,67 @@ def _check_files(m: Manifest, problems: list[str]) -> list[str]:
                 _check_item(item, w, dim, problems)
         if r.frame_transform is not None:
             _check_item(r.frame_transform, f"{where}.frame_transform", dim, problems)
+    _check_masks_held(m, masks_ok, problems)
     return _check_voxels(m, images_ok, scored_ok, labels_ok, problems)
+
+
+_MASK_GRID_TOLERANCE = 1e-4
+"""How far a brain mask's spacing, origin (mm) and direction cosines may differ from its
+image's: a pipeline writes both from one header, and NIfTI keeps them in float32."""
+
+
+def _mask_on_its_image(mask, i: int, image, image_ok: bool, problems: list[str]) -> bool:
+    """Whether brain mask `i` lies on its image's grid (the same size, spacing, origin and
+    direction): it is resampled through the image's transforms, which map into the image's
+    space. Against an image that could not be read it is not compared (False; the image's
+    own problem is reported)."""
+    if not image_ok:
+        return False
+    mask_grid, image_grid = _geometry(mask), _geometry(image)
+    if mask_grid is None or image_grid is None:
+        return False
+    problem = image_grid.mismatch(mask_grid, tol=_MASK_GRID_TOLERANCE)
+    if problem is not None:
+        problems.append(
+            f"masks[{i}]: {_shown(mask)} is not on the grid of images[{i}] {_shown(image)}: "
+            f"{problem}; a brain mask lies on its image's grid"
+        )
+        return False
+    return True
+
+
+def _geometry(item) -> Geometry | None:
+    """The grid of an image file or object from its header; None when unreadable (another
+    check reports that)."""
+    try:
+        info = item.image if isinstance(item, InMemoryImage) else read_header(item)
+    except RuntimeError:
+        return None
+    return Geometry.from_image(info)
+
+
+def _check_masks_held(m: Manifest, ok: set[int], problems: list[str]) -> None:
+    """Refuse a brain mask that is not binary (values other than 0 and 1: a probability map,
+    or a label map given as a mask) or holds no voxel: its Dice would say nothing about the
+    registration. Each mask is read once (a brain mask at 1 mm: about 0.1 s)."""
+    for i in sorted(ok):
+        item, what = m.masks[i], f"masks[{i}]"
+        try:
+            mask = read_image(item, what="brain mask")
+        except InputError as exc:
+            problems.append(f"{what}: {_reader_problem(exc, item)}")
+            continue
+        voxels = sitk.GetArrayViewFromImage(mask)  # a view: `mask` holds its buffer
+        other = voxels[(voxels != 0) & (voxels != 1)]
+        if other.size:
+            found = np.unique(other)
+            listed = ", ".join(f"{v:g}" for v in found[:3]) + (", ..." if found.size > 3 else "")
+            problems.append(
+                f"{what}: {_shown(item)} holds values other than 0 and 1 ({listed}): a brain "
+                "mask is binary"
+            )
+        elif not voxels.any():
+            problems.append(f"{what}: {_shown(item)} is empty (every voxel is 0)")
 
 
 # ----------------------------------------------------------------------------- voxel checks
@@ -1175,6 +1270,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
         out["evaluation_images"] = [_rel(p, folder) for p in m.evaluation_images]
     if m.mask is not None:
         out["mask"] = _rel(m.mask, folder)
+    if m.masks is not None:
+        out["masks"] = [_rel(p, folder) for p in m.masks]
     out["common_frame"] = m.common_frame
     regs = {}
     for name, r in m.registrations.items():
