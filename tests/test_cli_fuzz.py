@@ -415,7 +415,9 @@ def test_ctrl_c_at_a_random_point_ends_in_one_line_or_a_complete_result(base, tm
     _sandbox(base, tmp_path)
     out = tmp_path / "own"  # holds an earlier run's result
     command = [_nrreval_program(), *_command("evaluate", tmp_path, out, ["--samples", "20000"])]
-    before = {p: d for p, d in _tree(tmp_path).items() if not p.startswith("own/cache")}
+    # the cache is the toolkit's and is kept (a rerun resumes); the record notes it
+    kept = ("own/cache", "own/.nrreval-output.json")
+    before = {p: d for p, d in _tree(tmp_path).items() if not p.startswith(kept)}
     delay = np.random.default_rng(seed).uniform(0.2, 6.0)
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(delay)
@@ -424,7 +426,9 @@ def test_ctrl_c_at_a_random_point_ends_in_one_line_or_a_complete_result(base, tm
     lines = [line for line in err.splitlines() if ": warning: " not in line]
     assert "Traceback" not in err and "FATAL" not in err, (delay, err)
     assert run.returncode in (0, 130), (delay, run.returncode, err)
-    after = {p: d for p, d in _tree(tmp_path).items() if not p.startswith("own/cache")}
+    after = {p: d for p, d in _tree(tmp_path).items() if not p.startswith(kept)}
+    record = json.loads((out / ".nrreval-output.json").read_text())
+    assert record["command"] == "evaluate" and "results.json" in record["entries"], record
     if run.returncode == 130:
         assert lines == [lines[-1]] and lines[-1].endswith("interrupted"), (delay, err)
         stale = [p for p in after if ".nrreval-stage-" in p]

@@ -68,8 +68,11 @@ def test_three_ways_of_getting_the_frame_agree(tmp_path, dim):
     a1_inv = a1.GetInverse()
     # T_i^R = T_i^C o A1^-1  (ANTs order: A1^-1 acts first)
     t_r = [[a1_inv, t] for t in t_common]
-    for name in ("img0", "img1", "img2", "ref"):
-        sitk.WriteImage(common, str(tmp_path / f"{name}.nii.gz"))
+    rng = np.random.default_rng(dim)
+    for name in ("img0", "img1", "img2", "ref"):  # distinct, not constant: the manifest's check
+        noise = sitk.GetImageFromArray(rng.normal(size=common.GetSize()[::-1]).astype(np.float32))
+        noise.CopyInformation(common)
+        sitk.WriteImage(noise, str(tmp_path / f"{name}.nii.gz"))
     sitk.WriteTransform(a1, str(tmp_path / "common_to_r.tfm"))
     data = {
         "images": ["img0.nii.gz", "img1.nii.gz", "img2.nii.gz"],
