@@ -55,7 +55,14 @@ from .plausibility import (
 )
 from .report import FLAGGED_SUBJECTS_SHOWN, write_evaluation
 from .specificity import GeneralizationResult, SpecificityResult
-from .subject_qc import SubjectQC, across_registrations, assess_subjects, transform_mixups
+from .subject_qc import (
+    SubjectQC,
+    across_registrations,
+    assess_subjects,
+    ranked,
+    reference_subject,
+    transform_mixups,
+)
 from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
@@ -850,7 +857,7 @@ def _execute(m: Manifest, *, scheduler, workers, threads, **options):
 def _subject_assessor(m: Manifest, thresholds: SubjectThresholds, assessed: dict):
     """The pipeline's ``pictured_subjects`` callback: it assesses each registration's
     subjects once, while the pipeline still has the cache, into `assessed`, and returns the
-    flagged subjects the report pictures (read from the cache)."""
+    flagged subjects the report pictures, worst first (read from the cache)."""
 
     def pictured(r, products) -> list[int]:
         first = _subjects(m, r, thresholds)
@@ -864,7 +871,7 @@ def _subject_assessor(m: Manifest, thresholds: SubjectThresholds, assessed: dict
             products=products,
         )
         assessed[r.name] = _subjects(m, r, thresholds, mixups) if mixups else first
-        return [q.index for q in assessed[r.name] if q.flags][:FLAGGED_SUBJECTS_SHOWN]
+        return [q.index for q in ranked(assessed[r.name]) if q.flags][:FLAGGED_SUBJECTS_SHOWN]
 
     return pictured
 
@@ -974,6 +981,7 @@ def _subjects(
     # where this registration's frame was estimated from the group (not the common one)
     deformation["frame_deviation_mm"] = list(r.frame.per_image_mm) or [None] * m.n_images
     sums = r.overlap_sums
+    registration = m.registrations[r.name]
     return assess_subjects(
         images=[str(p) for p in m.images],
         scored=r.scored,
@@ -984,6 +992,14 @@ def _subjects(
         overlap_target_sums=None if sums is None else sums["target_sums"],
         overlap_weights=None if r.overlap is None else r.overlap.weights("volume"),
         mixups=mixups,
+        # a subject registered to itself (reference_index, or the reference's own image with
+        # the identity): not judged
+        reference=reference_subject(
+            registration.reference,
+            m.images,
+            reference_index=registration.reference_index,
+            displacement_rms_mm=deformation["displacement_rms_mm"],
+        ),
         thresholds=thresholds,
     )
 

@@ -36,6 +36,35 @@ common cause of failure that explains the flags is named in words (the diagnosis
 the common grid, duplicated image, mirrored, stopped early / affine only, scaled
 displacements.
 
+**The reference.** When a registration's reference is one of the cohort's own images -- the
+manifest's ``reference_index: i``, or a reference that is image i's file (or the same voxels
+on the same grid) while subject i's transform is the identity (:func:`reference_subject`) --
+subject i was registered to itself: its transform says nothing about the registration, and
+an identity among deformable transforms looks like one that "stopped early". It is reported
+as the reference of the registration (:attr:`SubjectQC.reference`), never flagged, and left
+out of the cohort statistics (the medians and MADs) the other subjects are judged by; its
+image stays in the texture model, as in the scores.
+
+**Subject flags and registration flags.** A flag is a subject's when it sets the subject
+apart from its cohort. A kind of flag (:data:`FLAG_KINDS`: folding, a mirrored linear part,
+...) carried by at least half of the subjects judged under a registration (every subject
+but its reference), and by at least two, is a property of the registration, not of those
+subjects: it is the registration's flag, said once (:func:`registration_flags`), and kept
+out of those subjects' :attr:`~SubjectQC.flags` (each of them names it in
+:attr:`~SubjectQC.registration_flags`). The z-score flags cannot reach half of a cohort (a
+robust z above 3.5 is far above the median); the flags on absolute limits can (a B-spline
+registration that folds more than 1% of the voxels in 13 of 16 subjects).
+
+**Concern, the ranking.** Each subject's :attr:`~SubjectQC.concern` is the largest of its
+robust z-scores, each signed so that positive is worse: the log distance to the model of the
+others (``z``), minus the overlap z (with labels), and the log SDlogJ, log non-linear
+displacement and log inverse-consistency z (deformation outliers); NaN ones (not measured)
+left out. Every subject is listed worst first by it (:func:`ranked`), so the few most unlike
+their cohort can be looked at even when none crosses a threshold. It ranks, it does not
+flag: the flags on absolute limits (folding, mirroring, a duplicate, off the grid) are not
+in it, so a subject flagged for one of them may rank below unflagged subjects (its flags
+say why it is listed). The reference has no concern and is listed last.
+
 Two causes need images resampled through changed transforms, and are looked for among the
 flagged subjects only (:func:`transform_mixups`, at most :data:`MAX_MIXUP_SUBJECTS` of them,
 on the driver after the per-image work): an **inverted transform** (the subject's image
@@ -47,6 +76,7 @@ its own: two subjects' transforms swapped or mixed up).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
@@ -60,6 +90,12 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "SubjectQC",
+    "FLAG_KINDS",
+    "CONCERN_TERMS",
+    "IDENTITY_MM",
+    "reference_subject",
+    "registration_flags",
+    "ranked",
     "Alternative",
     "transform_mixups",
     "MAX_MIXUP_SUBJECTS",
@@ -111,6 +147,39 @@ _LEAST_SPREAD = {
 }
 _LEAST_SPREAD_OF_SCORE = 0.01  # times the cohort's median model distance
 
+#: The kinds of flag, and what the subjects carrying one have, in the words of a
+#: registration flag (:func:`registration_flags`: "k of the n subjects <words>").
+FLAG_KINDS = {
+    "off_grid": "cover too little of the common grid, and are left out of the scores",
+    "left_out": "are left out of the scores: another registration maps them off the common grid",
+    "duplicate": "have a resampled image (almost) identical to another subject's",
+    "mirrored": "have a transform whose linear part mirrors space",
+    "model_distance": "are far from the model of the others",
+    "folding": "fold",  # said with the threshold and the range instead (_shared_kinds)
+    "sdlogj": "have an SDlogJ far above the cohort's",
+    "nonlinear_rms_mm": "have a non-linear displacement far above the cohort's",
+    "inverse_consistency_mm": "have an inverse-consistency error far above the cohort's",
+    "affine_only": "have almost no non-linear displacement",
+    "overlap": "have a label overlap with the others far below the cohort's",
+}
+
+#: The terms of :attr:`SubjectQC.concern`: (name in words, where the z-score is, its sign:
+#: +1 where a larger value is worse, -1 for the overlap, where a smaller one is).
+CONCERN_TERMS = (
+    ("model distance", "z", 1.0),
+    ("overlap", "overlap_z", -1.0),
+    ("SDlogJ", "sdlogj_z", 1.0),
+    ("non-linear displacement", "nonlinear_rms_z", 1.0),
+    ("inverse consistency", "inverse_consistency_z", 1.0),
+)
+
+#: A subject whose transform moves the points of the grid by less than this RMS (mm) is
+#: registered by the identity, for :func:`reference_subject`: a registration of an image to
+#: itself returns the identity to round-off (a zero gradient everywhere: the optimizer
+#: never moves), while a hundredth of a mm is a hundredth of the 1 mm voxels, the finest
+#: here, and far below what any registration of two different images leaves.
+IDENTITY_MM = 0.01
+
 
 @dataclass(frozen=True)
 class SubjectQC:
@@ -151,6 +220,20 @@ class SubjectQC:
     diagnosis : str or None
         A common cause of failure that explains the flags, in words; None when none is
         recognised (or nothing is flagged).
+    reference : bool
+        It is the registration's reference (:func:`reference_subject`): registered to
+        itself, never flagged, and out of the cohort statistics the others are judged by.
+    registration_flags : tuple of str
+        The registration's flags it shares (at least half of the subjects judged carry
+        them; :func:`registration_flags`), in words; not among its `flags`.
+    concern : float or None
+        The largest of its robust z-scores, each signed so that positive is worse
+        (:data:`CONCERN_TERMS`: the log model distance, minus the overlap z, the log SDlogJ,
+        log non-linear displacement and log inverse-consistency z; unitless, in robust
+        standard deviations): what the subjects are ranked by (:func:`ranked`). None for
+        the reference, or when none of them was measured.
+    concern_from : str or None
+        Which term gave it, in words (e.g. ``"model distance"``).
     """
 
     index: int
@@ -165,9 +248,14 @@ class SubjectQC:
     flags: tuple[str, ...] = ()
     diagnosis: str | None = None
     better_fit: float | None = None
+    reference: bool = False
+    registration_flags: tuple[str, ...] = ()
+    concern: float | None = None
+    concern_from: str | None = None
 
     @property
     def flagged(self) -> bool:
+        """It has a flag of its own (a subject flag; the registration's are not its own)."""
         return bool(self.flags)
 
     def to_dict(self) -> dict[str, Any]:
@@ -186,13 +274,22 @@ class SubjectQC:
             "coverage": json_number(self.coverage),
             "in_scores": self.in_scores,
             "flags": list(self.flags),
+            "registration_flags": list(self.registration_flags),
             "diagnosis": self.diagnosis,
             "better_fit": json_number(self.better_fit),
+            "reference": self.reference,
+            "concern": json_number(self.concern),
+            "concern_from": self.concern_from,
         }
 
 
 def robust_z(
-    values, *, log: bool = False, floor: float = 0.0, least_spread: float = 0.0
+    values,
+    *,
+    log: bool = False,
+    floor: float = 0.0,
+    least_spread: float = 0.0,
+    among: np.ndarray | Sequence[bool] | None = None,
 ) -> np.ndarray:
     """Robust z-scores over a cohort: ``(x - median) / max(1.4826 MAD, least spread)``.
 
@@ -209,6 +306,9 @@ def robust_z(
         is at least this (linear) or, with `log`, at least ``log(1 + least_spread / m)``,
         ``m`` the median (in the units of `values`) or `least_spread` if larger -- the log
         distance from the median to a value `least_spread` above it, at most ``log 2``.
+    among : array_like of bool, shape (n,), optional
+        The values the median and MAD are taken over (default: every one); every value
+        gets its z against them (a registration's reference is scored against the others).
 
     Returns
     -------
@@ -222,10 +322,11 @@ def robust_z(
         x = np.log(np.maximum(x, floor))  # NaN stays NaN
     ok = np.isfinite(x)
     z = np.full(x.shape, np.nan)
-    if not ok.any():
+    cohort = ok if among is None else ok & np.asarray(among, bool)
+    if not cohort.any():
         return z
-    median = float(np.median(x[ok]))
-    scale = MAD_TO_SD * float(np.median(np.abs(x[ok] - median)))
+    median = float(np.median(x[cohort]))
+    scale = MAD_TO_SD * float(np.median(np.abs(x[cohort] - median)))
     if least_spread > 0:
         if log:
             at = max(math.exp(median), least_spread)
@@ -341,6 +442,7 @@ def assess_subjects(
     overlap_target_sums: np.ndarray | None = None,
     overlap_weights: np.ndarray | None = None,
     mixups: Mapping[int, tuple[float, str]] | None = None,
+    reference: int | None = None,
     thresholds: SubjectThresholds,
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under one registration: scores, z, flags, diagnosis.
@@ -373,6 +475,10 @@ def assess_subjects(
         Flagged subjects resampled through changed transforms (:func:`transform_mixups` on
         this function's first answer): subject index -> (how many times closer the best
         alternative fits, the cause it points to in words).
+    reference : int, optional
+        The subject that is the registration's reference (:func:`reference_subject`):
+        reported as such, never flagged, and left out of the medians and MADs the others
+        are judged by.
     thresholds : SubjectThresholds
 
     Returns
@@ -404,14 +510,23 @@ def assess_subjects(
     Every z-score's scale has a floor in its measure's units (:func:`robust_z`'s
     `least_spread`: :data:`_LEAST_SPREAD`), so none is infinite.
 
+    A kind of flag (:data:`FLAG_KINDS`) that at least half of the subjects judged (every
+    subject but the `reference`), and at least two, carry is the registration's: each of
+    them names it, once in the same words, in ``registration_flags`` instead of ``flags``,
+    and it explains nothing of theirs (no diagnosis rests on it).
+
     The diagnosis is the first that applies of: off the common grid; duplicated image;
     mirrored; stopped early or affine only; scaled displacements (a deformation flag with a
     non-linear displacement above ``th.scaled_ratio`` times the median); an inverted
     transform or another subject's transform (a `mixups` ratio of ``th.better_fit_ratio``
     or more).
     """
+    n_all = len(images)
+    judged = np.ones(n_all, bool)
+    if reference is not None:
+        judged[int(reference)] = False
     cohort = _cohort(
-        n_all=len(images),
+        n_all=n_all,
         scored=[int(i) for i in scored],
         gram=gram,
         deformation=deformation,
@@ -419,17 +534,140 @@ def assess_subjects(
         overlap_sums=None
         if overlap_volume is None
         else (overlap_volume, overlap_target_sums, overlap_weights),
+        judged=judged,
     )
+    who = [i for i in range(n_all) if judged[i]]
+    # a first pass finds the kinds most subjects share; the second says them once
+    first = {i: _flags_and_causes(i, cohort, images, thresholds)[0] for i in who}
+    shared = _shared_kinds(first, cohort, thresholds)
     out = []
-    for i in range(len(images)):
-        flags, causes = _flags_and_causes(i, cohort, images, thresholds)
+    for i in range(n_all):
+        if not judged[i]:
+            out.append(_subject_qc(i, cohort, images, [], [], None, reference=True))
+            continue
+        flags, causes, theirs = _flags_and_causes(i, cohort, images, thresholds, shared)
         # after the causes read off the transform itself: the inverse of an affine-only or a
         # scaled transform can fit somewhat better too (up to 1.5x on generated cohorts)
         better_fit = mixups[i][0] if mixups and i in mixups else None
         if better_fit is not None and better_fit >= thresholds.better_fit_ratio:
             causes.append(mixups[i][1])
-        out.append(_subject_qc(i, cohort, images, flags, causes, better_fit))
+        out.append(_subject_qc(i, cohort, images, flags, causes, better_fit, registration=theirs))
     return tuple(out)
+
+
+def reference_subject(
+    reference: Any,
+    images: Sequence[Any],
+    *,
+    reference_index: int | None = None,
+    displacement_rms_mm: Sequence[float | None] | None = None,
+) -> int | None:
+    """Which subject is a registration's reference, if one is: registered to itself.
+
+    Parameters
+    ----------
+    reference : path or InMemoryImage
+        The registration's reference (:attr:`ManifestRegistration.reference
+        <itk_nrreval.manifest.ManifestRegistration.reference>`).
+    images : sequence of (path or InMemoryImage)
+        The registered images, in manifest order (:attr:`Manifest.images
+        <itk_nrreval.manifest.Manifest.images>`).
+    reference_index : int, optional, keyword-only
+        The manifest's ``reference_index``: it names the reference, whatever the transforms.
+    displacement_rms_mm : sequence of float or None, optional, keyword-only
+        Per subject, the RMS of ``|T(p) - p|`` over the evaluated voxels of the reference
+        grid (mm; :class:`~itk_nrreval.plausibility.AffineFit`); None or NaN: not measured.
+
+    Returns
+    -------
+    int or None
+        `reference_index` when given; else the first subject whose transform is the
+        identity (an RMS displacement of at most :data:`IDENTITY_MM`) and whose image is
+        the reference: the same file, through any link or spelling, or the same voxels on
+        the same grid (the content digest of :func:`itk_nrreval._cache.content_digest`,
+        which the manifest's check has computed for the images already); else None.
+    """
+    if reference_index is not None:
+        return int(reference_index)
+    if displacement_rms_mm is None:
+        return None
+    # the identity first: only those subjects' files are compared (as a rule, none)
+    still = [
+        i for i, d in enumerate(displacement_rms_mm) if d is not None and d <= IDENTITY_MM
+    ]  # NaN <= x is False: not measured is not the identity
+    if not still:
+        return None
+    same_file = _file_identity(reference)
+    if same_file is not None:
+        for i in still:
+            if _file_identity(images[i]) == same_file:
+                return i
+    digest = _content_digest(reference)
+    for i in still:
+        if _content_digest(images[i]) == digest:
+            return i
+    return None
+
+
+def _file_identity(item) -> tuple[int, int] | None:
+    """(device, inode) of an image file, the same through links and spellings; None for an
+    object in memory (or a file that cannot be read: then its digest says nothing either)."""
+    if not isinstance(item, (str, os.PathLike)):
+        return None
+    try:
+        stat = os.stat(item)
+    except OSError:
+        return None
+    return stat.st_dev, stat.st_ino
+
+
+def _content_digest(item) -> str | None:
+    """The digest of the voxels and grid an image holds (a file's or an object's)."""
+    if not isinstance(item, (str, os.PathLike)):
+        return getattr(item, "content_digest", None)
+    from ._cache import content_digest
+
+    try:
+        return content_digest(item)
+    except (OSError, RuntimeError):
+        return None
+
+
+def registration_flags(subjects: Sequence[SubjectQC]) -> tuple[str, ...]:
+    """A registration's flags: the kinds of flag most of its subjects share, each said once.
+
+    Parameters
+    ----------
+    subjects : sequence of SubjectQC
+        Every subject under one registration, in manifest order (:func:`assess_subjects`).
+
+    Returns
+    -------
+    tuple of str
+        Each registration flag in words (:attr:`SubjectQC.registration_flags`), once, in
+        the order the subjects first name them; empty when there is none.
+    """
+    return tuple(dict.fromkeys(f for q in subjects for f in q.registration_flags))
+
+
+def ranked(subjects: Sequence[SubjectQC]) -> list[SubjectQC]:
+    """Subjects worst first, as every report lists them.
+
+    Parameters
+    ----------
+    subjects : sequence of SubjectQC
+        Subjects under one registration (:func:`assess_subjects`), all or some of them.
+
+    Returns
+    -------
+    list of SubjectQC
+        By :attr:`SubjectQC.concern`, largest first, ties in manifest order; those without
+        a concern (nothing measured) after them, and the registration's reference last.
+    """
+    return sorted(
+        subjects,
+        key=lambda q: (q.reference, q.concern is None, -(q.concern or 0.0), q.index),
+    )
 
 
 _DEFORMATION_FLAGS = (
@@ -456,8 +694,10 @@ class _Cohort:
     overlap_z: np.ndarray
 
 
-def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Cohort:
-    """The statistics every subject is judged against (see :func:`assess_subjects`)."""
+def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums, judged) -> _Cohort:
+    """The statistics every subject is judged against (see :func:`assess_subjects`): the
+    medians and MADs over the subjects `judged` (boolean, length N) alone."""
+    rows = judged[scored]  # the judged among the scored, by row of `gram`
     cov = np.asarray(coverage, np.float64)
     defo = {
         k: np.array([math.nan if v is None else float(v) for v in vals], np.float64)
@@ -470,8 +710,8 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
         # a duplicate is at distance 0 from the others' span: log of a tiny floor, not -inf
         tiny = max(float(np.max(dist)), 1.0) * 1e-12
         score[scored] = dist
-        least = _LEAST_SPREAD_OF_SCORE * float(np.median(dist))
-        z[scored] = robust_z(dist, log=True, floor=tiny, least_spread=least)
+        least = _LEAST_SPREAD_OF_SCORE * float(np.median(dist[rows]))
+        z[scored] = robust_z(dist, log=True, floor=tiny, least_spread=least, among=rows)
     nearest = {}
     if len(scored) >= 3:
         pairs = pair_distances(gram)
@@ -486,85 +726,109 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums) -> _Coh
     names += ["frame_deviation_mm"] if "frame_deviation_mm" in defo else []
     deformation_z = {
         name: robust_z(
-            defo[name], log=True, floor=_LOG_FLOORS[name], least_spread=_LEAST_SPREAD[name]
+            defo[name],
+            log=True,
+            floor=_LOG_FLOORS[name],
+            least_spread=_LEAST_SPREAD[name],
+            among=judged,
         )
         for name in names
     }
-    medians = {name: _median(defo[name]) for name in defo}
-    medians["coverage"] = float(np.median(cov))
+    medians = {name: _median(defo[name][judged]) for name in defo}
+    medians["coverage"] = float(np.median(cov[judged]))
     overlap = None
     overlap_z = np.full(n_all, np.nan)
     if overlap_sums is not None:
         overlap = np.full(n_all, np.nan)
         values = subject_overlaps(*overlap_sums)
         overlap[scored] = values
-        overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"])
-        medians["overlap"] = _median(overlap)
+        overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"], among=rows)
+        medians["overlap"] = _median(overlap[judged])
     return _Cohort(
         frozenset(scored), cov, defo, score, z, nearest, deformation_z, medians, overlap, overlap_z
     )
 
 
-def _flags_and_causes(i: int, c: _Cohort, images, th: SubjectThresholds):
-    """Subject `i`'s flags and the causes that would explain them, in order."""
-    flags: list[str] = []
+def _flags_and_causes(
+    i: int, c: _Cohort, images, th: SubjectThresholds, shared: Mapping[str, str] | None = None
+) -> tuple[list[tuple[str, str]], list[str], list[str]]:
+    """Subject `i`'s flags as (kind, words), the causes that would explain them, in order,
+    and the registration flags it shares: a flag of a kind in `shared` (kind -> the
+    registration flag's words) is the registration's, and explains nothing of the subject."""
+    shared = shared or {}
+    flags: list[tuple[str, str]] = []
     causes: list[str] = []
+    theirs: list[str] = []
+
+    def add(kind: str, words: str) -> bool:
+        """Record a flag; whether it is the subject's own."""
+        if kind in shared:
+            if shared[kind] not in theirs:
+                theirs.append(shared[kind])
+            return False
+        flags.append((kind, words))
+        return True
+
     cov, median_cov = c.coverage[i], c.medians["coverage"]
     if i not in c.scored and cov < th.off_grid_coverage * median_cov:
-        flags.append(
+        if add(
+            "off_grid",
             f"covers {cov:.0%} of the common grid (cohort median {median_cov:.0%}): "
-            "left out of the scores"
-        )
-        causes.append(
-            "its transform maps the image (almost) off the common grid: wrong transform, "
-            "wrong reference or a unit/axis mix-up"
-        )
+            "left out of the scores",
+        ):
+            causes.append(
+                "its transform maps the image (almost) off the common grid: wrong transform, "
+                "wrong reference or a unit/axis mix-up"
+            )
     elif i not in c.scored:  # the scores of every registration share one region
-        flags.append(
+        add(
+            "left_out",
             f"left out of the scores: another registration maps it off the common grid "
-            f"(it covers {cov:.0%} here)"
+            f"(it covers {cov:.0%} here)",
         )
     if i in c.nearest and c.nearest[i][1] < th.duplicate_distance:
         j, ratio = c.nearest[i]
-        flags.append(
+        if add(
+            "duplicate",
             f"its resampled image is identical to subject {j}'s"
             if ratio < 1e-6  # "0x the median distance" says it less plainly
             else f"its resampled image is {ratio:.2g}x the median pairwise distance from "
-            f"subject {j}'s"
-        )
-        causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")
+            f"subject {j}'s",
+        ):
+            causes.append(f"duplicated image: the same as subject {j}'s ({images[j]})")
     defo = c.deformation
     det = defo["linear_det"][i]
     if det < 0 and c.medians["linear_det"] > 0:
-        flags.append(f"the linear part of its transform has determinant {_fmt(det)} < 0")
-        causes.append("mirrored: its transform flips an axis (left-right swapped?)")
+        if add("mirrored", f"the linear part of its transform has determinant {_fmt(det)} < 0"):
+            causes.append("mirrored: its transform flips an axis (left-right swapped?)")
     if c.z[i] > th.outlier_z:
-        flags.append(
-            f"far from the model of the others: distance {_fmt(c.score[i])} ({_z_words(c.z[i])})"
+        add(
+            "model_distance",
+            f"far from the model of the others: distance {_fmt(c.score[i])} ({_z_words(c.z[i])})",
         )
     folded = defo["folded_fraction"][i]
-    if folded > th.folded:
-        flags.append(f"{folded:.1%} of its voxels fold (det J <= 0)")
+    folds = folded > th.folded and add("folding", f"{folded:.1%} of its voxels fold (det J <= 0)")
     rough = False
     for name, words in _DEFORMATION_FLAGS:
         median, zi = c.medians[name], c.deformation_z[name][i]
         least = max(median, _LOG_FLOORS[name])  # below the floor, no variation at all
         if zi > th.deformation_z and defo[name][i] > th.deformation_ratio * least:
-            rough = True
-            flags.append(
+            rough |= add(
+                name,
                 f"{words} {_fmt(defo[name][i])} against the cohort's median "
-                f"{_fmt(median)} ({_z_words(zi)})"
+                f"{_fmt(median)} ({_z_words(zi)})",
             )
     nonlinear, median_nonlinear = defo["nonlinear_rms_mm"][i], c.medians["nonlinear_rms_mm"]
     if median_nonlinear > _AFFINE_COHORT_MM and nonlinear < th.affine_only_ratio * (
         median_nonlinear
     ):
-        flags.append(
+        if add(
+            "affine_only",
             f"almost no non-linear displacement: {_fmt(nonlinear, 2)} mm RMS beyond "
-            f"the best affine map (cohort median {_fmt(median_nonlinear)} mm)"
-        )
-        causes.append("stopped early or affine only: no non-linear deformation")
-    if (rough or folded > th.folded) and nonlinear > th.scaled_ratio * median_nonlinear:
+            f"the best affine map (cohort median {_fmt(median_nonlinear)} mm)",
+        ):
+            causes.append("stopped early or affine only: no non-linear deformation")
+    if (rough or folds) and nonlinear > th.scaled_ratio * median_nonlinear:
         causes.append(
             f"displacements scaled: {nonlinear / median_nonlinear:.1f}x the cohort's "
             "median non-linear displacement (a unit or scale mix-up?)"
@@ -572,40 +836,100 @@ def _flags_and_causes(i: int, c: _Cohort, images, th: SubjectThresholds):
     if c.overlap_z[i] < -th.overlap_z and (1.0 - c.overlap[i]) > th.overlap_ratio * (
         1.0 - c.medians["overlap"]
     ):
-        flags.append(
+        add(
+            "overlap",
             f"label overlap with the others {c.overlap[i]:.3f} (cohort median "
-            f"{c.medians['overlap']:.3f}, {_z_words(c.overlap_z[i])})"
+            f"{c.medians['overlap']:.3f}, {_z_words(c.overlap_z[i])})",
         )
-    return flags, causes
+    return flags, causes, theirs
 
 
-def _subject_qc(i: int, c: _Cohort, images, flags, causes, better_fit) -> SubjectQC:
+def _shared_kinds(
+    first: Mapping[int, Sequence[tuple[str, str]]], c: _Cohort, th: SubjectThresholds
+) -> dict[str, str]:
+    """The kinds of flag that are the registration's, with its words: those carried by at
+    least half of the subjects judged (the keys of `first`, each with its flags), and by at
+    least two (with two subjects judged, one is no majority of anything)."""
+    n = len(first)
+    carriers: dict[str, list[int]] = {}
+    for i, flags in first.items():
+        for kind in dict.fromkeys(k for k, _ in flags):
+            carriers.setdefault(kind, []).append(i)
+    out = {}
+    for kind, who in carriers.items():
+        if len(who) < 2 or 2 * len(who) < n:
+            continue
+        if kind == "folding":
+            folded = c.deformation["folded_fraction"][who]
+            low, high = f"{folded.min():.1%}", f"{folded.max():.1%}"
+            out[kind] = (
+                f"{len(who)} of the {n} subjects fold more than {100 * th.folded:g}% of their "
+                f"voxels ({low if low == high else f'{low} to {high}'}; det J <= 0)"
+            )
+        else:
+            out[kind] = f"{len(who)} of the {n} subjects {FLAG_KINDS[kind]}"
+    return out
+
+
+def _concern(values: Mapping[str, float | None]) -> tuple[float | None, str | None]:
+    """The largest of the signed z-scores of :data:`CONCERN_TERMS` in `values`, and which
+    term it is; (None, None) when none was measured."""
+    best: tuple[float, str] | None = None
+    for words, key, sign in CONCERN_TERMS:
+        v = values.get(key)
+        if v is None or math.isnan(v):
+            continue
+        if best is None or sign * v > best[0]:
+            best = (sign * v, words)
+    return best if best is not None else (None, None)
+
+
+def _subject_qc(
+    i: int,
+    c: _Cohort,
+    images,
+    flags: Sequence[tuple[str, str]],
+    causes: Sequence[str],
+    better_fit: float | None,
+    *,
+    reference: bool = False,
+    registration: Sequence[str] = (),
+) -> SubjectQC:
     def number(v: float) -> float | None:
         return None if math.isnan(v) else float(v)
 
+    deformation = {
+        **{k: number(v[i]) for k, v in c.deformation.items()},
+        "sdlogj_z": float(c.deformation_z["sdlogj"][i]),
+        "nonlinear_rms_z": float(c.deformation_z["nonlinear_rms_mm"][i]),
+        "inverse_consistency_z": float(c.deformation_z["inverse_consistency_mm"][i]),
+        **(
+            {"frame_deviation_z": number(c.deformation_z["frame_deviation_mm"][i])}
+            if "frame_deviation_mm" in c.deformation_z
+            else {}
+        ),
+    }
+    z, overlap_z = number(c.z[i]), number(c.overlap_z[i])
+    concern, concern_from = (
+        (None, None) if reference else _concern({**deformation, "z": z, "overlap_z": overlap_z})
+    )
     return SubjectQC(
         index=i,
         image=str(images[i]),
         score=number(c.score[i]),
-        z=number(c.z[i]),
-        deformation={
-            **{k: number(v[i]) for k, v in c.deformation.items()},
-            "sdlogj_z": float(c.deformation_z["sdlogj"][i]),
-            "nonlinear_rms_z": float(c.deformation_z["nonlinear_rms_mm"][i]),
-            "inverse_consistency_z": float(c.deformation_z["inverse_consistency_mm"][i]),
-            **(
-                {"frame_deviation_z": number(c.deformation_z["frame_deviation_mm"][i])}
-                if "frame_deviation_mm" in c.deformation_z
-                else {}
-            ),
-        },
+        z=z,
+        deformation=deformation,
         overlap=None if c.overlap is None else number(c.overlap[i]),
-        overlap_z=number(c.overlap_z[i]),
+        overlap_z=overlap_z,
         coverage=float(c.coverage[i]),
         in_scores=i in c.scored,
-        flags=tuple(flags),
+        flags=tuple(words for _, words in flags),
         diagnosis=causes[0] if causes and flags else None,
         better_fit=better_fit,
+        reference=reference,
+        registration_flags=tuple(registration),
+        concern=concern,
+        concern_from=concern_from,
     )
 
 
@@ -803,7 +1127,9 @@ def across_registrations(
     registration may be badly registered; under every registration of two or more, the
     affine one included, it is the image itself that differs from the cohort (anatomy,
     contrast, an artefact, a header), not one registration of it. Such a subject's diagnosis
-    says so wherever no other cause was named; its flags are unchanged.
+    says so wherever no other cause was named; its flags are unchanged. A registration whose
+    reference the subject is does not judge it: "every registration" is every other one
+    (still two or more), and its entry as the reference is left as it is.
 
     Parameters
     ----------
@@ -821,18 +1147,28 @@ def across_registrations(
     if len(names) < 2:
         return out
     n = len(out[names[0]])
+    judging = [[name for name in names if not out[name][i].reference] for i in range(n)]
     everywhere = [
-        all(out[name][i].z is not None and out[name][i].z > thresholds.outlier_z for name in names)
+        len(judging[i]) >= 2
+        and all(
+            out[name][i].z is not None and out[name][i].z > thresholds.outlier_z
+            for name in judging[i]
+        )
         for i in range(n)
     ]
-    words = (
-        f"far from the model under every registration ({len(names)} of {len(names)}): the "
-        "image itself stands out from the cohort (anatomy, contrast, an artefact or its "
-        "header), not one registration of it"
-    )
+
+    def words(k: int) -> str:
+        return (
+            f"far from the model under every registration ({k} of {k}): the image itself "
+            "stands out from the cohort (anatomy, contrast, an artefact or its header), not "
+            "one registration of it"
+        )
+
     return {
         name: tuple(
-            replace(q, diagnosis=words) if everywhere[i] and q.diagnosis is None else q
+            replace(q, diagnosis=words(len(judging[i])))
+            if everywhere[i] and q.diagnosis is None and not q.reference
+            else q
             for i, q in enumerate(subjects)
         )
         for name, subjects in out.items()

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 import re
+import shutil
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +26,7 @@ from hypothesis import strategies as st
 import itk_nrreval as nr
 from data_synth import make_population
 from data_synth.damage import DIAGNOSES, write_damaged
+from itk_nrreval._images import InMemoryImage
 from itk_nrreval.plausibility import affine_fit
 from itk_nrreval.subject_qc import robust_z, subject_overlaps
 
@@ -34,11 +38,16 @@ DAMAGES = {2: "mirrored", 9: "affine_only", 16: "scaled", 23: "duplicated", 35: 
 
 
 @pytest.fixture(scope="module")
-def cohort(tmp_path_factory):
-    """The clean and the damaged manifests of one small 2D phantom cohort."""
+def population():
+    """One small 2D phantom cohort, with its true transforms both ways."""
+    return make_population("phantom", dim=2, n=N, seed=4, size=40)
+
+
+@pytest.fixture(scope="module")
+def cohort(population, tmp_path_factory):
+    """The clean and the damaged manifests of `population`."""
     folder = tmp_path_factory.mktemp("cohort")
-    pop = make_population("phantom", dim=2, n=N, seed=4, size=40)
-    return write_damaged(pop, folder, DAMAGES)
+    return write_damaged(population, folder, DAMAGES)
 
 
 def _evaluate(manifest, out):
@@ -180,10 +189,9 @@ MIXUPS = {5: "inverted", 12: "swapped"}
 
 
 @pytest.fixture(scope="module")
-def mixed_up(tmp_path_factory):
+def mixed_up(population, tmp_path_factory):
     folder = tmp_path_factory.mktemp("mixups")
-    pop = make_population("phantom", dim=2, n=N, seed=4, size=40)
-    _, manifest = write_damaged(pop, folder, MIXUPS)
+    _, manifest = write_damaged(population, folder, MIXUPS)
     out = folder / "out"
     return _evaluate(manifest, out), out, folder
 
@@ -280,8 +288,8 @@ def test_results_json_csv_and_summary_name_the_subjects(damaged):
     assert entries[0]["diagnosis"] is None and entries[0]["flags"] == []
     assert entries[35]["score"] is None and entries[35]["in_scores"] is False
     with open(out / "subjects.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    assert [int(r["index"]) for r in rows] == list(range(N))
+        rows = {int(r["index"]): r for r in csv.DictReader(f)}  # ranked: by index here
+    assert sorted(rows) == list(range(N))
     assert rows[9]["diagnosis"].startswith("stopped early or affine only")
     assert float(rows[0]["score"]) == pytest.approx(entries[0]["score"])
     summary = (out / "summary.md").read_text()
@@ -601,3 +609,224 @@ def test_a_robust_z_with_a_least_spread_is_finite_and_never_wider_than_it_allows
     assert np.all(np.abs(z) <= np.abs(y - med) / floor_scale * (1 + 1e-9) + 1e-12)
     if mad_scale > floor_scale:
         np.testing.assert_allclose(z, robust_z(x, log=log, floor=1e-3), rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------- issue 42
+
+
+def _fold(template: sitk.Image, *, amplitude_mm: float = 20.0, width_mm: float = 6.0):
+    """A displacement field on `template`'s grid (identity direction) that folds space near
+    its centre: a Gaussian bump of `amplitude_mm` along x, of standard deviation `width_mm`,
+    whose slope du_x/dx falls below -1 (det J = 1 + du_x/dx <= 0) on 2.6% of the phantom's
+    40 x 40 grid of 1.6 mm (counted analytically)."""
+    size = np.array(template.GetSize())
+    spacing, origin = np.array(template.GetSpacing()), np.array(template.GetOrigin())
+    y, x = np.indices(size[::-1])
+    px, py = origin[0] + x * spacing[0], origin[1] + y * spacing[1]
+    centre = origin + spacing * (size - 1) / 2
+    bump = amplitude_mm * np.exp(
+        -((px - centre[0]) ** 2 + (py - centre[1]) ** 2) / (2 * width_mm**2)
+    )
+    field = sitk.GetImageFromArray(np.stack([bump, np.zeros_like(bump)], axis=-1), isVector=True)
+    field.CopyInformation(template)
+    return sitk.DisplacementFieldTransform(field)
+
+
+#: The subjects of the cohort registered to its own subject 0: the first 16 (three
+#: registrations of 36 took 7 s).
+OWN_N = 16
+
+
+@pytest.fixture(scope="module")
+def own_subject_0(population, cohort, tmp_path_factory):
+    """The cohort's first :data:`OWN_N` subjects registered to subject 0, three ways,
+    evaluated.
+
+    Subject i's transform maps subject 0's points to subject i's: subject 0's true transform
+    into the template, then subject i's true transform out of it; subject 0's is the
+    identity. ``to_s00`` names its reference with ``reference_index: 0``; ``to_copy_of_s00``
+    only by its file, a copy of subject 0's image; ``folding`` (reference: subject 0's image
+    file) composes every subject's transform, subject 0's too, with a field that folds."""
+    base = cohort[0].parent
+    names = [f"s{i:02d}" for i in range(OWN_N)]
+    images = [str(base / f"img/{n}.nii.gz") for n in names]
+    to_0 = population.subjects[0].subject_to_template
+    chains = [[sitk.Transform(2, sitk.sitkIdentity)]]
+    chains += [[to_0, str(base / f"truth/{n}.h5")] for n in names[1:]]
+    copy = tmp_path_factory.mktemp("own_subject_0") / "reference_s00.nii.gz"
+    shutil.copyfile(images[0], copy)
+    fold = _fold(population.template)
+    same_frame = {"frame_transform": "identity"}  # subject 0's space, as to_s00's
+    manifest = {
+        "images": images,
+        "labels": [str(base / f"lab/{n}.nii.gz") for n in names],
+        "registrations": {
+            "to_s00": {"reference": images[0], "reference_index": 0, "transforms": chains},
+            "to_copy_of_s00": {"reference": str(copy), **same_frame, "transforms": chains},
+            "folding": {
+                "reference": images[0],
+                **same_frame,
+                "transforms": [[fold, *chain] for chain in chains],
+            },
+        },
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the flagged registration's warning
+        return nr.evaluate(manifest, n_samples=200, confidence=False, progress=False)
+
+
+@pytest.mark.parametrize("name", ["to_s00", "to_copy_of_s00"])
+def test_a_cohort_registered_to_its_own_subject_0_does_not_flag_it(own_subject_0, name):
+    """Issue 42: subject 0, registered to itself (the identity), was flagged 'stopped early
+    or affine only' (no non-linear displacement, against the cohort's median). It is the
+    reference, named by reference_index or by its file and its identity transform: reported
+    as such, never flagged, and out of the statistics the others are judged by."""
+    subjects = own_subject_0.scores[name].subjects
+    first = subjects[0]
+    assert first.deformation["displacement_rms_mm"] < 1e-9  # the premise: the identity
+    assert first.flags == () and first.diagnosis is None
+    assert first.reference and first.concern is None and first.registration_flags == ()
+    assert not any(q.reference for q in subjects[1:])
+    assert not [q.index for q in subjects if q.flags]  # the others: true transforms
+    # the others are judged against the others alone: their z-scores over subjects 1..N-1
+    for key, z_key in (("nonlinear_rms_mm", "nonlinear_rms_z"), ("sdlogj", "sdlogj_z")):
+        values = [q.deformation[key] for q in subjects]
+        z = [q.deformation[z_key] for q in subjects]
+        least = {"nonlinear_rms_mm": 0.1, "sdlogj": 0.01}[key]
+        np.testing.assert_allclose(
+            z[1:], robust_z(values[1:], log=True, floor=1e-3, least_spread=least)[:]
+        )
+    overlaps = [q.overlap for q in subjects]
+    np.testing.assert_allclose(
+        [q.overlap_z for q in subjects[1:]], robust_z(overlaps[1:], least_spread=0.01)
+    )
+
+
+def test_the_same_reference_file_with_a_transform_that_moves_is_no_reference(own_subject_0):
+    """Under ``folding`` the reference is subject 0's file too, but subject 0's transform
+    folds: it is a subject like the others. And the reference found by its file is the one
+    reference_index names."""
+    from itk_nrreval.subject_qc import reference_subject
+
+    assert not any(q.reference for q in own_subject_0.scores["folding"].subjects)
+    folder = Path(own_subject_0.inputs["images"][0]).parent
+    images = sorted(str(p) for p in folder.glob("s*.nii.gz"))
+    moves = [0.0] + [1.0] * (OWN_N - 1)
+    link = folder.parent / "link_to_s03.nii.gz"  # through another spelling
+    link.unlink(missing_ok=True)
+    link.symlink_to(images[3])
+    assert reference_subject(link, images, displacement_rms_mm=moves) is None
+    moves[3] = 0.0
+    assert reference_subject(link, images, displacement_rms_mm=moves) == 3
+    # the same voxels on the same grid, as an object in memory
+    in_memory = InMemoryImage.from_object(sitk.ReadImage(images[5]), name="reference")
+    assert reference_subject(in_memory, images, displacement_rms_mm=moves) is None
+    moves[5] = 0.004  # within a hundredth of a mm of the identity
+    assert reference_subject(in_memory, images, displacement_rms_mm=moves) == 5
+    moves[5] = math.nan  # not measured: not the identity
+    assert reference_subject(in_memory, images, displacement_rms_mm=moves) is None
+    # reference_index names it, whatever the transforms
+    assert reference_subject(images[0], images, reference_index=7) == 7
+
+
+def test_a_registration_folding_in_every_subject_is_one_registration_flag(own_subject_0):
+    """Issue 42: a property most subjects share is the registration's, said once: every
+    subject folds more than the subject threshold (1%), so no subject is flagged for it,
+    and the registration has one flag that names how many fold and how much."""
+    subjects = own_subject_0.scores["folding"].subjects
+    folded = np.array([q.deformation["folded_fraction"] for q in subjects])
+    assert folded.min() > 0.01  # the premise: every subject beyond the subject threshold
+    assert not [f for q in subjects for f in q.flags if "fold" in f]
+    from itk_nrreval.subject_qc import registration_flags
+
+    (flag,) = registration_flags(subjects)
+    n = OWN_N
+    assert flag.startswith(f"{n} of the {n} subjects fold more than 1% of their voxels (")
+    assert f"{folded.min():.1%}" in flag and f"{folded.max():.1%}" in flag
+    assert all(q.registration_flags == (flag,) for q in subjects)
+    # the registrations where none folds have no registration flag
+    assert registration_flags(own_subject_0.scores["to_s00"].subjects) == ()
+
+
+#: The z-scores the concern is the largest of, each with the sign that makes worse positive.
+SIGNED_Z = {
+    "z": 1,
+    "overlap_z": -1,
+    "sdlogj_z": 1,
+    "nonlinear_rms_z": 1,
+    "inverse_consistency_z": 1,
+}
+
+
+def test_subjects_csv_lists_every_subject_worst_first_by_its_concern(damaged):
+    """Issue 42: one documented score per subject, the concern (the largest of its z-scores
+    signed so that positive is worse), and every subject listed by it, worst first. Checked
+    on each row's own z-score columns; the damages a z-score sees rank at the top."""
+    result, out = damaged
+    with open(out / "subjects.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["rank"]) for r in rows] == list(range(1, N + 1))
+    assert sorted(int(r["index"]) for r in rows) == list(range(N))
+    concern = [float(r["concern"]) for r in rows]
+    assert concern == sorted(concern, reverse=True)
+    words = {"z": "model distance", "overlap_z": "overlap", "sdlogj_z": "SDlogJ"}
+    words |= {"nonlinear_rms_z": "non-linear displacement"}
+    words |= {"inverse_consistency_z": "inverse consistency"}
+    for r in rows:
+        signed = {k: sign * float(r[k]) for k, sign in SIGNED_Z.items() if r[k] != ""}
+        worst = max(signed, key=signed.get)
+        assert float(r["concern"]) == pytest.approx(signed[worst])
+        assert r["concern_from"] == words[worst]
+    # the subjects off by a scale (non-linear displacement) and by a flip (model distance)
+    top = [int(r["index"]) for r in rows[:3]]
+    assert {16, 2} <= set(top), top
+    # results.json keeps manifest order, with the same concern
+    subjects = result.scores["damaged"].subjects
+    by_index = {int(r["index"]): float(r["concern"]) for r in rows}
+    assert [q.concern for q in subjects] == pytest.approx([by_index[i] for i in range(N)])
+
+
+def test_with_no_subject_flagged_the_summary_names_the_worst_by_concern(clean):
+    """A cohort that flags no one still has a worst few: summary.md names the three of
+    highest concern, in subjects.csv's order."""
+    result, out = clean
+    with open(out / "subjects.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert not any(r["flags"] for r in rows)
+    summary = (out / "summary.md").read_text()
+    (line,) = [ln for ln in summary.splitlines() if ln.startswith("- truth:")]
+    assert line.startswith(f"- truth: none of the {N} subjects is flagged; the highest concern: ")
+    named = [int(k) for k in re.findall(r"subject (\d+) \(", line)]
+    assert named == [int(r["index"]) for r in rows[:3]]
+    assert f"concern {float(rows[0]['concern']):.1f} ({rows[0]['concern_from']})" in line
+
+
+def test_the_reports_say_which_flags_are_the_registrations_and_name_the_reference(own_subject_0):
+    """summary.md, subjects.csv and report.html say the folding once, as the registration's,
+    and name subject 0 as the reference where it is."""
+    from itk_nrreval.report._html import escape
+    from itk_nrreval.report.evaluation_page import report_html
+    from itk_nrreval.report.evaluation_text import subjects_csv, summary_table
+    from itk_nrreval.subject_qc import registration_flags
+
+    result = own_subject_0
+    (flag,) = registration_flags(result.scores["folding"].subjects)
+    summary = summary_table(result)
+    assert summary.count(flag) == 1
+    assert f"  - registration flag: {flag}." in summary.splitlines()
+    reference = "  - subject 0 ({}): the reference of this registration"
+    assert summary.count(reference.format(result.scores["to_s00"].subjects[0].image)) == 2
+    assert f"of the {OWN_N - 1} subjects other than its reference" in summary
+    rows = list(csv.DictReader(io.StringIO(subjects_csv(result))))
+    folding = [r for r in rows if r["registration"] == "folding"]
+    assert all(r["registration_flags"] == flag and "fold" not in r["flags"] for r in folding)
+    for name in ("to_s00", "to_copy_of_s00"):
+        mine = [r for r in rows if r["registration"] == name]
+        assert [(r["index"], r["reference"]) for r in mine if r["reference"] == "True"] == [
+            ("0", "True")
+        ]
+        assert mine[-1]["index"] == "0" and mine[-1]["concern"] == ""  # listed last
+    page = report_html(result, figures={})
+    assert page.count(escape(flag)) == 1
+    assert "Registration flag</b>" in page
+    assert page.count("is the reference of this registration") == 2

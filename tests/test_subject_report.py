@@ -74,14 +74,16 @@ def test_the_registration_section_opens_with_its_flagged_subjects(damaged):
     # before the registration's own figures
     assert text.index("flagged") < text.index("checkerboard of two subjects")
     subjects = result.scores["damaged"].subjects
-    at = [text.index(f"subject {i} (s{i:02d}.nii.gz") for i in FLAGGED if i != 7]
-    assert at == sorted(at)  # in manifest order
+    at = {i: text.index(f"subject {i} (s{i:02d}.nii.gz") for i in FLAGGED if i != 7}
+    # worst first: by concern (the largest of each subject's signed z-scores), ties by index
+    assert sorted(at, key=at.get) == sorted(at, key=lambda i: (-subjects[i].concern, i))
     assert "subject 7 (s07_copy.nii.gz" in text
     for i in FLAGGED:
         q = subjects[i]
         assert " ".join(q.diagnosis.split()) in text, i
         for flag in q.flags:
             assert " ".join(flag.split()) in text, (i, flag)
+    assert "Subject flags:" in text and "Registration flag" not in text  # none shared
     # one picture per flagged subject besides the registration's two
     pictures = [decode_png(src) for src in section.srcs]
     assert len(pictures) == 2 + len(FLAGGED)
@@ -165,8 +167,43 @@ def test_flagged_subjects_beyond_the_shown_ones_are_counted(damaged, monkeypatch
     text = _words(section)
     assert len(section.srcs) == 2 + 2
     assert "2 more flagged subjects" in text and "subjects.csv" in text
-    assert "subject 2 (s02.nii.gz)" in text and "subject 6 (s06.nii.gz)" in text
-    assert "subject 7 (s07_copy.nii.gz)" not in text and "subject 15 (s15.nii.gz)" not in text
+    # the two of highest concern are shown; the others only in the ranked list below
+    subjects = result.scores["damaged"].subjects
+    worst = sorted(FLAGGED, key=lambda i: (-subjects[i].concern, i))
+    shown = text.split("2 more flagged subjects")[0]
+    names = {i: f"subject {i} (s{i:02d}{'_copy' if i == 7 else ''}.nii.gz)" for i in FLAGGED}
+    assert all(names[i] in shown for i in worst[:2])
+    assert not any(names[i] in shown for i in worst[2:])
+
+
+def test_every_subject_is_listed_worst_first_by_concern(damaged):
+    """Issue 42: the registration's section ranks every subject by its concern, the first
+    ten in a table and the others in a closed list, worst first, the reference-free cohort
+    all judged; a flagged subject's row says how many subject flags it has."""
+    import re
+
+    _, out, result = damaged
+    _, raw = parse(out / "report.html")
+    section = raw[raw.index('<section id="reg-damaged">') :]
+    ranked_part = section[
+        section.index("Every subject, worst first") : section.index(
+            "Scores, images and deformation"
+        )
+    ]
+    listed = [
+        int(i) for i in re.findall(r"<td>\d+</td><td class=\"text\">subject (\d+) ", ranked_part)
+    ]
+    subjects = result.scores["damaged"].subjects
+    assert sorted(listed) == list(range(N))
+    concern = [subjects[i].concern for i in listed]
+    assert concern == sorted(concern, reverse=True)
+    closed = ranked_part[ranked_part.index("<details>") :]
+    assert f"The other {N - 10} subjects" in closed
+    assert len(re.findall(r"subject \d+ ", closed)) == N - 10
+    for i in FLAGGED:
+        flags = len(subjects[i].flags)
+        row = re.search(rf"subject {i} \(.*?</tr>", ranked_part).group(0)
+        assert f"{flags} subject flag" in row
 
 
 @needs_browser

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..subject_qc import ranked
 from ._format import format_number
 from ._plot import (
     HIDDEN_BARS,
@@ -237,7 +238,8 @@ def _subjects_figure(result, names):
     for k, name in enumerate(names):
         scored = [q for q in result.scores[name].subjects if q.z is not None]
         spread = jitter.uniform(-0.28, 0.28, len(scored))
-        shown = {q.index for q in result.scores[name].flagged_subjects[:FLAGGED_SUBJECTS_SHOWN]}
+        flagged = ranked(result.scores[name].flagged_subjects)  # as the report shows them
+        shown = {q.index for q in flagged[:FLAGGED_SUBJECTS_SHOWN]}
         for q, dx in zip(scored, spread, strict=True):
             z = q.z
             if math.isinf(z):  # no spread in the cohort (MAD 0): drawn at the edge

@@ -5,9 +5,11 @@ The page opens from disk with no network and no JavaScript (:mod:`._html`). It g
 order: the verdict in words, with the subjects left off the common grid and how many subjects
 each registration flags; the scores with their legend, units and intervals; the summary
 figures (the same PNG bytes as the files beside it, ``subjects.png`` among them: every
-subject's model-distance z-score); per registration first its flagged subjects
-(:mod:`itk_nrreval.subject_qc`: name, diagnosis and flags in words, the subject in the common
-frame beside the mean image and a checkerboard of the two), then its mean image, a
+subject's model-distance z-score); per registration first its subjects
+(:mod:`itk_nrreval.subject_qc`: its registration flags, said once; its reference when that is
+one of the subjects; its flagged subjects worst first, each with its name, concern, diagnosis
+and subject flags in words, the subject in the common frame beside the mean image and a
+checkerboard of the two; every subject ranked worst first by concern), then its mean image, a
 checkerboard of two subjects, the label contours of one subject with a colour legend, a
 log-Jacobian-determinant map and the histogram of log det J over all subjects; deformation
 plausibility and coverage; the frame-estimate spread; the inputs and the options.
@@ -17,7 +19,8 @@ most 256 pixels a side (:attr:`EvaluationResult.thumbnails
 <itk_nrreval.evaluation.EvaluationResult.thumbnails>`, gathered by the pipeline: of subjects
 0 and 1, and of the flagged subjects shown, at most
 :data:`~itk_nrreval.report.evaluation_text.FLAGGED_SUBJECTS_SHOWN` per registration), and
-there is a bounded number of pictures per registration; only the list of input files grows
+there is a bounded number of pictures per registration; only the list of input files and
+the closed list of each registration's subjects past the worst :data:`RANKED_SHOWN` grow
 with N.
 """
 
@@ -26,6 +29,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from ..subject_qc import ranked, registration_flags
 from ._format import format_number, format_percent
 from ._html import (
     SELF_CONTAINED,
@@ -44,10 +48,12 @@ from ._html import (
 from ._plot import png_bytes
 from .evaluation_figures import figure_pngs, images_figure, jacobian_figure, subject_figure
 from .evaluation_text import (
+    CONCERN_WORDS,
     FLAGGED_SUBJECTS_SHOWN,
     ORDER_WORDS,
     TABLE_OVERLAPS,
     TIES_WORDS,
+    concern_text,
     format_rank,
     frame_spread_flagged,
     frame_spread_words,
@@ -320,36 +326,60 @@ def _frames_table(result, names: Sequence[str]) -> str:
 
 
 def _flagged_subjects(result, name: str) -> str:
-    """The flagged subjects of a registration: how many, then for each of the first
-    :data:`~.evaluation_text.FLAGGED_SUBJECTS_SHOWN` (manifest order) its name, diagnosis
-    and flags in words and its picture beside the mean image; a line for the rest."""
+    """The subjects of a registration: its registration flags, said once; its reference
+    when that is one of the subjects; how many subjects are flagged, then for each of the
+    first :data:`~.evaluation_text.FLAGGED_SUBJECTS_SHOWN` (worst first, by concern) its
+    name, diagnosis and subject flags in words and its picture beside the mean image, and a
+    line for the rest; then every subject ranked by concern (:func:`_ranked_subjects`)."""
     s = result.scores[name]
     if not s.subjects:
         return ""  # not assessed (a result of an earlier version)
-    flagged = s.flagged_subjects
-    n = len(s.subjects)
-    if not flagged:
-        return f"<h3>Flagged subjects</h3><p>None of the {n} subjects is flagged.</p>"
-    where = "the middle slice of " if result.mean_images[name].ndim == 3 else ""
+    flagged = ranked(s.flagged_subjects)
+    judged = sum(not q.reference for q in s.subjects)
+    of = f"of the {judged} subjects" + (
+        " other than its reference" if judged < len(s.subjects) else ""
+    )
+    shared = registration_flags(s.subjects)
     parts = [
-        f"<h3>Flagged subjects: {len(flagged)} of the {n} subjects flagged</h3>"
-        "<p>Each subject compared with the rest of the cohort under this registration "
-        "(robust z-scores, z = (x &minus; median) / (1.4826 MAD)): its distance to the "
-        "texture model of the others, its deformation, its label overlap with the others, "
-        "its coverage of the common grid. Every subject's values are in "
-        "<code>subjects.csv</code>; every z-score in "
-        f'<a href="#figures">subjects.png</a>. The pictures: {where}the subject resampled '
-        "into the common frame, the mean of the N images, and a checkerboard of the two "
-        "(the subject on the first tile): where the subject is aligned, edges run on across "
-        "the tile borders. One grey scale per picture; pale blue: outside the subject's "
-        "field of view.</p>"
+        f"<h3>Flagged subjects: {len(flagged)} {of} flagged</h3>"
+        if flagged
+        else f"<h3>Flagged subjects</h3><p>None {of} is flagged.</p>"
     ]
+    if shared:
+        parts.append(
+            f'<p class="flag"><b>Registration flag{"s" if len(shared) > 1 else ""}</b> (a '
+            "kind of flag at least half of the subjects carry: a property of this "
+            "registration, said once, not a flag of each subject): "
+            + "; ".join(escape(f) for f in shared)
+            + ".</p>"
+        )
+    for q in s.subjects:
+        if q.reference:
+            parts.append(
+                f"<p><b>{escape(_subject(result, q.index))}</b> is the reference of this "
+                "registration (registered to itself): not judged.</p>"
+            )
+    if flagged:
+        where = "the middle slice of " if result.mean_images[name].ndim == 3 else ""
+        parts.append(
+            "<p>Each subject compared with the rest of the cohort under this registration "
+            "(robust z-scores, z = (x &minus; median) / (1.4826 MAD)): its distance to the "
+            "texture model of the others, its deformation, its label overlap with the "
+            "others, its coverage of the common grid. Worst first, by concern (below). "
+            "Every subject's values are in <code>subjects.csv</code>; every z-score in "
+            f'<a href="#figures">subjects.png</a>. The pictures: {where}the subject resampled '
+            "into the common frame, the mean of the N images, and a checkerboard of the two "
+            "(the subject on the first tile): where the subject is aligned, edges run on "
+            "across the tile borders. One grey scale per picture; pale blue: outside the "
+            "subject's field of view.</p>"
+        )
     t = result.thumbnails.get(name, {})
     for q in flagged[:FLAGGED_SUBJECTS_SHOWN]:
         cause = q.diagnosis if q.diagnosis is not None else "no common cause recognised"
         words = (
-            f"<b>{escape(_subject(result, q.index))}</b><br><b>Diagnosis:</b> {escape(cause)}.<br>"
-            "<b>Flags:</b> " + "; ".join(escape(f) for f in q.flags) + "."
+            f"<b>{escape(_subject(result, q.index))}</b>, concern "
+            f"{concern_text(q.concern)}<br><b>Diagnosis:</b> {escape(cause)}.<br>"
+            "<b>Subject flags:</b> " + "; ".join(escape(f) for f in q.flags) + "."
         )
         if f"image_{q.index}" in t:
             png = png_bytes(subject_figure(result, name, q.index), dpi=_DPI)
@@ -362,7 +392,54 @@ def _flagged_subjects(result, name: str) -> str:
             f"<p>{rest} more flagged subject{'s' if rest > 1 else ''}, not shown: "
             "<code>subjects.csv</code> and <code>summary.md</code> list every one.</p>"
         )
+    parts.append(_ranked_subjects(result, name))
     return "\n".join(parts)
+
+
+#: How many subjects of a registration the ranked table shows open; the others follow in a
+#: closed list, so the page stays short whatever N.
+RANKED_SHOWN = 10
+
+
+def _ranked_subjects(result, name: str) -> str:
+    """Every subject of a registration worst first, by concern: rank, subject, concern,
+    the z-score it came from, and what is flagged (the first :data:`RANKED_SHOWN` open,
+    the others in a closed list)."""
+    s = result.scores[name]
+    rows = []
+    for rank, q in enumerate(ranked(s.subjects), start=1):
+        marks = []
+        if q.reference:
+            marks.append("reference of this registration")
+        if q.flags:
+            marks.append(f"{len(q.flags)} subject flag{'s' if len(q.flags) > 1 else ''}")
+        if q.registration_flags:
+            plural = "s" if len(q.registration_flags) > 1 else ""
+            marks.append(f"shares the registration flag{plural}")
+        rows.append(
+            [
+                str(rank),
+                escape(_subject(result, q.index)),
+                concern_text(q.concern),
+                escape(q.concern_from or "–"),
+                escape("; ".join(marks) or "–"),
+            ]
+        )
+    head = ["Rank", "Subject", "Concern", "From", "Flagged"]
+    classes = ["flagged" if q.flags else "" for q in ranked(s.subjects)]
+    out = [
+        "<h3>Every subject, worst first</h3><p>"
+        + escape(CONCERN_WORDS)
+        + " From: the z-score that gave the concern.</p>",
+        table_html(head, rows[:RANKED_SHOWN], text=(1, 3, 4), classes=classes[:RANKED_SHOWN]),
+    ]
+    if len(rows) > RANKED_SHOWN:
+        out.append(
+            f"<details><summary>The other {len(rows) - RANKED_SHOWN} subjects</summary>"
+            + table_html(head, rows[RANKED_SHOWN:], text=(1, 3, 4), classes=classes[RANKED_SHOWN:])
+            + "</details>"
+        )
+    return "".join(out)
 
 
 def _registration_section(result, name: str) -> str:
@@ -423,7 +500,8 @@ def _registration_section(result, name: str) -> str:
 
 def _subjects_in_verdict(result, names: Sequence[str], slugs: Mapping[str, str]) -> str:
     """The verdict area's lines on the subjects: those left off the common grid (in no
-    registration's scores), and how many each registration flags, linked to its section."""
+    registration's scores), and how many subjects each registration flags (and how many
+    registration flags its subjects share), linked to its section."""
     out = []
     left_out = result.options.get("left_out_of_scores") or []
     if left_out:
@@ -437,7 +515,13 @@ def _subjects_in_verdict(result, names: Sequence[str], slugs: Mapping[str, str])
         subjects = result.scores[n].subjects
         if subjects:
             k = len(result.scores[n].flagged_subjects)
-            what = f"{k} of {len(subjects)} subjects flagged" if k else "no subject flagged"
+            judged = sum(not q.reference for q in subjects)
+            what = f"{k} of {judged} subjects flagged" if k else "no subject flagged"
+            if judged < len(subjects):
+                what += " (its reference, one of the subjects, is not judged)"
+            shared = len(registration_flags(subjects))
+            if shared:
+                what += f", {shared} registration flag{'s' if shared > 1 else ''}"
             counts.append(f'<a href="#{slugs[n]}">{escape(n)}</a>: {what}')
     if counts:
         out.append(
@@ -537,8 +621,9 @@ def _summary_figures(result, names: Sequence[str], figures: Mapping[str, bytes])
         "subjects.png": (
             "Every subject in the scores, per registration: the robust z-score of its log "
             "distance to the texture model of the other subjects (0: a typical subject; "
-            "above the dashed line the distance alone flags it). Red: flagged for any reason "
-            "(a duplicated image lies far below: too close to another), numbered by subject "
+            "above the dashed line the distance alone flags it). Red: a subject flag for any "
+            "reason (a duplicated image lies far below: too close to another; a registration "
+            "flag its subjects share is not a subject's), numbered by subject "
             "for those each registration's section shows. Subjects left off the common grid "
             "have no score and are not drawn."
         ),

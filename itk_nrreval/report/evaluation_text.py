@@ -20,10 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..subject_qc import ranked, registration_flags
 from ._format import format_number, format_percent
 
 __all__ = [
     "FLAGGED_SUBJECTS_SHOWN",
+    "SUBJECT_FLAG_WORDS",
+    "CONCERN_WORDS",
+    "concern_text",
+    "WORST_NAMED",
     "TABLE_OVERLAPS",
     "TIES_WORDS",
     "ORDER_WORDS",
@@ -39,8 +44,8 @@ __all__ = [
 ]
 
 
-#: How many flagged subjects per registration the HTML report shows with pictures (in
-#: manifest order; how many more there are is said): the pipeline keeps a resampled slice of
+#: How many flagged subjects per registration the HTML report shows with pictures (worst
+#: first, by concern; how many more there are is said): the pipeline keeps a resampled slice of
 #: these only, so the report stays light whatever the number of subjects.
 FLAGGED_SUBJECTS_SHOWN = 6
 
@@ -215,11 +220,53 @@ def summary_table(result) -> str:
     return "\n".join(lines + notes + subjects_summary(result)) + "\n"
 
 
-def subjects_summary(result) -> list[str]:
-    """The lines of ``summary.md`` that name the flagged subjects of every registration.
+#: How the reports say what a subject flag, a registration flag and the concern are.
+SUBJECT_FLAG_WORDS = (
+    "A subject flag sets one subject apart from the rest of its cohort under the same "
+    "registration. A registration flag is a kind of flag at least half of a registration's "
+    "subjects (and at least two) carry: a property of the registration, not of those "
+    "subjects, said once and not counted as theirs. A registration's reference, when it is "
+    "one of the subjects (registered to itself), is named as such and not judged."
+)
+CONCERN_WORDS = (
+    "Subjects are listed worst first by their concern: the largest of their robust z-scores, "
+    "each signed so that positive is worse (distance to the model of the others, label "
+    "overlap with the others, SDlogJ, non-linear displacement, inverse consistency). It "
+    "ranks, it does not flag: look at the first few even when none is flagged. Flags on "
+    "absolute limits (folding, mirroring, a duplicate, off the grid) are not in it."
+)
 
-    Per registration, each flagged subject (manifest index and image) with its diagnosis
-    and flags, or that none is flagged; and the subjects left out of every score.
+#: How many subjects of highest concern summary.md names for a registration that flags none.
+WORST_NAMED = 3
+
+
+def _reference_words(s) -> str:
+    """The words " other than its reference" for a registration whose reference is one of
+    its subjects; empty otherwise."""
+    return " other than its reference" if any(q.reference for q in s.subjects) else ""
+
+
+def concern_text(concern: float | None) -> str:
+    """A concern (robust standard deviations) to one decimal (``"2.4"``); a dash for None."""
+    return "–" if concern is None else f"{concern:.1f}"
+
+
+def _concern_words(q) -> str:
+    """A subject's concern in words: ``"concern 2.4 (model distance)"``."""
+    if q.concern is None:
+        return "no concern measured"
+    return f"concern {concern_text(q.concern)} ({q.concern_from})"
+
+
+def subjects_summary(result) -> list[str]:
+    """The lines of ``summary.md`` on the subjects of every registration.
+
+    Per registration (in the verdict's order): its registration flags, each once; its
+    reference when that is one of the subjects; its flagged subjects worst first (by
+    :attr:`~itk_nrreval.subject_qc.SubjectQC.concern`), each with its manifest index, image,
+    concern, diagnosis and subject flags; or, when none is flagged, the
+    :data:`WORST_NAMED` subjects of highest concern. Then the subjects left out of every
+    score.
     """
     if not any(s.subjects for s in result.scores.values()):
         return []
@@ -230,7 +277,8 @@ def subjects_summary(result) -> list[str]:
         "Each subject compared with the rest of its cohort under the same registration "
         "(robust z-scores, z = (x - median) / (1.4826 MAD)): its distance to the texture "
         "model of the others, its deformation, its label overlap with the others, its "
-        "coverage of the common grid (per-subject values in subjects.csv).",
+        "coverage of the common grid (per-subject values in subjects.csv, every subject "
+        f"ranked). {SUBJECT_FLAG_WORDS} {CONCERN_WORDS}",
         "",
     ]
     left_out = result.options.get("left_out_of_scores") or []
@@ -244,14 +292,34 @@ def subjects_summary(result) -> list[str]:
     order = list(result.verdict.ranking) if result.verdict is not None else list(result.scores)
     for name in order:  # the order of the table above: the verdict's
         s = result.scores[name]
-        flagged = [q for q in s.subjects if q.flags]
-        if not flagged:
-            lines.append(f"- {name}: none of the {len(s.subjects)} subjects is flagged.")
+        if not s.subjects:
             continue
-        lines.append(f"- {name}: {len(flagged)} of the {len(s.subjects)} subjects flagged:")
+        flagged = ranked([q for q in s.subjects if q.flags])
+        judged = [q for q in s.subjects if not q.reference]
+        of = f"of the {len(judged)} subjects{_reference_words(s)}"
+        if flagged:
+            lines.append(f"- {name}: {len(flagged)} {of} flagged:")
+        else:
+            worst = [q for q in ranked(judged) if q.concern is not None][:WORST_NAMED]
+            named = ", ".join(f"subject {q.index} ({q.image}), {_concern_words(q)}" for q in worst)
+            lines.append(
+                f"- {name}: none {of} is flagged"
+                + (f"; the highest concern: {named}." if named else ".")
+            )
+        for flag in registration_flags(s.subjects):
+            lines.append(f"  - registration flag: {flag}.")
+        for q in s.subjects:
+            if q.reference:
+                lines.append(
+                    f"  - subject {q.index} ({q.image}): the reference of this registration "
+                    "(registered to itself): not judged."
+                )
         for q in flagged:
             cause = q.diagnosis if q.diagnosis is not None else "no common cause recognised"
-            lines.append(f"  - subject {q.index} ({q.image}): {cause}. {'; '.join(q.flags)}.")
+            lines.append(
+                f"  - subject {q.index} ({q.image}), {_concern_words(q)}: {cause}. "
+                f"Subject flags: {'; '.join(q.flags)}."
+            )
     return lines
 
 
@@ -278,24 +346,33 @@ _SUBJECT_DEFORMATION = (
 
 
 def subjects_csv(result) -> str:
-    """One row per registration and subject (manifest order): the subject's quality control.
+    """One row per registration and subject: the subject's quality control, worst first.
 
-    Columns: registration, index, image, in_scores, score (distance to the model of the
-    others, intensity units), z, overlap, overlap_z, coverage, the deformation measures
-    (mm where a length) and their z, flags (joined by "; "), diagnosis. Empty cells: not
-    computed.
+    Within each registration the subjects are ranked worst first by their concern
+    (:func:`itk_nrreval.subject_qc.ranked`; ``rank`` 1 is the worst; the reference last).
+    Columns: registration, rank, index (manifest), image, reference (the registration's
+    reference: not judged), concern and concern_from (which z-score gave it), in_scores,
+    score (distance to the model of the others, intensity units), z, overlap, overlap_z,
+    coverage, the deformation measures (mm where a length) and their z, flags (the
+    subject's own, joined by "; "), registration_flags (the registration's flags it shares,
+    joined by "; "), diagnosis. Empty cells: not computed.
     """
-    fields = ["registration", "index", "image", "in_scores", "score", "z"]
-    fields += ["overlap", "overlap_z", "coverage", *_SUBJECT_DEFORMATION, "flags", "diagnosis"]
+    fields = ["registration", "rank", "index", "image", "reference", "concern", "concern_from"]
+    fields += ["in_scores", "score", "z", "overlap", "overlap_z", "coverage"]
+    fields += [*_SUBJECT_DEFORMATION, "flags", "registration_flags", "diagnosis"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
     for name, s in result.scores.items():
-        for q in s.subjects:
+        for rank, q in enumerate(ranked(s.subjects), start=1):
             row = {
                 "registration": name,
+                "rank": rank,
                 "index": q.index,
                 "image": q.image,
+                "reference": q.reference,
+                "concern": q.concern,
+                "concern_from": q.concern_from or "",
                 "in_scores": q.in_scores,
                 "score": q.score,
                 "z": q.z,
@@ -304,6 +381,7 @@ def subjects_csv(result) -> str:
                 "coverage": q.coverage,
                 **{k: q.deformation.get(k) for k in _SUBJECT_DEFORMATION},
                 "flags": "; ".join(q.flags),
+                "registration_flags": "; ".join(q.registration_flags),
                 "diagnosis": q.diagnosis or "",
             }
             w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
