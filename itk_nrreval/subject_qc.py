@@ -867,7 +867,9 @@ def _shared_kinds(
                 f"voxels ({low if low == high else f'{low} to {high}'}; det J <= 0)"
             )
         else:
-            out[kind] = f"{len(who)} of the {n} subjects {FLAG_KINDS[kind]}"
+            # a kind without its words yet (a flag added later) is still said once
+            words = FLAG_KINDS.get(kind, f"carry the flag {kind!r}")
+            out[kind] = f"{len(who)} of the {n} subjects {words}"
     return out
 
 
