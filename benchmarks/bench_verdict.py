@@ -10,7 +10,7 @@ verdict is *right* (it decides the lower-error one better), *wrong* (the other w
 *open* (it decides nothing). Pairs closer than that are near-ties: counted apart, decided or
 open.
 
-Cases (2D, N = 12, M = ``N_SAMPLES``):
+Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 * ``demo``: the demo's five registrations (:func:`itk_nrreval.demo.run_demo`, phantom);
 * ``cheat``: the demo's registrations plus Rohlfing's class-matching cheat
@@ -28,19 +28,36 @@ Cases (2D, N = 12, M = ``N_SAMPLES``):
 * ``similar``: the true transforms each perturbed by a smooth random field, two of them of
   the same size (similar true quality) and one twice as large;
 * ``folding``: the true transforms perturbed by small local folds (a little folding, a small
-  error) against smooth perturbations without folds (larger errors).
+  error) against smooth perturbations without folds (larger errors);
+* ``families_<...>`` (issue 41): registrations of different families compared in one case,
+  each to the cohort's own image 0 (``reference_index: 0``, its transform the identity):
+  affine, SimpleITK diffeomorphic demons with field smoothing 0.5, 1, 2 and 4 mm, elastix
+  B-splines on 10 and 25 mm grids (:data:`FAMILIES`; ``families_mni2d_syn``: affine, ANTs
+  SyN, demons 1 and 3 mm, B-splines on 15 and 40 mm grids, :data:`FAMILIES_SYN`), on
+  populations imaged in T1 and T2 with the population's default gain (SD 0.1 of its log),
+  smooth multiplicative bias (SD 0.1 of its log) and Rician noise (2% of the template's 99th
+  percentile); MNI-based and phantom, N = 12 in 2D (two seeds each), N = 36 and 3D (N = 10,
+  3 mm voxels); evaluated inside the reference's brain dilated by 3 voxels, as the demo;
+  ``unseen_families_<...>``: the same registrations scored on the T2 images.
+
+**The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
+were run): a rule may be set on the tuning cases only; ``splits.md`` reports both splits in
+each mode (:data:`MODES`: with labels, without labels, on the second scan).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
 (``evaluation.pkl``: the pickled :class:`~itk_nrreval.EvaluationResult`; ``results.json``;
-``truth.json``: the true errors), so ``--rejudge`` recomputes only the verdict
+``truth.json``: the true errors; for the ``families_*`` cases also every subject's true
+error in every registration, ``subject_true_error_mm`` and ``subject_true_errors.csv``, for
+a subject-QC benchmark), so ``--rejudge`` recomputes only the verdict
 (:func:`itk_nrreval.evaluation.verdict`) from them, in seconds. Written to
 ``benchmarks/out/verdict/``: ``pairs.csv`` / ``pairs.json`` (every pair: case, a, b, true
-errors, decision, basis, outcome) and ``summary.md`` (per case and overall; also the same
-verdict without the overlap, as on data without labels).
+errors, decision, basis, outcome), ``summary.md`` (per case and overall; also the same
+verdict without the overlap, as on data without labels) and ``splits.md`` / ``splits.json``.
 
 Run: ``python benchmarks/run_all.py verdict`` (every case), or
-``python benchmarks/bench_verdict.py [--quick] [--cases a,b] [--rejudge]``; ``--quick`` runs
-``demo``, ``similar`` and ``folding`` (a few minutes).
+``python benchmarks/bench_verdict.py [--quick] [--new] [--cases a,b] [--rejudge]``;
+``--quick`` runs ``demo``, ``similar`` and ``folding`` (a few minutes), ``--new`` the
+``families_*`` cases and their second scans.
 """
 
 from __future__ import annotations
@@ -224,23 +241,26 @@ def _unseen(folder: Path, *, sweep_case: str, kind: str):
     """The registrations of `sweep_case` (made on the T1 images), scored on each subject's
     T2 image: another scan with its own noise and bias, which the registration did not see
     (the manifest's ``evaluation_images``). Same seed, so the T1 images are the sweep's."""
-    import dataclasses
-
-    import itk_nrreval as nr
-    from data_synth import make_population, write_population
-    from itk_nrreval.manifest import load_manifest, write_manifest
-
     swept = OUT / sweep_case / "sweep" / "manifest.yaml"
     if not swept.exists():
         _run_case(sweep_case)
-    data = OUT / f"data_{kind}2d_n{N}_t1t2" / "manifest.yaml"
-    if not data.exists():
-        pop = make_population(kind, dim=2, n=N, seed=SEED, contrasts=("t1", "t2"))
-        write_population(pop, data.parent, montage=False, progress=False)
+    data = _population(kind, contrasts=("t1", "t2"))
+    return _second_scan(folder, case=sweep_case, registered=swept, data=data)
+
+
+def _second_scan(folder: Path, *, case: str, registered: Path, data: Path):
+    """The registrations of the manifest `registered` (of case `case`, made on the T1 images
+    of the population `data`), scored on each subject's T2 image of `data` (the manifest's
+    ``evaluation_images``); the true errors are `case`'s."""
+    import dataclasses
+
+    import itk_nrreval as nr
+    from itk_nrreval.manifest import load_manifest, write_manifest
+
     both = load_manifest(data)
     t1 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t1"]
     t2 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t2"]
-    m = load_manifest(swept)
+    m = load_manifest(registered)
     for a, b in zip(m.images, t1, strict=True):  # the registered images are these T1 images
         same = sitk.GetArrayFromImage(sitk.ReadImage(str(a))) == sitk.GetArrayFromImage(
             sitk.ReadImage(str(b))
@@ -250,8 +270,8 @@ def _unseen(folder: Path, *, sweep_case: str, kind: str):
         dataclasses.replace(m, evaluation_images=tuple(t2)), folder / "manifest.yaml"
     )
     ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
-    errors = json.loads((OUT / sweep_case / "truth.json").read_text())["true_error_mm"]
-    return ev, errors
+    truth = json.loads((OUT / case / "truth.json").read_text())
+    return ev, truth["true_error_mm"], {k: v for k, v in truth.items() if k.startswith("subject")}
 
 
 def _multimodal(folder: Path):
@@ -289,14 +309,26 @@ def _multimodal(folder: Path):
     return ev, correspondence_error(ev, manifest, truth, mask=head)
 
 
-def _population(kind: str, *, dim: int = 2, n: int = N, spacing: float | None = None) -> Path:
+def _population(
+    kind: str,
+    *,
+    dim: int = 2,
+    n: int = N,
+    spacing: float | None = None,
+    seed: int = SEED,
+    contrasts: tuple[str, ...] = ("t1",),
+) -> Path:
+    """The manifest of a generated population (written once, then read from its folder);
+    the population's default noise, bias and gain (:func:`data_synth.make_population`)."""
     from data_synth import make_population, write_population
 
     grid = "" if spacing is None else f"_{spacing:g}mm"
-    manifest = OUT / f"data_{kind}{dim}d_n{n}{grid}" / "manifest.yaml"
+    drawn = "" if seed == SEED else f"_seed{seed}"
+    scans = "" if contrasts == ("t1",) else "_" + "".join(contrasts)
+    manifest = OUT / f"data_{kind}{dim}d_n{n}{grid}{drawn}{scans}" / "manifest.yaml"
     if not manifest.exists():
         extra = {} if spacing is None else {"spacing": spacing}
-        pop = make_population(kind, dim=dim, n=n, seed=SEED, **extra)
+        pop = make_population(kind, dim=dim, n=n, seed=seed, contrasts=contrasts, **extra)
         write_population(pop, manifest.parent, montage=False, progress=False)
     return manifest
 
@@ -380,6 +412,151 @@ def _truth_reference() -> Path:
     return Path(load_manifest(_population("phantom")).registrations["truth"].reference)
 
 
+#: The registrations of a cross-family case, all to the cohort's own image 0 (its transform
+#: the identity): name -> (method, engine, options of :func:`itk_nrreval.registration.register`).
+#: The seven of the issue's held-out case: affine, diffeomorphic demons (SimpleITK) with
+#: field smoothing of 0.5-4 mm, B-spline (elastix) on a fine and a coarse grid.
+FAMILIES = {
+    "affine": ("affine", "simpleitk", {}),
+    **{f"demons_{s:g}mm": ("fluid", "simpleitk", {"smoothing_mm": s}) for s in (0.5, 1, 2, 4)},
+    **{f"bspline_{g:g}mm": ("pairwise", "elastix", {"grid_spacing": g}) for g in (10.0, 25.0)},
+}
+#: Other families and settings: ANTs SyN, demons at 1 and 3 mm, B-spline on 15 and 40 mm grids.
+FAMILIES_SYN = {
+    "affine": FAMILIES["affine"],
+    "syn": ("fluid", "ants", {}),
+    **{f"demons_{s:g}mm": ("fluid", "simpleitk", {"smoothing_mm": s}) for s in (1, 3)},
+    **{f"bspline_{g:g}mm": ("pairwise", "elastix", {"grid_spacing": g}) for g in (15.0, 40.0)},
+}
+
+
+def _families(
+    folder: Path,
+    *,
+    kind: str,
+    seed: int,
+    registrations: dict = FAMILIES,
+    dim: int = 2,
+    n: int = N,
+    spacing: float | None = None,
+):
+    """Registrations of different families, each to the cohort's own image 0
+    (``reference_index: 0``), of a population imaged in T1 and T2 (the population's default
+    gain, bias and Rician noise); registered on the T1 images, evaluated like the demo inside
+    the reference's brain dilated by 3 voxels. The T2 images are the case's second scan
+    (``unseen_<case>``, :func:`_second_scan`)."""
+    import dataclasses
+
+    import itk_nrreval as nr
+    from itk_nrreval.manifest import load_manifest, write_manifest
+    from itk_nrreval.registration import ElastixWorker, register
+
+    data = _population(kind, dim=dim, n=n, spacing=spacing, seed=seed, contrasts=("t1", "t2"))
+    both = load_manifest(data)
+    t1 = [i for i, g in enumerate(both.groups) if g == "t1"]
+    images = [str(both.images[i]) for i in t1]
+    labels = [str(both.labels[i]) for i in t1]
+    names = [Path(p).name.removesuffix(".nii.gz") for p in images]
+    manifest = folder / "manifest.yaml"
+    seconds = {}
+    t0 = time.perf_counter()
+    affine = _quiet(register, images, method="affine", reference=0, seed=SEED, progress=False)
+    seconds["affine"] = time.perf_counter() - t0
+    with ElastixWorker() as worker:
+        for name, (method, engine, options) in registrations.items():
+            t0 = time.perf_counter()
+            if method == "affine":
+                result = affine
+            else:
+                result = _quiet(
+                    register,
+                    images,
+                    method=method,
+                    engine=engine,
+                    options=options,
+                    affine=affine,
+                    seed=SEED,
+                    progress=False,
+                    elastix_worker=worker if method == "pairwise" else None,
+                )
+                seconds[name] = time.perf_counter() - t0
+            result.add_to_manifest(
+                manifest,
+                name,
+                out=folder / "registrations" / name,
+                names=names,
+                images=images,
+                labels=labels,
+                parameters={**result.manifest_parameters(), **options},
+            )
+    brain = sitk.BinaryDilate(sitk.Cast(sitk.ReadImage(labels[0]) > 0, sitk.sitkUInt8), [3] * dim)
+    sitk.WriteImage(brain, str(folder / "brain_mask.nii.gz"))
+    m = load_manifest(manifest)
+    write_manifest(dataclasses.replace(m, mask=(folder / "brain_mask.nii.gz").absolute()), manifest)
+    t0 = time.perf_counter()
+    ev = _quiet(nr.evaluate, manifest, n_samples=N_SAMPLES, seed=SEED, progress=False)
+    seconds["evaluate"] = time.perf_counter() - t0
+    errors, per_subject = _subject_true_errors(ev, manifest, data, t1)
+    return (
+        ev,
+        errors,
+        {
+            "subjects": names,
+            "subject_true_error_mm": per_subject,
+            "population": {"kind": kind, "dim": dim, "n": n, "seed": seed, "data": str(data)},
+            "stage_seconds": {k: round(v, 1) for k, v in seconds.items()},
+        },
+    )
+
+
+def _subject_true_errors(evaluation, manifest: Path, data_manifest: Path, rows: list[int]):
+    """True correspondence error (mm) of every registration, and of every subject in it,
+    inside the manifest's mask: subject i's error is the mean over the common frame's points
+    p of ``|y_i - mean_j y_j|`` (:func:`itk_nrreval.correspondence.correspondence_error`,
+    whose mean over i it is; checked against it). `rows`: the registered images' entries
+    of the population manifest `data_manifest` (its truth)."""
+    from itk_nrreval._images import Geometry, mask_array, read_image
+    from itk_nrreval.correspondence import correspondence_error
+    from itk_nrreval.frame import read_chains, resampling_transform
+    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.transforms import chain_transform, displacement_field, invert
+
+    truth = load_manifest(data_manifest).registrations["truth"]
+    truth_grid = Geometry.from_image(read_image(truth.reference, what="truth reference"))
+    to_template = [invert(chain_transform(truth.transforms[i]), grid=truth_grid) for i in rows]
+    m = load_manifest(manifest)
+    grid = Geometry.from_image(read_image(m.registrations[m.common_frame].reference))
+    mask = mask_array(m.mask, shape=grid.shape, geometry=grid)
+    per_subject = {}
+    for name, scores in evaluation.scores.items():
+        y = np.stack(
+            [
+                sitk.GetArrayFromImage(
+                    displacement_field(
+                        sitk.CompositeTransform(
+                            [s, resampling_transform(t, scores.frame.transform)]
+                        ),
+                        grid,
+                    )
+                )[mask]
+                for t, s in zip(read_chains(m, name), to_template, strict=True)
+            ]
+        )  # the grid points themselves cancel in y_i - mean_j y_j
+        per_subject[name] = np.linalg.norm(y - y.mean(axis=0), axis=-1).mean(axis=1).tolist()
+    errors = correspondence_error(evaluation, m, to_template, mask=mask)
+    for name, error in errors.items():
+        assert np.isclose(np.mean(per_subject[name]), error, rtol=1e-9), (name, error)
+    return errors, per_subject
+
+
+def _registered(case: str) -> Path:
+    """The manifest of `case`'s registrations (the case is run first when it has not been)."""
+    manifest = OUT / case / "manifest.yaml"
+    if not (OUT / case / "truth.json").exists():
+        _run_case(case)
+    return manifest
+
+
 def _cases() -> dict:
     """Case name -> builder(folder) -> (EvaluationResult, true error per registration)."""
     sweeps = _bench("sweeps")
@@ -439,6 +616,32 @@ def _cases() -> dict:
             "smooth3mm": _smooth_fields(6, 3.0),
         },
     )
+    # issue 41: registrations of different families to the cohort's own image 0 (the split
+    # of these cases was declared before they were run: TUNING, HELD_OUT)
+    families = {
+        "families_mni2d": {"kind": "mni", "seed": 1},
+        "families_phantom2d": {"kind": "phantom", "seed": 1},
+        "families_mni2d_s2": {"kind": "mni", "seed": 2},
+        "families_phantom2d_s2": {"kind": "phantom", "seed": 2},
+        "families_mni2d_syn": {"kind": "mni", "seed": 3, "registrations": FAMILIES_SYN},
+        "families_mni2d_n36": {"kind": "mni", "seed": 4, "n": 36},
+        "families_mni3d": {"kind": "mni", "seed": 5, "dim": 3, "n": 10, "spacing": 3.0},
+    }
+    for case, spec in families.items():
+        cases[case] = lambda folder, spec=spec: _families(folder, **spec)
+        cases[SECOND_SCAN[case]] = lambda folder, c=case, spec=spec: _second_scan(
+            folder,
+            case=c,
+            registered=_registered(c),
+            data=_population(
+                spec["kind"],
+                dim=spec.get("dim", 2),
+                n=spec.get("n", N),
+                spacing=spec.get("spacing"),
+                seed=spec["seed"],
+                contrasts=("t1", "t2"),
+            ),
+        )
     return cases
 
 
@@ -452,11 +655,20 @@ def _run_case(case: str) -> None:
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     t0 = time.perf_counter()
-    evaluation, errors = _cases()[case](folder)
+    evaluation, errors, *more = _cases()[case](folder)
     (folder / "evaluation.pkl").write_bytes(pickle.dumps(evaluation))
     (folder / "results.json").write_text(json.dumps(evaluation.to_dict(), indent=1) + "\n")
-    truth = {"true_error_mm": errors, "seconds": round(time.perf_counter() - t0, 1)}
+    truth = {"true_error_mm": errors, **(more[0] if more else {})}
+    truth["seconds"] = round(time.perf_counter() - t0, 1)
     (folder / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    if "subject_true_error_mm" in truth:  # for a subject-QC benchmark (issue 42)
+        per = truth["subject_true_error_mm"]
+        lines = ["subject,registration,true_error_mm"] + [
+            f"{subject},{name},{e:.4f}"
+            for name, errors in per.items()
+            for subject, e in zip(truth["subjects"], errors, strict=True)
+        ]
+        (folder / "subject_true_errors.csv").write_text("\n".join(lines) + "\n")
     print(f"[verdict] {case}: {truth['seconds']:.0f} s", flush=True)
 
 
@@ -551,6 +763,76 @@ def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
     return {"counts": counts, "counts_without_labels": alone, "pairs": rows}
 
 
+def split_of(case: str) -> str:
+    """``"tuning"`` or ``"held-out"``: the declared split of a case or of its second scan."""
+    base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
+    if base in HELD_OUT:
+        return "held-out"
+    assert base in TUNING, f"{case} is in no split"
+    return "tuning"
+
+
+#: The three modes of issue 41, plus the second scan with labels: (title, second scan?,
+#: labels?).
+MODES = (
+    ("with labels", False, True),
+    ("without labels", False, False),
+    ("second scan, without labels", True, False),
+    ("second scan, with labels", True, True),
+)
+
+
+def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) -> dict:
+    """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
+    each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
+    only where it was judged in the same run."""
+    bases = [c for c in cases if c in TUNING + HELD_OUT]
+    table = {}
+    for case in bases:
+        table[case] = {}
+        for title, second, labels in MODES:
+            judged = SECOND_SCAN.get(case) if second else case
+            if judged not in cases:
+                continue
+            source = rows if labels else unlabelled
+            table[case][title] = _counts([r for r in source if r["case"] == judged])
+    keys = ("right", "wrong", "open")
+    totals = {}
+    for split in ("tuning", "held-out"):
+        totals[split] = {}
+        for title, *_ in MODES:
+            cells = [t[title] for c, t in table.items() if split_of(c) == split and title in t]
+            if cells:
+                totals[split][title] = {k: sum(x[k] for x in cells) for k in keys}
+
+    def cell(k: dict | None) -> str:
+        return f"{k['right']} / {k['wrong']} / {k['open']}" if k else "-"
+
+    header = "| case | split | " + " | ".join(t for t, *_ in MODES) + " |"
+    lines = [
+        "Right / wrong / open over the pairs whose true errors differ by more than "
+        f"{MARGIN:.0%} (near-ties left out), today's verdict.",
+        "",
+        header,
+        "|---|---|" + "--:|" * len(MODES),
+    ]
+    for split in ("tuning", "held-out"):
+        for c, t in table.items():
+            if split_of(c) == split:
+                cells = " | ".join(cell(t.get(title)) for title, *_ in MODES)
+                lines.append(f"| {c} | {split} | {cells} |")
+        if totals[split]:
+            cells = " | ".join(f"**{cell(totals[split].get(title))}**" for title, *_ in MODES)
+            lines.append(f"| **{split}** | | {cells} |")
+    text = "\n".join(lines) + "\n"
+    (OUT / "splits.md").write_text(text)
+    (OUT / "splits.json").write_text(
+        json.dumps({"cases": table, "totals": totals}, indent=1) + "\n"
+    )
+    print(text)
+    return {"cases": table, "totals": totals}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK)}")
@@ -560,9 +842,16 @@ def main(argv: list[str] | None = None) -> dict:
         action="store_true",
         help="recompute only the verdict from the saved evaluations (no registration)",
     )
+    parser.add_argument(
+        "--new",
+        action="store_true",
+        help="only the cases of issue 41 (families_*) and their second scans",
+    )
     args = parser.parse_args([] if argv is None else argv)
     known = list(_cases())
+    new = [c for c in known if "families_" in c]
     cases = args.cases.split(",") if args.cases else list(QUICK if args.quick else known)
+    cases = new if args.new and not args.cases else cases
     unknown = [c for c in cases if c not in known]
     if unknown:
         parser.error(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(known)}")
@@ -576,7 +865,9 @@ def main(argv: list[str] | None = None) -> dict:
             _run_case(case)
     rows = [row for case in cases for row in judge(case)]
     unlabelled = [row for case in cases for row in judge(case, labels=False)]
-    return _write(rows, cases, unlabelled)
+    result = _write(rows, cases, unlabelled)
+    result["splits"] = _write_splits(rows, unlabelled, cases)
+    return result
 
 
 if __name__ == "__main__":
