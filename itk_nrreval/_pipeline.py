@@ -948,6 +948,11 @@ def run_pipeline(
             _check_region_covered(disk, name, r.keys, scored, region, grid)
             if save_resampled is not None:
                 _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
+            # before the reduction: the subjects' assessment (pictured_subjects) reads them
+            brain_masks = _brain_mask_dice(
+                executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
+                method=label_interpolation, progress=progress,
+            )  # fmt: skip
             runs[name] = _reduce_registration(
                 executor,
                 region_ctx,
@@ -955,6 +960,7 @@ def run_pipeline(
                 m,
                 name,
                 r,
+                brain_masks=brain_masks,
                 scored=scored,
                 values=values,
                 region=region,
@@ -966,11 +972,6 @@ def run_pipeline(
                 progress=progress,
                 pictured_subjects=pictured_subjects,
             )
-            brain_masks = _brain_mask_dice(
-                executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
-                method=label_interpolation, progress=progress,
-            )  # fmt: skip
-            runs[name] = dataclasses.replace(runs[name], brain_masks=brain_masks)
             if not keep_resampled:
                 for key in set(r.keys):
                     disk.remove("resampled", key)
@@ -1225,8 +1226,8 @@ def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple
 
 
 def _reduce_registration(
-    executor, region_ctx, disk, m, name, r: _Resampled, *, scored, values, region, coverage,
-    n_samples, seed, distance, interpolation, progress, pictured_subjects,
+    executor, region_ctx, disk, m, name, r: _Resampled, *, brain_masks, scored, values, region,
+    coverage, n_samples, seed, distance, interpolation, progress, pictured_subjects,
 ) -> ReducedRegistration:  # fmt: skip
     """Registration `name`'s scores from its cache entries inside the region, with every
     image's deformation, and the thumbnails of the subjects the report pictures."""
@@ -1263,6 +1264,7 @@ def _reduce_registration(
         plausibility=[Plausibility.from_dict(meta["plausibility"]) for meta in metas],
         affine_fits=[AffineFit.from_dict(meta["affine_fit"]) for meta in metas],
         scored=scored,
+        brain_masks=brain_masks,
     )
     if pictured_subjects is None:
         return run

@@ -1000,6 +1000,7 @@ def _subjects(
             reference_index=registration.reference_index,
             displacement_rms_mm=deformation["displacement_rms_mm"],
         ),
+        brain_mask_dice=None if r.brain_masks is None else r.brain_masks.dice,
         thresholds=thresholds,
     )
 

@@ -83,6 +83,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._brain_masks import BRAIN_MASK_DICE_MIN
 from ._output import json_number
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -161,6 +162,7 @@ FLAG_KINDS = {
     "inverse_consistency_mm": "have an inverse-consistency error far above the cohort's",
     "affine_only": "have almost no non-linear displacement",
     "overlap": "have a label overlap with the others far below the cohort's",
+    "brain_mask": "have a brain mask that matches the common mask poorly in the common frame",
 }
 
 #: The terms of :attr:`SubjectQC.concern`: (name in words, where the z-score is, its sign:
@@ -208,6 +210,10 @@ class SubjectQC:
         Its robust z-score over the cohort (negative: less overlap than the typical subject).
     coverage : float
         The fraction of the common grid (inside the mask) its field of view covers.
+    brain_mask_dice : float or None
+        The Dice of its brain mask, brought into the common frame through its transform,
+        with the common mask (:func:`itk_nrreval._brain_masks.subject_mask_dice`); None
+        where the inputs have no brain masks.
     in_scores : bool
         False when it was left out of every registration's scores (off the common grid).
     flags : tuple of str
@@ -244,6 +250,7 @@ class SubjectQC:
     overlap: float | None = None
     overlap_z: float | None = None
     coverage: float = math.nan
+    brain_mask_dice: float | None = None
     in_scores: bool = True
     flags: tuple[str, ...] = ()
     diagnosis: str | None = None
@@ -272,6 +279,7 @@ class SubjectQC:
                 else {"value": json_number(self.overlap), "z": json_number(self.overlap_z)}
             ),
             "coverage": json_number(self.coverage),
+            "brain_mask_dice": json_number(self.brain_mask_dice),
             "in_scores": self.in_scores,
             "flags": list(self.flags),
             "registration_flags": list(self.registration_flags),
@@ -443,6 +451,7 @@ def assess_subjects(
     overlap_weights: np.ndarray | None = None,
     mixups: Mapping[int, tuple[float, str]] | None = None,
     reference: int | None = None,
+    brain_mask_dice: Sequence[float] | None = None,
     thresholds: SubjectThresholds,
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under one registration: scores, z, flags, diagnosis.
@@ -479,6 +488,10 @@ def assess_subjects(
         The subject that is the registration's reference (:func:`reference_subject`):
         reported as such, never flagged, and left out of the medians and MADs the others
         are judged by.
+    brain_mask_dice : sequence of float, length N, optional
+        Each subject's brain-mask Dice with the common mask in the common frame
+        (:func:`itk_nrreval._brain_masks.subject_mask_dice`; NaN: not measured); None where
+        the inputs have no brain masks.
     thresholds : SubjectThresholds
 
     Returns
@@ -505,7 +518,9 @@ def assess_subjects(
     * its non-linear displacement is below ``th.affine_only_ratio`` times the cohort's
       median (when that median is above 0.001 mm);
     * its overlap has z < ``-th.overlap_z`` and its mismatch ``1 - overlap`` is above
-      ``th.overlap_ratio`` times the cohort's median mismatch.
+      ``th.overlap_ratio`` times the cohort's median mismatch;
+    * its brain mask's Dice with the common mask is below
+      :data:`~itk_nrreval._brain_masks.BRAIN_MASK_DICE_MIN` (0.8).
 
     Every z-score's scale has a floor in its measure's units (:func:`robust_z`'s
     `least_spread`: :data:`_LEAST_SPREAD`), so none is infinite.
@@ -535,6 +550,7 @@ def assess_subjects(
         if overlap_volume is None
         else (overlap_volume, overlap_target_sums, overlap_weights),
         judged=judged,
+        brain_mask_dice=brain_mask_dice,
     )
     who = [i for i in range(n_all) if judged[i]]
     # a first pass finds the kinds most subjects share; the second says them once
@@ -692,9 +708,12 @@ class _Cohort:
     medians: dict[str, float]
     overlap: np.ndarray | None
     overlap_z: np.ndarray
+    brain_mask_dice: np.ndarray | None = None
 
 
-def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums, judged) -> _Cohort:
+def _cohort(
+    *, n_all, scored, gram, deformation, coverage, overlap_sums, judged, brain_mask_dice=None
+) -> _Cohort:
     """The statistics every subject is judged against (see :func:`assess_subjects`): the
     medians and MADs over the subjects `judged` (boolean, length N) alone."""
     rows = judged[scored]  # the judged among the scored, by row of `gram`
@@ -744,8 +763,21 @@ def _cohort(*, n_all, scored, gram, deformation, coverage, overlap_sums, judged)
         overlap[scored] = values
         overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"], among=rows)
         medians["overlap"] = _median(overlap[judged])
+    dice = None
+    if brain_mask_dice is not None:
+        dice = np.array([math.nan if v is None else float(v) for v in brain_mask_dice])
     return _Cohort(
-        frozenset(scored), cov, defo, score, z, nearest, deformation_z, medians, overlap, overlap_z
+        frozenset(scored),
+        cov,
+        defo,
+        score,
+        z,
+        nearest,
+        deformation_z,
+        medians,
+        overlap,
+        overlap_z,
+        dice,
     )
 
 
@@ -841,6 +873,13 @@ def _flags_and_causes(
             f"label overlap with the others {c.overlap[i]:.3f} (cohort median "
             f"{c.medians['overlap']:.3f}, {_z_words(c.overlap_z[i])})",
         )
+    dice = math.nan if c.brain_mask_dice is None else c.brain_mask_dice[i]
+    if dice < BRAIN_MASK_DICE_MIN:  # NaN (no mask) compares False
+        add(
+            "brain_mask",
+            f"its brain mask has Dice {dice:.3f} with the common mask in the common frame "
+            f"(below {BRAIN_MASK_DICE_MIN})",
+        )
     return flags, causes, theirs
 
 
@@ -924,6 +963,11 @@ def _subject_qc(
         overlap=None if c.overlap is None else number(c.overlap[i]),
         overlap_z=overlap_z,
         coverage=float(c.coverage[i]),
+        brain_mask_dice=(
+            None
+            if c.brain_mask_dice is None or math.isnan(c.brain_mask_dice[i])
+            else float(c.brain_mask_dice[i])
+        ),
         in_scores=i in c.scored,
         flags=tuple(words for _, words in flags),
         diagnosis=causes[0] if causes and flags else None,

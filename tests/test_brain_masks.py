@@ -426,3 +426,31 @@ def test_pipeline_dice_is_the_pure_functions_and_flags_a_misplaced_mask(tmp_path
     common = sitk.GetArrayFromImage(sitk.ReadImage(str(template_mask))) != 0
     assert result == subject_mask_dice(by_hand, common=common) and result.common == "mask"
     assert result.below == (1,), result.dice
+
+
+@pytest.mark.filterwarnings("ignore:the scores are taken on:UserWarning")
+def test_a_misplaced_mask_flags_its_subject_in_results_and_subjects_csv(tmp_path, population):
+    """Issue 42, item 6, end to end: the Dice reaches each subject's quality control, flags
+    the one subject below 0.8 (and only it), and is a column of subjects.csv."""
+    import csv
+
+    root = write_tree(tmp_path / "prep", population, version="1.0", keys=KEYS)
+    folder, stem = anat(root, "02")
+    path = folder / f"{stem}_desc-brain_mask.nii.gz"
+    mask = sitk.ReadImage(str(path))
+    moved = sitk.Image(mask)
+    moved.SetOrigin([o + 40.0 for o in mask.GetOrigin()])
+    sitk.WriteImage(
+        sitk.Resample(moved, mask, sitk.Transform(), sitk.sitkNearestNeighbor), str(path)
+    )
+    m = nr.manifest_from_derivatives([root])
+    result = nr.evaluate(m, n_samples=200, confidence=False, progress=False, out=tmp_path / "o")
+    (subjects,) = [s.subjects for s in result.scores.values()]
+    flagged = [q.index for q in subjects if any("brain mask" in f for f in q.flags)]
+    assert flagged == [1], [q.flags for q in subjects]
+    assert subjects[1].brain_mask_dice < BRAIN_MASK_DICE_MIN < min(
+        q.brain_mask_dice for q in subjects if q.index != 1
+    )
+    rows = list(csv.DictReader(open(tmp_path / "o" / "subjects.csv")))
+    by_index = {int(row["index"]): float(row["brain_mask_dice"]) for row in rows}
+    assert by_index == {q.index: pytest.approx(q.brain_mask_dice) for q in subjects}

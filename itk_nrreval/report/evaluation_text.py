@@ -353,12 +353,12 @@ def subjects_csv(result) -> str:
     Columns: registration, rank, index (manifest), image, reference (the registration's
     reference: not judged), concern and concern_from (which z-score gave it), in_scores,
     score (distance to the model of the others, intensity units), z, overlap, overlap_z,
-    coverage, the deformation measures (mm where a length) and their z, flags (the
-    subject's own, joined by "; "), registration_flags (the registration's flags it shares,
-    joined by "; "), diagnosis. Empty cells: not computed.
+    coverage, brain_mask_dice (with brain masks), the deformation measures (mm where a
+    length) and their z, flags (the subject's own, joined by "; "), registration_flags (the
+    registration's flags it shares, joined by "; "), diagnosis. Empty cells: not computed.
     """
     fields = ["registration", "rank", "index", "image", "reference", "concern", "concern_from"]
-    fields += ["in_scores", "score", "z", "overlap", "overlap_z", "coverage"]
+    fields += ["in_scores", "score", "z", "overlap", "overlap_z", "coverage", "brain_mask_dice"]
     fields += [*_SUBJECT_DEFORMATION, "flags", "registration_flags", "diagnosis"]
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
@@ -379,6 +379,7 @@ def subjects_csv(result) -> str:
                 "overlap": q.overlap,
                 "overlap_z": q.overlap_z,
                 "coverage": q.coverage,
+                "brain_mask_dice": q.brain_mask_dice,
                 **{k: q.deformation.get(k) for k in _SUBJECT_DEFORMATION},
                 "flags": "; ".join(q.flags),
                 "registration_flags": "; ".join(q.registration_flags),
