@@ -27,14 +27,16 @@ template space, with the common mask (:mod:`itk_nrreval._brain_masks`). A manife
 ``mask`` is one image on the common grid: give it (``mask=``, e.g. the template's own brain
 mask) where wanted; it is then also the common mask the subjects' masks are compared with.
 
-**ANTs and elastix** (:func:`manifest_from_transforms`): shell-style patterns, where what the
-``*`` (and ``?``) stand for is the subject's label, matched across the patterns:
-``images="img/sub-*_T1w.nii.gz"``, an ANTs output prefix ``"out/sub-*_"`` (its
+**ANTs, elastix, FSL and NiftyReg** (:func:`manifest_from_transforms`): shell-style patterns,
+where what the ``*`` (and ``?``) stand for is the subject's label, matched across the
+patterns: ``images="img/sub-*_T1w.nii.gz"``, an ANTs output prefix ``"out/sub-*_"`` (its
 ``<prefix>1Warp.nii.gz`` and ``<prefix>0GenericAffine.mat``, listed as the chain
 ``[warp, affine]`` in ANTs ``fwdtransforms`` order, or ``<prefix>Composite.h5``), an elastix
 output folder ``"out/sub-*/"`` (its last ``TransformParameters.<k>.txt``, which stands for the
-whole chain of runs: :mod:`itk_nrreval._elastix_files`). The reference is the fixed image
-every subject was registered to.
+whole chain of runs: :mod:`itk_nrreval._elastix_files`), an FSL or NiftyReg file
+``"flirt/sub-*.mat"`` (one per subject, an entry ``{file:, format:}`` whose images are the
+reference and the subject's image: :mod:`itk_nrreval._foreign_transforms`). The reference is
+the fixed image every subject was registered to.
 
 A small entity parser is used rather than pybids: the layouts read here need a file name
 split at ``_`` and ``-``, and pybids (with its SQL index and dependencies) would add seconds
@@ -588,6 +590,32 @@ def _elastix_files(pattern: str, *, what: str) -> dict[tuple, list[Path]]:
     return out
 
 
+def _foreign_files(fmt: str):
+    """The reader of a pattern of transform files in another tool's format (``fsl``,
+    ``niftyreg``): subject -> [its manifest entry, ``{file:, format:}``], whose images default
+    to the reference and the subject's image (:mod:`itk_nrreval._foreign_transforms`)."""
+
+    def read(pattern: str, *, what: str) -> dict[tuple, list]:
+        out = {}
+        for key, found in _matches(pattern, what=what).items():
+            files = [p for p, _ in found if p.is_file()]
+            if len(files) > 1:
+                raise InputError(
+                    f"{files[1]}: two candidate transforms for subject {_label(key)} (this and "
+                    f"{files[0].name}); make the pattern match one"
+                )
+            if files:
+                out[key] = [{"file": str(files[0]), "format": fmt}]
+        return out
+
+    return read
+
+
+def _file_of(item) -> str:
+    """The file of a chain item: a path, or an entry naming its format."""
+    return str(item["file"]) if isinstance(item, Mapping) else str(item)
+
+
 def _named(value: Mapping[str, str] | Sequence[str] | str | None, default: str) -> dict:
     """Registrations given as {name: pattern}, [pattern, ...], or one pattern."""
     if value is None:
@@ -604,10 +632,13 @@ def manifest_from_transforms(
     reference: str | os.PathLike,
     ants: Mapping[str, str] | Sequence[str] | str | None = None,
     elastix: Mapping[str, str] | Sequence[str] | str | None = None,
+    fsl: Mapping[str, str] | Sequence[str] | str | None = None,
+    niftyreg: Mapping[str, str] | Sequence[str] | str | None = None,
     labels: str | None = None,
     mask: str | os.PathLike | None = None,
 ) -> Manifest:
-    """A manifest of registrations written by antsRegistration and elastix, matched by subject.
+    """A manifest of registrations written by antsRegistration, elastix, FSL and NiftyReg,
+    matched by subject.
 
     Parameters
     ----------
@@ -620,6 +651,14 @@ def manifest_from_transforms(
         ANTs output prefixes (``"out/sub-*_"``); unnamed ones are named ``ants``, ``ants-2``...
     elastix : mapping of name to pattern, or pattern(s), keyword-only
         elastix output folders (``"out/sub-*/"``); unnamed: ``elastix``, ``elastix-2``...
+    fsl : mapping of name to pattern, or pattern(s), keyword-only
+        FSL transform files, one per subject (``"flirt/sub-*.mat"``: FLIRT matrices computed
+        with ``-ref`` the reference and ``-in`` the subject's image; or FNIRT coefficient or
+        displacement files), each an entry ``{file:, format: fsl}``; unnamed: ``fsl``...
+    niftyreg : mapping of name to pattern, or pattern(s), keyword-only
+        NiftyReg files, one per subject (``"nr/sub-*_aff.txt"``: reg_aladin's ``-aff``; or
+        ``reg_transform -def`` / ``-disp`` fields), entries ``{file:, format: niftyreg}``;
+        unnamed: ``niftyreg``...
     labels : str, optional, keyword-only
         Shell pattern of the label maps, matched to the images by subject label.
     mask : path, optional, keyword-only
@@ -628,7 +667,8 @@ def manifest_from_transforms(
     Returns
     -------
     Manifest
-        Subjects in label order; registrations in the order given, ANTs first; the first is
+        Subjects in label order; registrations in the order given (ANTs, elastix, FSL,
+        NiftyReg); the first is
         the common frame, and the others, registered to the same reference, are in it
         (``frame_transform: identity``), so no frame is estimated.
 
@@ -652,9 +692,14 @@ def manifest_from_transforms(
     named = [
         *((n, p, _ants_chains, "--ants") for n, p in _named(ants, "ants").items()),
         *((n, p, _elastix_files, "--elastix") for n, p in _named(elastix, "elastix").items()),
+        *((n, p, _foreign_files("fsl"), "--fsl") for n, p in _named(fsl, "fsl").items()),
+        *(
+            (n, p, _foreign_files("niftyreg"), "--niftyreg")
+            for n, p in _named(niftyreg, "niftyreg").items()
+        ),
     ]
     if not named:
-        raise InputError("no registration given (--ants or --elastix)")
+        raise InputError("no registration given (--ants, --elastix, --fsl or --niftyreg)")
     for name, pattern, read, option in named:
         if name in registrations:
             raise InputError(f"{option} {pattern}: a second registration named {name!r}")
@@ -664,8 +709,8 @@ def manifest_from_transforms(
         for key, chain in chains.items():
             if key not in image_of:
                 raise InputError(
-                    f"{chain[0]}: a transform without its image (no --images file for "
-                    f"subject {_label(key)})"
+                    f"{_file_of(chain[0])}: a transform without its image (no --images file "
+                    f"for subject {_label(key)})"
                 )
         registrations[name] = chains
     kept = sorted(image_of)
@@ -700,7 +745,9 @@ def manifest_from_transforms(
             {
                 name: {
                     "reference": str(Path(reference).absolute()),
-                    "transforms": [[str(p) for p in chains[k]] for k in kept],
+                    "transforms": [
+                        [p if isinstance(p, Mapping) else str(p) for p in chains[k]] for k in kept
+                    ],
                 }
                 for name, chains in registrations.items()
             }

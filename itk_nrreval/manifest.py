@@ -104,6 +104,13 @@ from ._elastix_files import (
 )
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
+from ._foreign_transforms import (
+    ForeignTransform,
+    entry_of,
+    orientation_notes,
+    parse_entry,
+    plain_field_problem,
+)
 from ._images import (
     Geometry,
     InMemoryImage,
@@ -276,6 +283,13 @@ class Manifest:
         ]
         for r in self.registrations.values():
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
+            items += [  # the images a transform in another tool's format is read with
+                getattr(t, k)
+                for c in r.transforms
+                for t in c
+                if isinstance(t, ForeignTransform)
+                for k in t.given
+            ]
         return tuple(Path(item) for item in items if isinstance(item, (str, os.PathLike)))
 
     def describe(self) -> dict:
@@ -310,7 +324,7 @@ class Manifest:
 def _describe_item(item) -> Any:
     if item is None:
         return None
-    if isinstance(item, _IN_MEMORY):
+    if isinstance(item, (*_IN_MEMORY, ForeignTransform)):
         return item.describe()
     return str(item)
 
@@ -396,6 +410,8 @@ def load_manifest(
         manifest = replace(manifest, source=src_path)
         if check_files:
             notes = _check_files(manifest, problems)
+            if not problems:  # displacement fields that look like RAS given as LPS
+                notes += orientation_notes(manifest)
     _raise(label, problems)
     assert manifest is not None
     for note in notes:
@@ -463,6 +479,23 @@ def _transform_item(value, base: Path, what: str, problems: list[str]):
     return _item(InMemoryTransform, value, base, what, problems)
 
 
+def _chain_item(value, base: Path, what: str, problems: list[str], *, reference, moving):
+    """One transform of a chain: a path, an object, or an entry naming its format
+    (``{file: s01.mat, format: fsl[, reference: ...][, moving: ...]}``, kept as a
+    :class:`~itk_nrreval._foreign_transforms.ForeignTransform`; `reference` and `moving` are
+    its images' defaults)."""
+    if isinstance(value, Mapping) and ("file" in value or "format" in value):
+        return parse_entry(
+            value,
+            resolve=lambda v, w: _image_item(v, base, w, problems),
+            what=what,
+            problems=problems,
+            reference=reference,
+            moving=moving,
+        )
+    return _transform_item(value, base, what, problems)
+
+
 def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
     for key in data:
         if key not in _TOP_KEYS:
@@ -506,7 +539,7 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         problems.append("registrations: expected a non-empty mapping of name -> registration")
     else:
         for name, entry in raw.items():
-            reg = _parse_registration(str(name), entry, base, n, problems)
+            reg = _parse_registration(str(name), entry, base, n, problems, images=images)
             if reg is not None:
                 regs[str(name)] = reg
     common = data.get("common_frame")
@@ -593,7 +626,7 @@ def _identity_frame(reference, what: str, problems: list[str]) -> InMemoryTransf
 
 
 def _parse_registration(
-    name: str, entry, base: Path, n: int | None, problems: list[str]
+    name: str, entry, base: Path, n: int | None, problems: list[str], *, images=None
 ) -> ManifestRegistration | None:
     where = f"registrations.{name}"
     if not isinstance(entry, Mapping):
@@ -624,16 +657,27 @@ def _parse_registration(
             ok = False
         for i, item in enumerate(raw):
             w = f"{where}.transforms[{i}]"
+            # an entry in another tool's format defaults its images to the registration's
+            # reference (for the transform acting first) and this image (for the one acting last)
+            moving = images[i] if images is not None and i < len(images) else None
             if isinstance(item, (list, tuple)):
                 if len(item) == 0:
                     problems.append(f"{w}: empty chain")
                     ok = False
                     continue
                 chain = tuple(
-                    _transform_item(t, base, f"{w}[{j}]", problems) for j, t in enumerate(item)
+                    _chain_item(
+                        t,
+                        base,
+                        f"{w}[{j}]",
+                        problems,
+                        reference=reference if j == 0 else None,
+                        moving=moving if j == len(item) - 1 else None,
+                    )
+                    for j, t in enumerate(item)
                 )
             else:
-                chain = (_transform_item(item, base, w, problems),)
+                chain = (_chain_item(item, base, w, problems, reference=reference, moving=moving),)
             ok &= all(t is not None for t in chain)
             chains.append(chain)
     ref_index = entry.get("reference_index")
@@ -710,7 +754,13 @@ def transform_file_dimension(path: Path) -> int:
 
 def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
     field = None  # how to name a displacement field given as an image (a file or an object)
-    if isinstance(item, InMemoryTransform):
+    if isinstance(item, ForeignTransform):
+        try:
+            d = item.check()
+        except InputError as exc:
+            problems.append(f"{what}: {exc}")
+            return
+    elif isinstance(item, InMemoryTransform):
         d = item.dimension
         field = f"the in-memory {item.source}" if isinstance(item.value, sitk.Image) else None
     else:
@@ -734,6 +784,9 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
             problems.append(f"{what}: cannot read transform {item.name} ({reason.strip()[:120]})")
             return
         field = item.name if suffix in FIELD_SUFFIXES else None
+        if field is not None and (problem := plain_field_problem(item)) is not None:
+            problems.append(f"{what}: {problem}")
+            return
     if dim is not None and d != dim:
         if field is not None:  # an image: named, as images are
             problems.append(f"{what}: {field} is a {d}D displacement field, the images are {dim}D")
@@ -1258,6 +1311,13 @@ def _rel(path, folder: Path | None) -> str:
         return p.as_posix()
 
 
+def _rel_transform(item, folder: Path | None):
+    """A transform as a manifest writes it: a path, or an entry naming its format."""
+    if isinstance(item, ForeignTransform):
+        return entry_of(item, lambda p: _rel(p, folder))
+    return _rel(item, folder)
+
+
 def _to_dict(m: Manifest, folder: Path | None) -> dict:
     out: dict[str, Any] = {"images": [_rel(p, folder) for p in m.images]}
     if m.labels is not None:
@@ -1281,7 +1341,7 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
         if r.frame_transform is not None:
             e["frame_transform"] = _rel(r.frame_transform, folder)
         e["transforms"] = [
-            _rel(c[0], folder) if len(c) == 1 else [_rel(t, folder) for t in c]
+            _rel_transform(c[0], folder) if len(c) == 1 else [_rel_transform(t, folder) for t in c]
             for c in r.transforms
         ]
         if r.parameters is not None:

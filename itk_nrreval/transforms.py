@@ -48,6 +48,7 @@ import SimpleITK as sitk
 from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
+from ._foreign_transforms import ForeignTransform
 from ._images import (
     Geometry,
     image_digest,
@@ -389,7 +390,10 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
         ``TransformParameters.<k>.txt`` with its initial transforms
         (:func:`itk_nrreval._elastix_files.read_elastix_transform`); ``.nii.gz`` / ``.nii``
         / ``.nrrd`` / ``.mha`` / ``.mhd`` (incl. ANTs ``*1Warp.nii.gz``) are displacement
-        fields. An in-memory transform is returned as is; a manifest's transform object
+        fields. A manifest entry in another tool's format
+        (:class:`~itk_nrreval._foreign_transforms.ForeignTransform`: FSL, AFNI, FreeSurfer
+        LTA, NiftyReg) is converted into this convention. An in-memory transform is returned
+        as is; a manifest's transform object
         (:class:`InMemoryTransform`) gives its transform. An HDF5 file is first checked
         with h5py (:func:`itk_nrreval._itk_hdf5.check_file`): one HDF5 cannot read is
         refused without HDF5's error stack on stderr.
@@ -415,6 +419,11 @@ def read_transform(item: sitk.Transform | InMemoryTransform | str | os.PathLike)
                 )
             raise InputError(f"{item.name}: transform contains NaN or infinite values")
         return item.transform.Downcast()
+    if isinstance(item, ForeignTransform):  # another tool's file: converted into ITK's terms
+        t = item.read()
+        if not _finite(t):
+            raise InputError(f"{item.path}: transform contains NaN or infinite values")
+        return t
     if not isinstance(item, (str, os.PathLike)):
         raise InputError(f"transform: expected a path or sitk.Transform, got {type(item).__name__}")
     path = Path(item)

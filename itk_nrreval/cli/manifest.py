@@ -1,8 +1,8 @@
 """``nrreval manifest``: write the manifest of what pipelines wrote, to read, edit or keep.
 
 From BIDS derivatives folders (fMRIPrep, sMRIPrep: one registration each), or from ANTs
-output prefixes and elastix output folders with the images they belong to; the files found
-are described in :mod:`itk_nrreval.derivatives`.
+output prefixes, elastix output folders, FSL and NiftyReg transform files with the images they
+belong to; the files found are described in :mod:`itk_nrreval.derivatives`.
 """
 
 from __future__ import annotations
@@ -15,12 +15,14 @@ import string
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "manifest",
-        help="write the manifest of BIDS derivatives, ANTs prefixes or elastix folders",
+        help="write the manifest of BIDS derivatives, ANTs prefixes, elastix folders, FSL or "
+        "NiftyReg files",
         description="Find the images, labels and transforms pipelines wrote and write the "
         "manifest `nrreval evaluate` would use. Either BIDS derivatives folders (one "
         "registration each, named after dataset_description.json's GeneratedBy), or --images "
-        "and --reference with --ants / --elastix patterns, where what the * stands for is the "
-        "subject's label. Quote the patterns so the shell leaves them to nrreval.",
+        "and --reference with --ants / --elastix / --fsl / --niftyreg patterns, where what the "
+        "* stands for is the subject's label. Quote the patterns so the shell leaves them to "
+        "nrreval.",
     )
     p.add_argument(
         "derivatives",
@@ -52,17 +54,39 @@ def add_parser(sub) -> None:
         "TransformParameters.<k>.txt); repeat for more (default names elastix, elastix-2, ...)",
     )
     p.add_argument(
-        "--images",
-        metavar="PATTERN",
-        help="with --ants/--elastix: the images (moving), e.g. 'img/sub-*_T1w.nii.gz'",
+        "--fsl",
+        action="append",
+        default=[],
+        metavar="[NAME=]PATTERN",
+        help="FSL transform file pattern, one file per subject: FLIRT matrices computed with "
+        "-ref the --reference and -in the subject's image, e.g. 'flirt/sub-*.mat', or FNIRT "
+        "coefficient / displacement files; repeat for more (default names fsl, fsl-2, ...)",
     )
     p.add_argument(
-        "--labels", metavar="PATTERN", help="with --ants/--elastix: their label maps (optional)"
+        "--niftyreg",
+        action="append",
+        default=[],
+        metavar="[NAME=]PATTERN",
+        help="NiftyReg file pattern, one per subject: reg_aladin's -aff text, e.g. "
+        "'nr/sub-*_aff.txt', or reg_transform -def/-disp fields (convert reg_f3d's control-"
+        "point grids with reg_transform -def); repeat for more (default names niftyreg, ...)",
+    )
+    p.add_argument(
+        "--images",
+        metavar="PATTERN",
+        help="with --ants/--elastix/--fsl/--niftyreg: the images (moving), e.g. "
+        "'img/sub-*_T1w.nii.gz'",
+    )
+    p.add_argument(
+        "--labels",
+        metavar="PATTERN",
+        help="with --ants/--elastix/--fsl/--niftyreg: their label maps (optional)",
     )
     p.add_argument(
         "--reference",
         metavar="FILE",
-        help="with --ants/--elastix: the fixed image every subject was registered to",
+        help="with --ants/--elastix/--fsl/--niftyreg: the fixed image every subject was "
+        "registered to",
     )
     p.add_argument("--mask", metavar="FILE", help="a mask on the template's (reference's) grid")
     p.add_argument("--out", required=True, metavar="FILE", help="the manifest to write (YAML)")
@@ -86,37 +110,38 @@ def manifest_of(args: argparse.Namespace):
     from .._errors import InputError
     from ..derivatives import manifest_from_derivatives, manifest_from_transforms
 
-    pipelines = bool(getattr(args, "ants", None) or getattr(args, "elastix", None))
+    kinds = ("ants", "elastix", "fsl", "niftyreg")
+    layouts = "/".join(f"--{k}" for k in kinds)
+    pipelines = any(getattr(args, kind, None) for kind in kinds)
     if args.derivatives and pipelines:
         raise InputError(
             _shell_expanded(args)
-            or "give derivatives folders, or --ants/--elastix with --images, not both"
+            or f"give derivatives folders, or {layouts} with --images, not both"
         )
     if args.derivatives:
         given = [o for o in ("images", "labels", "reference") if getattr(args, o, None) is not None]
         if given:
-            raise InputError(f"--{given[0]} goes with --ants/--elastix, not derivatives folders")
+            raise InputError(f"--{given[0]} goes with {layouts}, not derivatives folders")
         return manifest_from_derivatives(args.derivatives, space=args.space, mask=args.mask)
     if not pipelines:
-        raise InputError("nothing to read: give derivatives folders, or --ants/--elastix")
+        raise InputError(f"nothing to read: give derivatives folders, or {layouts}")
     if args.space is not None:
         raise InputError("--space goes with derivatives folders")
     for option in ("images", "reference"):
         if getattr(args, option) is None:
-            raise InputError(f"--ants/--elastix need --{option}")
-    patterns = {}
-    for option, kind in (("--ants", "ants"), ("--elastix", "elastix")):
+            raise InputError(f"{layouts} need --{option}")
+    patterns: dict[str, dict[str, str]] = {}
+    for kind in kinds:
         patterns[kind] = {}
-        for k, (name, pattern) in enumerate(_named(getattr(args, kind))):
+        for k, (name, pattern) in enumerate(_named(getattr(args, kind, None) or [])):
             name = name or (kind if k == 0 else f"{kind}-{k + 1}")
-            if name in patterns[kind] or name in patterns.get("ants", {}) and kind != "ants":
-                raise InputError(f"{option} {pattern}: a second registration named {name!r}")
+            if any(name in named for named in patterns.values()):
+                raise InputError(f"--{kind} {pattern}: a second registration named {name!r}")
             patterns[kind][name] = pattern
     return manifest_from_transforms(
         images=args.images,
         reference=args.reference,
-        ants=patterns["ants"],
-        elastix=patterns["elastix"],
+        **patterns,
         labels=args.labels,
         mask=args.mask,
     )
@@ -128,6 +153,8 @@ _PATTERNS = {
     "labels": "lab/sub-*_dseg.nii.gz",
     "ants": "out/sub-*_",
     "elastix": "out/sub-*/",
+    "fsl": "flirt/sub-*.mat",
+    "niftyreg": "nr/sub-*_aff.txt",
 }
 
 
