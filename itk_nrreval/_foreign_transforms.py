@@ -47,8 +47,9 @@ plane z = 0 onto itself and keep their in-plane part.
 
 A displacement field given as a plain image is ITK's (LPS components). One whose header says
 it is NiftyReg's or FNIRT's is refused (:func:`plain_field_problem`), and
-:func:`orientation_notes` warns, by name, about one that aligns its image with the reference
-better with its x and y components negated: RAS displacements written as LPS.
+:func:`itk_nrreval._field_orientation.orientation_notes` warns, by name, about one that aligns
+its image with the reference better with its x and y components negated: RAS displacements
+written as LPS.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ import functools
 import hashlib
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -74,7 +75,6 @@ __all__ = [
     "parse_entry",
     "entry_of",
     "plain_field_problem",
-    "orientation_notes",
 ]
 
 FORMATS = ("fsl", "afni", "lta", "niftyreg", "itk")
@@ -319,9 +319,8 @@ class ForeignTransform:
         try:
             if self.is_field:
                 field, affine = _FIELD_READERS[self.format](self, ref, mov)
-                from .transforms import field_transform
-
-                return field_transform(_lps_field(field, affine, self.path))
+                # float64 already: the transform takes this private image over
+                return sitk.DisplacementFieldTransform(_lps_field(field, affine, self.path))
             ras = _MATRIX_READERS[self.format](self, ref, mov)
             # the dimension of the images it maps between (every format writes 4 x 4)
             known = ref or mov or self._known_grid()
@@ -364,9 +363,11 @@ class ForeignTransform:
 
 @functools.lru_cache(maxsize=1024)
 def _cached_bytes_digest(path: str, size: int, mtime_ns: int, ino: int) -> str:
-    from ._cache import file_digest
-
-    return file_digest(path)
+    h = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def _bytes_digest(path: Path) -> str:
@@ -759,168 +760,3 @@ def plain_field_problem(path: Path) -> str | None:
             f"{{file: {path.name}, format: fsl}}"
         )
     return None
-
-
-# ----------------------------------------------------------------------------- RAS given as LPS
-
-ORIENTATION_SUBJECTS = 3
-"""How many subjects of each registration the RAS-as-LPS check of :func:`orientation_notes`
-looks at (the first ones whose transforms hold a displacement field given as a plain image):
-a tool that writes RAS fields writes every subject's so, and each look costs a field and two
-images read (about a second at 1 mm)."""
-
-ORIENTATION_GRID = 48
-"""Voxels per axis (at most) of the coarse reference grid the check resamples on."""
-
-ORIENTATION_MARGIN = 0.02
-"""How much better (normalised mutual information, which is 1 for independent intensities and
-2 for identical ones) the negated field must align its image with the reference than the
-field as given for the check to warn: several times the spread of NMI between two resamplings
-of one image that differ by less than a voxel."""
-
-ORIENTATION_MIN_MOVE = 1.0
-"""Negating x and y must move the field's points by at least this many voxels (median over
-the field) for the check to say anything: below that both align their image alike, and the
-difference would not matter."""
-
-
-def orientation_notes(manifest) -> list[str]:
-    """Warnings for displacement fields that look like RAS given as LPS, one per registration.
-
-    For the first :data:`ORIENTATION_SUBJECTS` subjects of each registration whose transform
-    chain holds a displacement field given as a plain image (a file without a format, or an
-    image object), the image is resampled onto a coarse copy of the reference's grid through
-    the chain as given, and through the same chain with that field's x and y components
-    negated; each is compared with the reference by normalised mutual information (so it
-    holds across contrasts). The registration aligned the image with the reference, so the
-    chain as given should align it better; where the negated one aligns it better by
-    :data:`ORIENTATION_MARGIN` (and negating moves points by at least
-    :data:`ORIENTATION_MIN_MOVE` voxels), the field was most likely written in RAS (nibabel,
-    FSL, NiftyReg, SPM) and read as ITK's LPS.
-
-    What this cannot see: a field whose displacements are too small to tell (then reading it
-    either way barely matters), a registration that failed either way, a field negated in
-    other components, or absolute positions stored as displacements (both readings are then
-    far off).
-
-    Returns
-    -------
-    list of str
-        One line per registration with such a subject, naming the manifest item and file.
-    """
-    from .transforms import InMemoryTransform
-
-    notes = []
-    for name, reg in manifest.registrations.items():
-        flagged, looked = [], 0
-        for i, chain in enumerate(reg.transforms):
-            if looked >= ORIENTATION_SUBJECTS:
-                break
-            plain = [
-                j
-                for j, t in enumerate(chain)
-                if (isinstance(t, Path) and _is_field_file(t))
-                or (isinstance(t, InMemoryTransform) and isinstance(t.value, sitk.Image))
-            ]
-            if not plain:
-                continue
-            looked += 1
-            try:
-                found = _negated_fits_better(reg.reference, manifest.images[i], chain, plain[0])
-            except (InputError, RuntimeError, ValueError, MemoryError):
-                continue  # the reading and checking elsewhere report unreadable files
-            if found is not None:
-                flagged.append((i, chain[plain[0]], found))
-        if flagged:
-            i, item, (given, negated) = flagged[0]
-            others = (
-                f" (and {len(flagged) - 1} more of the {looked} checked)"
-                if len(flagged) > 1
-                else ""
-            )
-            notes.append(
-                f"registrations.{name}.transforms[{i}]: {Path(str(item)).name} aligns "
-                f"{Path(str(manifest.images[i])).name} with the reference better with its x "
-                f"and y displacements negated (normalised mutual information {negated:.3f} "
-                f"against {given:.3f}){others}: a field written in RAS (nibabel, FSL, "
-                "NiftyReg) read as ITK's LPS? Write it in LPS, or give its format"
-            )
-    return notes
-
-
-def _is_field_file(path: Path) -> bool:
-    from .transforms import FIELD_SUFFIXES, file_suffix
-
-    return file_suffix(path) in FIELD_SUFFIXES
-
-
-def _negated_fits_better(reference, image, chain: Sequence, j: int) -> tuple[float, float] | None:
-    """(NMI as given, NMI negated) when negating piece `j`'s x and y fits clearly better."""
-    from ._images import read_image
-    from .transforms import read_transform
-
-    ref = read_image(reference, what="reference")
-    img = read_image(image)
-    pieces = [read_transform(t) for t in chain]
-    field = sitk.DisplacementFieldTransform(pieces[j]).GetDisplacementField()
-    values = sitk.GetArrayFromImage(field)
-    dim = field.GetDimension()
-    move = 2 * np.linalg.norm(values[..., :2], axis=-1)
-    if np.median(move) < ORIENTATION_MIN_MOVE * min(img.GetSpacing()):
-        return None
-    values[..., :2] *= -1.0
-    negated = sitk.GetImageFromArray(values, isVector=True)
-    negated.CopyInformation(field)
-    flipped = list(pieces)
-    flipped[j] = sitk.DisplacementFieldTransform(sitk.Cast(negated, sitk.sitkVectorFloat64))
-    grid = _coarse(ref, ORIENTATION_GRID)
-    fixed = sitk.GetArrayFromImage(
-        sitk.Resample(
-            sitk.Cast(ref, sitk.sitkFloat64),
-            grid,
-            sitk.Transform(dim, sitk.sitkIdentity),
-            sitk.sitkLinear,
-            math.nan,
-        )
-    )
-    scores = []
-    for chosen in (pieces, flipped):
-        composite = sitk.CompositeTransform(dim)
-        for t in reversed(chosen):  # ANTs order: the first listed acts first
-            composite.AddTransform(t)
-        moved = sitk.GetArrayFromImage(
-            sitk.Resample(
-                sitk.Cast(img, sitk.sitkFloat64), grid, composite, sitk.sitkLinear, math.nan
-            )
-        )
-        scores.append(_nmi(fixed, moved))
-    given, flipped_score = scores
-    if flipped_score > given + ORIENTATION_MARGIN:
-        return given, flipped_score
-    return None
-
-
-def _coarse(image: sitk.Image, n: int) -> sitk.Image:
-    """An empty image on `image`'s grid subsampled to at most `n` voxels per axis."""
-    size = np.asarray(image.GetSize())
-    step = np.maximum(1, np.ceil(size / n)).astype(int)
-    out = sitk.Image([int(s) for s in np.ceil(size / step)], sitk.sitkFloat64)
-    out.SetSpacing((np.asarray(image.GetSpacing()) * step).tolist())
-    out.SetOrigin(image.GetOrigin())
-    out.SetDirection(image.GetDirection())
-    return out
-
-
-def _nmi(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
-    """Normalised mutual information ``(H(A) + H(B)) / H(A, B)`` over the voxels both hold."""
-    keep = np.isfinite(a) & np.isfinite(b)
-    if keep.sum() < 64:
-        return math.nan
-    joint, _, _ = np.histogram2d(a[keep], b[keep], bins=bins)
-    p = joint / joint.sum()
-
-    def entropy(q):
-        q = q[q > 0]
-        return float(-(q * np.log(q)).sum())
-
-    return (entropy(p.sum(0)) + entropy(p.sum(1))) / max(entropy(p), 1e-12)

@@ -104,13 +104,8 @@ from ._elastix_files import (
 )
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
-from ._foreign_transforms import (
-    ForeignTransform,
-    entry_of,
-    orientation_notes,
-    parse_entry,
-    plain_field_problem,
-)
+from ._field_orientation import orientation_notes
+from ._foreign_transforms import ForeignTransform, entry_of, parse_entry, plain_field_problem
 from ._images import (
     Geometry,
     InMemoryImage,

@@ -18,6 +18,7 @@ images lie 60-200 mm apart, in 2D where the format has it and in 3D.
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -246,6 +247,28 @@ def test_afni_matrix(tmp_path, oblique):
     if not oblique:
         row = np.loadtxt(tmp_path / "s.aff12.1D", comments="#").reshape(3, 4)
         assert np.abs(got - (pts @ row[:, :3].T + row[:, 3])).max() < TOL
+
+
+def test_afni_warp(tmp_path):
+    """A 3dQwarp-style warp (5D NIfTI on the base grid, DICOM (LPS) displacements from base
+    to source): read through nitransforms it maps p to p + d(p) (by hand; d linear in the
+    voxel index, so interpolating it is exact), as ITK reads the same file (1e-4 mm)."""
+    ref, _ = grids(tmp_path, 3, ref_flip=False, mov_flip=False)
+    ref_img = nib.load(ref)
+    shape = ref_img.shape
+    idx = np.stack(np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij"), -1)
+    slope = np.array([[0.3, -0.1, 0.05], [0.02, 0.2, -0.1], [-0.05, 0.1, 0.15]])
+    disp = idx @ slope.T + np.array([3.0, -2.0, 1.5])  # mm, DICOM x, y, z
+    warp = nib.Nifti1Image(disp[:, :, :, None, :].astype(np.float32), ref_img.affine)
+    warp.header.set_intent("vector")
+    warp.to_filename(tmp_path / "s_WARP.nii.gz")
+    ours = read_transform(ForeignTransform(tmp_path / "s_WARP.nii.gz", "afni", ref, ref))
+    pts = points(ref, seed=5)
+    v = np.linalg.inv(ref_img.affine) @ to_ras_points(pts)
+    expected = pts + v[:3].T @ slope.T + np.array([3.0, -2.0, 1.5])
+    assert np.abs(mapped(ours, pts) - expected).max() < TOL
+    plain = read_transform(tmp_path / "s_WARP.nii.gz")
+    assert np.abs(mapped(ours, pts) - mapped(plain, pts)).max() < TOL
 
 
 # ----------------------------------------------------------------------------- FreeSurfer LTA
@@ -711,9 +734,12 @@ def test_cli_manifest_fsl_and_niftyreg_layouts(tmp_path, capsys, monkeypatch):
 # ----------------------------------------------------------------------------- RAS as LPS
 
 
-def warped_population(folder: Path, *, negate: bool) -> Path:
+def warped_population(folder: Path, *, negate: bool | tuple[int, ...]) -> Path:
     """A 2D template and images warped by smooth fields of a few mm; the registration's
-    fields (ITK files, template -> image points), their x and y negated with `negate`."""
+        fields (ITK files, template -> image points), their x and y negated with `negate` (all,
+    or the subjects listed); and a
+        registration whose chains put a smooth random field of about 2 mm before them (a wrong
+        field that its negation may improve, but that the chain aligns better without)."""
     y, x = np.mgrid[0:48, 0:52].astype(float)
     template = (
         100 * np.exp(-((x - 26) ** 2 / 120 + (y - 24) ** 2 / 80))
@@ -740,9 +766,14 @@ def warped_population(folder: Path, *, negate: bool) -> Path:
         # the image is the template moved by the field: image(p + u(p)) = template(p)
         img = sitk.Resample(tmpl, tmpl, _inverse(field), sitk.sitkLinear, 0.0)
         sitk.WriteImage(img, str(folder / f"img{i}.nii.gz"))
-        stored = sitk.GetImageFromArray(u * (-1 if negate else 1), isVector=True)
+        flip = negate if isinstance(negate, bool) else i in negate
+        stored = sitk.GetImageFromArray(u * (-1 if flip else 1), isVector=True)
         stored.CopyInformation(tmpl)
         sitk.WriteImage(sitk.Cast(stored, sitk.sitkVectorFloat32), str(folder / f"warp{i}.nii.gz"))
+        noise = np.stack([bump * np.cos(np.pi * (x / 13 + k * i)) * 2.0 for k in (1, 2)], -1)
+        pert = sitk.GetImageFromArray(noise, isVector=True)
+        pert.CopyInformation(tmpl)
+        sitk.WriteImage(sitk.Cast(pert, sitk.sitkVectorFloat32), str(folder / f"pert{i}.mha"))
         names.append(i)
     data = {
         "images": [f"img{i}.nii.gz" for i in names],
@@ -750,7 +781,11 @@ def warped_population(folder: Path, *, negate: bool) -> Path:
             "syn": {
                 "reference": "template.nii.gz",
                 "transforms": [f"warp{i}.nii.gz" for i in names],
-            }
+            },
+            "perturbed": {
+                "reference": "template.nii.gz",
+                "transforms": [[f"pert{i}.mha", f"warp{i}.nii.gz"] for i in names],
+            },
         },
     }
     (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
@@ -770,18 +805,27 @@ def _inverse(field: sitk.Image) -> sitk.Transform:
 def test_field_written_in_ras_is_warned_by_name(tmp_path):
     """Fields whose x and y were negated (RAS written as LPS) align the images worse than
     their negation: load_manifest warns, naming the registration and file. The fields as
-    written by ITK draw no warning."""
-    (tmp_path / "good").mkdir()
+    written by ITK draw no warning, nor does a wrong field put before them (perturbed), nor
+    one subject's field negated among correct ones."""
+    for name, negate in (("good", False), ("one", (1,))):
+        (tmp_path / name).mkdir()
+        with warnings.catch_warnings():  # one subject's field negated: an accident, not told
+            warnings.simplefilter("error")
+            load_manifest(warped_population(tmp_path / name, negate=negate))
     (tmp_path / "bad").mkdir()
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        load_manifest(warped_population(tmp_path / "good", negate=False))
-    with pytest.warns(
-        UserWarning,
-        match=r"registrations\.syn\.transforms\[0\]: warp0\.nii\.gz "
-        r"aligns img0\.nii\.gz .* x and y displacements negated .*RAS",
-    ):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         load_manifest(warped_population(tmp_path / "bad", negate=True))
+    lines = [str(w.message) for w in caught if "negated" in str(w.message)]
+    assert len(lines) == 2, lines  # one line per registration
+    assert re.search(
+        r"registrations\.syn\.transforms\[0\]: warp0\.nii\.gz aligns img0\.nii\.gz with the "
+        r"reference better with its x and y displacements negated .*\(and 2 more of the 3 "
+        r"checked\): a field written in RAS",
+        lines[0],
+    )
+    # in the chain [perturbation, field], the field is named, not the perturbation
+    assert "registrations.perturbed.transforms[0]: warp0.nii.gz aligns" in lines[1]
 
 
 def test_field_whose_header_says_another_convention_is_refused(tmp_path):
