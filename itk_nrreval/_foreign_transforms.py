@@ -239,7 +239,9 @@ class ForeignTransform:
         The tool whose convention it follows.
     reference, moving : Path or InMemoryImage or None
         The images it was computed between (FLIRT's ``-ref`` and ``-in``): their grids, not
-        their voxels, are used. None where the format needs none.
+        their voxels, are used (by ``fsl`` and ``afni`` both, by ``lta`` the moving one; a
+        ``niftyreg`` affine takes only its dimension from them). None where neither given
+        nor defaulted.
     given : tuple of str
         Which of ``reference`` / ``moving`` the manifest gave (the others are defaults: the
         registration's reference, the image): what :func:`entry_of` writes back.
@@ -299,10 +301,17 @@ class ForeignTransform:
             One line naming the file: missing, unreadable, of another kind than `format`
             reads, or its images' grids unreadable or of other dimensions.
         """
+        if not self.path.is_file():
+            raise InputError(f"{self.path}: transform file not found")
         self._grids()
         if not self.is_field:
             return self.read().GetDimension()
-        return _FIELD_HEADERS[self.format](self)
+        try:
+            return _FIELD_HEADERS[self.format](self)
+        except ImportError as exc:
+            raise InputError(
+                f"{self.path}: reading {self.format} transforms needs {exc.name} ({_EXTRA})"
+            ) from None
 
     def read(self) -> sitk.Transform:
         """The transform: reference points -> image points (mm, LPS), a SimpleITK

@@ -280,8 +280,7 @@ class Manifest:
             items += [r.reference, r.frame_transform, *(t for c in r.transforms for t in c)]
             items += [  # the images a transform in another tool's format is read with
                 getattr(t, k)
-                for c in r.transforms
-                for t in c
+                for t in (r.frame_transform, *(t for c in r.transforms for t in c))
                 if isinstance(t, ForeignTransform)
                 for k in t.given
             ]
@@ -688,7 +687,11 @@ def _parse_registration(
         frame = _identity_frame(reference, f"{where}.frame_transform", problems)
         ok &= frame is not None
     elif frame is not None:
-        frame = _transform_item(frame, base, f"{where}.frame_transform", problems)
+        # an entry in another tool's format names both its images here: the common frame's
+        # reference is another registration's
+        frame = _chain_item(
+            frame, base, f"{where}.frame_transform", problems, reference=None, moving=None
+        )
         ok &= frame is not None
     parameters = entry.get("parameters")
     if parameters is not None:
@@ -1334,7 +1337,7 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
         if r.reference_index is not None:
             e["reference_index"] = int(r.reference_index)
         if r.frame_transform is not None:
-            e["frame_transform"] = _rel(r.frame_transform, folder)
+            e["frame_transform"] = _rel_transform(r.frame_transform, folder)
         e["transforms"] = [
             _rel_transform(c[0], folder) if len(c) == 1 else [_rel_transform(t, folder) for t in c]
             for c in r.transforms

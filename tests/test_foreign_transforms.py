@@ -638,7 +638,18 @@ def test_manifest_entries_defaults_and_writing(tmp_path):
         {"file": "nr/sub-2_aff.txt", "format": "niftyreg"},
         {"file": "itk/sub-0.tfm", "format": "itk"},
     ]
+    data["registrations"]["framed"] = {  # a frame transform names both its images
+        **data["registrations"]["itk"],
+        "frame_transform": {
+            "file": "flirt/sub-2.mat",
+            "format": "fsl",
+            "reference": "ref.nii.gz",
+            "moving": "sub-2.nii.gz",
+        },
+    }
     m = load_manifest(data, base_dir=tmp_path)
+    frame = m.registrations["framed"].frame_transform
+    assert isinstance(frame, ForeignTransform) and frame.given == ("reference", "moving")
     first = m.registrations["fsl"].transforms[0][0]
     assert isinstance(first, ForeignTransform) and first.format == "fsl"
     assert first.reference == tmp_path / "ref.nii.gz" and first.moving == tmp_path / "sub-0.nii.gz"
@@ -660,8 +671,19 @@ def test_manifest_entries_defaults_and_writing(tmp_path):
         "moving": "../sub-1.nii.gz",
     }
     assert written["registrations"]["niftyreg"]["transforms"][2][1] == "../itk/sub-0.tfm"
+    assert written["registrations"]["framed"]["frame_transform"]["moving"] == "../sub-2.nii.gz"
     again = load_manifest(tmp_path / "out" / "m.yaml")
     assert again.registrations["fsl"].transforms == m.registrations["fsl"].transforms
+    assert again.registrations["framed"].frame_transform == frame
+    # without its images, a frame transform's FLIRT matrix is one line
+    data["registrations"]["framed"]["frame_transform"] = {
+        "file": "flirt/sub-2.mat",
+        "format": "fsl",
+    }
+    with pytest.raises(
+        InputError, match=r"framed\.frame_transform: a fsl transform needs 'reference'"
+    ):
+        load_manifest(data, base_dir=tmp_path)
 
 
 @pytest.mark.parametrize(
