@@ -27,6 +27,9 @@ A manifest is a YAML (or JSON) file::
         reference: v2/template.nii.gz
         frame_transform: identity     # the same template space as the common frame
         transforms: [...]
+      flirt:
+        reference: fluid/template.nii.gz
+        transforms: [{file: flirt/s00.mat, format: fsl}, ...]  # another tool's format, named
 
 ``evaluation_images`` (optional) gives, per image, another scan of the same subject in the same
 physical space -- another contrast or a repeat, not seen by the registration -- which is
@@ -49,7 +52,11 @@ leaving out a subject).
 
 Every transform maps reference (fixed) points to image (moving) points. A chain is listed
 in ANTs ``fwdtransforms`` order: ``[warp, affine]`` means image point = affine(warp(p)); see
-:mod:`itk_nrreval.transforms`. Relative paths are relative to the manifest's folder.
+:mod:`itk_nrreval.transforms`. Relative paths are relative to the manifest's folder. A
+transform written by FSL, AFNI, FreeSurfer or NiftyReg is an entry naming its format,
+``{file:, format:[, reference:][, moving:]}`` (the images default to the registration's
+reference and the entry's image), converted into this convention when read
+(:mod:`itk_nrreval._foreign_transforms`).
 
 The same content may be given as a dict (:func:`load_manifest`), and there, wherever a path
 is accepted, an object in memory is too, mixed freely with paths:
