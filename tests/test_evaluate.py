@@ -385,7 +385,7 @@ BAD = [
         "unknown key",
         lambda tp: lambda d: d.update(lables=[]),
         r"bad\.yaml: unknown key 'lables' \(expected images, labels, groups, subjects, "
-        r"evaluation_images, mask, common_frame, registrations\)$",
+        r"evaluation_images, mask, masks, common_frame, registrations\)$",
     ),
     (
         "common frame",
