@@ -27,6 +27,7 @@ from .evaluation import (
     relative_ranks,
 )
 from .frame import FrameMapping
+from .label_metrics import LabelMetrics, MetricSummary
 from .manifest import (
     Manifest,
     ManifestRegistration,
@@ -106,6 +107,8 @@ __all__ = [
     "FrameMapping",
     "Coverage",
     "SubjectQC",
+    "LabelMetrics",
+    "MetricSummary",
     "Verdict",
     "Decision",
     "OpenPair",

@@ -43,6 +43,7 @@ from .confidence import (
     tie_groups,
 )
 from .frame import FrameMapping
+from .label_metrics import LabelMetrics
 from .manifest import Manifest, load_manifest
 from .overlap import WEIGHTINGS
 from .plausibility import (
@@ -275,6 +276,10 @@ class RegistrationScores:
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, in manifest order
         (:mod:`itk_nrreval.subject_qc`): which subjects stand out from the cohort, and why.
+    label_metrics : LabelMetrics or None
+        The numbers registration papers report from labels: Dice and HD95 (mm) per label
+        and case in the common frame, against the registration's reference subject or
+        over every pair (:mod:`itk_nrreval.label_metrics`); None without labels.
     """
 
     name: str
@@ -288,6 +293,7 @@ class RegistrationScores:
     probability_best: Mapping[str, float] = field(default_factory=dict)
     coverage: Coverage | None = None
     subjects: tuple[SubjectQC, ...] = ()
+    label_metrics: LabelMetrics | None = None
 
     @property
     def flagged_subjects(self) -> tuple[SubjectQC, ...]:
@@ -349,6 +355,9 @@ class RegistrationScores:
             "folded_max": self.folded_max,
             "n_modes": self.specificity.n_modes,
             "subjects": [q.to_dict() for q in self.subjects],
+            "label_metrics": (
+                self.label_metrics.to_dict() if self.label_metrics is not None else None
+            ),
         }
 
 
@@ -423,8 +432,10 @@ class EvaluationResult:
     def write(self, out_dir: str | os.PathLike, *, figures: bool = True) -> list[Path]:
         """Write the reports ``nrreval evaluate`` writes into `out_dir` (created if needed).
 
-        ``results.json`` (:meth:`to_dict`), ``results.csv``, ``summary.md`` (the verdict,
-        the paper's Table 3 layout and the flagged subjects), ``subjects.csv`` (every
+        ``results.json`` (:meth:`to_dict`), ``results.csv``, ``metrics.csv`` (the numbers
+        registration papers report: Dice and HD95 per label, SDlogJ, folding),
+        ``summary.md`` (the verdict, the paper's Table 3 layout and the flagged
+        subjects), ``subjects.csv`` (every
         subject's quality control) and, with `figures`, ``specificity.png``,
         ``specificity_vs_overlap.png``, ``mean_images.png``, ``subjects.png`` (every
         subject's z-score) and ``report.html`` (one self-contained page to read: the
@@ -951,6 +962,7 @@ def _registration_scores(
             level.best_p[name],
             r.coverage,
             subjects[name],
+            label_metrics=r.label_metrics,
         )
     return scores
 

@@ -840,7 +840,7 @@ def test_evaluate_out_writes_what_the_cli_writes(case, tmp_path, capsys):
         inverse_consistency=False,
         **KW,
     )
-    for name in ("results.csv", "summary.md"):
+    for name in ("results.csv", "metrics.csv", "summary.md"):
         assert (api_out / name).read_text() == (cli_out / name).read_text(), name
     api = json.loads((api_out / "results.json").read_text())
     cli = json.loads((cli_out / "results.json").read_text())
@@ -857,6 +857,7 @@ def test_evaluate_out_writes_what_the_cli_writes(case, tmp_path, capsys):
     assert not list(tmp_path.glob("api.*")) and not list(api_out.rglob(".*tmp*"))
     written = result.write(tmp_path / "again", figures=False)
     assert sorted(p.name for p in written) == [
+        "metrics.csv",
         "results.csv",
         "results.json",
         "subjects.csv",

@@ -1,5 +1,5 @@
 """Writing an :class:`~itk_nrreval.evaluation.EvaluationResult`: figures, ``report.html``,
-then ``results.json``, ``results.csv``, ``summary.md`` and ``subjects.csv``.
+then ``results.json``, ``results.csv``, ``metrics.csv``, ``summary.md`` and ``subjects.csv``.
 
 Every file is written under a temporary name and renamed when complete; figures are written
 first, then ``report.html``, and the ``results.*`` files last, so an interrupted run leaves no
@@ -14,15 +14,22 @@ from pathlib import Path
 from .._output import atomic_path, claim_entries, write_text
 from .evaluation_figures import figure_pngs
 from .evaluation_page import report_html
-from .evaluation_text import results_csv, results_json, subjects_csv, summary_table
+from .evaluation_text import (
+    metrics_csv,
+    results_csv,
+    results_json,
+    subjects_csv,
+    summary_table,
+)
 
 __all__ = ["write_evaluation"]
 
 
 def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) -> list[Path]:
     """Write the figures, then ``report.html``, then ``results.json``, ``results.csv``,
-    ``summary.md`` and ``subjects.csv`` (per-subject quality control, when subjects were
-    assessed) into `out`.
+    ``metrics.csv`` (the numbers registration papers report:
+    :func:`~.evaluation_text.metrics_csv`), ``summary.md`` and ``subjects.csv`` (per-subject
+    quality control, when subjects were assessed) into `out`.
 
     Parameters
     ----------
@@ -46,6 +53,7 @@ def write_evaluation(result, out: str | os.PathLike, *, figures: bool = True) ->
     texts = {
         "results.json": results_json(result),
         "results.csv": results_csv(result),
+        "metrics.csv": metrics_csv(result),
         "summary.md": summary_table(result),
     }
     if any(s.subjects for s in result.scores.values()):

@@ -41,6 +41,9 @@ __all__ = [
     "subjects_csv",
     "results_csv",
     "results_json",
+    "METRICS_DEFORMATION",
+    "deformation_metrics",
+    "metrics_csv",
 ]
 
 
@@ -434,6 +437,68 @@ def results_csv(result) -> str:
         row.update({f"relative_rank.{m}": result.relative_ranks[m][name] for m in result.measures})
         row.update({f"tied_with.{m}": ";".join(result.tied_with(m, name)) for m in result.measures})
         w.writerow(row)
+    return buf.getvalue()
+
+
+#: The deformation's numbers papers report beside Dice and HD95, from each registration's
+#: :class:`~itk_nrreval.plausibility.Plausibility` (means over its images).
+METRICS_DEFORMATION = ("sdlogj", "folded_fraction")
+
+
+def deformation_metrics(plausibility) -> dict[str, float | None]:
+    """The deformation's numbers papers report: SDlogJ and the folded fraction, and every
+    non-diffeomorphic fraction the plausibility has (``*nondiffeomorphic*`` fields), by
+    name, NaN as None."""
+    values = plausibility.to_dict()
+    names = [*METRICS_DEFORMATION, *(k for k in values if "diffeomorphic" in k)]
+    return {k: values.get(k) for k in names}
+
+
+def _summary_cells(prefix: str, summary) -> dict:
+    return {
+        f"{prefix}_mean": summary.mean,
+        f"{prefix}_std": summary.std,
+        f"{prefix}_worst30": summary.worst30,
+    }
+
+
+def metrics_csv(result) -> str:
+    """``metrics.csv``: the numbers registration papers report, one row per registration
+    (``label`` "all") and one per registration and label after it.
+
+    Columns: registration, label, against ("reference": each subject against the
+    registration's reference subject; "pairs": every pair of subjects), reference (its
+    manifest index), cases (how many compared), dice_mean / _std / _worst30 and
+    hd95_mm_mean / _std / _worst30 (mm; ``worst30``: the mean of the 30% worst cases, the
+    lowest Dice and the largest HD95; "all": each case's mean over its labels first), then
+    on the registration's row SDlogJ, the folded fraction and any non-diffeomorphic fraction
+    (:func:`deformation_metrics`; means over its images). Empty cells: not computed (no
+    labels, or a label row's deformation columns).
+    """
+    deformation: list[str] = []
+    for s in result.scores.values():
+        deformation += [k for k in deformation_metrics(s.plausibility) if k not in deformation]
+    fields = ["registration", "label", "against", "reference", "cases"]
+    fields += [f"{m}_{a}" for m in ("dice", "hd95_mm") for a in ("mean", "std", "worst30")]
+    fields += deformation
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+    w.writeheader()
+    for name, s in result.scores.items():
+        lm = s.label_metrics
+        row = {"registration": name, "label": "all", **deformation_metrics(s.plausibility)}
+        if lm is not None:
+            dice, hd = lm.overall()
+            row.update(against=lm.against, reference=lm.reference, cases=len(lm.cases))
+            row.update(_summary_cells("dice", dice), **_summary_cells("hd95_mm", hd))
+        w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
+        if lm is None:
+            continue
+        for value, (dice, hd) in lm.per_label().items():
+            row = {"registration": name, "label": value, "against": lm.against}
+            row.update(reference=lm.reference, cases=dice.n_cases)
+            row.update(_summary_cells("dice", dice), **_summary_cells("hd95_mm", hd))
+            w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
     return buf.getvalue()
 
 
