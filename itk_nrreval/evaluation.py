@@ -185,12 +185,16 @@ class Execution:
     ----------
     scheduler : str, optional
         Run the tasks on a Dask cluster (``docs/large-cohorts.md``): ``"local"`` starts a
-        local cluster of `workers` single-threaded processes; otherwise the address of a
-        running scheduler. Default: in this process. Either way the same tasks run, no
+        local cluster of `workers` single-threaded processes; ``"slurm"``, ``"pbs"`` or
+        ``"sge"`` submits batch jobs running `workers` single-threaded workers, through
+        dask-jobqueue (the `job_*` attributes; `cache` required); otherwise the address of
+        a running scheduler. Default: in this process. Either way the same tasks run, no
         process holds all the images, and the numbers are the same.
     workers : int, optional
         With ``scheduler="local"``, the number of worker processes (default: CPU count);
-        with an address, wait until that many workers have joined.
+        with a job queue (required), the number of workers, in ``ceil(workers /
+        job_cores)`` jobs (work starts when the first has joined); with an address, wait
+        until that many workers have joined.
     threads : int, optional
         Without a scheduler, how many tasks run at once on threads of this process
         (default: 2 on two or more cores, else 1). Each task uses every core itself; a
@@ -215,12 +219,19 @@ class Execution:
         images leave the cache once its scores are taken: the cache holds one
         registration's at a time, and keeps what is costly to redo and small (the frames,
         each transform's coverage and plausibility); a rerun resamples the images again.
+    job_cores, job_memory, job_walltime, job_queue, job_directives
+        With a job queue, what each job asks the batch system for
+        (:class:`itk_nrreval._scaleout.JobResources`): cores (one single-threaded worker
+        each; default 1), memory per job (``"8GiB"``; default 4 GiB per core), walltime
+        ``"HH:MM:SS"``, partition or queue, further header lines (``("--account=lab",)``).
+        Left out: Dask's jobqueue configuration, where it has them.
 
     Raises
     ------
     ValueError
         `workers` without a `scheduler`, `threads` with one, or either not a positive
-        integer; `keep_resampled` not a bool.
+        integer; `keep_resampled` not a bool; a job queue without `workers` or `cache`; a
+        `job_*` attribute without a job queue, or not a value of its kind.
     """
 
     scheduler: str | None = None
@@ -228,8 +239,29 @@ class Execution:
     threads: int | None = None
     cache: str | os.PathLike | None = None
     keep_resampled: bool = False
+    job_cores: int | None = None
+    job_memory: str | None = None
+    job_walltime: str | None = None
+    job_queue: str | None = None
+    job_directives: Sequence[str] = ()
 
     def __post_init__(self) -> None:
+        from ._scaleout import JOB_QUEUES
+
+        job = self._job_resources()  # checks each job_* value
+        object.__setattr__(self, "job_directives", job.directives)  # a list becomes a tuple
+        if self.scheduler in JOB_QUEUES:
+            needed = {
+                "workers": "how many workers to submit jobs for",
+                "cache": "a folder every job sees, on a shared filesystem",
+            }
+            for name, what in needed.items():
+                if getattr(self, name) is None:
+                    raise ValueError(f"{name}: required with scheduler={self.scheduler!r} ({what})")
+        elif job != type(job)():
+            raise ValueError(
+                f"job_*: only with a job-queue scheduler ({', '.join(map(repr, JOB_QUEUES))})"
+            )
         if not isinstance(self.keep_resampled, bool):
             raise ValueError(f"keep_resampled: expected True or False, got {self.keep_resampled!r}")
         if self.threads is not None:
@@ -241,6 +273,18 @@ class Execution:
         if self.scheduler is None:
             raise ValueError("workers: only with a scheduler (local or an address)")
         _check_positive("workers", self.workers, 1)
+
+    def _job_resources(self):
+        """The `job_*` attributes as a :class:`itk_nrreval._scaleout.JobResources`."""
+        from ._scaleout import JobResources
+
+        return JobResources(
+            cores=self.job_cores,
+            memory=self.job_memory,
+            walltime=self.job_walltime,
+            queue=self.job_queue,
+            directives=self.job_directives,
+        )
 
 
 @dataclass(frozen=True)
@@ -715,9 +759,7 @@ def evaluate(
         assessed: dict[str, tuple[SubjectQC, ...]] = {}
         run, run_info = _execute(
             m,
-            scheduler=execution.scheduler,
-            workers=execution.workers,
-            threads=execution.threads,
+            execution=execution,
             inverse_consistency=inverse_consistency,
             cache=cache,
             n_samples=int(n_samples),
@@ -845,10 +887,11 @@ def _jackknife_plan(
     return _JackknifePlan(left_out, one_each, image_groups)
 
 
-def _execute(m: Manifest, *, scheduler, workers, threads, **options):
-    """Run the per-image tasks and their reductions, in this process or on Dask: the
-    pipeline's run, and what ran it (``{"scheduler", "workers", "threads", "cache_reused",
-    "cache_computed"}``)."""
+def _execute(m: Manifest, *, execution: Execution, **options):
+    """Run the per-image tasks and their reductions, in this process or on Dask (where
+    `execution` says; its cache is ``options["cache"]``): the pipeline's run, and what ran it
+    (``{"scheduler", "workers", "threads", "cache_reused", "cache_computed"}``)."""
+    scheduler, workers, threads = execution.scheduler, execution.workers, execution.threads
     if scheduler is None:
         executor = local_executor(default_threads() if threads is None else threads)
         run = run_pipeline(m, executor, **options)
@@ -857,7 +900,8 @@ def _execute(m: Manifest, *, scheduler, workers, threads, **options):
         from ._scaleout import DaskExecutor, check_scheduler, cluster_client
 
         check_scheduler(scheduler, workers)
-        with cluster_client(scheduler, workers=workers) as client:
+        job, cache = execution._job_resources(), options["cache"]
+        with cluster_client(scheduler, workers=workers, cache=cache, job=job) as client:
             executor = DaskExecutor(client)
             run = run_pipeline(m, executor, **options)
         run_info = {"scheduler": scheduler, "workers": executor.n_workers, "threads": 1}

@@ -81,6 +81,7 @@ def add_parser(sub) -> None:
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_quiet_option(p)
     _add_execution_options(p)
+    _add_job_options(p)
     _add_confidence_options(p)
     _add_flag_options(p)
     _add_subject_options(p)
@@ -91,15 +92,19 @@ def _add_execution_options(p) -> None:
     """Where the work runs, and the per-image cache."""
     p.add_argument(
         "--scheduler",
-        metavar="local|ADDRESS",
-        help="run on Dask: 'local' starts a local cluster, an address (tcp://host:8786) joins "
-        "a running one; the cache folder must be visible to every worker",
+        metavar="local|slurm|pbs|sge|ADDRESS",
+        help="run on Dask: 'local' starts a local cluster; 'slurm', 'pbs' or 'sge' submits "
+        "worker jobs through dask-jobqueue (see the batch-job options; needs --workers and "
+        "--cache); an address (tcp://host:8786) joins a running cluster; the cache folder "
+        "must be visible to every worker",
     )
     p.add_argument(
         "--workers",
         type=integer(1),
         metavar="K",
-        help="local cluster: K worker processes (default: CPU count); address: wait for K workers",
+        help="local cluster: K worker processes (default: CPU count); slurm, pbs, sge: K "
+        "single-threaded workers, in jobs of --job-cores each (work starts with the first); "
+        "address: wait for K workers",
     )
     p.add_argument(
         "--threads",
@@ -122,6 +127,116 @@ def _add_execution_options(p) -> None:
         "and registration at 1 mm) so that a rerun does not resample them; default: one "
         "registration's at a time",
     )
+
+
+def _add_job_options(p) -> None:
+    """What each batch job asks for, with --scheduler slurm, pbs or sge (dask-jobqueue's
+    cluster options; what is not given comes from Dask's jobqueue configuration)."""
+    j = p.add_argument_group(
+        "batch jobs (with --scheduler slurm, pbs or sge)",
+        "Worker jobs submitted through dask-jobqueue and cancelled at the end; an option "
+        "not given comes from Dask's jobqueue configuration (~/.config/dask/jobqueue.yaml) "
+        "where it has one. See docs/large-cohorts.md.",
+    )
+    j.add_argument(
+        "--job-cores",
+        type=integer(1),
+        metavar="N",
+        help="cores per job, each running one single-threaded worker (default 1; SLURM "
+        "--cpus-per-task, PBS ncpus)",
+    )
+    j.add_argument(
+        "--job-memory",
+        type=_memory,
+        metavar="SIZE",
+        help="memory per job, shared by its workers, e.g. 8GiB (default 4GiB per core; "
+        "SLURM --mem, PBS mem; SGE: the workers' limit only, request it with --job-directive)",
+    )
+    j.add_argument(
+        "--job-walltime",
+        type=_walltime,
+        metavar="HH:MM:SS",
+        help="each job's time limit (default 00:30:00, dask-jobqueue's): give the whole run's "
+        "time, a job that ends takes its worker away (SLURM -t, PBS walltime, SGE h_rt)",
+    )
+    j.add_argument(
+        "--job-queue",
+        metavar="NAME",
+        help="partition (SLURM -p) or queue (PBS, SGE -q)",
+    )
+    j.add_argument(
+        "--job-directive",
+        dest="job_directives",
+        action="append",
+        default=[],
+        metavar="LINE",
+        help="a further job-script header line, without its #SBATCH / #PBS / #$ prefix; "
+        "repeatable; write one that starts with - as --job-directive='--account=lab'",
+    )
+
+
+#: The batch-job options, and the attribute each sets.
+JOB_OPTIONS = (
+    ("--job-cores", "job_cores"),
+    ("--job-memory", "job_memory"),
+    ("--job-walltime", "job_walltime"),
+    ("--job-queue", "job_queue"),
+    ("--job-directive", "job_directives"),
+)
+
+
+def _memory(text: str) -> str:
+    """An amount of memory as dask-jobqueue reads it (``8GiB``, ``16GB``)."""
+    try:
+        from .._scaleout import memory_bytes
+
+        memory_bytes(text)
+    except ImportError as exc:  # pragma: no cover - the dask extra is part of [all]
+        raise argparse.ArgumentTypeError("needs dask (pip install 'itk-nrreval[dask]')") from exc
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"expected an amount of memory like 8GiB or 16GB, got {text!r}"
+        ) from exc
+    return text
+
+
+def _walltime(text: str) -> str:
+    """A walltime HH:MM:SS."""
+    from .._scaleout import check_walltime
+
+    try:
+        return check_walltime(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"expected a walltime HH:MM:SS like 02:00:00, got {text!r}"
+        ) from exc
+
+
+def _check_scheduler_options(args: argparse.Namespace) -> None:
+    """Refuse, before any work, scheduler options that do not go together."""
+    from .._errors import InputError
+    from .._scaleout import JOB_QUEUES, check_scheduler
+
+    if args.scheduler is not None:
+        check_scheduler(args.scheduler, args.workers)
+    if args.scheduler is None and args.workers is not None:
+        raise InputError("--workers needs --scheduler (local, slurm, pbs, sge or an address)")
+    if args.scheduler is not None and args.threads is not None:
+        raise InputError("--threads runs tasks in this process: not with --scheduler")
+    given = [option for option, dest in JOB_OPTIONS if getattr(args, dest) not in (None, [])]
+    if args.scheduler in JOB_QUEUES:
+        if args.workers is None:
+            raise InputError(
+                f"--scheduler {args.scheduler} needs --workers K (how many single-threaded "
+                "workers to submit jobs for)"
+            )
+        if args.cache is None:
+            raise InputError(
+                f"--scheduler {args.scheduler} needs --cache CACHE: a folder on a filesystem "
+                "that every job sees"
+            )
+    elif given:
+        raise InputError(f"{given[0]} goes with --scheduler slurm, pbs or sge")
 
 
 def _add_confidence_options(p) -> None:
@@ -308,6 +423,7 @@ SUBJECT_OPTIONS = (
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
+    from .._scaleout import JOB_QUEUES, check_job_queue
     from ..evaluation import Confidence, Execution, Resampling, evaluate
     from ..plausibility import SubjectThresholds, Thresholds
     from ..report import summary_table
@@ -316,15 +432,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(
             "--label-sigma MM goes with --label-interpolation gaussian, and only with it"
         )
-    if args.scheduler is None and args.workers is not None:
-        raise InputError("--workers needs --scheduler (local or an address)")
-    if args.scheduler is not None and args.threads is not None:
-        raise InputError("--threads runs tasks in this process: not with --scheduler")
+    _check_scheduler_options(args)
     manifest = _manifest(args)  # every problem, before DIR is created
     out = check_output_folder(args.out, inputs=manifest.files, command="evaluate")
     cache = Path(args.cache) if args.cache is not None else out / "cache"
     if args.cache is not None:
         check_output_folder(cache, inputs=manifest.files, option="--cache", shared=True)
+    if args.scheduler in JOB_QUEUES:
+        # the submit command, and the cache made and written to: before any job is submitted
+        check_job_queue(args.scheduler, cache=cache, option="--cache")
     result = evaluate(  # writes into a staged copy of `out`, swapped in when complete
         manifest,
         out=out,
@@ -345,6 +461,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads,
             cache=cache,
             keep_resampled=args.keep_resampled,
+            **{dest: getattr(args, dest) for _, dest in JOB_OPTIONS},
         ),
         confidence=(
             False
