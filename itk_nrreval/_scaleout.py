@@ -241,9 +241,10 @@ def check_job_queue(scheduler: str, *, cache: str | os.PathLike, option: str = "
     """Refuse, before any job is submitted, what would make the jobs fail or wait forever.
 
     dask-jobqueue must be installed, the batch system's submit command (``sbatch``,
-    ``qsub``) on the PATH, and the cache folder -- which every job reads and writes -- made
-    (with its parents) and writable: a file is written there and removed. Whether the
-    jobs' nodes see the same folder cannot be checked from here (docs/large-cohorts.md).
+    ``qsub``) on the PATH, and the cache folder -- which every job reads and writes --
+    writable, or creatable where it does not exist yet: a folder is made there (or in its
+    nearest existing parent) and removed. Whether the jobs' nodes see the same folder cannot
+    be checked from here (docs/large-cohorts.md).
 
     Parameters
     ----------
@@ -278,10 +279,17 @@ def check_job_queue(scheduler: str, *, cache: str | os.PathLike, option: str = "
             f"{scheduler.upper()} jobs are submitted (a login node)"
         )
     folder = Path(cache).absolute()
+    existing = folder
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError(f"{option} {cache}: {existing} is a file, not a folder")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        # os.access can say yes where a write fails (NFS root squash, a read-only mount)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".nrreval-write-check-"):
+        # A folder made and removed where the cache is, or would be made: the cache makes
+        # its own, and os.access can say yes where that fails (NFS root squash, a read-only
+        # mount, /proc). Nothing is left: a cache made here inside --out, before the run
+        # stages --out, would make --out a folder nrreval did not make.
+        with tempfile.TemporaryDirectory(dir=existing, prefix=".nrreval-write-check-"):
             pass
     except OSError as exc:
         raise InputError(

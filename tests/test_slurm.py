@@ -388,11 +388,14 @@ def test_job_script_defaults(tmp_path):
 
 def test_a_refused_job_is_one_line_without_slurm(tmp_path, fake_submit, capsys):
     """The submit command's refusal (here a stand-in sbatch that says what sbatch says of
-    an unknown partition) ends the run at once, its words in one line, exit 2."""
+    an unknown partition) ends the run at once, its words in one line, exit 2. The cache
+    inside --out, where the check before submitting leaves nothing (a cache folder made
+    there would make --out a folder nrreval did not make)."""
     manifest = population(tmp_path, size=32)
+    out = tmp_path / "out"
     code = main(
-        ["evaluate", str(manifest), "--out", str(tmp_path / "out"), *COMMON]
-        + ["--scheduler", "slurm", "--workers", "1", "--cache", str(tmp_path / "cache")]
+        ["evaluate", str(manifest), "--out", str(out), *COMMON]
+        + ["--scheduler", "slurm", "--workers", "1", "--cache", str(out / "cache")]
     )
     assert code == 2
     assert_one_line(
