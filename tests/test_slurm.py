@@ -415,6 +415,8 @@ def test_a_refused_job_is_one_line_without_slurm(tmp_path, fake_submit, capsys):
         (["--scheduler", "slurm", "--job-memory", "lots"], ["--job-memory", "'lots'"]),
         (["--scheduler", "slurm", "--job-walltime", "90"], ["--job-walltime", "HH:MM:SS"]),
         (["--scheduler", "slurm", "--job-cores", "0"], ["--job-cores", "'0'"]),
+        (["--scheduler", "slurm", "--job-directive="], ["--job-directive", "empty"]),
+        (["--scheduler", "slurm", "--job-queue", " "], ["--job-queue", "empty"]),
         # /proc takes no folder, even from root (for whom os.access says yes)
         (
             ["--scheduler", "slurm", "--workers", "1", "--cache", "/proc/nrreval-cache"],

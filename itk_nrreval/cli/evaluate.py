@@ -161,12 +161,14 @@ def _add_job_options(p) -> None:
     )
     j.add_argument(
         "--job-queue",
+        type=_words,
         metavar="NAME",
         help="partition (SLURM -p) or queue (PBS, SGE -q)",
     )
     j.add_argument(
         "--job-directive",
         dest="job_directives",
+        type=_words,
         action="append",
         default=[],
         metavar="LINE",
@@ -210,6 +212,13 @@ def _walltime(text: str) -> str:
         raise argparse.ArgumentTypeError(
             f"expected a walltime HH:MM:SS like 02:00:00, got {text!r}"
         ) from exc
+
+
+def _words(text: str) -> str:
+    """A queue's name or a header line: not empty."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("expected a value, got an empty one")
+    return text
 
 
 def _check_scheduler_options(args: argparse.Namespace) -> None:
