@@ -230,8 +230,8 @@ def check_scheduler(scheduler: str, workers: int | None) -> None:
         and not (host and port.isdigit())
     ):
         raise InputError(
-            f"scheduler: {scheduler!r} is neither 'local', a job queue "
-            f"({', '.join(JOB_QUEUES)}) nor an address like tcp://host:8786"
+            f"scheduler: {scheduler!r} is neither 'local' nor an address like "
+            f"tcp://host:8786, nor a job queue ({', '.join(JOB_QUEUES)})"
         )
     if workers is not None and (isinstance(workers, bool) or workers < 1):
         raise ValueError(f"workers: expected a positive integer, got {readable(workers)}")

@@ -448,7 +448,7 @@ def run(args: argparse.Namespace) -> int:
     if args.cache is not None:
         check_output_folder(cache, inputs=manifest.files, option="--cache", shared=True)
     if args.scheduler in JOB_QUEUES:
-        # the submit command, and the cache made and written to: before any job is submitted
+        # the submit command, and a cache that can be written: before any job is submitted
         check_job_queue(args.scheduler, cache=cache, option="--cache")
     result = evaluate(  # writes into a staged copy of `out`, swapped in when complete
         manifest,
