@@ -10,7 +10,7 @@ from ._images import Geometry
 from ._pipeline import Coverage
 from ._version import __version__
 from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
-from .confidence import Comparison, Interval
+from .confidence import Comparison, Interval, RankStability
 from .derivatives import manifest_from_derivatives, manifest_from_transforms
 from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
@@ -104,6 +104,7 @@ __all__ = [
     "RegistrationScores",
     "Interval",
     "Comparison",
+    "RankStability",
     "FrameMapping",
     "Coverage",
     "SubjectQC",

@@ -37,6 +37,16 @@ subjects left out), and two registrations are *separable* when its interval excl
 The probability that a registration is best is that of a normal with the replicates'
 covariance across registrations (an approximation: it treats the jackknife covariance as
 exact).
+
+**Rank stability** (challengeR's bootstrap ranking, Wiesenfarth et al., Sci. Rep. 11, 2021;
+:func:`bootstrap_ranks`): the subjects' contributions are the jackknife pseudo-values
+``G score - (G - 1) r_g`` of each leave-out group g (Efron & Tibshirani 1993, ch. 11.5),
+whose mean is the score's jackknife estimate and whose standard error is the jackknife's.
+A bootstrap resamples the groups with replacement, the same draw for every registration
+(paired, as the subjects are shared), and moves each score by the resampled mean of its
+pseudo-values; the registrations are ranked in every draw. No image is resampled and no
+model refitted (which a bootstrap of the images themselves would need, with the repeated
+images this module's jackknife avoids): it costs B draws of G numbers per registration.
 """
 
 from __future__ import annotations
@@ -66,6 +76,10 @@ __all__ = [
     "probability_best",
     "tie_groups",
     "TIE_Z",
+    "RankStability",
+    "BOOTSTRAP_RANKS",
+    "bootstrap_ranks",
+    "significance_map",
 ]
 
 LEVEL = 0.95
@@ -573,3 +587,147 @@ def tie_groups(
         groups.append(tuple(order[start : end + 1]))
         start = end + 1
     return groups
+
+
+#: Bootstrap draws of the subjects for the rank stability (:func:`bootstrap_ranks`).
+BOOTSTRAP_RANKS = 200
+
+
+@dataclass(frozen=True, eq=False)
+class RankStability:
+    """How often each registration takes each rank of one measure over subject bootstraps.
+
+    Attributes
+    ----------
+    measure : str
+        ``"specificity"``, ``"generalization"`` or ``"overlap.<weighting>"``.
+    names : tuple of str
+        The registrations, the rows.
+    frequencies : ndarray of float64, shape (n_registrations, n_registrations)
+        ``frequencies[i, k]``: the share of the draws in which registration ``names[i]``
+        has rank ``k + 1`` (1 is best; tied scores share the better rank, so a row sums to
+        1 and a column need not).
+    n_bootstrap : int
+        B, the draws.
+    seed : int
+        Of the draws.
+    """
+
+    measure: str
+    names: tuple[str, ...]
+    frequencies: np.ndarray
+    n_bootstrap: int
+    seed: int
+
+    def median_rank(self, name: str) -> float:
+        """The median of `name`'s rank over the draws (the lower median)."""
+        cdf = np.cumsum(self.frequencies[self.names.index(name)])
+        return float(np.searchsorted(cdf, 0.5 - 1e-12) + 1)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: per registration the share of draws at each rank 1..R, its median
+        rank; the draws and their seed."""
+        return {
+            "n_bootstrap": int(self.n_bootstrap),
+            "seed": int(self.seed),
+            "frequencies": {
+                n: [float(v) for v in row]
+                for n, row in zip(self.names, self.frequencies, strict=True)
+            },
+            "median_rank": {n: self.median_rank(n) for n in self.names},
+        }
+
+
+def _min_ranks(scores: np.ndarray, higher_is_better: bool) -> np.ndarray:
+    """Ranks (1 = best) of each row's scores, ties sharing the better rank ("1, 2, 2, 4").
+
+    `scores` (B, R); returns int (B, R)."""
+    x = -scores if higher_is_better else scores
+    # rank = 1 + how many are strictly better
+    return 1 + (x[:, None, :] < x[:, :, None]).sum(axis=2)
+
+
+def bootstrap_ranks(
+    measure: str,
+    values: Mapping[str, float],
+    replicates: Mapping[str, np.ndarray],
+    *,
+    higher_is_better: bool,
+    n_bootstrap: int = BOOTSTRAP_RANKS,
+    seed: int = 0,
+) -> RankStability:
+    """The distribution of every registration's rank over bootstraps of the subjects.
+
+    Parameters
+    ----------
+    measure : str
+    values : dict of str to float
+        Each registration's score on all subjects.
+    replicates : dict of str to ndarray of shape (n_groups,)
+        Each registration's leave-out replicates, the same groups for all
+        (:func:`specificity_replicates`, :func:`overlap_replicates`).
+    higher_is_better : bool, keyword-only
+    n_bootstrap : int, keyword-only
+        B, the draws.
+    seed : int, keyword-only
+        Of the draws (``np.random.default_rng``).
+
+    Returns
+    -------
+    RankStability
+        All NaN frequencies when a score or replicate is not finite.
+
+    Notes
+    -----
+    With ``p_g = G score - (G - 1) r_g`` the pseudo-value of group g, draw b's score is
+    ``score + mean(p[draw_b]) - mean(p)``: the subjects' contributions resampled, centred on
+    the score itself. Every registration uses the same draws of the groups.
+    """
+    names = tuple(values)
+    r = np.stack([np.asarray(replicates[n], np.float64) for n in names])  # (R, G)
+    mu = np.array([float(values[n]) for n in names])
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(mu))) or r.shape[1] < 2:
+        freq = np.full((len(names), len(names)), np.nan)
+        return RankStability(measure, names, freq, int(n_bootstrap), int(seed))
+    g = r.shape[1]
+    pseudo = g * mu[:, None] - (g - 1) * r
+    draws = np.random.default_rng(seed).integers(0, g, size=(int(n_bootstrap), g))
+    scores = mu[None, :] + pseudo[:, draws].mean(axis=2).T - pseudo.mean(axis=1)[None, :]
+    ranks = _min_ranks(scores, higher_is_better)  # (B, R)
+    freq = np.stack([np.bincount(ranks[:, i] - 1, minlength=len(names)) for i in range(len(names))])
+    return RankStability(measure, names, freq / float(n_bootstrap), int(n_bootstrap), int(seed))
+
+
+def significance_map(
+    comparisons: Sequence[Comparison], measure: str, names: Sequence[str]
+) -> dict[str, dict[str, str]]:
+    """Which registration is told apart from which by one measure, and which way.
+
+    Parameters
+    ----------
+    comparisons : sequence of Comparison
+        The paired comparisons (:func:`compare`), of any measures.
+    measure : str
+    names : sequence of str
+        The registrations.
+
+    Returns
+    -------
+    dict of str to dict of str to str
+        ``out[a][b]`` for every ``a != b``: ``"better"`` or ``"worse"`` when the pair is
+        separable (the subject-level 95% interval of the difference excludes 0) and `a`'s
+        score is the better or the worse; ``"not separable"``; ``"not compared"`` when no
+        comparison of the pair was computed.
+    """
+    up = measure.startswith("overlap.")  # evaluation.higher_is_better's rule
+    out = {a: {b: "not compared" for b in names if b != a} for a in names}
+    for c in comparisons:
+        if c.measure != measure or c.a not in out or c.b not in out:
+            continue
+        if not c.separable:
+            out[c.a][c.b] = out[c.b][c.a] = "not separable"
+            continue
+        a_better = (c.difference > 0) == up
+        out[c.a][c.b] = "better" if a_better else "worse"
+        out[c.b][c.a] = "worse" if a_better else "better"
+    return out

@@ -33,12 +33,15 @@ from .confidence import TIE_Z as TIE_Z  # read from here before tie_groups moved
 from .confidence import (
     Comparison,
     Interval,
+    RankStability,
+    bootstrap_ranks,
     compare,
     jackknife_groups,
     jackknife_interval,
     measure_bounds,
     overlap_replicates,
     probability_best,
+    significance_map,
     specificity_replicates,
     tie_groups,
 )
@@ -442,6 +445,12 @@ class EvaluationResult:
         subjects, of subject 0's labels and det J, the log det J histogram over all
         subjects; :attr:`itk_nrreval._pipeline.ReducedRegistration.thumbnails`). Not in
         ``results.json``.
+    rank_stability : dict of str to RankStability
+        Per measure, how often each registration takes each rank over bootstraps of the
+        subjects' jackknife contributions (:func:`itk_nrreval.confidence.bootstrap_ranks`);
+        empty when confidence was not computed. In ``results.json`` beside
+        ``significance``: per measure (and ``verdict``), which registration is told apart
+        from which (:meth:`significance`).
     """
 
     scores: Mapping[str, RegistrationScores]
@@ -456,6 +465,7 @@ class EvaluationResult:
     comparisons: tuple[Comparison, ...] = ()
     verdict: Verdict | None = None
     thumbnails: Mapping[str, Mapping[str, np.ndarray]] = field(default_factory=dict, repr=False)
+    rank_stability: Mapping[str, RankStability] = field(default_factory=dict, repr=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -514,9 +524,27 @@ class EvaluationResult:
             "registrations": regs,
             "comparisons": [c.to_dict() for c in self.comparisons],
             "verdict": self.verdict.to_dict() if self.verdict is not None else None,
+            "rank_stability": {m: rs.to_dict() for m, rs in self.rank_stability.items()},
+            "significance": self.significance(),
         }
         if self.run:
             out["run"] = dict(self.run)
+        return out
+
+    def significance(self) -> dict[str, dict[str, dict[str, str]]]:
+        """Which registration is told apart from which: per measure with paired comparisons
+        (:func:`itk_nrreval.confidence.significance_map`: ``"better"``, ``"worse"``, ``"not
+        separable"``), and under ``"verdict"`` what the verdict decides (``"decided better"``,
+        ``"decided worse"``, ``"open"``). ``out[key][a][b]`` says it of `a` against `b`."""
+        names = list(self.names)
+        measured = dict.fromkeys(c.measure for c in self.comparisons)
+        out = {m: significance_map(self.comparisons, m, names) for m in measured}
+        if self.verdict is not None:
+            decided = {a: {b: "open" for b in names if b != a} for a in names}
+            for d in self.verdict.decisions:
+                decided[d.better][d.worse] = "decided better"
+                decided[d.worse][d.better] = "decided worse"
+            out["verdict"] = decided
         return out
 
 
@@ -825,6 +853,7 @@ def evaluate(
             resampling.interpolation,
             run=run_info,
             comparisons=level.comparisons,
+            rank_stability=level.rank_stability,
             extra_options=options,
             thumbnails={name: r.thumbnails for name, r in regs.items()},
         )
@@ -951,6 +980,7 @@ class _SubjectLevel:
     intervals: dict[str, dict]
     best_p: dict[str, dict]
     comparisons: tuple[Comparison, ...]
+    rank_stability: dict[str, RankStability] = field(default_factory=dict)
 
     @classmethod
     def empty(cls, names) -> _SubjectLevel:
@@ -976,6 +1006,10 @@ def _subject_level(
         pb = probability_best(vals, by_name, higher_is_better=higher_is_better(measure), seed=seed)
         for name in regs:
             level.best_p[name][measure] = pb[name]
+        # the subjects' contributions resampled: how firmly each holds its rank
+        level.rank_stability[measure] = bootstrap_ranks(
+            measure, vals, by_name, higher_is_better=higher_is_better(measure), seed=seed
+        )
     return dataclasses.replace(level, comparisons=tuple(comparisons))
 
 
@@ -1160,6 +1194,7 @@ def _result(
     comparisons=(),
     extra_options=None,
     thumbnails=None,
+    rank_stability=None,
 ) -> EvaluationResult:
     """Ranks and relative ranks of every measure, and the result object."""
     from ._version import __version__
@@ -1201,4 +1236,5 @@ def _result(
         comparisons=tuple(comparisons),
         verdict=verdict(scores, comparisons, has_labels=m.labels is not None),
         thumbnails=dict(thumbnails or {}),
+        rank_stability=dict(rank_stability or {}),
     )

@@ -114,6 +114,12 @@ def subject_pictures(result) -> int:
     return sum(min(len(s.flagged_subjects), FLAGGED_SUBJECTS_SHOWN) for s in result.scores.values())
 
 
+def stability_figures(result) -> int:
+    """The rank-stability blob plot and the significance map: two summary figures more
+    with subject-level confidence (issue 45)."""
+    return 2 if result.rank_stability and len(result.names) > 1 else 0
+
+
 def check_self_contained(page: _Page, raw: str) -> None:
     """No external reference of any kind, no script, every internal link resolves."""
     assert "http://" not in raw and "https://" not in raw and "file:" not in raw
@@ -164,7 +170,8 @@ def test_report_is_self_contained_and_complete(case2d):
     assert "jackknife" in text and "Tanimoto" in text and "higher is better" in text
     # a bounded number of pictures: 4 summary figures + 2 per registration + its flagged
     # subjects, at most FLAGGED_SUBJECTS_SHOWN
-    assert len(page.srcs) == 4 + 2 * len(result.names) + subject_pictures(result)
+    pictures = subject_pictures(result) + stability_figures(result)
+    assert len(page.srcs) == 4 + 2 * len(result.names) + pictures
     # the summary figures embedded are the very files written beside the report
     embedded = {decode_png(src) for src in page.srcs}
     for fname in (
@@ -282,7 +289,8 @@ def test_specificity_figure_says_when_monte_carlo_bars_hide(tmp_path):
     result.write(tmp_path / "out")
     page, raw = parse(tmp_path / "out" / "report.html")
     check_self_contained(page, raw)
-    assert len(page.srcs) == 3 + 2 * len(names) + subject_pictures(result)
+    pictures = subject_pictures(result) + stability_figures(result)
+    assert len(page.srcs) == 3 + 2 * len(names) + pictures
     assert "Monte-Carlo intervals only" in " ".join(page.text)
 
 
@@ -383,7 +391,8 @@ def test_3d_thumbnails_are_middle_slices(case3d):
     # the 3D mean image's middle slice is what the report shows
     page, raw = parse(out / "report.html")
     check_self_contained(page, raw)
-    assert len(page.srcs) == 4 + 2 * len(result.names) + subject_pictures(result)
+    pictures = subject_pictures(result) + stability_figures(result)
+    assert len(page.srcs) == 4 + 2 * len(result.names) + pictures
     assert (out / "report.html").stat().st_size < 2_000_000
 
 

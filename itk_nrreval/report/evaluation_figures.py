@@ -299,6 +299,139 @@ def _subjects_figure(result, names):
     return fig
 
 
+def _stability_measures(result) -> list[str]:
+    """The measures the rank-stability figures show: specificity, then every overlap
+    weighting, where their bootstraps were computed."""
+    shown = ["specificity", *(m for m in result.measures if m.startswith("overlap."))]
+    return [m for m in shown if m in getattr(result, "rank_stability", {})]
+
+
+def _measure_title(measure: str) -> str:
+    if measure.startswith("overlap."):
+        return "overlap, " + measure.split(".", 1)[1].replace("_", " ")
+    return measure
+
+
+def _panels(n: int, *, width: float, height: float):
+    """A figure of n panels, at most three a row; the figure and its axes (flat)."""
+    from matplotlib.figure import Figure
+
+    cols = min(3, n)
+    rows = math.ceil(n / cols)
+    fig = Figure(figsize=(width * cols, height * rows), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    return fig, axes[:n]
+
+
+def _rank_stability_figure(result, names):
+    """challengeR's blob plot: per measure, registration against rank, each dot's area the
+    share of the subject bootstraps in which the registration takes that rank; a black
+    cross at its rank on all subjects (:attr:`EvaluationResult.rank_stability
+    <itk_nrreval.evaluation.EvaluationResult.rank_stability>`).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    measures = _stability_measures(result)
+    n = len(names)
+    fig, axes = _panels(len(measures), width=max(2.8, 0.5 * n + 1.6), height=0.42 * n + 1.5)
+    for ax, measure in zip(axes, measures, strict=True):
+        rs = result.rank_stability[measure]
+        for row, name in enumerate(names):
+            freq = rs.frequencies[rs.names.index(name)]
+            ranks = np.flatnonzero(freq > 0) + 1
+            ax.scatter(
+                ranks,
+                [row] * ranks.size,
+                s=320 * freq[ranks - 1],
+                color="tab:blue",
+                alpha=0.75,
+                edgecolors="none",
+            )
+            rank = result.ranks[measure][name]
+            if rank is not None:
+                ax.plot(rank, row, marker="x", color="k", markersize=6, mew=1.2)
+        ax.set_yticks(range(n), [wrap_name(x, 18) for x in names], fontsize=7)
+        ax.set_xticks(range(1, n + 1))
+        ax.set_xlim(0.4, n + 0.6)
+        ax.set_ylim(n - 0.5, -0.5)  # the verdict's best on top
+        ax.set_xlabel("rank (1 = best)", fontsize=8)
+        ax.grid(True, color="0.9", lw=0.6)
+        ax.set_axisbelow(True)
+        ax.set_title(_measure_title(measure), fontsize=8)
+    first = result.rank_stability[measures[0]]
+    fig.suptitle(
+        f"Rank stability: dot area = share of B = {first.n_bootstrap} bootstraps of the "
+        "subjects at that rank; x = rank on all subjects",
+        fontsize=9,
+    )
+    return fig
+
+
+#: The colours of the significance map's cells: what the row's registration is against the
+#: column's.
+_SIGNIFICANCE_COLOURS = {
+    "better": (0.18, 0.49, 0.20),
+    "decided better": (0.18, 0.49, 0.20),
+    "worse": (0.96, 0.76, 0.56),
+    "decided worse": (0.96, 0.76, 0.56),
+    "not separable": (0.87, 0.87, 0.87),
+    "open": (0.87, 0.87, 0.87),
+    "not compared": (1.0, 1.0, 1.0),
+}
+
+
+def _significance_figure(result, names):
+    """Per measure with paired comparisons (specificity, every overlap weighting) and for
+    the verdict: a matrix of registration (row) against registration (column), dark green
+    where the row's is separably better (the subject-level 95% interval of the difference
+    excludes 0) or decided better by the verdict, orange where it is worse, grey where not
+    separable or open (:meth:`EvaluationResult.significance
+    <itk_nrreval.evaluation.EvaluationResult.significance>`).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.patches import Patch
+
+    maps = result.significance()
+    keys = [m for m in ("specificity", *result.measures) if m in maps and m != "generalization"]
+    keys = list(dict.fromkeys(keys)) + (["verdict"] if "verdict" in maps else [])
+    n = len(names)
+    fig, axes = _panels(len(keys), width=max(2.8, 0.42 * n + 1.6), height=0.42 * n + 1.7)
+    for ax, key in zip(axes, keys, strict=True):
+        cells = np.ones((n, n, 3))
+        for i, a in enumerate(names):
+            for j, b in enumerate(names):
+                if a != b:
+                    cells[i, j] = _SIGNIFICANCE_COLOURS[maps[key][a][b]]
+        ax.imshow(cells, interpolation="nearest")
+        labels = [wrap_name(x, 14) for x in names]
+        ax.set_xticks(range(n), labels, rotation=45, ha="right", fontsize=7)
+        ax.set_yticks(range(n), [wrap_name(x, 18) for x in names], fontsize=7)
+        ax.set_xticks(np.arange(n + 1) - 0.5, minor=True)
+        ax.set_yticks(np.arange(n + 1) - 0.5, minor=True)
+        ax.grid(which="minor", color="white", lw=1.5)
+        ax.tick_params(which="minor", length=0)
+        ax.set_title("verdict" if key == "verdict" else _measure_title(key), fontsize=8)
+    handles = [
+        Patch(color=_SIGNIFICANCE_COLOURS["better"], label="row better (separable / decided)"),
+        Patch(color=_SIGNIFICANCE_COLOURS["worse"], label="row worse"),
+        Patch(color=_SIGNIFICANCE_COLOURS["not separable"], label="not separable / open"),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=3, fontsize=7)
+    fig.suptitle(
+        "Significance map: the row's registration against the column's (subject-level 95% "
+        "interval of the difference; the verdict's decisions)",
+        fontsize=9,
+    )
+    return fig
+
+
 def figure_pngs(result) -> dict[str, bytes]:
     """The summary figures, each rendered once to PNG bytes, by file name.
 
@@ -308,7 +441,10 @@ def figure_pngs(result) -> dict[str, bytes]:
     with the label contours of subject 0 and their legend when labels were given) and,
     when subjects were scored against their cohort, ``subjects.png`` (every subject's
     model-distance z-score per registration, the flag threshold, the flagged subjects:
-    :func:`_subjects_figure`).
+    :func:`_subjects_figure`) and, with subject-level confidence, ``rank_stability.png``
+    (the blob plot of every registration's rank over subject bootstraps,
+    :func:`_rank_stability_figure`) and ``significance.png`` (which registration is told
+    apart from which, per measure and by the verdict: :func:`_significance_figure`).
     """
     names = list(result.verdict.ranking) if result.verdict is not None else list(result.names)
     out = {"specificity.png": png_bytes(_specificity_figure(result, names))}
@@ -319,6 +455,9 @@ def figure_pngs(result) -> dict[str, bytes]:
     out["mean_images.png"] = png_bytes(_mean_images_figure(result, names))
     if any(q.z is not None for n in names for q in result.scores[n].subjects):
         out["subjects.png"] = png_bytes(_subjects_figure(result, names))
+    if _stability_measures(result) and len(names) > 1:
+        out["rank_stability.png"] = png_bytes(_rank_stability_figure(result, names))
+        out["significance.png"] = png_bytes(_significance_figure(result, names))
     return out
 
 

@@ -322,7 +322,12 @@ def _paper_metrics(result, names: Sequence[str]) -> str:
     for n in names:
         keys = deformation_metrics(result.scores[n].plausibility)
         deformation += [k for k in keys if k not in deformation]
-    words = {"sdlogj": "SDlogJ", "folded_fraction": "Folded voxels"}
+    words = {
+        "sdlogj": "SDlogJ",
+        "folded_fraction": "Folded voxels",
+        "nondiffeomorphic_fraction": "Non-diffeomorphic voxels",
+        "nondiffeomorphic_volume": "Non-diffeomorphic volume",
+    }
     head = ["Registration", "Cases", "Dice<br>mean ± s.d.", "Dice<br>worst 30%"]
     head += ["HD95 (mm)<br>mean ± s.d.", "HD95 (mm)<br>worst 30%"]
     head += [escape(words.get(k, k.replace("_", " ").capitalize())) for k in deformation]
@@ -733,9 +738,27 @@ def _summary_figures(result, names: Sequence[str], figures: Mapping[str, bytes])
             "for those each registration's section shows. Subjects left off the common grid "
             "have no score and are not drawn."
         ),
+        "rank_stability.png": (
+            "How firmly each registration holds its rank (challengeR's blob plot): the "
+            "subjects' contributions to each score (their jackknife pseudo-values) are "
+            "resampled with replacement, the same draw for every registration, and the "
+            "registrations ranked in every draw. Dot area: the share of the draws in which "
+            "the registration (row) takes the rank (column); a single large dot is a rank "
+            "that holds whichever subjects are drawn, dots spread over several ranks one "
+            "that does not. Black cross: the rank on all subjects (tied scores share the "
+            "better rank). The shares are in results.json, rank_stability."
+        ),
+        "significance.png": (
+            "Which registration is told apart from which: per measure, the row's "
+            "registration against the column's, dark green where the row's is separably "
+            "better (the subject-level 95% interval of the difference excludes 0), orange "
+            "where it is separably worse, grey where they are not separable; the last panel "
+            "is the verdict's decisions (grey: open). In results.json, significance."
+        ),
     }
+    full_width = ("mean_images.png", "rank_stability.png", "significance.png")
     for fname, png in figures.items():
-        css = "" if fname == "mean_images.png" else "half"
+        css = "" if fname in full_width else "half"
         fig_parts.append(figure_html(png, fname, captions.get(fname, escape(fname)), css=css))
     return "".join(fig_parts)
 

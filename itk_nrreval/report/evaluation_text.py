@@ -446,11 +446,12 @@ METRICS_DEFORMATION = ("sdlogj", "folded_fraction")
 
 
 def deformation_metrics(plausibility) -> dict[str, float | None]:
-    """The deformation's numbers papers report: SDlogJ and the folded fraction, and every
-    non-diffeomorphic fraction the plausibility has (``*nondiffeomorphic*`` fields), by
-    name, NaN as None."""
+    """The deformation's numbers papers report: SDlogJ and the folded fraction, and the
+    non-diffeomorphic fraction and volume where the plausibility has them (its
+    ``*diffeomorphic*`` fields but the worst image's, ``*_max``), by name, NaN as None."""
     values = plausibility.to_dict()
-    names = [*METRICS_DEFORMATION, *(k for k in values if "diffeomorphic" in k)]
+    extra = [k for k in values if "diffeomorphic" in k and not k.endswith("_max")]
+    names = [*METRICS_DEFORMATION, *extra]
     return {k: values.get(k) for k in names}
 
 
