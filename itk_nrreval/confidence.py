@@ -611,6 +611,10 @@ class RankStability:
         B, the draws.
     seed : int
         Of the draws.
+    ranks : tuple of int
+        Each registration's rank on all subjects by the same rule (its score alone; equal
+        scores share the better rank), where the draws are centred. The scores table's
+        ranks also tie scores within their noise (:func:`tie_groups`).
     """
 
     measure: str
@@ -618,6 +622,7 @@ class RankStability:
     frequencies: np.ndarray
     n_bootstrap: int
     seed: int
+    ranks: tuple[int, ...] = ()
 
     def median_rank(self, name: str) -> float:
         """The median of `name`'s rank over the draws (the lower median)."""
@@ -626,10 +631,11 @@ class RankStability:
 
     def to_dict(self) -> dict:
         """JSON-ready: per registration the share of draws at each rank 1..R, its median
-        rank; the draws and their seed."""
+        rank and its rank on all subjects; the draws and their seed."""
         return {
             "n_bootstrap": int(self.n_bootstrap),
             "seed": int(self.seed),
+            "rank": dict(zip(self.names, (int(r) for r in self.ranks), strict=True)),
             "frequencies": {
                 n: [float(v) for v in row]
                 for n, row in zip(self.names, self.frequencies, strict=True)
@@ -686,16 +692,18 @@ def bootstrap_ranks(
     names = tuple(values)
     r = np.stack([np.asarray(replicates[n], np.float64) for n in names])  # (R, G)
     mu = np.array([float(values[n]) for n in names])
+    observed = tuple(int(k) for k in _min_ranks(mu[None, :], higher_is_better)[0])
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(mu))) or r.shape[1] < 2:
         freq = np.full((len(names), len(names)), np.nan)
-        return RankStability(measure, names, freq, int(n_bootstrap), int(seed))
+        return RankStability(measure, names, freq, int(n_bootstrap), int(seed), observed)
     g = r.shape[1]
     pseudo = g * mu[:, None] - (g - 1) * r
     draws = np.random.default_rng(seed).integers(0, g, size=(int(n_bootstrap), g))
     scores = mu[None, :] + pseudo[:, draws].mean(axis=2).T - pseudo.mean(axis=1)[None, :]
     ranks = _min_ranks(scores, higher_is_better)  # (B, R)
     freq = np.stack([np.bincount(ranks[:, i] - 1, minlength=len(names)) for i in range(len(names))])
-    return RankStability(measure, names, freq / float(n_bootstrap), int(n_bootstrap), int(seed))
+    freq = freq / float(n_bootstrap)
+    return RankStability(measure, names, freq, int(n_bootstrap), int(seed), observed)
 
 
 def significance_map(

@@ -50,7 +50,7 @@ def test_a_clear_order_has_all_its_mass_on_one_rank(clear_order):
             for name, rank in expected.items():
                 row = rs.frequencies[rs.names.index(name)]
                 assert row[rank - 1] == 1.0 and row.sum() == 1.0, (measure, name)
-                assert rs.median_rank(name) == rank
+                assert rs.median_rank(name) == rank == rs.ranks[rs.names.index(name)]
         got = saved[measure]["frequencies"]
         assert got == {n: rs.frequencies[i].tolist() for i, n in enumerate(rs.names)}
 
@@ -97,6 +97,7 @@ def test_two_registrations_of_equal_quality_split_their_mass():
     assert 0.35 < first[0] < 0.65 and 0.35 < first[1] < 0.65
     assert first[0] + first[1] == pytest.approx(1.0)  # no draw ties them
     np.testing.assert_array_equal(rs.frequencies[2], [0.0, 0.0, 1.0])
+    assert rs.ranks == (1, 1, 3)  # on all subjects: a and b equal
     # registrations equal in every subject are tied in every draw: both take rank 1
     tied = bootstrap_ranks(
         "specificity",

@@ -328,7 +328,7 @@ def _panels(n: int, *, width: float, height: float):
 def _rank_stability_figure(result, names):
     """challengeR's blob plot: per measure, registration against rank, each dot's area the
     share of the subject bootstraps in which the registration takes that rank; a black
-    cross at its rank on all subjects (:attr:`EvaluationResult.rank_stability
+    cross at its rank on all subjects by its score alone (:attr:`EvaluationResult.rank_stability
     <itk_nrreval.evaluation.EvaluationResult.rank_stability>`).
 
     Returns
@@ -351,8 +351,8 @@ def _rank_stability_figure(result, names):
                 alpha=0.75,
                 edgecolors="none",
             )
-            rank = result.ranks[measure][name]
-            if rank is not None:
+            if rs.ranks:  # its rank on all subjects, where the draws are centred
+                rank = rs.ranks[rs.names.index(name)]
                 ax.plot(rank, row, marker="x", color="k", markersize=6, mew=1.2)
         ax.set_yticks(range(n), [wrap_name(x, 18) for x in names], fontsize=7)
         ax.set_xticks(range(1, n + 1))

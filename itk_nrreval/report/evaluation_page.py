@@ -745,8 +745,9 @@ def _summary_figures(result, names: Sequence[str], figures: Mapping[str, bytes])
             "registrations ranked in every draw. Dot area: the share of the draws in which "
             "the registration (row) takes the rank (column); a single large dot is a rank "
             "that holds whichever subjects are drawn, dots spread over several ranks one "
-            "that does not. Black cross: the rank on all subjects (tied scores share the "
-            "better rank). The shares are in results.json, rank_stability."
+            "that does not. Black cross: the rank on all subjects by the score alone (the "
+            "scores table also ties scores within their noise). The shares are in "
+            "results.json, rank_stability."
         ),
         "significance.png": (
             "Which registration is told apart from which: per measure, the row's "
