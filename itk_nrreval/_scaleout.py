@@ -98,7 +98,7 @@ class JobResources:
             check_walltime(self.walltime, name="job_walltime")
         if self.queue is not None and (not isinstance(self.queue, str) or not self.queue.strip()):
             raise ValueError(f"job_queue: expected a queue's name, got {readable(self.queue)}")
-        if isinstance(self.directives, str) or not all(
+        if not isinstance(self.directives, (list, tuple)) or not all(
             isinstance(d, str) and d.strip() for d in self.directives
         ):
             raise ValueError(

@@ -462,6 +462,7 @@ def test_execution_checks_its_job_options(tmp_path):
         (dict(job_walltime="90"), "job_walltime"),
         (dict(job_cores=0), "job_cores"),
         (dict(job_directives="--account=lab"), "job_directives"),
+        (dict(job_directives=5), "job_directives"),
     ]:
         with pytest.raises(ValueError, match=match):
             nr.Execution(scheduler="slurm", workers=1, cache=cache, **bad)
