@@ -38,10 +38,16 @@ STARTUP_S = 60  # munged's socket, then the node idle in sinfo
 # ----------------------------------------------------------------------------- a real SLURM
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _free_ports(n: int) -> list[int]:
+    """`n` distinct ports free now (all held open at once, so none is given twice)."""
+    sockets = [socket.socket() for _ in range(n)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
 
 
 def _tail(path: Path, lines: int = 5) -> str:
@@ -69,12 +75,13 @@ def _write_config(folder: Path) -> Path:
     for sub in ("state", "spool", "log"):
         (folder / sub).mkdir()
     conf = folder / "slurm.conf"
+    slurmctld_port, slurmd_port = _free_ports(2)
     conf.write_text(
         f"""\
 ClusterName=nrreval-test
 SlurmctldHost=localhost
-SlurmctldPort={_free_port()}
-SlurmdPort={_free_port()}
+SlurmctldPort={slurmctld_port}
+SlurmdPort={slurmd_port}
 SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
