@@ -672,22 +672,47 @@ def _run_case(case: str) -> None:
     print(f"[verdict] {case}: {truth['seconds']:.0f} s", flush=True)
 
 
-def _verdict(case: str, *, labels: bool = True):
+def _load(case: str):
+    """The saved :class:`~itk_nrreval.EvaluationResult` of a case."""
+    with open(OUT / case / "evaluation.pkl", "rb") as saved:
+        return _RenamingUnpickler(saved).load()
+
+
+def _verdict(case: str, *, labels: bool = True, evaluation=None):
     """The verdict of a saved case, recomputed by today's :func:`verdict`; with
     ``labels=False`` as if the case had no label maps (specificity and folding alone)."""
     from itk_nrreval.evaluation import verdict
 
-    with open(OUT / case / "evaluation.pkl", "rb") as saved:
-        evaluation = _RenamingUnpickler(saved).load()
+    evaluation = _load(case) if evaluation is None else evaluation
     has_labels = labels and any(s.overlap for s in evaluation.scores.values())
     return verdict(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
 
 
+def _overlap_says(evaluation, better: str, worse: str) -> str:
+    """What the inverse-volume overlap says of a pair whose true errors order it `better`,
+    `worse`: ``"agrees"`` or ``"contradicts"`` (a separable difference, subject-level
+    interval), ``"not separable"``, or ``"-"`` (no overlap)."""
+    measure = "overlap.inverse_volume"
+    for c in evaluation.comparisons:
+        if c.measure == measure and {c.a, c.b} == {better, worse}:
+            if not c.separable:
+                return "not separable"
+            better_minus_worse = c.difference if c.a == better else -c.difference
+            return "agrees" if better_minus_worse > 0 else "contradicts"
+    return "-"
+
+
 def judge(case: str, *, labels: bool = True) -> list[dict]:
     """Every pair of registrations of a saved case, with the verdict's decision and outcome
-    (``labels=False``: the verdict without the overlap)."""
+    (``labels=False``: the verdict without the overlap), and what the overlap says of the
+    pair against the truth (``overlap``: with labels only; where it contradicts the truth,
+    open is the right answer)."""
     errors = json.loads((OUT / case / "truth.json").read_text())["true_error_mm"]
-    decided = {(d.better, d.worse): d.basis for d in _verdict(case, labels=labels).decisions}
+    evaluation = _load(case)
+    decided = {
+        (d.better, d.worse): d.basis
+        for d in _verdict(case, labels=labels, evaluation=evaluation).decisions
+    }
     rows = []
     for a, b in itertools.combinations(errors, 2):
         if errors[b] < errors[a]:
@@ -711,6 +736,7 @@ def judge(case: str, *, labels: bool = True) -> list[dict]:
                 "decision": decision,
                 "basis": basis,
                 "outcome": outcome,
+                "overlap": _overlap_says(evaluation, a, b) if labels else "-",
             }
         )
     return rows
@@ -794,9 +820,12 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
             judged = SECOND_SCAN.get(case) if second else case
             if judged not in cases:
                 continue
-            source = rows if labels else unlabelled
-            table[case][title] = _counts([r for r in source if r["case"] == judged])
-    keys = ("right", "wrong", "open")
+            source = [r for r in (rows if labels else unlabelled) if r["case"] == judged]
+            table[case][title] = _counts(source)
+            table[case][title]["open, overlap contradicts"] = sum(
+                r["outcome"] == "open" and r["overlap"] == "contradicts" for r in source
+            )
+    keys = ("right", "wrong", "open", "open, overlap contradicts")
     totals = {}
     for split in ("tuning", "held-out"):
         totals[split] = {}
@@ -806,12 +835,19 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
                 totals[split][title] = {k: sum(x[k] for x in cells) for k in keys}
 
     def cell(k: dict | None) -> str:
-        return f"{k['right']} / {k['wrong']} / {k['open']}" if k else "-"
+        if not k:
+            return "-"
+        contradicted = (
+            f" ({k['open, overlap contradicts']})" if k["open, overlap contradicts"] else ""
+        )
+        return f"{k['right']} / {k['wrong']} / {k['open']}{contradicted}"
 
     header = "| case | split | " + " | ".join(t for t, *_ in MODES) + " |"
     lines = [
         "Right / wrong / open over the pairs whose true errors differ by more than "
-        f"{MARGIN:.0%} (near-ties left out), today's verdict.",
+        f"{MARGIN:.0%} (near-ties left out), today's verdict; in brackets, of the open "
+        "pairs, those where the label overlap separably contradicts the true error (there "
+        "open is the right answer with labels).",
         "",
         header,
         "|---|---|" + "--:|" * len(MODES),
