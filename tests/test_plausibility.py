@@ -121,7 +121,15 @@ def test_slabs_give_the_single_shot_result():
     mask[3:25, 2:, 4:] = True
     whole = deformation_plausibility(t, g, mask=mask)
     slabbed = deformation_plausibility(t, g, mask=mask, max_slab_voxels=3 * 20 * 18)
-    for name in ("folded_fraction", "sdlogj", "jacobian_min", "jacobian_max"):
+    assert whole.nondiffeomorphic_fraction > whole.folded_fraction > 0
+    for name in (
+        "folded_fraction",
+        "sdlogj",
+        "jacobian_min",
+        "jacobian_max",
+        "nondiffeomorphic_fraction",
+        "nondiffeomorphic_volume",
+    ):
         assert getattr(slabbed, name) == pytest.approx(getattr(whole, name), rel=1e-12, abs=1e-14)
     assert slabbed.inverse_consistency_mm == pytest.approx(whole.inverse_consistency_mm, rel=1e-6)
 
@@ -600,3 +608,202 @@ def test_measures_from_the_callers_sampling_equal_their_own():
     assert own[2].to_dict() == pytest.approx(given[2].to_dict(), rel=1e-9)
     with pytest.raises(InputError, match="displacement"):
         deformation_measures(t, g, displacement=sampled[1:])
+
+
+# ------------------------------------------------------------------------------------------
+# Issue 42 (item 5): folds that central differences miss -- Liu et al.'s digital
+# diffeomorphism (IJCV 2024), the non-diffeomorphic voxels and volume
+
+
+def _liu_reference(u: np.ndarray, g: Geometry, mask=None) -> tuple[float, float, float]:
+    """Liu et al.'s stencils by brute force, written after their code
+    (github.com/yihao6/digital_diffeomorphism): the deformation in index units
+    ``psi(q) = q + D^-1 u / spacing``, padded by one voxel with the displacement's edge
+    values; ``det`` of forward / backward differences (``psi(p + e) - psi(p)``,
+    ``psi(p) - psi(p - e)``) for every combination of axes, and in 3D their ``j1*`` and
+    ``j2*`` (differences to p - (1,1,0), p - (1,0,1), p - (0,1,1) and to p + (1,1,0),
+    p + (0,1,1), p + (1,0,1)). Returns the fraction of (masked) voxels with some det <= 0,
+    their non-diffeomorphic volume over the (masked) voxels -- ``sum -0.5 min(J, 0) / 2``
+    over the triangles in 2D, ``/ 6`` over the ten tetrahedra in 3D -- and the smallest
+    ``|det|`` (how far the count is from a rounding tie)."""
+    dim = g.dimension
+    m = np.linalg.inv(np.asarray(g.direction).reshape(dim, dim) @ np.diag(g.spacing))
+    xyz = np.transpose(u, (*range(dim)[::-1], dim))  # spatial axes in ITK order (x, y[, z])
+    padded = np.pad(xyz @ m.T, [(1, 1)] * dim + [(0, 0)], mode="edge")
+    grid = np.meshgrid(*[np.arange(-1.0, n + 1) for n in g.size], indexing="ij")
+    psi = np.stack(grid, axis=-1) + padded
+
+    def at(offset) -> np.ndarray:
+        return psi[tuple(slice(1 + o, 1 + o + n) for o, n in zip(offset, g.size, strict=True))]
+
+    p0 = at((0,) * dim)
+    axes = np.eye(dim, dtype=int)
+    dets = []
+    for signs in np.ndindex(*(2,) * dim):  # 0: forward, 1: backward, per axis
+        columns = [at(axes[a]) - p0 if s == 0 else p0 - at(-axes[a]) for a, s in enumerate(signs)]
+        dets.append(np.linalg.det(np.stack(columns, axis=-1)))
+    if dim == 3:
+        for offsets in ([(-1, -1, 0), (-1, 0, -1), (0, -1, -1)], [(1, 1, 0), (0, 1, 1), (1, 0, 1)]):
+            dets.append(np.linalg.det(np.stack([at(o) - p0 for o in offsets], axis=-1)))
+    dets = np.stack(dets)
+    bad = np.any(dets <= 0, axis=0)
+    volume = np.sum(-0.5 * np.minimum(dets, 0) / (2 if dim == 2 else 6), axis=0)
+    sel = np.ones(g.size, bool) if mask is None else np.transpose(mask)
+    return float(bad[sel].mean()), float(volume[sel].mean()), float(np.abs(dets).min())
+
+
+def _rough_field(g: Geometry, *, sigma: float, max_mm: float, seed: int) -> np.ndarray:
+    """Gaussian-smoothed noise (sigma in voxels) scaled to a largest displacement of
+    `max_mm`: ``u`` of shape ``(*g.shape, dim)`` (mm, ITK component order)."""
+    from scipy import ndimage
+
+    noise = np.random.default_rng(seed).standard_normal((*g.shape, g.dimension))
+    u = np.stack(
+        [ndimage.gaussian_filter(noise[..., c], sigma) for c in range(g.dimension)], axis=-1
+    )
+    return u * (max_mm / np.sqrt((u**2).sum(-1)).max())
+
+
+#: Oblique, anisotropic grids; the 3D one's direction a rotation times a flipped axis
+#: (det -1, as a RAS image read in LPS has), so that no orientation is assumed.
+_FLIP = np.diag([1.0, -1.0, 1.0])
+NONDIFF_GRIDS = {
+    2: _grid((34, 27), (0.8, 1.3), (-10.0, 4.0), _rotation(2, [25])),
+    3: _grid((22, 19, 15), (1.2, 0.9, 1.5), (-10.0, 4.0, 2.0), _rotation(3, [30, 20]) @ _FLIP),
+}
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_nondiffeomorphic_fraction_and_volume_against_liu_et_al(dim):
+    # A rough random field on an oblique anisotropic grid, in slabs and inside a mask: the
+    # non-diffeomorphic voxels and volume are those of the brute-force reference, and the
+    # stencils see more than central differences do.
+    g = NONDIFF_GRIDS[dim]
+    u = _rough_field(g, sigma=1.0, max_mm=4.0, seed=11 + dim)
+    mask = np.zeros(g.shape, bool)
+    mask[(slice(1, -2),) * dim] = True
+    mask[(slice(3, 6),) * dim] = False
+    fraction, volume, margin = _liu_reference(u, g, mask)
+    assert margin > 1e-9  # no det J sits on 0: the count is not a rounding tie
+    slab = int(np.prod(g.shape[1:])) * 4  # four rows of the last axis per slab
+    p = deformation_plausibility(
+        _field(g, u), g, mask=mask, inverse_consistency=False, max_slab_voxels=slab
+    )
+    assert 0.05 < fraction < 0.9
+    assert p.nondiffeomorphic_fraction == pytest.approx(fraction, abs=1e-15)
+    assert p.nondiffeomorphic_volume == pytest.approx(volume, rel=1e-9)
+    assert p.nondiffeomorphic_max == p.nondiffeomorphic_fraction
+    assert p.folded_fraction < p.nondiffeomorphic_fraction
+    whole = deformation_plausibility(_field(g, u), g, inverse_consistency=False)
+    fraction, volume, _ = _liu_reference(u, g)
+    assert whole.nondiffeomorphic_fraction == pytest.approx(fraction, abs=1e-15)
+    assert whole.nondiffeomorphic_volume == pytest.approx(volume, rel=1e-9)
+
+
+def _checkerboard(dim: int) -> tuple[Geometry, np.ndarray]:
+    """u_x = +-0.75 voxel alternating like a checkerboard on an inner block, 0 around it:
+    central differences skip every other voxel, so they see u_x constant inside the block
+    (det J = 1) and +-0.375 voxel per voxel at its edges (det J 0.625, 1.375), while each
+    voxel of the block moves 1.5 voxels past a neighbour (one-sided det J = -0.5)."""
+    g = _grid((14, 12, 10)[:dim], (1.0, 0.8, 1.25)[:dim])
+    u = np.zeros((*g.shape, dim))
+    block = (slice(3, -3),) * dim
+    parity = np.indices(g.shape).sum(axis=0) % 2
+    u[(*block, 0)] = (0.75 * g.spacing[0] * (1 - 2 * parity))[block]
+    return g, u
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_field_that_folds_between_grid_points_folds_by_some_stencil(dim):
+    g, u = _checkerboard(dim)
+    p = deformation_plausibility(_field(g, u), g, inverse_consistency=False)
+    assert p.folded_fraction == 0.0 and p.jacobian_min == pytest.approx(0.625)
+    fraction, volume, _ = _liu_reference(u, g)
+    assert p.nondiffeomorphic_fraction == pytest.approx(fraction, abs=1e-15)
+    assert p.nondiffeomorphic_volume == pytest.approx(volume, rel=1e-12)
+    # by hand: a voxel of the block moving +0.75 towards a neighbour moving -0.75 folds
+    # (one-sided det J = 1 - 1.5 = -0.5 on the 2 triangles or 4 corner tetrahedra on that
+    # side); so does every voxel of each row of the block along x but one of its two ends
+    # (0 or 2 of them, as the row starts with -0.75 or +0.75: 1 a row on average)
+    rows = np.prod([n - 6 for n in g.shape[:-1]])  # the block's rows along x
+    folded = rows * (g.shape[-1] - 6 - 1)
+    assert p.nondiffeomorphic_fraction == folded / u[..., 0].size > 0.09
+    share = 2 * 0.25 if dim == 2 else 4 / 12  # each simplex's share of a voxel, / 2
+    assert p.nondiffeomorphic_volume == pytest.approx(folded * share * 0.5 / u[..., 0].size)
+    # the folding flag says so, where central differences alone would flag nothing
+    (reason,) = flags({"checkerboard": p})["checkerboard"]
+    assert "by some finite-difference stencil" in reason
+    assert reason.endswith("where central differences see 0%")
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_smooth_invertible_field_is_digitally_diffeomorphic(dim):
+    g = NONDIFF_GRIDS[dim]
+    u = _rough_field(g, sigma=4.0, max_mm=1.5, seed=5)
+    p = deformation_plausibility(_field(g, u), g, inverse_consistency=False)
+    assert p.jacobian_min > 0.5  # far from folding
+    assert p.folded_fraction == p.nondiffeomorphic_fraction == p.nondiffeomorphic_volume == 0.0
+    assert _liu_reference(u, g)[:2] == (0.0, 0.0)
+    assert flags({"smooth": p})["smooth"] == []
+
+
+def test_stencils_leave_the_central_jacobian_as_it_was_and_the_threads_do_not_matter():
+    # The stencils share the central differences' pass (one compiled kernel): det J is
+    # transforms.jacobian_determinant's to the bit, and one thread and every thread give
+    # the same numbers.
+    import numba
+
+    from itk_nrreval.plausibility import deformation_measures
+    from itk_nrreval.transforms import jacobian_determinant
+
+    g = NONDIFF_GRIDS[3]
+    u = _rough_field(g, sigma=1.0, max_mm=4.0, seed=3)
+    t = _field(g, u)
+    det = jacobian_determinant(u, spacing=g.spacing, direction=g.direction)
+    threads = numba.get_num_threads()
+    results = []
+    try:
+        for n in (1, numba.config.NUMBA_NUM_THREADS):
+            numba.set_num_threads(n)
+            results.append(deformation_measures(t, g, inverse_consistency=False, displacement=u))
+    finally:
+        numba.set_num_threads(threads)
+    (p, summary), (p_all, summary_all) = results
+    np.testing.assert_array_equal(summary.middle, det[g.shape[0] // 2].astype(np.float32))
+    assert p.folded_fraction == np.mean(det <= 0) > 0.01
+    assert (p.jacobian_min, p.jacobian_max) == (det.min(), det.max())
+    logs = np.log(det[det > 0])
+    assert p.sdlogj == pytest.approx(np.sqrt(np.mean((logs - logs.mean()) ** 2)), rel=1e-14)
+    assert p == p_all
+    np.testing.assert_array_equal(summary.middle, summary_all.middle)
+
+
+def test_nondiffeomorphic_measures_combine_and_round_trip():
+    a = Plausibility(0.0, 0.0, 0.1, 0.5, 1.5, 0.01, 0.02, 0.02, 0.001)
+    b = Plausibility(0.001, 0.001, 0.1, -0.1, 1.5, 0.01, 0.04, 0.04, 0.003)
+    c = combine([a, b])
+    assert c.nondiffeomorphic_fraction == pytest.approx(0.03)
+    assert c.nondiffeomorphic_max == 0.04
+    assert c.nondiffeomorphic_volume == pytest.approx(0.002)
+    assert Plausibility.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    # results written before the measure existed: not measured (NaN), and never flagged
+    old = {k: v for k, v in a.to_dict().items() if not k.startswith("nondiffeomorphic")}
+    read = Plausibility.from_dict(old)
+    assert math.isnan(read.nondiffeomorphic_fraction) and math.isnan(read.nondiffeomorphic_max)
+    assert math.isnan(combine([read, b]).nondiffeomorphic_fraction)
+    assert flags({"old": read})["old"] == []
+    # stencil folding crosses the folding bounds: 1% on average, 25% in one image
+    stencil = Plausibility(0.0001, 0.0002, 0.1, 0.2, 1.5, 0.01, 0.011, 0.014, 0.0001)
+    (reason,) = flags({"demons": stencil})["demons"]
+    assert reason == (
+        "1.1% of voxels fold by some finite-difference stencil (Jacobian determinant <= 0 "
+        "on a one-sided or tetrahedral stencil; 1.4% in the worst image), where central "
+        "differences see 0.01%"
+    )
+    worst = Plausibility(0.0001, 0.0002, 0.1, 0.2, 1.5, 0.01, 0.005, 0.3, 0.0001)
+    assert "30% in the worst image" in flags({"w": worst})["w"][0]
+    # central folding above the bounds is said as before, once
+    both = Plausibility(0.02, 0.04, 0.1, -0.2, 1.5, 0.01, 0.03, 0.05, 0.001)
+    assert flags({"b": both})["b"] == [
+        "2% of voxels fold (Jacobian determinant <= 0; 4% in the worst image)"
+    ]
