@@ -142,7 +142,8 @@ _TASK_VERSIONS = {
     # 5: inverse consistency refined at the round trip's points; the image from the
     # memberships' sampling of the transform (issue 30)
     # 6: the transform's measures in their own entry, "measures" (issue 30)
-    "measures": 1,  # coverage and plausibility, before any image is resampled (issue 30)
+    "measures": 2,  # coverage and plausibility, before any image is resampled (issue 30)
+    # 2: the non-diffeomorphic fraction and volume (issue 42)
     "label_sums": 1,
     "brain_mask": 1,  # a subject's brain mask in the common frame (issue 42)
     "crisp_labels": 1,  # a subject's crisp label map and label boundaries (issue 45)

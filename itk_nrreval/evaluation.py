@@ -1063,7 +1063,14 @@ def _subjects(
     plaus = [p.to_dict() for p in r.plausibility]
     deformation = {
         k: [row[k] for row in plaus]
-        for k in ("folded_fraction", "sdlogj", "jacobian_min", "jacobian_max")
+        for k in (
+            "folded_fraction",
+            "nondiffeomorphic_fraction",
+            "nondiffeomorphic_volume",
+            "sdlogj",
+            "jacobian_min",
+            "jacobian_max",
+        )
     }
     deformation["inverse_consistency_mm"] = [row["inverse_consistency_mm"] for row in plaus]
     for k in ("linear_det", "nonlinear_rms_mm", "displacement_rms_mm"):

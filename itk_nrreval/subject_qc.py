@@ -840,6 +840,16 @@ def _flags_and_causes(
         )
     folded = defo["folded_fraction"][i]
     folds = folded > th.folded and add("folding", f"{folded:.1%} of its voxels fold (det J <= 0)")
+    # folds between grid points, which central differences miss (issue 42): NaN never flags
+    stencils = (
+        defo["nondiffeomorphic_fraction"][i] if "nondiffeomorphic_fraction" in defo else math.nan
+    )
+    if not folds and stencils > th.folded:
+        folds = add(
+            "folding",
+            f"{stencils:.1%} of its voxels fold by some finite-difference stencil (det J <= 0 "
+            f"on a one-sided or tetrahedral stencil; central differences: {folded:.2%})",
+        )
     rough = False
     for name, words in _DEFORMATION_FLAGS:
         median, zi = c.medians[name], c.deformation_z[name][i]

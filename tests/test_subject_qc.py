@@ -830,3 +830,22 @@ def test_the_reports_say_which_flags_are_the_registrations_and_name_the_referenc
     assert page.count(escape(flag)) == 1
     assert "Registration flag</b>" in page
     assert page.count("is the reference of this registration") == 2
+
+
+def test_a_subject_folding_only_between_grid_points_is_flagged_for_folding():
+    """Issue 42, item 5: a transform whose folds central differences miss (0 folded voxels)
+    but a one-sided or tetrahedral stencil sees (3% non-diffeomorphic) is flagged for
+    folding, saying so; the same fraction by central differences is flagged as before, and
+    a subject measured before the stencils existed (NaN) is not."""
+    from itk_nrreval.subject_qc import assess_subjects
+
+    numbers = _cohort_numbers([0.05] * 12)
+    n = 12
+    numbers["deformation"]["nondiffeomorphic_fraction"] = [0.0] * n
+    numbers["deformation"]["nondiffeomorphic_fraction"][4] = 0.03
+    numbers["deformation"]["nondiffeomorphic_fraction"][6] = math.nan
+    subjects = assess_subjects(**numbers)
+    flagged = {q.index: q.flags for q in subjects if q.flags}
+    assert list(flagged) == [4], flagged
+    assert "fold by some finite-difference stencil" in flagged[4][0]
+    assert "central differences: 0.00%" in flagged[4][0]
