@@ -268,6 +268,9 @@ def test_dice_and_hd95_per_case_against_counts_and_point_sets(dim, tmp_path):
         plaus = result.scores[name].plausibility
         assert float(got["sdlogj"]) == pytest.approx(plaus.sdlogj)
         assert float(got["folded_fraction"]) == plaus.folded_fraction
+        # the non-diffeomorphic fraction: tested against its brute force in test_plausibility
+        assert float(got["nondiffeomorphic_fraction"]) == plaus.nondiffeomorphic_fraction
+        assert plaus.nondiffeomorphic_fraction >= plaus.folded_fraction
         for k, v in enumerate((1, 2, 3)):
             row = rows[str(v)]
             assert float(row["dice_mean"]) == pytest.approx(np.nanmean(dice[:, k]), rel=1e-12)
