@@ -399,6 +399,7 @@ def manifest_from_derivatives(
     data = {
         "images": [str(p) for p in images],
         **({"labels": [str(p) for p in labels]} if labels else {}),
+        **({"label_names": str(n)} if labels and (n := _dseg_names(first.root, labels)) else {}),
         **({"masks": [str(p) for p in masks]} if masks else {}),
         # a subject's sessions are one subject: the jackknife leaves them out together
         **({"subjects": [f"sub-{k[0]}" for k in kept]} if any(k[1] for k in kept) else {}),
@@ -421,6 +422,16 @@ def manifest_from_derivatives(
         ),
     }
     return load_manifest(data)
+
+
+def _dseg_names(root: Path, labels: list[Path]) -> Path | None:
+    """The labels' names: a ``_dseg.tsv`` beside the first label map, else one
+    ``[desc-<l>_]dseg.tsv`` at the dataset's root; None when there is none (or several)."""
+    beside = labels[0].with_name(labels[0].name.split(".", 1)[0] + ".tsv")
+    if beside.is_file():
+        return beside
+    at_root = sorted({*root.glob("desc-*_dseg.tsv"), *root.glob("dseg.tsv")})
+    return at_root[0] if len(at_root) == 1 else None
 
 
 def _brain_masks(folder: _Folder, kept: list[SubjectKey]) -> list[Path] | None:

@@ -821,6 +821,7 @@ def evaluate(
             weightings=weightings,
             thresholds=thresholds,
             extent_mm=extent,
+            label_names=m.label_names,
         )
         _warn_if_flagged(scores)
         options = {
@@ -1014,9 +1015,18 @@ def _subject_level(
 
 
 def _registration_scores(
-    run, values, level: _SubjectLevel, subjects, *, weightings, thresholds, extent_mm
+    run,
+    values,
+    level: _SubjectLevel,
+    subjects,
+    *,
+    weightings,
+    thresholds,
+    extent_mm,
+    label_names: Mapping[int, str] | None = None,
 ) -> dict[str, RegistrationScores]:
-    """Every registration's scores, plausibility, flags and subjects."""
+    """Every registration's scores, plausibility, flags and subjects (its label metrics
+    carrying the manifest's `label_names`)."""
     regs = run.registrations
     plaus = {name: combine(r.plausibility) for name, r in regs.items()}
     reg_flags = flags(
@@ -1040,9 +1050,14 @@ def _registration_scores(
             level.best_p[name],
             r.coverage,
             subjects[name],
-            label_metrics=r.label_metrics,
+            label_metrics=_named(r.label_metrics, label_names),
         )
     return scores
+
+
+def _named(lm: LabelMetrics | None, names: Mapping[int, str] | None) -> LabelMetrics | None:
+    """`lm` carrying the labels' names (the values shown beside them), where both exist."""
+    return lm if lm is None or names is None else dataclasses.replace(lm, names=names)
 
 
 def _scored(run) -> tuple[int, ...]:

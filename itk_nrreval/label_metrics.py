@@ -46,7 +46,7 @@ as ``np.quantile(values, 0.3)`` for every measure, which for HD95 is the best ta
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -462,6 +462,9 @@ class LabelMetrics:
         neither has a voxel of it in the evaluated region).
     hd95_mm : ndarray of float64, shape (n_cases, n_labels)
         mm; NaN where not compared or where either map has no boundary of the label.
+    names : dict of int to str, or None
+        The labels' names (the manifest's ``label_names``), shown beside the values; None:
+        values only.
     """
 
     labels: tuple[int, ...]
@@ -469,6 +472,7 @@ class LabelMetrics:
     reference: int | None
     dice: np.ndarray = field(repr=False)
     hd95_mm: np.ndarray = field(repr=False)
+    names: Mapping[int, str] | None = None
 
     @property
     def against(self) -> str:
@@ -505,7 +509,11 @@ class LabelMetrics:
             "dice": d.to_dict(),
             "hd95_mm": h.to_dict(),
             "labels": {
-                str(v): {"dice": ld.to_dict(), "hd95_mm": lh.to_dict()}
+                str(v): {
+                    **({"name": self.names[v]} if self.names and v in self.names else {}),
+                    "dice": ld.to_dict(),
+                    "hd95_mm": lh.to_dict(),
+                }
                 for v, (ld, lh) in self.per_label().items()
             },
         }

@@ -4,6 +4,7 @@ A manifest is a YAML (or JSON) file::
 
     images: [img/s00.nii.gz, img/s01.nii.gz]        # N training images, each in its own space
     labels: [lab/s00.nii.gz, lab/s01.nii.gz]        # optional integer label maps, same spaces
+    label_names: lab/dseg.tsv                        # optional: dseg.tsv, FreeSurfer LUT, {1: csf}
     groups: [t1, t1, t2, t2]                         # optional: each image's group (modality)
     subjects: [s00, s01, s00, s01]                   # optional: each image's subject
     evaluation_images: [img/s00_t2.nii.gz, img/s01_t2.nii.gz]  # optional: scored in their place
@@ -125,6 +126,7 @@ from ._images import (
 )
 from ._itk_hdf5 import transform_dimension as hdf5_transform_dimension
 from ._output import write_text
+from .label_names import label_names_from
 from .transforms import (
     FIELD_SUFFIXES,
     TRANSFORM_SUFFIXES,
@@ -152,6 +154,7 @@ __all__ = [
 _TOP_KEYS = (
     "images",
     "labels",
+    "label_names",
     "groups",
     "subjects",
     "evaluation_images",
@@ -229,6 +232,10 @@ class Manifest:
         Per image, its brain mask on the image's own grid (values 0 and 1), brought into
         the common frame through the image's transforms for the per-subject mask Dice
         (:mod:`itk_nrreval._brain_masks`); None: no brain masks.
+    label_names : dict of int to str, or None
+        The labels' names (label value -> name), read from the manifest's ``label_names``
+        (a ``dseg.tsv`` or FreeSurfer lookup table, or a mapping;
+        :mod:`itk_nrreval.label_names`), shown beside the values; None: values only.
     """
 
     images: tuple[Any, ...]
@@ -241,6 +248,7 @@ class Manifest:
     evaluation_images: tuple[Any, ...] | None = None
     subjects: tuple[str, ...] | None = None
     masks: tuple[Any, ...] | None = None
+    label_names: Mapping[int, str] | None = None
 
     @property
     def n_images(self) -> int:
@@ -308,6 +316,11 @@ class Manifest:
             else [_describe_item(p) for p in self.evaluation_images],
             "mask": _describe_item(self.mask),
             "masks": None if self.masks is None else [_describe_item(p) for p in self.masks],
+            **(
+                {"label_names": {str(k): v for k, v in self.label_names.items()}}
+                if self.label_names is not None
+                else {}
+            ),
             "common_frame": self.common_frame,
             "registrations": {
                 name: {
@@ -511,6 +524,12 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         labels = _path_list(data["labels"], base, "labels", problems)
         if labels is not None and images is not None and len(labels) != len(images):
             problems.append(f"labels: {len(labels)} label maps for {len(images)} images")
+    label_names = None
+    if data.get("label_names") is not None:
+        try:
+            label_names = label_names_from(data["label_names"], base)
+        except InputError as exc:
+            problems.append(str(exc))
     mask = (
         _image_item(data["mask"], base, "mask", problems) if data.get("mask") is not None else None
     )
@@ -562,6 +581,7 @@ def _parse(data: Mapping, base: Path, problems: list[str]) -> Manifest | None:
         evaluation_images=evaluation_images,
         subjects=subjects,
         masks=masks,
+        label_names=label_names,
     )
 
 
@@ -1327,6 +1347,8 @@ def _to_dict(m: Manifest, folder: Path | None) -> dict:
     out: dict[str, Any] = {"images": [_rel(p, folder) for p in m.images]}
     if m.labels is not None:
         out["labels"] = [_rel(p, folder) for p in m.labels]
+    if m.label_names is not None:
+        out["label_names"] = {int(k): v for k, v in m.label_names.items()}
     if m.groups is not None:
         out["groups"] = list(m.groups)
     if m.subjects is not None:

@@ -512,6 +512,7 @@ PUBLIC_MODULES = {
     "evaluation",  # entry point: evaluate, the side-by-side scores and the verdict
     "frame",  # the common frame every registration is resampled into (Section V-D)
     "label_metrics",  # the numbers registration papers report: Dice and HD95 per label
+    "label_names",  # what each label value stands for: dseg.tsv, FreeSurfer lookup tables
     "manifest",  # the manifest: the images and the registrations of them to evaluate
     "model",  # the shape-free texture model (Section III-B)
     "overlap",  # the generalized Tanimoto overlap, the ground-truth reference (II-B)

@@ -384,8 +384,8 @@ BAD = [
     (
         "unknown key",
         lambda tp: lambda d: d.update(lables=[]),
-        r"bad\.yaml: unknown key 'lables' \(expected images, labels, groups, subjects, "
-        r"evaluation_images, mask, masks, common_frame, registrations\)$",
+        r"bad\.yaml: unknown key 'lables' \(expected images, labels, label_names, groups, "
+        r"subjects, evaluation_images, mask, masks, common_frame, registrations\)$",
     ),
     (
         "common frame",

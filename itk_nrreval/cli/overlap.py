@@ -36,6 +36,12 @@ def add_parser(sub) -> None:
     p.add_argument("--include-background", action="store_true", help="also evaluate label 0")
     p.add_argument("--mask", help="evaluate only voxels where this image is nonzero")
     p.add_argument(
+        "--label-names",
+        metavar="FILE",
+        help="the labels' names, shown beside the values (a label_name column): a BIDS "
+        "dseg.tsv (columns index and name) or a FreeSurfer FreeSurferColorLUT.txt-style table",
+    )
+    p.add_argument(
         "--table",
         metavar="OUT.csv",
         help="write the per-label table (volume mm^3, complexity mm^-1, Jaccard, Dice, target "
@@ -49,6 +55,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
+    from ..label_names import read_label_names
     from ..overlap import WEIGHTINGS, overlap_table
 
     inputs = [*args.labels, *(p for p in (args.mask,) if p is not None)]
@@ -59,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if args.table and args.json and Path(args.table).resolve() == Path(args.json).resolve():
         raise InputError("--table and --json: the same file")
 
+    names = read_label_names(args.label_names) if args.label_names else None
     weightings = list(dict.fromkeys(args.weighting)) if args.weighting else list(WEIGHTINGS)
     table = overlap_table(
         args.labels,
@@ -71,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"generalized overlap of {table.n_images} {kind} label maps, {len(table.labels)} labels:")
     for w in weightings:
         print(f"  {w:<27s} {values[w]:.6f}")
-    rows = _rows(table, weightings)
+    rows = _rows(table, weightings, names)
     print()
     print(_format(rows))
     if args.table:
@@ -96,8 +104,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rows(table, weightings) -> list[dict]:
+def _rows(table, weightings, names=None) -> list[dict]:
     rows = [{k: r[k] for k in _COLUMNS} for r in table.rows()]
+    if names is not None:  # the name beside the value
+        rows = [{"label": r["label"], "label_name": names.get(r["label"], ""), **r} for r in rows]
     for w in weightings:
         alpha = table.weights(w)
         total = alpha.sum()
@@ -110,10 +120,13 @@ def _format(rows: list[dict]) -> str:
     names = ("label", "volume", "complexity", "jaccard", "dice", "target")
     widths = (6, 12, 10, 8, 8, 8)
     lines = [" ".join(f"{n:>{w}}" for n, w in zip(names, widths, strict=True))]
+    if rows and "label_name" in rows[0]:
+        lines[0] += "  name"
     for r in rows:
         lines.append(
             f"{r['label']:>6d} {r['volume']:>12.6g} {r['complexity']:>10.4g} "
             f"{r['jaccard']:>8.4f} {r['dice']:>8.4f} {r['target_overlap']:>8.4f}"
+            + (f"  {r['label_name']}" if r.get("label_name") else "")
         )
     return "\n".join(lines)
 
@@ -133,4 +146,5 @@ def _our_table(path: Path) -> bool:
             header = f.readline().rstrip("\n").split(",")
     except (OSError, UnicodeDecodeError):
         return False
+    header = [h for h in header if h != "label_name"]  # written with --label-names
     return header[: len(_COLUMNS)] == list(_COLUMNS)

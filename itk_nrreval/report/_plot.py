@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
+
+from ..label_names import label_text
 
 __all__ = [
     "png_bytes",
@@ -115,6 +117,7 @@ def draw_label_contours(
     fontsize: int = 6,
     legend: bool = True,
     values: Sequence[int] | None = None,
+    names: Mapping[int, str] | None = None,
 ) -> tuple[list, str]:
     """Draw the boundaries of every nonzero label of `labels` over an image in `ax`.
 
@@ -138,6 +141,8 @@ def draw_label_contours(
         Every label value of the figure (or the report), present here or not: a value gets
         the same colour in every panel drawn with the same `values`. Default: the values
         present in `labels`.
+    names : dict of int to str, optional
+        The labels' names: a legend entry reads ``"3 (hippocampus)"``; default the values.
 
     Returns
     -------
@@ -171,7 +176,7 @@ def draw_label_contours(
         for v in present:
             color = (*colors[palette.index(v)], 1.0)
             overlay[edge & (lab == v)] = color
-            handles.append(Patch(color=color, label=str(v)))
+            handles.append(Patch(color=color, label=label_text(v, names)))
         title = "label value"
     else:
         overlay[edge] = (1.0, 0.85, 0.0, 1.0)

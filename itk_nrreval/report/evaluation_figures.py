@@ -17,7 +17,7 @@ whatever the number of images.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -181,6 +181,7 @@ def _mean_images_figure(result, names):
                 aspect=aspect,
                 legend=False,
                 values=sorted(values),
+                names=_label_names(result),
             )
             for h in found:
                 handles.setdefault(h.get_label(), h)
@@ -196,7 +197,7 @@ def _mean_images_figure(result, names):
         title += "\ncontours: the labels of subject 0 resampled into the same frame"
     if handles:
         # numerically ordered: labels found in a later panel only still sort into place
-        order = sorted(handles, key=lambda k: (not k.isdigit(), int(k) if k.isdigit() else 0))
+        order = sorted(handles, key=_label_order)
         fig.legend(
             handles=[handles[k] for k in order],
             title=legend_title,
@@ -566,8 +567,23 @@ def images_figure(result, name: str):
             thumbnail(t["labels_0"], mode="nearest"),
             aspect=aspect,
             values=_label_values(result),
+            names=_label_names(result),
         )
     return fig
+
+
+def _label_names(result) -> Mapping[int, str] | None:
+    """The labels' names (the manifest's ``label_names``), or None."""
+    for s in result.scores.values():
+        if s.label_metrics is not None and s.label_metrics.names:
+            return s.label_metrics.names
+    return None
+
+
+def _label_order(entry: str) -> tuple[bool, int]:
+    """A legend entry's place: numerically by its value (``"3"``, ``"3 (csf)"``)."""
+    value = entry.split(" ", 1)[0]
+    return (not value.isdigit(), int(value) if value.isdigit() else 0)
 
 
 def subject_figure(result, name: str, index: int):

@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from ..label_names import label_text
 from ..subject_qc import ranked, registration_flags
 from ._format import format_number, format_percent
 from ._html import (
@@ -345,7 +346,7 @@ def _paper_metrics(result, names: Sequence[str]) -> str:
             cells += [format_number(dice.worst30, 3), _mean_sd(hd), format_number(hd.worst30, 3)]
             for value, (ld, lh) in lm.per_label().items():
                 label_rows.append(
-                    [escape(n), str(value), str(ld.n_cases), _mean_sd(ld)]
+                    [escape(n), escape(label_text(value, lm.names)), str(ld.n_cases), _mean_sd(ld)]
                     + [format_number(ld.worst30, 3), _mean_sd(lh), format_number(lh.worst30, 3)]
                 )
         values = deformation_metrics(s.plausibility)

@@ -474,12 +474,17 @@ def metrics_csv(result) -> str:
     lowest Dice and the largest HD95; "all": each case's mean over its labels first), then
     on the registration's row SDlogJ, the folded fraction and any non-diffeomorphic fraction
     (:func:`deformation_metrics`; means over its images). Empty cells: not computed (no
-    labels, or a label row's deformation columns).
+    labels, or a label row's deformation columns). With the manifest's ``label_names``, a
+    ``label_name`` column follows ``label``.
     """
     deformation: list[str] = []
     for s in result.scores.values():
         deformation += [k for k in deformation_metrics(s.plausibility) if k not in deformation]
-    fields = ["registration", "label", "against", "reference", "cases"]
+    named = any(
+        s.label_metrics is not None and s.label_metrics.names for s in result.scores.values()
+    )
+    fields = ["registration", "label", *(["label_name"] if named else []), "against"]
+    fields += ["reference", "cases"]
     fields += [f"{m}_{a}" for m in ("dice", "hd95_mm") for a in ("mean", "std", "worst30")]
     fields += deformation
     buf = io.StringIO()
@@ -497,6 +502,8 @@ def metrics_csv(result) -> str:
             continue
         for value, (dice, hd) in lm.per_label().items():
             row = {"registration": name, "label": value, "against": lm.against}
+            if named:
+                row["label_name"] = (lm.names or {}).get(value, "")
             row.update(reference=lm.reference, cases=dice.n_cases)
             row.update(_summary_cells("dice", dice), **_summary_cells("hd95_mm", hd))
             w.writerow({k: "" if _missing(v) else v for k, v in row.items()})
