@@ -8,6 +8,7 @@ exit code 130, never a traceback.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 INTERRUPTED = 130
@@ -56,6 +57,10 @@ def main() -> None:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)
+    # The command is over and its result complete: a Ctrl-C now would land in the
+    # interpreter's shutdown, after its own handler is gone, and kill the process with no
+    # word (exit -2) instead of the exit code the result deserves.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     sys.exit(code)
 
 

@@ -282,9 +282,12 @@ def _unlock(fd: int | None) -> None:
 
 
 @contextlib.contextmanager
-def _interrupts_deferred() -> Iterator[None]:
-    """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all; an
-    interrupt that arrives meanwhile is raised once they are done.
+def _interrupts_held_off() -> Iterator[None]:
+    """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all.
+
+    An interrupt that arrives meanwhile is dropped: once the renames are done the result is
+    complete, and an exit code 130 would say that the previous result was kept when it was
+    replaced. What little work follows (the summary printed) then ends as usual.
 
     Only the main thread can set signal handlers; elsewhere (a Slicer or Dask thread) the
     block runs as it is.
@@ -299,8 +302,6 @@ def _interrupts_deferred() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
-    if pending:
-        raise KeyboardInterrupt
 
 
 def _default_mode() -> int:
@@ -475,7 +476,7 @@ def staged_folder(
     (a rerun resumes). The temporary folder is a hidden entry of `out`; a process killed
     mid-run leaves it there, and the next run removes it. `out` is locked against other
     nrreval processes while the run lasts, and the final swap is not cut short by Ctrl-C
-    (an interrupt then arrives after it).
+    (an interrupt during it is dropped: the new result is then complete).
 
     Raises
     ------
@@ -512,7 +513,7 @@ def staged_folder(
                 f"{out / foreign[0]}: was not written by nrreval and would be replaced; "
                 f"the new results are in {tmp}"
             )
-        with _interrupts_deferred():  # the swap: all of it, never half a result
+        with _interrupts_held_off():  # the swap: all of it, never half a result
             old = Path(tempfile.mkdtemp(prefix=f"{_STAGE}old-{os.getpid()}-", dir=out))
             for name in sorted(record):
                 if os.path.lexists(out / name) and (name in staged or name not in keep):

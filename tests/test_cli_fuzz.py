@@ -436,3 +436,27 @@ def test_ctrl_c_at_a_random_point_ends_in_one_line_or_a_complete_result(base, tm
     else:
         results = json.loads((out / "results.json").read_text())
         assert results["verdict"]["text"] and (out / "summary.md").is_file()
+
+
+@pytest.mark.parametrize("after_s", [0.0, 0.05])
+def test_ctrl_c_once_the_result_is_complete_is_exit_0(base, tmp_path, after_s):
+    """Ctrl-C the moment the new result is in place (during the final swap, or in the
+    interpreter's shutdown, after its handler is gone): the result is complete, so the exit
+    code is 0 and nothing is said -- not 130 over a replaced result, nor a silent death by
+    the signal (exit -2), both seen before."""
+    import signal
+    import subprocess
+    import time
+
+    _sandbox(base, tmp_path)
+    out = tmp_path / "results"
+    command = [_nrreval_program(), *_command("evaluate", tmp_path, out, ["--samples", "2000"])]
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    while not (out / "results.json").exists() and run.poll() is None:
+        time.sleep(0.002)
+    time.sleep(after_s)
+    run.send_signal(signal.SIGINT)
+    _, err = run.communicate(timeout=300)
+    assert run.returncode == 0, (run.returncode, err)
+    assert "interrupted" not in err and "Traceback" not in err, err
+    assert json.loads((out / "results.json").read_text())["verdict"]["text"]
