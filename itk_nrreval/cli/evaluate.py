@@ -170,7 +170,6 @@ def _add_job_options(p) -> None:
         dest="job_directives",
         type=_words,
         action="append",
-        default=[],
         metavar="LINE",
         help="a further job-script header line, without its #SBATCH / #PBS / #$ prefix; "
         "repeatable; write one that starts with - as --job-directive='--account=lab'",
@@ -470,7 +469,8 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads,
             cache=cache,
             keep_resampled=args.keep_resampled,
-            **{dest: getattr(args, dest) for _, dest in JOB_OPTIONS},
+            # an option not given: Execution's default (no directive: None, not [])
+            **{dest: getattr(args, dest) for _, dest in JOB_OPTIONS if getattr(args, dest)},
         ),
         confidence=(
             False
