@@ -448,8 +448,10 @@ def test_a_misplaced_mask_flags_its_subject_in_results_and_subjects_csv(tmp_path
     (subjects,) = [s.subjects for s in result.scores.values()]
     flagged = [q.index for q in subjects if any("brain mask" in f for f in q.flags)]
     assert flagged == [1], [q.flags for q in subjects]
-    assert subjects[1].brain_mask_dice < BRAIN_MASK_DICE_MIN < min(
-        q.brain_mask_dice for q in subjects if q.index != 1
+    assert (
+        subjects[1].brain_mask_dice
+        < BRAIN_MASK_DICE_MIN
+        < min(q.brain_mask_dice for q in subjects if q.index != 1)
     )
     rows = list(csv.DictReader(open(tmp_path / "o" / "subjects.csv")))
     by_index = {int(row["index"]): float(row["brain_mask_dice"]) for row in rows}
