@@ -514,6 +514,18 @@ def _shares_sampling(
     return lab is None or (label_method == "linear" and shares_grid(raw, lab))
 
 
+def _stored_memberships(entry, shape: tuple[int, ...], labels) -> SparseMemberships:
+    """The label memberships a ``resampled`` cache entry holds (its ``lab_*`` arrays), on a
+    grid of numpy `shape`, for the label values `labels` (the entry's meta records them)."""
+    return SparseMemberships(
+        values=np.asarray(labels, np.int64),
+        shape=shape,
+        ptr=entry.array("lab_ptr"),
+        index=entry.array("lab_idx"),
+        weight=entry.array("lab_val"),
+    )
+
+
 def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
     """Per label of one resampled image: its gradient sum and its presence, in the region.
 
@@ -527,13 +539,7 @@ def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
         return dict(found.meta), True
     g = ctx.grid
     entry = cache.open("resampled", key)
-    memb = SparseMemberships(
-        values=np.asarray(entry.meta["labels"], np.int64),
-        shape=g.shape,
-        ptr=entry.array("lab_ptr"),
-        index=entry.array("lab_idx"),
-        weight=entry.array("lab_val"),
-    )
+    memb = _stored_memberships(entry, g.shape, entry.meta["labels"])
     mask = ctx.mask_flat()
     gsum, present = [], []
     row = np.zeros(int(np.prod(g.shape)), np.float32)
@@ -1707,13 +1713,7 @@ def _save_resampled(
         )
         if values is None:
             continue
-        memb = SparseMemberships(
-            values=np.asarray(metas[i]["labels"], np.int64),
-            shape=grid.shape,
-            ptr=entry.array("lab_ptr"),
-            index=entry.array("lab_idx"),
-            weight=entry.array("lab_val"),
-        )
+        memb = _stored_memberships(entry, grid.shape, metas[i]["labels"])
         dense = np.zeros((len(values) - 1, *grid.shape), np.float32)
         own = memb.dense()
         for j, v in enumerate(metas[i]["labels"]):
@@ -1851,13 +1851,7 @@ def _crisp_task(ctx: _Context, key: str, codes: Sequence[int], n_codes: int) -> 
     if found is not None:
         return crisp_key, dict(found.meta)
     entry = cache.open("resampled", key)
-    memb = SparseMemberships(
-        values=np.asarray(entry.meta["labels"], np.int64),
-        shape=g.shape,
-        ptr=entry.array("lab_ptr"),
-        index=entry.array("lab_idx"),
-        weight=entry.array("lab_val"),
-    )
+    memb = _stored_memberships(entry, g.shape, entry.meta["labels"])
     mask = ctx.mask_flat()
     region = None if mask is None else mask.reshape(g.shape)
     labels = crisp_labels(memb, codes=codes, n_codes=n_codes, region=region)
