@@ -17,6 +17,14 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat).
 
+The charge has a converse, for specificity only (:data:`SMOOTHNESS_RATE`): when ``a``'s
+fields are rougher by ``dr`` (at least :data:`MIN_ROUGHNESS_DIFFERENCE`) and its
+specificity advantage, even at the top of its subject-level interval, is below
+``exp(SMOOTHNESS_RATE * dr)``, that is specificity's evidence for the smoother ``b``: the
+extra roughness bought too little to be correspondence (the flat end of the trade-off's
+L-curve: demons or B-splines past their knee, fitting noise). Between the two rates the
+pair is the knee, and stays open unless the overlap decides it.
+
 A pair is decided for ``a`` when there is evidence for ``a`` and none for ``b`` (with
 labels, specificity and overlap each count; a preference that is not evidence does not
 count against the other measure either: on the benchmark's demons sweeps the rough fields'
@@ -51,6 +59,8 @@ __all__ = [
     "Verdict",
     "verdict",
     "EXCHANGE_RATE",
+    "SMOOTHNESS_RATE",
+    "MIN_ROUGHNESS_DIFFERENCE",
     "SEVERE_FOLDED_FRACTION",
     "NO_FOLDING_FRACTION",
     "MIN_SAMPLES",
@@ -67,6 +77,29 @@ overlap, log-odds) and 5.0 (3D MNI, specificity); 5.5 leaves a 10% margin above 
 steepest. Checked on the cases not used to set it (the demo, the cheat, over-fitting,
 B-spline grids, folding, similar registrations, the 3D phantom sweep, the sweeps scored on
 unseen images): no pair decided wrong there."""
+
+SMOOTHNESS_RATE = 2.3
+"""What roughness must at least buy, or the smoother registration is the better: where
+``a``'s fields are rougher by ``dr`` (at least :data:`MIN_ROUGHNESS_DIFFERENCE`) and its
+specificity advantage, even at the top of its subject-level 95% interval, is below
+``exp(2.3 dr)`` (1.26x for ``dr`` = 0.1, 2.2x for 0.35), the smoother ``b`` is preferred
+by specificity (issue 41). Between this and :data:`EXCHANGE_RATE` a pair stays open: the
+knee of the trade-off, where the data do not say whether the extra roughness corresponds.
+
+Set on the tuning split of the known-truth benchmark (``benchmarks/bench_verdict.py``:
+``TUNING``, with their second scans), and on nothing else: among the pairs whose rougher
+registration has the truly lower error (by more than 10%), the shallowest had the rougher's
+advantage at the top of its interval ``exp(2.57 dr)`` (an affine registration against 2 mm
+demons, scored on the second scan); 2.3 leaves a 10% margin below it. The steepest
+pairs below it are all affine against a deformable registration: SDlogJ cannot see the
+deformation an affine registration leaves out. Only specificity: the same rule on the
+overlap decided two tuning pairs wrong at 2.3 (and at 1.0), so the overlap keeps the
+one-sided charge."""
+
+MIN_ROUGHNESS_DIFFERENCE = 0.05
+"""The least SDlogJ difference (dimensionless) for :data:`SMOOTHNESS_RATE` to apply:
+nearly equal roughness says nothing about which corresponds better. Chosen before
+measuring, not fitted."""
 
 SEVERE_FOLDED_FRACTION = 0.10
 """A registration that folds at least this fraction of its voxels (mean over its images)
@@ -282,6 +315,9 @@ def verdict(
         by_overlap = prefers(_OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
         evidence = _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged)
+        _add_smoother_evidence(
+            evidence, sep.get((_SPECIFICITY, a, b)) or sep.get((_SPECIFICITY, b, a)), spec, rough
+        )
         decision = _decide(a, b, evidence, rough, folded)
         if decision is not None:
             decisions.append(decision)
@@ -307,6 +343,9 @@ class _Preference(NamedTuple):
     other: str
     gain: float  # ln of the specificity ratio, or of the overlap odds ratio, in its favour
     discount: str | None  # why it is not evidence: "rougher", "flagged"; None: it is
+    # the smoother-fields rule (SMOOTHNESS_RATE): the rougher's advantage at the top of its
+    # interval, as a ratio; None for a separable preference
+    rougher_at_most: float | None = None
 
 
 def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged) -> dict:
@@ -332,6 +371,24 @@ def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged) -> dict:
     return out
 
 
+def _add_smoother_evidence(evidence: dict, c: Comparison | None, spec, rough) -> None:
+    """Add specificity's evidence for the smoother registration of a pair when the rougher
+    one's specificity advantage, at the top of its interval, is below what
+    :data:`SMOOTHNESS_RATE` says its extra roughness must buy (``gain`` is then minus that
+    top). Separable evidence already found, or a discount other than roughness, stays."""
+    if c is None:
+        return
+    s, r = sorted((c.a, c.b), key=rough.get)
+    dr = rough[r] - rough[s]
+    found = evidence.get(_SPECIFICITY)
+    if dr < MIN_ROUGHNESS_DIFFERENCE or (found is not None and found.discount != "rougher"):
+        return
+    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
+    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
+    if top_gain < SMOOTHNESS_RATE * dr:
+        evidence[_SPECIFICITY] = _Preference(s, r, -top_gain, None, math.exp(top_gain))
+
+
 def _counted(evidence: dict) -> set[str]:
     """The registrations the evidence (not discounted) prefers: none, one, or both."""
     return {p.preferred for p in evidence.values() if p.discount is None}
@@ -350,10 +407,23 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
         f"{math.exp(evidence[m].gain):.2f}x "
         + ("lower specificity" if m == _SPECIFICITY else "the odds of overlap")
         for m in used
+        if evidence[m].rougher_at_most is None
     ]
-    details = [f"separable: {', '.join(gains)}", _roughness(w, l, rough)]
+    details = [f"separable: {', '.join(gains)}"] if gains else []
+    details += [_too_little(p, rough) for p in evidence.values() if p.rougher_at_most]
+    details.append(_roughness(w, l, rough))
     details += [_discounted(m, p, rough) for m, p in evidence.items() if p.discount]
     return Decision(w, l, f"{' and '.join(_WORD[m] for m in used)} ({'; '.join(details)})")
+
+
+def _too_little(p: _Preference, rough) -> str:
+    """Why the smoother registration is preferred by the smoother-fields rule, in words."""
+    dr = rough[p.other] - rough[p.preferred]
+    return (
+        f"{p.other}'s fields are {dr:.2f} rougher in SDlogJ, and its specificity advantage is "
+        f"at most {p.rougher_at_most:.2f}x, less than the {math.exp(SMOOTHNESS_RATE * dr):.2f}x "
+        "that much roughness must buy"
+    )
 
 
 def _discounted(measure: str, p: _Preference, rough) -> str:

@@ -147,7 +147,13 @@ def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):
 def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
     """The rules of the verdict (module docstring of itk_nrreval.verdict), restated: which of
     them let `w` be decided better than `l`."""
-    from itk_nrreval.verdict import EXCHANGE_RATE, NO_FOLDING_FRACTION, SEVERE_FOLDED_FRACTION
+    from itk_nrreval.verdict import (
+        EXCHANGE_RATE,
+        MIN_ROUGHNESS_DIFFERENCE,
+        NO_FOLDING_FRACTION,
+        SEVERE_FOLDED_FRACTION,
+        SMOOTHNESS_RATE,
+    )
 
     def winner(measure, lower):
         """The registration of the two that `measure` separably prefers, or None."""
@@ -160,6 +166,24 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
     by_spec = winner("specificity", lower=True)
     by_overlap = winner("overlap.inverse_volume", lower=False) if has_labels else None
 
+    def too_little(r, o):
+        """Whether `r` is smoother than `o` by at least MIN_ROUGHNESS_DIFFERENCE and o's
+        specificity advantage, at the bottom of the interval of spec(o) - spec(r), is below
+        exp(SMOOTHNESS_RATE * dr)."""
+        dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
+        for c in comparisons:
+            if (
+                c.measure == "specificity"
+                and {c.a, c.b} == {r, o}
+                and dr >= MIN_ROUGHNESS_DIFFERENCE
+            ):
+                o_minus_r = c.ci95[0] if c.a == o else -c.ci95[1]
+                best_o = scores[r].specificity.value + o_minus_r
+                return best_o > 0 and scores[r].specificity.value / best_o < np.exp(
+                    SMOOTHNESS_RATE * dr
+                )
+        return False
+
     def evidence(measure, r):
         """Whether `measure` separably prefers `r` by more than r's rougher fields buy (and,
         for the overlap, r is not flagged)."""
@@ -167,7 +191,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         rougher = max(0.0, scores[r].plausibility.sdlogj - scores[o].plausibility.sdlogj)
         if measure == "specificity":
             gain = np.log(scores[o].specificity.value / scores[r].specificity.value)
-            return by_spec == r and gain >= EXCHANGE_RATE * rougher
+            return (by_spec == r and gain >= EXCHANGE_RATE * rougher) or too_little(r, o)
         pr, po = scores[r].overlap["inverse_volume"], scores[o].overlap["inverse_volume"]
         gain = np.log((pr / (1 - pr)) / (po / (1 - po)))
         return by_overlap == r and gain >= EXCHANGE_RATE * rougher and not scores[r].flags
@@ -573,3 +597,38 @@ def test_the_demo_table_and_the_summary_list_the_verdicts_order(cheat_case):
 
     assert rows(_table(result, error)) == list(result.verdict.ranking)
     assert rows(summary_table(result)) == list(result.verdict.ranking)
+
+
+def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
+    """Fields 0.4 rougher in SDlogJ must buy at least exp(SMOOTHNESS_RATE * 0.4) in
+    specificity. Below it the smoother registration is decided better; between that and
+    exp(EXCHANGE_RATE * 0.4) the pair is the trade-off's knee and stays open; beyond that the
+    rougher one is; and nearly equal roughness never decides for the smoother."""
+    from itk_nrreval.verdict import EXCHANGE_RATE, SMOOTHNESS_RATE
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+    dr = 0.4
+    low, high = np.exp(SMOOTHNESS_RATE * dr), np.exp(EXCHANGE_RATE * dr)
+
+    def decided(ratio, rough_sdlogj=0.1 + dr):
+        scores = {
+            "smooth": _registration(base, "smooth", spec=10.0, sdlogj=0.1),
+            "rough": _registration(base, "rough", spec=10.0 / ratio, sdlogj=rough_sdlogj),
+        }
+        values = {k: s.specificity.value for k, s in scores.items()}
+        v = verdict(scores, _separable_where(values, [{"smooth", "rough"}]), has_labels=False)
+        return [(d.better, d.worse, d.basis) for d in v.decisions], v
+
+    # the intervals of _separable_where are a few thousandths wide: ratios stay clear of them
+    for ratio in (0.9, 1.0, 1.1, 0.98 * low):
+        [(better, worse, basis)], _ = decided(ratio)
+        assert (better, worse) == ("smooth", "rough"), ratio
+        if ratio > 1:
+            assert "rough's fields are 0.40 rougher in SDlogJ" in basis
+            assert f"less than the {low:.2f}x that much roughness must buy" in basis
+    for ratio in (1.02 * low, np.sqrt(low * high), 0.98 * high):
+        assert decided(ratio)[0] == [], ratio
+    assert [d[:2] for d in decided(1.02 * high)[0]] == [("rough", "smooth")]
+    # nearly equal roughness: the smoother is not preferred for that
+    assert decided(1.1, rough_sdlogj=0.13)[0] == []
