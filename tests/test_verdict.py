@@ -171,6 +171,8 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         specificity advantage, at the bottom of the interval of spec(o) - spec(r), is below
         exp(SMOOTHNESS_RATE * dr)."""
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
+        if scores[r].plausibility.sdlogj < MIN_ROUGHNESS_DIFFERENCE:
+            return False  # r does not deform locally (affine)
         for c in comparisons:
             if (
                 c.measure == "specificity"
@@ -632,3 +634,12 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
     assert [d[:2] for d in decided(1.02 * high)[0]] == [("rough", "smooth")]
     # nearly equal roughness: the smoother is not preferred for that
     assert decided(1.1, rough_sdlogj=0.13)[0] == []
+    # a registration without local deformation (affine, SDlogJ 0) is not preferred for its
+    # smoothness: SDlogJ cannot see the deformation it leaves out
+    scores = {
+        "affine": _registration(base, "affine", spec=10.0, sdlogj=0.0),
+        "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=dr),
+    }
+    values = {k: s.specificity.value for k, s in scores.items()}
+    v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
+    assert v.decisions == ()
