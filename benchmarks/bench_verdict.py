@@ -139,7 +139,15 @@ FRESH = (
     "families_mni2d_syn_s7",  # MNI-based 2D, N = 12, seed 7, the six of families_mni2d_syn
     "families_mni2d_n24_s8",  # MNI-based 2D, N = 24, seed 8, the seven of families_mni2d
 )
-SPLITS = ("tuning", "held-out", "fresh")
+# Declared later in the same session, after FRESH had judged the smoother-fields rule and
+# before any rule about the overlap was changed, and before these cases were run. FRESH2
+# checks what was changed after FRESH was seen.
+FRESH2 = (
+    "families_mni3d_s10",  # MNI-based 3D, N = 10, seed 10, the seven (3D grids)
+    "families_phantom2d_n24_s11",  # phantom 2D, N = 24, seed 11, the seven
+    "families_mni2d_syn_s12",  # MNI-based 2D, N = 12, seed 12, the six of families_mni2d_syn
+)
+SPLITS = ("tuning", "held-out", "fresh", "fresh2")
 #: A case -> the case of the same registrations scored on a second scan (the T2 images).
 SECOND_SCAN = {
     **{
@@ -152,7 +160,7 @@ SECOND_SCAN = {
             "phantom2d_bending",
         )
     },
-    **{c: f"unseen_{c}" for c in TUNING + HELD_OUT + FRESH if c.startswith("families_")},
+    **{c: f"unseen_{c}" for c in TUNING + HELD_OUT + FRESH + FRESH2 if c.startswith("families_")},
 }
 #: Package modules renamed since evaluations were saved (issue 28 underscored the
 #: implementation modules; Coverage, in every EvaluationResult, lived in the pipeline one):
@@ -639,6 +647,9 @@ def _cases() -> dict:
         "families_phantom2d_s6": {"kind": "phantom", "seed": 6},
         "families_mni2d_syn_s7": {"kind": "mni", "seed": 7, "registrations": FAMILIES_SYN},
         "families_mni2d_n24_s8": {"kind": "mni", "seed": 8, "n": 24},
+        "families_mni3d_s10": {"kind": "mni", "seed": 10, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_phantom2d_n24_s11": {"kind": "phantom", "seed": 11, "n": 24},
+        "families_mni2d_syn_s12": {"kind": "mni", "seed": 12, "registrations": FAMILIES_SYN},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
@@ -806,6 +817,8 @@ def split_of(case: str) -> str:
     """``"tuning"``, ``"held-out"`` or ``"fresh"``: the declared split of a case or of its
     second scan."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
+    if base in FRESH2:
+        return "fresh2"
     if base in FRESH:
         return "fresh"
     if base in HELD_OUT:
@@ -828,7 +841,7 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
-    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH]
+    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH + FRESH2]
     table = {}
     for case in bases:
         table[case] = {}
