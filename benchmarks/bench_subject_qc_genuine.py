@@ -1,0 +1,600 @@
+"""Per-subject quality control on genuine registrations (issue 42): are the subjects a real
+registration failed flagged, and the others left alone?
+
+The verdict benchmark (``bench_verdict.py``) saved known-truth cases of genuine
+registrations: its ``families_*`` cases (affine, demons with four field smoothings, B-splines
+on two grids or SyN, each to the cohort's own subject 0, ``reference_index: 0``) and their
+second scans ``unseen_families_*`` (the same registrations scored on each subject's T2
+image), each with every subject's true correspondence error under every registration
+(``truth.json``: ``subject_true_error_mm``). This benchmark reads those saved cases only
+(``results.json`` and ``truth.json``; nothing is registered or resampled, it runs in
+seconds), for every case present, per split of ``bench_verdict`` (``TUNING``, ``HELD_OUT``,
+``FRESH`` and any later one, e.g. ``FRESH2``, imported from it) and per mode (with labels, without
+labels, and the same two on the second scan).
+
+A subject has *failed* under a registration when its true error is more than
+:data:`FAILED_RATIO` (1.5) times the median true error of that registration's subjects (the
+issue's definition; the median over the subjects judged, i.e. every subject but the
+reference). The reference (subject 0, registered to itself) is neither failed nor among the
+others, and is reported apart. Reported per split and mode: the recall (failed subjects that
+carry a subject flag of their own; a registration flag does not count), the false alarms
+(flagged among the others, %), how often the reference is flagged, and Spearman's rank
+correlation between each subject's ``concern`` and its true error per registration (mean and
+least over the deformable registrations, i.e. all but ``affine``), and the same correlation
+for every per-subject score term the subjects carry (model-distance z, overlap z,
+deformation z-scores, frame deviation, and the raw measures without a z), to learn which
+terms track the true error.
+
+*Without labels.* The saved results were evaluated with labels, and the pickled evaluation
+does not keep the Gram matrix, deformation lists and overlap sums that
+:func:`itk_nrreval.subject_qc.assess_subjects` needs, so the quality control cannot be
+recomputed without labels from ``evaluation.pkl`` through the public API. It does not need
+to be: without labels, :func:`assess_subjects` differs only in having no overlap, so every
+other z-score, every other flag and the registration flags (the overlap flag is a z-score
+flag, never shared) are the same, and ``concern`` is the largest of the other terms of
+:data:`~itk_nrreval.subject_qc.CONCERN_TERMS`. The without-labels mode is derived so
+(overlap flags dropped, concern recomputed without the overlap term), and the derivation is
+checked on each run: on a generated cohort through :func:`assess_subjects` with and without
+overlap sums (:func:`check_unlabelled_derivation`), and by recomputing every saved subject's
+concern from its terms (it must equal the saved one).
+
+Goals (issue 42), reported as pass / fail on the held-out split: recall >= 80%, false alarms
+<= 5%, the reference never flagged, Spearman(concern, true error) >= 0.8 under the deformable
+registrations. Nothing is fitted here. Written to ``benchmarks/out/subject_qc_genuine/``:
+``summary.md`` and ``summary.json`` (also every subject's flags, terms and true error).
+
+Run: ``python benchmarks/bench_subject_qc_genuine.py`` or
+``python benchmarks/run_all.py subject_qc_genuine`` (``nice -n 5`` on a shared machine).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import spearmanr
+
+import itk_nrreval as nr
+from itk_nrreval.subject_qc import CONCERN_TERMS, assess_subjects
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE / "out" / "subject_qc_genuine"
+#: A subject failed when its true error exceeds this many times its registration's median.
+FAILED_RATIO = 1.5
+#: The registration that is not deformable (left out of the Spearman means).
+AFFINE = "affine"
+#: Issue 42's goals, judged on the held-out split.
+GOALS = {"recall": 0.80, "false_alarms": 0.05, "reference_flagged": 0, "spearman": 0.8}
+#: (title, second scan?, labels?), the four modes.
+MODES = (
+    ("with labels", False, True),
+    ("without labels", False, False),
+    ("second scan, with labels", True, True),
+    ("second scan, without labels", True, False),
+)
+#: A subject flag's kind, from the first words the package writes it with
+#: (:data:`itk_nrreval.subject_qc.FLAG_KINDS`); checked in order.
+FLAG_WORDS = (
+    ("covers ", "off_grid"),
+    ("left out of the scores", "left_out"),
+    ("its resampled image is", "duplicate"),
+    ("the linear part of its transform", "mirrored"),
+    ("far from the model of the others", "model_distance"),
+    ("SDlogJ ", "sdlogj"),
+    ("non-linear displacement (mm RMS)", "nonlinear_rms_mm"),
+    ("inverse-consistency error", "inverse_consistency_mm"),
+    ("almost no non-linear displacement", "affine_only"),
+    ("label overlap with the others", "overlap"),
+    ("its brain mask has Dice", "brain_mask"),
+    ("% of its voxels fold", "folding"),
+)
+#: The per-subject score terms correlated with the true error: (name, where in a subject's
+#: dict, sign). Signed so that positive is worse, as in ``concern``; the raw measures that
+#: have a z-score are left out (a z is monotone in its measure within a registration).
+TERMS = (
+    ("concern", ("concern",), 1.0),
+    ("model distance z", ("z",), 1.0),
+    ("- overlap z", ("overlap", "z"), -1.0),
+    ("SDlogJ z", ("plausibility", "sdlogj_z"), 1.0),
+    ("non-linear displacement z", ("plausibility", "nonlinear_rms_z"), 1.0),
+    ("inverse consistency z", ("plausibility", "inverse_consistency_z"), 1.0),
+    ("frame deviation z", ("plausibility", "frame_deviation_z"), 1.0),
+    ("folded fraction", ("plausibility", "folded_fraction"), 1.0),
+    ("non-diffeomorphic fraction", ("plausibility", "nondiffeomorphic_fraction"), 1.0),
+    ("- det J min", ("plausibility", "jacobian_min"), -1.0),
+    ("det J max", ("plausibility", "jacobian_max"), 1.0),
+    ("|log linear det|", ("plausibility", "linear_det"), "abslog"),
+    ("displacement RMS", ("plausibility", "displacement_rms_mm"), 1.0),
+)
+
+
+def _verdict_bench():
+    """``bench_verdict`` of this folder: the split and the saved cases' folder."""
+    path = HERE / "bench_verdict.py"
+    spec = importlib.util.spec_from_file_location("bench_verdict", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def flag_kind(words: str) -> str:
+    """The kind of a subject flag, from its words; ``"other"`` when none is recognised."""
+    for start, kind in FLAG_WORDS:
+        if words.startswith(start) or (kind == "folding" and start in words):
+            return kind
+    return "other"
+
+
+def _get(q: dict, path: tuple[str, ...]) -> float:
+    value = q
+    for key in path:
+        if value is None:
+            return math.nan
+        value = value.get(key)
+    return math.nan if value is None else float(value)
+
+
+def concern(q: dict, *, labels: bool) -> float:
+    """A saved subject's concern recomputed from its terms (:data:`CONCERN_TERMS`), with or
+    without the overlap term; NaN for the reference or when no term was measured."""
+    if q["reference"]:
+        return math.nan
+    where = {
+        "z": ("z",),
+        "overlap_z": ("overlap", "z"),
+        "sdlogj_z": ("plausibility", "sdlogj_z"),
+        "nonlinear_rms_z": ("plausibility", "nonlinear_rms_z"),
+        "inverse_consistency_z": ("plausibility", "inverse_consistency_z"),
+    }
+    values = [
+        sign * _get(q, where[key]) for _, key, sign in CONCERN_TERMS if labels or key != "overlap_z"
+    ]
+    values = [v for v in values if not math.isnan(v)]
+    return max(values) if values else math.nan
+
+
+def subject_view(q: dict, *, labels: bool) -> dict:
+    """A saved subject (``results.json``) as the quality control with or without labels
+    sees it: its own flags' kinds, its concern and its score terms."""
+    kinds = [flag_kind(f) for f in q["flags"]]
+    if not labels:
+        kinds = [k for k in kinds if k != "overlap"]
+    terms = {}
+    for name, path, sign in TERMS:
+        if name == "concern":
+            terms[name] = concern(q, labels=labels)
+        elif name == "- overlap z" and not labels:
+            terms[name] = math.nan
+        elif sign == "abslog":
+            v = _get(q, path)
+            terms[name] = abs(math.log(v)) if v > 0 else math.nan
+        else:
+            terms[name] = sign * _get(q, path)
+    return {"kinds": kinds, "terms": terms, "reference": bool(q["reference"])}
+
+
+def _spearman(x, y) -> float:
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    keep = np.isfinite(x) & np.isfinite(y)
+    if keep.sum() < 4 or np.ptp(x[keep]) == 0 or np.ptp(y[keep]) == 0:
+        return math.nan
+    return float(spearmanr(x[keep], y[keep]).statistic)
+
+
+def check_unlabelled_derivation(seed: int = 0) -> dict:
+    """Whether the quality control without labels is the one with labels less its overlap
+    flags and overlap concern term: :func:`assess_subjects` on a generated cohort (N = 12,
+    reference 0, one subject far from the model, one rough, one of poor overlap) with and
+    without overlap sums. Raises AssertionError if not."""
+    rng = np.random.default_rng(seed)
+    n, n_labels = 12, 4
+    x = rng.normal(size=(n, 400))
+    x[5] += rng.normal(scale=3.0, size=400)  # far from the model of the others
+    x -= x.mean(axis=0)
+    gram = x @ x.T
+    nonlinear = rng.lognormal(np.log(3.0), 0.15, n)
+    sdlogj = rng.lognormal(np.log(0.2), 0.1, n)
+    sdlogj[7] *= 4  # rough
+    nonlinear[0] = sdlogj[0] = 0.0  # the reference: the identity
+    deformation = {
+        "folded_fraction": np.r_[0.0, rng.uniform(0, 0.02, n - 1)].tolist(),
+        "nondiffeomorphic_fraction": np.r_[0.0, rng.uniform(0, 0.02, n - 1)].tolist(),
+        "sdlogj": sdlogj.tolist(),
+        "jacobian_min": np.r_[1.0, rng.uniform(-0.2, 0.5, n - 1)].tolist(),
+        "jacobian_max": np.r_[1.0, rng.uniform(2.0, 6.0, n - 1)].tolist(),
+        "inverse_consistency_mm": np.r_[0.0, rng.lognormal(np.log(0.5), 0.3, n - 1)].tolist(),
+        "linear_det": np.r_[1.0, rng.uniform(0.9, 1.1, n - 1)].tolist(),
+        "nonlinear_rms_mm": nonlinear.tolist(),
+        "displacement_rms_mm": (nonlinear * 2).tolist(),
+    }
+    volume = rng.uniform(80, 120, size=(n, n_labels))
+    share = rng.uniform(0.75, 0.85, n)
+    share[9] = 0.3  # poor overlap
+    mins = np.minimum(volume[:, None, :], volume[None, :, :]) * share[:, None, None]
+    target = mins.sum(axis=1) - np.einsum("iil->il", mins)
+    common = {
+        "images": [f"s{i:02d}" for i in range(n)],
+        "scored": list(range(n)),
+        "gram": gram,
+        "deformation": deformation,
+        "coverage": [1.0] * n,
+        "reference": 0,
+        "thresholds": nr.SubjectThresholds(),
+    }
+    with_labels = assess_subjects(
+        **common,
+        overlap_volume=volume,
+        overlap_target_sums=target,
+        overlap_weights=np.ones(n_labels),
+    )
+    without = assess_subjects(**common)
+    kinds_seen = set()
+    for a, b in zip(with_labels, without, strict=True):
+        qa, qb = a.to_dict(), b.to_dict()
+        kinds_seen |= {flag_kind(f) for f in a.flags}
+        assert [f for f in a.flags if flag_kind(f) != "overlap"] == list(b.flags), (a, b)
+        assert a.registration_flags == b.registration_flags
+        assert qa["z"] == qb["z"] and qa["plausibility"] == qb["plausibility"]
+        for q, labels in ((qa, True), (qb, False), (qa, False)):
+            c = concern(q, labels=labels)
+            saved = qb["concern"] if q is qa and not labels else q["concern"]
+            assert (math.isnan(c) and saved is None) or math.isclose(c, saved), (q, c)
+    assert {"overlap", "model_distance", "sdlogj"} <= kinds_seen, kinds_seen
+    return {"subjects": n, "flag_kinds_with_labels": sorted(kinds_seen), "agrees": True}
+
+
+def load_case(folder: Path) -> dict | None:
+    """A saved case's subjects and true errors, or None where it is not (completely)
+    written yet."""
+    try:
+        results = json.loads((folder / "results.json").read_text())
+        truth = json.loads((folder / "truth.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if "subject_true_error_mm" not in truth:
+        return None
+    return {"results": results, "truth": truth}
+
+
+def measure_case(case: dict, *, labels: bool) -> dict:
+    """Per registration of one case: every judged subject's failed / flagged, its flag
+    kinds, its terms and true error; the reference's flags; Spearman per term."""
+    out = {}
+    mismatched = 0
+    for name, reg in case["results"]["registrations"].items():
+        errors = case["truth"]["subject_true_error_mm"][name]
+        subjects = reg["subjects"]
+        assert len(subjects) == len(errors), name
+        for q in subjects:  # the recomputed concern must be the saved one
+            saved, again = q["concern"], concern(q, labels=True)
+            if not ((saved is None and math.isnan(again)) or math.isclose(saved, again)):
+                mismatched += 1
+        views = [subject_view(q, labels=labels) for q in subjects]
+        judged = [i for i, v in enumerate(views) if not v["reference"]]
+        median = float(np.median([errors[i] for i in judged]))
+        rows = [
+            {
+                "index": i,
+                "true_error_mm": errors[i],
+                "failed": errors[i] > FAILED_RATIO * median,
+                "kinds": views[i]["kinds"],
+                "flagged": bool(views[i]["kinds"]),
+                "terms": views[i]["terms"],
+            }
+            for i in judged
+        ]
+        reference = [
+            {"index": i, "kinds": v["kinds"], "flagged": bool(v["kinds"])}
+            for i, v in enumerate(views)
+            if v["reference"]
+        ]
+        spearman = {
+            term: _spearman([r["terms"][term] for r in rows], [r["true_error_mm"] for r in rows])
+            for term, _, _ in TERMS
+        }
+        out[name] = {
+            "median_true_error_mm": median,
+            "subjects": rows,
+            "reference": reference,
+            "registration_flags": list(
+                dict.fromkeys(f for q in subjects for f in q["registration_flags"])
+            ),
+            "spearman": spearman,
+        }
+    return {"registrations": out, "concern_mismatches": mismatched}
+
+
+def _rate(k: int, n: int) -> float | None:
+    return k / n if n else None
+
+
+def summarize(measured: list[dict]) -> dict:
+    """Pooled numbers over the (case, registration) entries of `measured` (one split, one
+    mode)."""
+    failed = flagged_failed = others = false_alarms = refs = refs_flagged = 0
+    fa_kinds: dict[str, int] = {}
+    hit_kinds: dict[str, int] = {}
+    ref_kinds: dict[str, int] = {}
+    per_term: dict[str, list[float]] = {t: [] for t, _, _ in TERMS}
+    deformable = 0
+    for m in measured:
+        for name, reg in m["registrations"].items():
+            for r in reg["subjects"]:
+                if r["failed"]:
+                    failed += 1
+                    flagged_failed += r["flagged"]
+                    for k in set(r["kinds"]):
+                        hit_kinds[k] = hit_kinds.get(k, 0) + 1
+                else:
+                    others += 1
+                    false_alarms += r["flagged"]
+                    for k in set(r["kinds"]):
+                        fa_kinds[k] = fa_kinds.get(k, 0) + 1
+            for r in reg["reference"]:
+                refs += 1
+                refs_flagged += r["flagged"]
+                for k in set(r["kinds"]):
+                    ref_kinds[k] = ref_kinds.get(k, 0) + 1
+            if name != AFFINE:
+                deformable += 1
+                for term, rho in reg["spearman"].items():
+                    per_term[term].append(rho)
+
+    def stats(values: list[float]) -> dict:
+        v = [x for x in values if not math.isnan(x)]
+        return {
+            "mean": float(np.mean(v)) if v else None,
+            "min": float(np.min(v)) if v else None,
+            "n": len(v),
+            "undefined": len(values) - len(v),
+        }
+
+    return {
+        "registrations": sum(len(m["registrations"]) for m in measured),
+        "deformable_registrations": deformable,
+        "failed": failed,
+        "failed_flagged": flagged_failed,
+        "recall": _rate(flagged_failed, failed),
+        "others": others,
+        "others_flagged": false_alarms,
+        "false_alarms": _rate(false_alarms, others),
+        "reference": refs,
+        "reference_flagged": refs_flagged,
+        "flag_kinds_failed": dict(sorted(hit_kinds.items())),
+        "flag_kinds_false_alarms": dict(sorted(fa_kinds.items())),
+        "flag_kinds_reference": dict(sorted(ref_kinds.items())),
+        "spearman": {term: stats(v) for term, v in per_term.items()},
+    }
+
+
+def goals(s: dict) -> dict:
+    """Issue 42's goals against one split and mode's numbers."""
+    rho = s["spearman"]["concern"]
+
+    def at_least(v, goal):
+        return None if v is None else v >= goal
+
+    return {
+        "recall >= 80%": at_least(s["recall"], GOALS["recall"]),
+        "false alarms <= 5%": None
+        if s["false_alarms"] is None
+        else s["false_alarms"] <= GOALS["false_alarms"],
+        "reference never flagged": s["reference_flagged"] == GOALS["reference_flagged"],
+        "Spearman >= 0.8, mean over deformable": at_least(rho["mean"], GOALS["spearman"]),
+        "Spearman >= 0.8, every deformable": at_least(rho["min"], GOALS["spearman"]),
+    }
+
+
+def _pct(v: float | None) -> str:
+    return "-" if v is None else f"{100 * v:.0f}%"
+
+
+def _num(v: float | None, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _kinds(d: dict) -> str:
+    return ", ".join(f"{k} {n}" for k, n in sorted(d.items(), key=lambda kv: -kv[1])) or "-"
+
+
+def _markdown(result: dict) -> str:
+    splits = result["splits"]
+    lines = [
+        "Per-subject QC on genuine registrations (issue 42), read from the verdict "
+        "benchmark's saved cases (benchmarks/out/verdict/families_* and unseen_families_*; "
+        "nothing registered or resampled).",
+        "",
+        f"A subject failed under a registration when its true error is > {FAILED_RATIO} x "
+        "that registration's median subject true error (median over every subject but the "
+        "reference, subject 0, which is reported apart). Recall: failed subjects with a "
+        "subject flag of their own; false alarms: flagged among the others; Spearman: "
+        "concern against true error per registration, mean (least) over the deformable "
+        "registrations (not affine). Without labels: derived from the saved QC (overlap "
+        "flags and the overlap concern term dropped; exact, checked each run).",
+        "",
+        "| split | mode | cases | registrations | failed | recall | false alarms "
+        "| reference flagged | Spearman(concern, true error): mean (least) |",
+        "|---|---|--:|--:|--:|--:|--:|--:|--:|",
+    ]
+    for split, modes in splits.items():
+        for mode, s in modes.items():
+            if s is None:
+                continue
+            rho = s["spearman"]["concern"]
+            lines.append(
+                f"| {split} | {mode} | {len(s['cases'])} | {s['registrations']} | "
+                f"{s['failed']} | {s['failed_flagged']}/{s['failed']} ({_pct(s['recall'])}) | "
+                f"{s['others_flagged']}/{s['others']} ({_pct(s['false_alarms'])}) | "
+                f"{s['reference_flagged']}/{s['reference']} | "
+                f"{_num(rho['mean'])} ({_num(rho['min'])}) |"
+            )
+    lines += ["", "Goals of issue 42 on the held-out split:", ""]
+    for mode, g in result["goals_held_out"].items():
+        words = "; ".join(
+            f"{k}: {'-' if v is None else ('pass' if v else 'FAIL')}" for k, v in g.items()
+        )
+        lines.append(f"- {mode}: {words}")
+    lines += [
+        "",
+        "Spearman of each per-subject term with the true error, signed so that positive is "
+        "worse; mean (least) over the deformable registrations of the split:",
+        "",
+    ]
+    columns = [
+        (split, mode)
+        for split in splits
+        for mode in ("with labels", "second scan, with labels")
+        if splits[split].get(mode)
+    ]
+    lines.append("| term | " + " | ".join(f"{s}: {m}" for s, m in columns) + " |")
+    lines.append("|---|" + "--:|" * len(columns))
+    for term, _, _ in TERMS:
+        cells = []
+        for split, mode in columns:
+            st = splits[split][mode]["spearman"][term]
+            cells.append(f"{_num(st['mean'])} ({_num(st['min'])})")
+        lines.append(f"| {term} | " + " | ".join(cells) + " |")
+    lines += ["", "Subject flag kinds (subjects carrying each), with labels:", ""]
+    for split, modes in splits.items():
+        for mode in ("with labels", "second scan, with labels"):
+            s = modes.get(mode)
+            if s:
+                lines.append(
+                    f"- {split}, {mode}: failed flagged: {_kinds(s['flag_kinds_failed'])}; "
+                    f"false alarms: {_kinds(s['flag_kinds_false_alarms'])}; reference: "
+                    f"{_kinds(s['flag_kinds_reference'])}"
+                )
+    lines += [
+        "",
+        "Per case (with labels / without labels / second scan with labels):",
+        "",
+        "| case | split | failed | recall | false alarms | Spearman mean (least) "
+        "| registrations with a registration flag: how many |",
+        "|---|---|--:|--:|--:|--:|---|",
+    ]
+    for c in result["cases"]:
+        cells = []
+        for mode in ("with labels", "without labels", "second scan, with labels"):
+            s = c["modes"].get(mode)
+            cells.append(s)
+        recall = " / ".join("-" if s is None else _pct(s["recall"]) for s in cells)
+        fa = " / ".join("-" if s is None else _pct(s["false_alarms"]) for s in cells)
+        rho = " / ".join(
+            "-"
+            if s is None
+            else f"{_num(s['spearman']['concern']['mean'])} "
+            f"({_num(s['spearman']['concern']['min'])})"
+            for s in cells
+        )
+        lines.append(
+            f"| {c['case']} | {c['split']} | {c['failed']} | {recall} | {fa} | {rho} | "
+            f"{c['registration_flags'] or '-'} |"
+        )
+    lines += [
+        "",
+        f"Checks: the without-labels derivation against assess_subjects on a generated "
+        f"cohort: {'agrees' if result['checks']['derivation']['agrees'] else 'DISAGREES'}; "
+        f"saved concerns recomputed from their terms that differ: "
+        f"{result['checks']['concern_mismatches']}.",
+    ]
+    if result["missing"]:
+        lines.append(f"Not (yet) saved, left out: {', '.join(result['missing'])}.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    bv = _verdict_bench()
+    # the splits bench_verdict declares (a later one, e.g. FRESH2, where it has one)
+    declared = {"tuning": "TUNING", "held-out": "HELD_OUT", "fresh": "FRESH", "fresh2": "FRESH2"}
+    split_cases = {
+        split: [c for c in getattr(bv, name) if c.startswith("families_")]
+        for split, name in declared.items()
+        if hasattr(bv, name)
+    }
+    derivation = check_unlabelled_derivation()
+    missing: list[str] = []
+    cases = []
+    mismatches = 0
+    for split, names in split_cases.items():
+        for base in names:
+            entry = {"case": base, "split": split, "modes": {}}
+            for mode, second, labels in MODES:
+                name = bv.SECOND_SCAN[base] if second else base
+                case = load_case(bv.OUT / name)
+                if case is None:
+                    if name not in missing:
+                        missing.append(name)
+                    continue
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # constant terms: Spearman undefined
+                    measured = measure_case(case, labels=labels)
+                if labels:
+                    mismatches += measured["concern_mismatches"]
+                entry["modes"][mode] = {**summarize([measured]), "measured": measured}
+                if mode == "with labels":
+                    entry["registration_flags"] = "; ".join(
+                        f"{reg}: {len(m['registration_flags'])}"
+                        for reg, m in measured["registrations"].items()
+                        if m["registration_flags"]
+                    )
+            if entry["modes"]:
+                entry.setdefault("registration_flags", "")
+                first = entry["modes"].get("with labels") or next(iter(entry["modes"].values()))
+                entry["modes"].setdefault("with labels", None)
+                entry["failed"] = first["failed"]
+                cases.append(entry)
+    splits: dict[str, dict] = {}
+    for split in split_cases:
+        if not any(c["split"] == split for c in cases):
+            continue  # declared, not run yet: its cases are listed as missing
+        splits[split] = {}
+        for mode, _, _ in MODES:
+            of = [c for c in cases if c["split"] == split and c["modes"].get(mode)]
+            if not of:
+                splits[split][mode] = None
+                continue
+            s = summarize([c["modes"][mode]["measured"] for c in of])
+            splits[split][mode] = {**s, "cases": [c["case"] for c in of]}
+    result = {
+        "failed_ratio": FAILED_RATIO,
+        "goals": GOALS,
+        "splits": splits,
+        "goals_held_out": {
+            mode: goals(s) for mode, s in splits["held-out"].items() if s is not None
+        },
+        "cases": cases,
+        "missing": missing,
+        "checks": {"derivation": derivation, "concern_mismatches": mismatches},
+    }
+    text = _markdown(result)
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "summary.md").write_text(text)
+    # every subject's terms and true error too: compact (about 2 MB)
+    (OUT / "summary.json").write_text(json.dumps(_json_safe(result), separators=(",", ":")))
+    print(text)
+    # run_all saves what main returns: the pooled numbers, not every subject
+    return _json_safe({k: v for k, v in result.items() if k != "cases"})
+
+
+def _json_safe(value):
+    """NaN and infinities as None, numpy numbers as Python's."""
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (float, np.floating)):
+        return None if not math.isfinite(value) else float(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
