@@ -151,6 +151,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         EXCHANGE_RATE,
         MIN_ROUGHNESS_DIFFERENCE,
         NO_FOLDING_FRACTION,
+        OVERLAP_EXCHANGE_RATE,
         SEVERE_FOLDED_FRACTION,
         SMOOTHNESS_RATE,
     )
@@ -196,7 +197,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
             return (by_spec == r and gain >= EXCHANGE_RATE * rougher) or too_little(r, o)
         pr, po = scores[r].overlap["inverse_volume"], scores[o].overlap["inverse_volume"]
         gain = np.log((pr / (1 - pr)) / (po / (1 - po)))
-        return by_overlap == r and gain >= EXCHANGE_RATE * rougher and not scores[r].flags
+        return by_overlap == r and gain >= OVERLAP_EXCHANGE_RATE * rougher and not scores[r].flags
 
     out = []
     pw, pl = scores[w].plausibility, scores[l].plausibility
