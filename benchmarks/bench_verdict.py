@@ -147,7 +147,15 @@ FRESH2 = (
     "families_phantom2d_n24_s11",  # phantom 2D, N = 24, seed 11, the seven
     "families_mni2d_syn_s12",  # MNI-based 2D, N = 12, seed 12, the six of families_mni2d_syn
 )
-SPLITS = ("tuning", "held-out", "fresh", "fresh2")
+# Declared after FRESH2 showed the smoother-fields rule wrong in 3D (B-splines that fold,
+# with a lower SDlogJ than demons that correspond better), before the rule was changed for
+# it and before these cases were run: two more 3D cases, where the rules are weakest.
+FRESH3 = (
+    "families_mni3d_s13",  # MNI-based 3D, N = 10, seed 13, the seven (3D grids)
+    "families_mni3d_n12_s14",  # MNI-based 3D, N = 12, seed 14, the seven
+    "families_mni2d_s15",  # MNI-based 2D, N = 12, seed 15, the seven
+)
+SPLITS = ("tuning", "held-out", "fresh", "fresh2", "fresh3")
 #: A case -> the case of the same registrations scored on a second scan (the T2 images).
 SECOND_SCAN = {
     **{
@@ -160,7 +168,11 @@ SECOND_SCAN = {
             "phantom2d_bending",
         )
     },
-    **{c: f"unseen_{c}" for c in TUNING + HELD_OUT + FRESH + FRESH2 if c.startswith("families_")},
+    **{
+        c: f"unseen_{c}"
+        for c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3
+        if c.startswith("families_")
+    },
 }
 #: Package modules renamed since evaluations were saved (issue 28 underscored the
 #: implementation modules; Coverage, in every EvaluationResult, lived in the pipeline one):
@@ -650,6 +662,9 @@ def _cases() -> dict:
         "families_mni3d_s10": {"kind": "mni", "seed": 10, "dim": 3, "n": 10, "spacing": 3.0},
         "families_phantom2d_n24_s11": {"kind": "phantom", "seed": 11, "n": 24},
         "families_mni2d_syn_s12": {"kind": "mni", "seed": 12, "registrations": FAMILIES_SYN},
+        "families_mni3d_s13": {"kind": "mni", "seed": 13, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_mni3d_n12_s14": {"kind": "mni", "seed": 14, "dim": 3, "n": 12, "spacing": 3.0},
+        "families_mni2d_s15": {"kind": "mni", "seed": 15},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
@@ -817,6 +832,8 @@ def split_of(case: str) -> str:
     """``"tuning"``, ``"held-out"`` or ``"fresh"``: the declared split of a case or of its
     second scan."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
+    if base in FRESH3:
+        return "fresh3"
     if base in FRESH2:
         return "fresh2"
     if base in FRESH:
@@ -841,7 +858,7 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
-    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH + FRESH2]
+    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3]
     table = {}
     for case in bases:
         table[case] = {}
