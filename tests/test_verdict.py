@@ -174,6 +174,8 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
         if scores[r].plausibility.sdlogj < MIN_ROUGHNESS_DIFFERENCE:
             return False  # r does not deform locally (affine)
+        if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
+            return False  # r folds more: not the smoother, whatever its SDlogJ
         for c in comparisons:
             if (
                 c.measure == "specificity"
@@ -644,3 +646,13 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
     values = {k: s.specificity.value for k, s in scores.items()}
     v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
     assert v.decisions == ()
+    # nor one that folds more than the rougher one: folds are roughness that SDlogJ ranks
+    # poorly (a B-spline folding 3% with SDlogJ 0.5 corresponded worse than demons at 1.0)
+    for folds, expected in ((0.03, ()), (0.0, ("smooth",))):
+        scores = {
+            "smooth": _registration(base, "smooth", spec=10.0, sdlogj=0.1, folded=folds),
+            "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=0.1 + dr, folded=0.01),
+        }
+        values = {k: s.specificity.value for k, s in scores.items()}
+        v = verdict(scores, _separable_where(values, [{"smooth", "rough"}]), has_labels=False)
+        assert tuple(d.better for d in v.decisions) == expected, folds
