@@ -748,20 +748,44 @@ def test_a_registration_folding_in_every_subject_is_one_registration_flag(own_su
     assert registration_flags(own_subject_0.scores["to_s00"].subjects) == ()
 
 
-#: The z-scores the concern is the largest of, each with the sign that makes worse positive.
-SIGNED_Z = {
-    "z": 1,
-    "overlap_z": -1,
-    "sdlogj_z": 1,
-    "nonlinear_rms_z": 1,
-    "inverse_consistency_z": 1,
+#: The concern by hand (issue 42): each z-score's sign (worse positive), its weight, and
+#: whether only above zero counts; the concern is the weighted mean of those measured.
+CONCERN_BY_HAND = {
+    "overlap_z": (-1, 3, False),
+    "z": (1, 1, False),
+    "sdlogj_z": (1, 1, True),
+    "inverse_consistency_z": (1, 1, True),
+}
+CONCERN_WORDS = {
+    "overlap_z": "overlap",
+    "z": "model distance",
+    "sdlogj_z": "SDlogJ",
+    "inverse_consistency_z": "inverse consistency",
 }
 
 
+def _concern_by_hand(z: dict) -> tuple[float | None, str | None]:
+    """A subject's concern and the term contributing most, from its z-scores (key -> float,
+    None or NaN when not measured), written out term by term."""
+    parts = {}
+    for key, (sign, weight, worse_only) in CONCERN_BY_HAND.items():
+        if z.get(key) is None or math.isnan(z[key]):
+            continue
+        t = sign * z[key]
+        parts[key] = (weight, weight * (max(t, 0.0) if worse_only else t))
+    if not parts:
+        return None, None
+    total = sum(p[1] for p in parts.values()) / sum(p[0] for p in parts.values())
+    first_largest = max(parts, key=lambda k: parts[k][1])  # dicts keep the terms' order
+    return total, CONCERN_WORDS[first_largest]
+
+
 def test_subjects_csv_lists_every_subject_worst_first_by_its_concern(damaged):
-    """Issue 42: one documented score per subject, the concern (the largest of its z-scores
-    signed so that positive is worse), and every subject listed by it, worst first. Checked
-    on each row's own z-score columns; the damages a z-score sees rank at the top."""
+    """Issue 42: one documented score per subject, the concern (the weighted mean of its
+    z-scores signed so that positive is worse: overlap 3, model distance, SDlogJ and inverse
+    consistency 1, the last two above zero only), and every subject listed by it, worst
+    first. Checked on each row's own z-score columns; the damages the model distance and the
+    overlap see rank at the top."""
     result, out = damaged
     with open(out / "subjects.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -769,15 +793,13 @@ def test_subjects_csv_lists_every_subject_worst_first_by_its_concern(damaged):
     assert sorted(int(r["index"]) for r in rows) == list(range(N))
     concern = [float(r["concern"]) for r in rows]
     assert concern == sorted(concern, reverse=True)
-    words = {"z": "model distance", "overlap_z": "overlap", "sdlogj_z": "SDlogJ"}
-    words |= {"nonlinear_rms_z": "non-linear displacement"}
-    words |= {"inverse_consistency_z": "inverse consistency"}
     for r in rows:
-        signed = {k: sign * float(r[k]) for k, sign in SIGNED_Z.items() if r[k] != ""}
-        worst = max(signed, key=signed.get)
-        assert float(r["concern"]) == pytest.approx(signed[worst])
-        assert r["concern_from"] == words[worst]
-    # the subjects off by a scale (non-linear displacement) and by a flip (model distance)
+        expected, words = _concern_by_hand(
+            {k: float(r[k]) if r[k] != "" else None for k in CONCERN_BY_HAND}
+        )
+        assert float(r["concern"]) == pytest.approx(expected)
+        assert r["concern_from"] == words
+    # the subjects off by a scale and by a flip
     top = [int(r["index"]) for r in rows[:3]]
     assert {16, 2} <= set(top), top
     # results.json keeps manifest order, with the same concern
@@ -849,3 +871,92 @@ def test_a_subject_folding_only_between_grid_points_is_flagged_for_folding():
     assert list(flagged) == [4], flagged
     assert "fold by some finite-difference stencil" in flagged[4][0]
     assert "central differences: 0.00%" in flagged[4][0]
+
+
+def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first():
+    """Issue 42: on a generated cohort registered to its own subject 0 (the identity), with
+    one subject of poor label overlap, one rough (SDlogJ 4x) and one stopped early (almost no
+    non-linear displacement, the least SDlogJ): every subject's concern and the term it comes
+    from are the ones written out by hand from its own z-scores, with and without labels;
+    the subjects are ranked by it, worst first; the reference has none, is never flagged and
+    is listed last."""
+    from itk_nrreval.subject_qc import assess_subjects, ranked
+
+    n, n_labels = 12, 4
+    numbers = _cohort_numbers([0.3] * n, seed=3)
+    defo = numbers["deformation"]
+    for key, value in (("sdlogj", 0.0), ("nonlinear_rms_mm", 0.0), ("displacement_rms_mm", 0.0)):
+        defo[key][0] = value  # the reference: the identity
+    defo["inverse_consistency_mm"][0] = 0.0
+    defo["sdlogj"][7] *= 4  # rough
+    defo["sdlogj"][4], defo["nonlinear_rms_mm"][4] = 0.002, 0.01  # stopped early
+    rng = np.random.default_rng(3)
+    volume = rng.uniform(80, 120, size=(n, n_labels))
+    share = rng.uniform(0.75, 0.85, n)
+    share[9] = 0.3  # poor overlap
+    mins = np.minimum(volume[:, None, :], volume[None, :, :]) * share[:, None, None]
+    target = mins.sum(axis=1) - np.einsum("iil->il", mins)
+    labelled = assess_subjects(
+        **numbers,
+        reference=0,
+        overlap_volume=volume,
+        overlap_target_sums=target,
+        overlap_weights=np.ones(n_labels),
+    )
+    unlabelled = assess_subjects(**numbers, reference=0)
+    for subjects, labels in ((labelled, True), (unlabelled, False)):
+        reference, *others = subjects
+        assert reference.reference and reference.concern is None
+        assert reference.concern_from is None and reference.flags == ()
+        by_hand = {}
+        for q in others:
+            z = {
+                "overlap_z": q.overlap_z,
+                "z": q.z,
+                "sdlogj_z": q.deformation["sdlogj_z"],
+                "inverse_consistency_z": q.deformation["inverse_consistency_z"],
+            }
+            assert (q.overlap_z is not None) == labels
+            by_hand[q.index], words = _concern_by_hand(z)
+            assert q.concern == pytest.approx(by_hand[q.index], rel=1e-12), q.index
+            assert q.concern_from == words, q.index
+        order = sorted(by_hand, key=lambda i: (-by_hand[i], i))
+        assert [q.index for q in ranked(subjects)] == [*order, 0]
+        if labels:
+            assert order[0] == 9 and labelled[9].concern_from == "overlap"
+        assert unlabelled[7].concern_from == "SDlogJ" and order.index(7) < 3
+        # stopped early: its SDlogJ z far below the cohort's counts as 0, not against it
+        stopped = subjects[4]
+        sdlogj_z = stopped.deformation["sdlogj_z"]
+        assert sdlogj_z < -3 and stopped.flags
+        counted = by_hand[4] + sdlogj_z / (6 if labels else 3)  # were it counted as it is
+        assert stopped.concern == pytest.approx(by_hand[4]) and stopped.concern > counted + 0.5
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    values=st.lists(
+        st.tuples(*[st.one_of(st.just(math.nan), st.floats(-50, 50)) for _ in range(4)]),
+        min_size=1,
+        max_size=8,
+    ),
+    missing=st.sampled_from([(), ("overlap_z",), ("z", "sdlogj_z")]),
+)
+def test_concern_scores_are_the_weighted_means_written_out_by_hand(values, missing):
+    """concern_scores on arrays (NaN: not measured; a key left out: no such term, e.g. no
+    labels) against the concern written out term by term, subject by subject; a subject
+    with nothing measured has NaN and no term."""
+    from itk_nrreval.subject_qc import CONCERN_TERMS, concern_scores
+
+    keys = list(CONCERN_BY_HAND)
+    columns = {k: np.array([v[j] for v in values]) for j, k in enumerate(keys)}
+    given_keys = {k: c for k, c in columns.items() if k not in missing}
+    concern, largest = concern_scores(given_keys)
+    assert concern.shape == largest.shape == (len(values),)
+    for i in range(len(values)):
+        expected, words = _concern_by_hand({k: float(c[i]) for k, c in given_keys.items()})
+        if expected is None:
+            assert math.isnan(concern[i]) and largest[i] == -1
+        else:
+            assert concern[i] == pytest.approx(expected, rel=1e-12, abs=1e-12)
+            assert CONCERN_TERMS[largest[i]].words == words
