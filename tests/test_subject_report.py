@@ -75,7 +75,7 @@ def test_the_registration_section_opens_with_its_flagged_subjects(damaged):
     assert text.index("flagged") < text.index("checkerboard of two subjects")
     subjects = result.scores["damaged"].subjects
     at = {i: text.index(f"subject {i} (s{i:02d}.nii.gz") for i in FLAGGED if i != 7}
-    # worst first: by concern (the largest of each subject's signed z-scores), ties by index
+    # worst first: by concern (a weighted mean of each subject's signed z-scores), ties by index
     assert sorted(at, key=at.get) == sorted(at, key=lambda i: (-subjects[i].concern, i))
     assert "subject 7 (s07_copy.nii.gz" in text
     for i in FLAGGED:

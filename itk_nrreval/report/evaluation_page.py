@@ -542,7 +542,7 @@ def _ranked_subjects(result, name: str) -> str:
     out = [
         "<h3>Every subject, worst first</h3><p>"
         + escape(CONCERN_WORDS)
-        + " From: the z-score that gave the concern.</p>",
+        + " From: the term that contributes most to the concern.</p>",
         table_html(head, rows[:RANKED_SHOWN], text=(1, 3, 4), classes=classes[:RANKED_SHOWN]),
     ]
     if len(rows) > RANKED_SHOWN:

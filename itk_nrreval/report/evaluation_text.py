@@ -232,9 +232,13 @@ SUBJECT_FLAG_WORDS = (
     "one of the subjects (registered to itself), is named as such and not judged."
 )
 CONCERN_WORDS = (
-    "Subjects are listed worst first by their concern: the largest of their robust z-scores, "
-    "each signed so that positive is worse (distance to the model of the others, label "
-    "overlap with the others, SDlogJ, non-linear displacement, inverse consistency). It "
+    "Subjects are listed worst first by their concern: a weighted mean of their robust "
+    "z-scores, each signed so that positive is worse (label overlap with the others, weight "
+    "3, where labels exist; distance to the model of the others, SDlogJ and inverse "
+    "consistency, weight 1 each, the last two only above zero). It ranks, it does not flag: "
+    "look at the first few even when none is flagged. Flags on absolute limits (folding, "
+    "mirroring, a duplicate, off the grid) are not in it."
+). It "
     "ranks, it does not flag: look at the first few even when none is flagged. Flags on "
     "absolute limits (folding, mirroring, a duplicate, off the grid) are not in it."
 )
@@ -354,7 +358,7 @@ def subjects_csv(result) -> str:
     Within each registration the subjects are ranked worst first by their concern
     (:func:`itk_nrreval.subject_qc.ranked`; ``rank`` 1 is the worst; the reference last).
     Columns: registration, rank, index (manifest), image, reference (the registration's
-    reference: not judged), concern and concern_from (which z-score gave it), in_scores,
+    reference: not judged), concern and concern_from (the term that contributes most to it), in_scores,
     score (distance to the model of the others, intensity units), z, overlap, overlap_z,
     coverage, brain_mask_dice (with brain masks), the deformation measures (mm where a
     length) and their z, flags (the subject's own, joined by "; "), registration_flags (the
