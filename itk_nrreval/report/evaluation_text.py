@@ -238,9 +238,6 @@ CONCERN_WORDS = (
     "consistency, weight 1 each, the last two only above zero). It ranks, it does not flag: "
     "look at the first few even when none is flagged. Flags on absolute limits (folding, "
     "mirroring, a duplicate, off the grid) are not in it."
-). It "
-    "ranks, it does not flag: look at the first few even when none is flagged. Flags on "
-    "absolute limits (folding, mirroring, a duplicate, off the grid) are not in it."
 )
 
 #: How many subjects of highest concern summary.md names for a registration that flags none.
@@ -358,7 +355,8 @@ def subjects_csv(result) -> str:
     Within each registration the subjects are ranked worst first by their concern
     (:func:`itk_nrreval.subject_qc.ranked`; ``rank`` 1 is the worst; the reference last).
     Columns: registration, rank, index (manifest), image, reference (the registration's
-    reference: not judged), concern and concern_from (the term that contributes most to it), in_scores,
+    reference: not judged), concern and concern_from (the term that contributes most to
+    it), in_scores,
     score (distance to the model of the others, intensity units), z, overlap, overlap_z,
     coverage, brain_mask_dice (with brain masks), the deformation measures (mm where a
     length) and their z, flags (the subject's own, joined by "; "), registration_flags (the
