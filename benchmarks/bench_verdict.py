@@ -41,8 +41,10 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
   ``unseen_families_<...>``: the same registrations scored on the T2 images.
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
-were run): a rule may be set on the tuning cases only; ``splits.md`` reports both splits in
-each mode (:data:`MODES`: with labels, without labels, on the second scan).
+were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Three fresh
+splits (:data:`FRESH`, :data:`FRESH2`, :data:`FRESH3`) were each declared before their cases
+ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
 (``evaluation.pkl``: the pickled :class:`~itk_nrreval.EvaluationResult`; ``results.json``;
