@@ -43,7 +43,7 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
 each mode (:data:`MODES`: with labels, without labels, on the second scan). Three fresh
-splits (:data:`FRESH`, :data:`FRESH2`, :data:`FRESH3`) were each declared before their cases
+splits (:data:`FRESH` to :data:`FRESH4`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -157,7 +157,14 @@ FRESH3 = (
     "families_mni3d_n12_s14",  # MNI-based 3D, N = 12, seed 14, the seven
     "families_mni2d_s15",  # MNI-based 2D, N = 12, seed 15, the seven
 )
-SPLITS = ("tuning", "held-out", "fresh", "fresh2", "fresh3")
+# Declared after FRESH3 was judged, with the change it checks (a registration "deforms
+# locally" by its non-linear displacement, no longer by SDlogJ >= 0.05), before it ran.
+FRESH4 = (
+    "families_mni3d_s16",  # MNI-based 3D, N = 10, seed 16, the seven (3D grids)
+    "families_phantom2d_s17",  # phantom 2D, N = 12, seed 17, the seven
+    "families_mni2d_syn_s18",  # MNI-based 2D, N = 12, seed 18, the six of families_mni2d_syn
+)
+SPLITS = ("tuning", "held-out", "fresh", "fresh2", "fresh3", "fresh4")
 #: A case -> the case of the same registrations scored on a second scan (the T2 images).
 SECOND_SCAN = {
     **{
@@ -667,6 +674,9 @@ def _cases() -> dict:
         "families_mni3d_s13": {"kind": "mni", "seed": 13, "dim": 3, "n": 10, "spacing": 3.0},
         "families_mni3d_n12_s14": {"kind": "mni", "seed": 14, "dim": 3, "n": 12, "spacing": 3.0},
         "families_mni2d_s15": {"kind": "mni", "seed": 15},
+        "families_mni3d_s16": {"kind": "mni", "seed": 16, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_phantom2d_s17": {"kind": "phantom", "seed": 17},
+        "families_mni2d_syn_s18": {"kind": "mni", "seed": 18, "registrations": FAMILIES_SYN},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
@@ -834,6 +844,8 @@ def split_of(case: str) -> str:
     """``"tuning"``, ``"held-out"`` or ``"fresh"``: the declared split of a case or of its
     second scan."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
+    if base in FRESH4:
+        return "fresh4"
     if base in FRESH3:
         return "fresh3"
     if base in FRESH2:
@@ -860,7 +872,7 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
-    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3]
+    bases = [c for c in cases if c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4]
     table = {}
     for case in bases:
         table[case] = {}

@@ -172,8 +172,13 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         specificity advantage, at the bottom of the interval of spec(o) - spec(r), is below
         exp(SMOOTHNESS_RATE * dr)."""
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
-        if scores[r].plausibility.sdlogj < MIN_ROUGHNESS_DIFFERENCE:
-            return False  # r does not deform locally (affine)
+        nonlinear = [
+            q.deformation["nonlinear_rms_mm"]
+            for q in scores[r].subjects
+            if not q.reference and q.deformation.get("nonlinear_rms_mm") is not None
+        ]
+        if np.median(nonlinear) < 0.01:
+            return False  # r does not deform locally (affine: no non-linear displacement)
         if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
             return False  # r folds more: not the smoother, whatever its SDlogJ
         for c in comparisons:
@@ -637,15 +642,25 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
     assert [d[:2] for d in decided(1.02 * high)[0]] == [("rough", "smooth")]
     # nearly equal roughness: the smoother is not preferred for that
     assert decided(1.1, rough_sdlogj=0.13)[0] == []
-    # a registration without local deformation (affine, SDlogJ 0) is not preferred for its
-    # smoothness: SDlogJ cannot see the deformation it leaves out
+    # a registration without local deformation (affine: no non-linear displacement) is not
+    # preferred for its smoothness: SDlogJ cannot see the deformation it leaves out. One
+    # that does deform, however little its SDlogJ (over-smoothed demons), can be
     scores = {
-        "affine": _registration(base, "affine", spec=10.0, sdlogj=0.0),
+        "affine": dataclasses.replace(
+            _registration(base, "affine", spec=10.0, sdlogj=0.0),
+            subjects=tuple(
+                dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
+                for q in base.subjects
+            ),
+        ),
         "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=dr),
     }
     values = {k: s.specificity.value for k, s in scores.items()}
     v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
     assert v.decisions == ()
+    scores["affine"] = _registration(base, "affine", spec=10.0, sdlogj=0.0)  # deforms
+    v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
+    assert [(d.better, d.worse) for d in v.decisions] == [("affine", "rough")]
     # nor one that folds more than the rougher one: folds are roughness that SDlogJ ranks
     # poorly (a B-spline folding 3% with SDlogJ 0.5 corresponded worse than demons at 1.0)
     for folds, expected in ((0.03, ()), (0.0, ("smooth",))):
