@@ -179,7 +179,7 @@ SECOND_SCAN = {
     },
     **{
         c: f"unseen_{c}"
-        for c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3
+        for c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4
         if c.startswith("families_")
     },
 }
