@@ -148,6 +148,7 @@ __all__ = [
     "order_as_in_manifest",
     "TRANSFORM_SUFFIXES",
     "FIELD_SUFFIXES",
+    "check_image_contents",
 ]
 
 
@@ -1145,6 +1146,27 @@ def _file_identity(item) -> tuple[int, int] | None:
         return None
     stat = os.stat(item)
     return stat.st_dev, stat.st_ino
+
+
+def check_image_contents(paths: Sequence[str | os.PathLike], *, key: str = "images") -> None:
+    """Refuse what a list of image files holds that would change a score without a word,
+    as the manifest check does for its images: an image listed twice (the same file, or the
+    same voxels on the same grid), a constant image, NaN or infinite voxels.
+
+    Files that do not exist are left to the reader, which names them.
+
+    Raises
+    ------
+    InputError
+        One line: the first problem, naming the file by ``key[i]`` and its path, and how
+        many more there are.
+    """
+    paths = [str(p) for p in paths]
+    problems: list[str] = []
+    _check_images_held(paths, key, {i for i, p in enumerate(paths) if os.path.isfile(p)}, problems)
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise InputError(problems[0] + more)
 
 
 def _check_images_held(items: Sequence, key: str, ok: set[int], problems: list[str]) -> None:

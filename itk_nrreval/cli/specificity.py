@@ -62,30 +62,17 @@ def _group_list(text: str) -> list[str]:
     return labels
 
 
-def _check_images(images: list[str]) -> None:
-    """Refuse what evaluate's manifest check refuses in its images, before any work: an
-    image listed twice (the same file, or the same voxels on the same grid: its subject
-    would weigh twice in the model), a constant image (no texture to score), NaN or
-    infinite voxels. Each would change the numbers without a word."""
-    from .._errors import InputError
-    from ..manifest import _check_images_held
-
-    problems: list[str] = []
-    _check_images_held(images, "images", set(range(len(images))), problems)
-    if problems:
-        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise InputError(problems[0] + more)
-
-
 def run(args: argparse.Namespace) -> int:
     from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
+    from ..manifest import check_image_contents
     from ..specificity import texture_measures
 
     if args.json:  # before the work, not after it
         inputs = [*args.images, *(p for p in (args.mask,) if p is not None)]
         check_output_file(args.json, inputs=inputs, option="--json", ours=json_written_by_nrreval)
-    _check_images(args.images)
+    # what evaluate's manifest check refuses in its images: a duplicate, a constant image
+    check_image_contents(args.images)
 
     spec, gen = texture_measures(
         args.images,
