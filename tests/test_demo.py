@@ -51,7 +51,12 @@ def test_truth_has_no_correspondence_error_and_identity_has_the_true_spread(tmp_
 def test_demo_genuine_registrations_are_not_flagged(tmp_path):
     from itk_nrreval.demo import run_demo
 
-    result = run_demo(out=tmp_path, n=12, n_samples=20_000, progress=False, log=lambda _: None)
+    # N = 8 rather than the quick demo's 12: subject i of the population does not depend on
+    # N, so these are the quick demo's first 8 subjects, registered the same five ways. The
+    # properties hold at N = 8 as at 12 (no flag on these four; 7 pairs decided, against 6
+    # at N = 12, each consistent with the true error) in under half the time: the elastix
+    # groupwise (2 sweeps x N registrations to the mean) was over half of the run.
+    result = run_demo(out=tmp_path, n=8, n_samples=20_000, progress=False, log=lambda _: None)
     scores = result.evaluation.scores
     for name in ("fluid", "groupwise", "pairwise_near", "affine"):
         assert scores[name].flags == (), (name, scores[name].flags)
@@ -59,6 +64,7 @@ def test_demo_genuine_registrations_are_not_flagged(tmp_path):
     assert result.evaluation.verdict.text  # the verdict in words heads the demo table
     # no pair decided against the truth (pairs whose true errors are within 10% aside)
     error = result.correspondence_error_mm
+    assert result.evaluation.verdict.decisions  # pairs are decided: the loop checks something
     for d in result.evaluation.verdict.decisions:
         assert error[d.better] < error[d.worse] * 1.1, (d, error)
     assert result.table.startswith(result.evaluation.verdict.text[0])
