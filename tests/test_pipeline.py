@@ -30,6 +30,44 @@ KW = dict(n_samples=2000, seed=5, progress=False)
 EXECUTORS = {"in_process": {}, "dask": {"scheduler": "local", "workers": 1}}
 
 
+def _local_cluster(workers: int):
+    from dask.distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0"
+    )
+
+
+@pytest.fixture(scope="module")
+def dask_address():
+    """A one-worker local Dask cluster for this module's cache tests, reached by its address.
+
+    Each of their Dask runs started and closed a ``"local"`` cluster of its own (10 runs,
+    about 2 s of CPU each for the worker process alone); what they check is the cache on the
+    Dask executor, which is the same either way (only how the client is made differs).
+    ``evaluate`` starting a ``"local"`` cluster is checked by
+    test_cli_local_scheduler_reports_cache and test_killed_run_restarts_from_cache[dask]
+    (and in test_dask_parity and test_in_memory).
+    """
+    with _local_cluster(1) as cluster:
+        yield cluster.scheduler_address
+
+
+@pytest.fixture(scope="module")
+def two_workers():
+    """A running two-worker local Dask cluster, reached by its address."""
+    with _local_cluster(2) as cluster:
+        yield cluster
+
+
+@pytest.fixture
+def executor_options(executor, request) -> dict:
+    """The Execution options of `executor`: none in process; on Dask, the module's cluster."""
+    if executor == "in_process":
+        return {}
+    return {"scheduler": request.getfixturevalue("dask_address"), "workers": 1}
+
+
 def with_mask(tmp_path) -> Path:
     """make_case plus a mask on the common grid (part of the template)."""
     data = make_case(tmp_path)
@@ -62,17 +100,26 @@ def assert_same_scores(a, b, *, rel: float = 1e-10) -> None:
 
 
 @pytest.mark.parametrize("distance", ["l1", "l2"])
-def test_distributed_equals_single_process(tmp_path, distance):
+def test_distributed_equals_single_process(tmp_path, distance, two_workers):
     manifest = with_mask(tmp_path)
     single = nr.evaluate(manifest, distance=distance, **KW)
+    # on a running cluster rather than one started for each run ("local", ~4 s of CPU for
+    # its two worker processes): the tasks and results are the same, only how the client
+    # is made differs (see dask_address)
     scaled = nr.evaluate(
         manifest,
         distance=distance,
-        execution=nr.Execution(scheduler="local", workers=2, cache=tmp_path / "c"),
+        execution=nr.Execution(
+            scheduler=two_workers.scheduler_address, workers=2, cache=tmp_path / "c"
+        ),
         **KW,
     )
     assert_same_scores(single, scaled)
     assert scaled.run["workers"] == 2
+    assert scaled.run["scheduler"] == two_workers.scheduler_address
+    # a running cluster given by its address is left running: not evaluate's to close
+    assert len(two_workers.scheduler_info["workers"]) == 2
+    assert two_workers.status.name == "running"
     assert scaled.run["cache_reused"] == 0
     # the frame estimates of the two non-common registrations, every transform's measures,
     # then every resampled image
@@ -81,29 +128,11 @@ def test_distributed_equals_single_process(tmp_path, distance):
     assert single.run["scheduler"] is None and single.run["cache_computed"] == 2 * 6 + 3 * 6 * 2
 
 
-def test_running_cluster_by_address(tmp_path):
-    from dask.distributed import LocalCluster
-
-    manifest = with_mask(tmp_path)
-    single = nr.evaluate(manifest, **KW)
-    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=":0") as cluster:
-        scaled = nr.evaluate(
-            manifest,
-            execution=nr.Execution(
-                scheduler=cluster.scheduler_address, workers=2, cache=tmp_path / "c"
-            ),
-            **KW,
-        )
-        assert len(cluster.scheduler_info["workers"]) == 2  # still running: not ours to close
-    assert_same_scores(single, scaled)
-    assert scaled.run["scheduler"] == cluster.scheduler_address
-
-
 @pytest.mark.parametrize("executor", EXECUTORS)
-def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, executor):
+def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, executor_options):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    execution = nr.Execution(cache=cache, keep_resampled=True, **EXECUTORS[executor])
+    execution = nr.Execution(cache=cache, keep_resampled=True, **executor_options)
     kw = dict(execution=execution, **KW)
     first = nr.evaluate(manifest, **kw)
     again = nr.evaluate(manifest, **kw)
@@ -129,13 +158,15 @@ def test_rerun_reuses_cache_and_extension_computes_only_the_new(tmp_path, execut
 
 
 @pytest.mark.parametrize("executor", EXECUTORS)
-def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(tmp_path, executor):
+def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(
+    tmp_path, executor_options
+):
     """The per-image estimates of F (and F - p) are full-grid fields needed only to build F
     and its spread: about half of a 1 mm cohort's cache (issue 30). A rerun reuses F and its
     spread without them."""
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    kw = dict(execution=nr.Execution(cache=cache, **EXECUTORS[executor]), **KW)
+    kw = dict(execution=nr.Execution(cache=cache, **executor_options), **KW)
     first = nr.evaluate(manifest, **kw)
     assert not list(cache.glob("estimate/*/*/entry.json"))
     assert not list(cache.glob("frame_disp/*/*/entry.json"))
@@ -148,7 +179,9 @@ def test_frame_estimates_leave_the_cache_once_the_frame_and_its_spread_are_kept(
 
 
 @pytest.mark.parametrize("executor", EXECUTORS)
-def test_cache_holds_one_registrations_resampled_images_at_a_time(tmp_path, executor, monkeypatch):
+def test_cache_holds_one_registrations_resampled_images_at_a_time(
+    tmp_path, executor_options, monkeypatch
+):
     """Issue 30: every transform's coverage is measured before any image is resampled, so a
     registration's resampled images (50 MB each at 1 mm) leave the cache once its scores
     are taken; the cache keeps the measures. Kept or not, and rerun, the same numbers."""
@@ -165,7 +198,7 @@ def test_cache_holds_one_registrations_resampled_images_at_a_time(tmp_path, exec
         return reduce(executor_, ctx, disk, m, name, r, **kw)
 
     monkeypatch.setattr(_pipeline, "_reduce_registration", observed)
-    execution = nr.Execution(cache=cache, **EXECUTORS[executor])
+    execution = nr.Execution(cache=cache, **executor_options)
     first = nr.evaluate(manifest, execution=execution, **KW)
     assert [name for name, _, _ in on_disk] == list(first.scores)
     for _name, keys, own in on_disk:
@@ -175,7 +208,7 @@ def test_cache_holds_one_registrations_resampled_images_at_a_time(tmp_path, exec
     kept_cache = tmp_path / "k"
     kept = nr.evaluate(
         manifest,
-        execution=nr.Execution(cache=kept_cache, keep_resampled=True, **EXECUTORS[executor]),
+        execution=nr.Execution(cache=kept_cache, keep_resampled=True, **executor_options),
         **KW,
     )
     assert len(list((kept_cache / "resampled").glob("*/*/entry.json"))) == 18
@@ -186,10 +219,10 @@ def test_cache_holds_one_registrations_resampled_images_at_a_time(tmp_path, exec
 
 
 @pytest.mark.parametrize("executor", EXECUTORS)
-def test_corrupt_cache_entries_are_recomputed(tmp_path, executor):
+def test_corrupt_cache_entries_are_recomputed(tmp_path, executor_options):
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
-    execution = nr.Execution(cache=cache, keep_resampled=True, **EXECUTORS[executor])
+    execution = nr.Execution(cache=cache, keep_resampled=True, **executor_options)
     kw = dict(execution=execution, **KW)
     first = nr.evaluate(manifest, **kw)
     entries = sorted((cache / "resampled").glob("*/*/entry.json"))
@@ -243,8 +276,15 @@ def slow_case(tmp_path) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def slow_case_scores(tmp_path_factory) -> dict:
+    """The slow case evaluated in process, without a cache, once for both executors: what a
+    killed and restarted run must give (the scores do not depend on where the files are)."""
+    return nr.evaluate(slow_case(tmp_path_factory.mktemp("slow")), **KW).to_dict()
+
+
 @pytest.mark.parametrize("executor", EXECUTORS)
-def test_killed_run_restarts_from_cache(tmp_path, executor):
+def test_killed_run_restarts_from_cache(tmp_path, executor, slow_case_scores):
     manifest = slow_case(tmp_path)
     cache, out = tmp_path / "cache", tmp_path / "out"
     cmd = [sys.executable, "-m", "itk_nrreval", "evaluate", str(manifest), "--out", str(out)]
@@ -276,8 +316,7 @@ def test_killed_run_restarts_from_cache(tmp_path, executor):
     res = json.loads((out / "results.json").read_text())
     assert res["run"]["cache_reused"] >= done
     assert res["run"]["cache_reused"] + res["run"]["cache_computed"] == total
-    single = nr.evaluate(manifest, **KW).to_dict()
-    for name, reg in single["registrations"].items():
+    for name, reg in slow_case_scores["registrations"].items():
         got = res["registrations"][name]
         assert got["specificity"]["value"] == pytest.approx(reg["specificity"]["value"], rel=1e-10)
         for w, v in reg["overlap"].items():
