@@ -113,9 +113,8 @@ def affine_result(population):
 
 
 @pytest.fixture(scope="module")
-def worker():
-    with ElastixWorker() as w:
-        yield w
+def worker(elastix_worker):
+    return elastix_worker  # the session's (conftest.py): itk-elastix loaded once
 
 
 def _identity(n):

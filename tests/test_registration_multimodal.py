@@ -26,7 +26,6 @@ from itk_nrreval.cli import main
 from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.manifest import load_manifest, write_manifest
 from itk_nrreval.registration import (
-    ElastixWorker,
     MultimodalResult,
     RegistrationResult,
     register_multimodal,
@@ -59,9 +58,8 @@ def truth(population):
 
 
 @pytest.fixture(scope="module")
-def worker():
-    with ElastixWorker() as w:
-        yield w
+def worker(elastix_worker):
+    return elastix_worker  # the session's (conftest.py): itk-elastix loaded once
 
 
 @pytest.fixture(scope="module")
@@ -440,7 +438,17 @@ def written(population, tmp_path_factory):
     return manifest, [str(p) for p in load_manifest(manifest).images]
 
 
-def test_cli_registers_with_the_manifest_groups(written, results, population, truth, capsys):
+def test_cli_registers_with_the_manifest_groups(
+    written, results, population, truth, worker, capsys, monkeypatch
+):
+    import itk_nrreval.registration.multimodal as mm
+
+    # The command's elastix jobs go to the running worker rather than to one it starts:
+    # loading itk-elastix in a new worker is about 10 s of CPU, and starting and stopping
+    # a worker when none is given is elastix_worker_for's, checked in test_registration
+    # (test_a_worker_is_started_for_the_block_only_when_none_is_given).
+    own = mm.elastix_worker_for
+    monkeypatch.setattr(mm, "elastix_worker_for", lambda given, **kw: own(given or worker, **kw))
     manifest, paths = written
     out = manifest.parent / "per-group"
     code = main(
