@@ -27,6 +27,17 @@ FAST = {  # example -> (extra arguments, a file it writes into --out DIR)
 WRITES_NOTHING = {"overlap_of_label_maps"}
 
 
+def _slicer_console_says(stdout: str) -> None:
+    """Outside Slicer, its generated population: the verdict first, then the ranking."""
+    lines = stdout.splitlines()
+    assert lines[0].startswith("truth is best: decided better than every other registration")
+    ranked = [ln.split(":")[0] for ln in lines if ": specificity " in ln]
+    assert ranked == ["truth", "pose_only"]
+
+
+SAYS = {"slicer_console": _slicer_console_says}  # example -> a check of what it prints
+
+
 def run_example(name: str, args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
     cwd, tmpdir = tmp_path / "cwd", tmp_path / "tmp"
     cwd.mkdir(exist_ok=True)
@@ -43,7 +54,9 @@ def run_example(name: str, args: list[str], tmp_path: Path) -> subprocess.Comple
 
 
 def repo_files_written_since(t0: float) -> list[Path]:
-    skip = {".git", ".venv", "__pycache__", ".pytest_cache", ".ruff_cache", "out"}
+    # (.hypothesis: the database of hypothesis, which no example imports, written by any
+    # pytest run in the repository at the same time)
+    skip = {".git", ".venv", "__pycache__", ".pytest_cache", ".ruff_cache", ".hypothesis", "out"}
     found = []
     for root, dirs, files in os.walk(REPO):
         dirs[:] = [d for d in dirs if d not in skip and not d.startswith("nrreval-")]
@@ -63,6 +76,9 @@ def test_example_leaves_nothing_behind(name, tmp_path):
     args = FAST[name][0] if name in FAST else []
     done = run_example(name, args, tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    if name in SAYS:
+        SAYS[name](done.stdout)
     assert not list((tmp_path / "cwd").iterdir()), "wrote into the working folder"
     assert not list((tmp_path / "tmp").iterdir()), "left a temporary folder behind"
     assert not repo_files_written_since(t0), "wrote into the repository"

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import pickle
 import re
 import subprocess
@@ -33,7 +32,6 @@ from itk_nrreval.cli import main
 from itk_nrreval.transforms import InMemoryTransform, to_sitk_transform
 from itk_nrreval.validation import manifest_set
 
-ROOT = Path(__file__).resolve().parent.parent
 N_IMAGES = 5
 SHAPE = (36, 40)  # numpy (y, x)
 SPACING = (1.1, 0.9)  # mm, (x, y)
@@ -876,34 +874,6 @@ def test_evaluate_out_writes_what_the_cli_writes(case, tmp_path, capsys):
     )
     with pytest.raises(ValueError, match="save_resampled=True: only with out="):
         nr.evaluate(folder / "manifest.yaml", save_resampled=True, **KW)
-
-
-def test_slicer_console_example_runs_outside_slicer(tmp_path):
-    """The example's generated run (the Slicer lines off); it leaves no file behind."""
-    scratch = tmp_path / "tmp"
-    scratch.mkdir()
-    env = {**os.environ, "TMPDIR": str(scratch)}
-    run = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "examples" / "slicer_console.py"),
-            "--samples",
-            "1500",
-            "--quiet",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
-        timeout=600,
-    )
-    assert run.returncode == 0, run.stderr
-    lines = run.stdout.splitlines()
-    assert lines[0].startswith("truth is best: decided better than every other registration")
-    ranked = [ln.split(":")[0] for ln in lines if ": specificity " in ln]
-    assert ranked == ["truth", "pose_only"]
-    assert "Traceback" not in run.stderr
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["tmp"] and not list(scratch.iterdir())
 
 
 def test_image_lists_take_itk_images_and_arrays_too(case):
