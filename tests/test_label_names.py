@@ -142,6 +142,7 @@ def test_without_names_the_values_as_before(tmp_path):
             inverse_consistency=False,
             progress=False,
             out=out,
+            figures=False,  # what is checked is results.json and metrics.csv
         )
     res = json.loads((out / "results.json").read_text())
     assert "name" not in res["registrations"]["truth"]["label_metrics"]["labels"]["1"]

@@ -291,6 +291,7 @@ def test_images_of_a_mean_frame_registration_equal_itk_resampling_through_the_co
             n_samples=2000,
             seed=5,
             progress=False,
+            figures=False,  # what is checked is the resampled images saved
         )
     frame = result.scores["perturbed"].frame
     assert frame.method == "mean"
