@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
@@ -50,6 +51,20 @@ def image(arr: np.ndarray) -> sitk.Image:
     return img
 
 
+@functools.cache
+def true_field(seed: int, size: int) -> sitk.Image:
+    """The inverse of ``smooth_field(seed, 4.0)`` (on the SIZE grid, `size` its key): the
+    same in every case, so inverted once per test session (about half of make_case's time,
+    and many tests call make_case). Only ever written, never modified."""
+    assert size == SIZE
+    return sitk.InvertDisplacementField(
+        image(smooth_field(seed, 4.0)),
+        maximumNumberOfIterations=50,
+        maxErrorToleranceThreshold=0.01,
+        meanErrorToleranceThreshold=1e-4,
+    )
+
+
 def make_case(tmp_path, *, with_labels: bool = True) -> dict:
     """N images = the phantom (varied contrast) warped by known fields; three registrations.
 
@@ -69,13 +84,7 @@ def make_case(tmp_path, *, with_labels: bool = True) -> dict:
         lab = sitk.Resample(lab_img, tmpl, s_i, sitk.sitkNearestNeighbor, 0)
         sitk.WriteImage(img, str(tmp_path / f"img{i}.nii.gz"))
         sitk.WriteImage(lab, str(tmp_path / f"lab{i}.nii.gz"))
-        truth = sitk.InvertDisplacementField(
-            image(smooth_field(i, 4.0)),
-            maximumNumberOfIterations=50,
-            maxErrorToleranceThreshold=0.01,
-            meanErrorToleranceThreshold=1e-4,
-        )
-        sitk.WriteImage(truth, str(tmp_path / f"truth{i}_1Warp.nii.gz"))
+        sitk.WriteImage(true_field(i, SIZE), str(tmp_path / f"truth{i}_1Warp.nii.gz"))
         # perturbation acting first (ANTs order [perturbation, truth])
         sitk.WriteImage(image(smooth_field(100 + i, 3.0)), str(tmp_path / f"pert{i}.mha"))
         sitk.WriteTransform(sitk.AffineTransform(2), str(tmp_path / f"id{i}_0GenericAffine.mat"))
