@@ -97,22 +97,29 @@ def test_the_manifest_reads_label_names_and_reports_a_bad_table(tmp_path):
         load_manifest({**data, "label_names": "bad.tsv"}, base_dir=tmp_path, check_files=False)
 
 
-def test_an_evaluation_shows_the_dseg_names_in_results_metrics_and_report(tmp_path):
-    data = make_case(tmp_path)
-    (tmp_path / "dseg.tsv").write_text(DSEG)
-    data["label_names"] = "dseg.tsv"
-    (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
-    out = tmp_path / "out"
+def _evaluate(folder, **options):
+    """Evaluate ``folder/manifest.yaml`` quickly into ``folder/out``; return that folder."""
+    out = folder / "out"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         nr.evaluate(
-            tmp_path / "manifest.yaml",
+            folder / "manifest.yaml",
             n_samples=200,
             confidence=False,
             inverse_consistency=False,
             progress=False,
             out=out,
+            **options,
         )
+    return out
+
+
+def test_an_evaluation_shows_the_dseg_names_in_results_metrics_and_report(tmp_path):
+    data = make_case(tmp_path)
+    (tmp_path / "dseg.tsv").write_text(DSEG)
+    data["label_names"] = "dseg.tsv"
+    (tmp_path / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    out = _evaluate(tmp_path)
     res = json.loads((out / "results.json").read_text())
     labels = res["registrations"]["truth"]["label_metrics"]["labels"]
     assert {v: e["name"] for v, e in labels.items()} == {
@@ -132,18 +139,7 @@ def test_an_evaluation_shows_the_dseg_names_in_results_metrics_and_report(tmp_pa
 
 def test_without_names_the_values_as_before(tmp_path):
     make_case(tmp_path)
-    out = tmp_path / "out"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        nr.evaluate(
-            tmp_path / "manifest.yaml",
-            n_samples=200,
-            confidence=False,
-            inverse_consistency=False,
-            progress=False,
-            out=out,
-            figures=False,  # what is checked is results.json and metrics.csv
-        )
+    out = _evaluate(tmp_path, figures=False)  # what is checked: results.json, metrics.csv
     res = json.loads((out / "results.json").read_text())
     assert "name" not in res["registrations"]["truth"]["label_metrics"]["labels"]["1"]
     assert "label_name" not in (out / "metrics.csv").read_text().splitlines()[0]
