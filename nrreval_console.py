@@ -35,6 +35,18 @@ def caused_by_interrupt(exc: BaseException) -> bool:
     return False
 
 
+def _interrupt(signum, frame) -> None:
+    """Ctrl-C: a KeyboardInterrupt, unless the command's result is already in place.
+
+    The command line (:func:`itk_nrreval.cli.main`) holds the same rule while its command
+    runs, then restores this handler; this one covers the moments before and after it.
+    """
+    output = sys.modules.get("itk_nrreval._output")
+    if output is not None and output.swaps_done() > 0:
+        return
+    raise KeyboardInterrupt
+
+
 def main() -> None:
     """Run ``nrreval`` and exit with its code.
 
@@ -44,6 +56,7 @@ def main() -> None:
     not rethrown") or print their tracebacks. Everything written so far went through
     temporary names, and a stale temporary is removed by the next run.
     """
+    signal.signal(signal.SIGINT, _interrupt)
     try:
         from itk_nrreval.cli import main as command
 

@@ -281,6 +281,22 @@ def _unlock(fd: int | None) -> None:
         os.close(fd)
 
 
+_swaps_done = 0
+"""How many :func:`staged_folder` results this process has put in place: the command line
+drops a Ctrl-C that arrives after its command's result is complete (see
+:func:`swaps_done`)."""
+
+
+def swaps_done() -> int:
+    """How many staged results (:func:`staged_folder`) this process has swapped in so far.
+
+    The command line reads it before a command runs and in its SIGINT handler: once the
+    count has grown, the command's result is complete, and an interrupt then must not end
+    the command with exit code 130, which says that the previous result was kept.
+    """
+    return _swaps_done
+
+
 @contextlib.contextmanager
 def _interrupts_held_off() -> Iterator[None]:
     """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all.
@@ -488,6 +504,7 @@ def staged_folder(
     """
     from ._errors import InputError
 
+    global _swaps_done
     out = Path(out).resolve()
     previous, made, lock = _claim(out, command=command)
     try:
@@ -523,6 +540,7 @@ def staged_folder(
             kept = [k for k in keep if (out / k).exists()]
             _write_record(out, [*staged, *kept], command=command)
             os.rmdir(tmp)
+            _swaps_done += 1
         shutil.rmtree(old, ignore_errors=True)
     finally:
         _unlock(lock)

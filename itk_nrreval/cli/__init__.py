@@ -10,11 +10,14 @@ traceback.
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
 import warnings
 
 from nrreval_console import INTERRUPTED, caused_by_interrupt
 
+from .. import _output
 from .._errors import EngineError, InputError
 from . import (
     demo,
@@ -62,6 +65,34 @@ def build_parser() -> OneLineParser:
     return parser
 
 
+@contextlib.contextmanager
+def _interrupts_dropped_once_complete():
+    """Ctrl-C ends the command (exit code 130: the previous result is kept) until the
+    command's result has been swapped into place (:func:`itk_nrreval._output.staged_folder`);
+    after that it is dropped, and the little that is left (the summary printed) runs out.
+
+    Without this, an interrupt between the swap and the end of the command ended it with 130
+    over a replaced result. Only the main thread can set a handler; elsewhere (a thread of a
+    Slicer console) the command runs with the handler it has.
+    """
+    swaps_before = _output.swaps_done()
+
+    def interrupt(signum, frame):
+        if _output.swaps_done() > swaps_before:
+            return
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGINT, interrupt)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
@@ -74,8 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"nrreval {args.command}: warning: {message}", file=sys.stderr)
 
     try:
-        with warnings.catch_warnings():  # restores warnings.showwarning on the way out
-            warnings.showwarning = one_line
+        with warnings.catch_warnings(), _interrupts_dropped_once_complete():
+            warnings.showwarning = one_line  # catch_warnings restores it on the way out
             return int(args.func(args) or 0)
     except InputError as exc:
         print(f"nrreval {args.command}: error: {exc}", file=sys.stderr)
