@@ -330,7 +330,7 @@ def _measures_task(
     if reg_mask_key is not None:
         reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
     # the affine fit from the measures' own sampling of the transform (one pass, not two)
-    plaus, jac, fit = deformation_measures(
+    measures = deformation_measures(
         pieces,
         reg_grid,
         mask=reg_mask,
@@ -339,11 +339,12 @@ def _measures_task(
         displacement=shared,
     )
     del shared, sampled, pieces
-    arrays["detj_middle"] = jac.middle  # for the report: one slice, det J on reg_grid
+    # for the report: one slice, det J on reg_grid
+    arrays["detj_middle"] = measures.jacobian.middle
     meta.update(
-        plausibility=plaus.to_dict(),
-        affine_fit=fit.to_dict(),
-        log_jacobian_histogram=jac.histogram(),
+        plausibility=measures.plausibility.to_dict(),
+        affine_fit=measures.affine.to_dict(),
+        log_jacobian_histogram=measures.jacobian.histogram(),
     )
     cache.put("measures", key, arrays, meta)
     return key, False, meta

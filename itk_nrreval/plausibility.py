@@ -52,6 +52,7 @@ __all__ = [
     "SubjectThresholds",
     "AffineFit",
     "JacobianSummary",
+    "DeformationMeasures",
     "deformation_plausibility",
     "deformation_measures",
     "affine_fit",
@@ -59,6 +60,13 @@ __all__ = [
     "flags",
     "frame_spread_limit_mm",
     "smallest_extent_mm",
+    "SLAB_VOXELS",
+    "LOG_JACOBIAN_BINS",
+    "LOG_JACOBIAN_RANGE",
+    "INVERSE_FIELD_STEP",
+    "INVERSE_CONSISTENCY_STEP",
+    "INVERSE_REFINE_STEPS",
+    "INNER_TETRAHEDRA",
 ]
 
 #: Voxels per slab (with its halo) above which the grid is processed in slabs along its last
@@ -218,6 +226,27 @@ class JacobianSummary:
         }
 
 
+@dataclass(frozen=True)
+class DeformationMeasures:
+    """What :func:`deformation_measures` returns: the same fields whatever its flags.
+
+    Attributes
+    ----------
+    plausibility : Plausibility
+        ``folded_max`` equals ``folded_fraction``, ``nondiffeomorphic_max``
+        ``nondiffeomorphic_fraction`` (one image).
+    jacobian : JacobianSummary
+        Over the same evaluated voxels.
+    affine : AffineFit or None
+        :func:`affine_fit`'s fit over the evaluated voxels, from the same sampling of the
+        transform; None unless asked for (``affine=True``).
+    """
+
+    plausibility: Plausibility
+    jacobian: JacobianSummary
+    affine: AffineFit | None = None
+
+
 def _geometry(grid: Geometry | sitk.Image) -> Geometry:
     if isinstance(grid, Geometry):
         return grid
@@ -284,7 +313,7 @@ def deformation_plausibility(
         mask=mask,
         inverse_consistency=inverse_consistency,
         max_slab_voxels=max_slab_voxels,
-    )[0]
+    ).plausibility
 
 
 def deformation_measures(
@@ -296,14 +325,15 @@ def deformation_measures(
     max_slab_voxels: int = SLAB_VOXELS,
     affine: bool = False,
     displacement: np.ndarray | None = None,
-) -> tuple[Plausibility, JacobianSummary] | tuple[Plausibility, JacobianSummary, AffineFit]:
+) -> DeformationMeasures:
     """Plausibility of a transform on a grid, and its Jacobian's histogram and middle slice.
 
     One pass over the grid gives both: folding, SDlogJ, Jacobian range and inverse
     consistency (:class:`Plausibility`), and the histogram of ``log det J`` on fixed bins
     with ``det J`` on the middle slice (:class:`JacobianSummary`, for reports); with
     `affine`, also the closest affine map (:func:`affine_fit`) from the same sampling of the
-    transform.
+    transform. The result has the same fields whatever the flags
+    (:class:`DeformationMeasures`).
 
     Parameters
     ----------
@@ -333,19 +363,17 @@ def deformation_measures(
         gives it), when the caller needs that sampling too; default: sampled here, slab by
         slab.
     affine : bool
-        Also return :func:`affine_fit`'s fit over the evaluated voxels, from the
+        Also compute :func:`affine_fit`'s fit over the evaluated voxels, from the
         displacement sampled here (its numbers to rounding, without sampling the transform
-        a second time).
+        a second time); without it the result's ``affine`` is None.
 
     Returns
     -------
-    Plausibility
-        ``folded_max`` equals ``folded_fraction``, ``nondiffeomorphic_max``
-        ``nondiffeomorphic_fraction`` (one image).
-    JacobianSummary
-        Over the same evaluated voxels.
-    AffineFit
-        Only with `affine`.
+    DeformationMeasures
+        ``plausibility`` (:class:`Plausibility`; ``folded_max`` equals ``folded_fraction``,
+        ``nondiffeomorphic_max`` ``nondiffeomorphic_fraction``: one image), ``jacobian``
+        (:class:`JacobianSummary`, over the same evaluated voxels) and ``affine``
+        (:class:`AffineFit`; None without `affine`).
 
     Raises
     ------
@@ -495,7 +523,7 @@ def deformation_measures(
         nondiffeomorphic_volume=nondiffeomorphic_volume / count,
     )
     summary = JacobianSummary(hist, below, above, folded, middle)
-    return (plausibility, summary) if fit is None else (plausibility, summary, fit.fit())
+    return DeformationMeasures(plausibility, summary, None if fit is None else fit.fit())
 
 
 def _mean_round_trip(
@@ -885,7 +913,7 @@ class AffineFit:
     @classmethod
     def from_dict(cls, data: Mapping) -> AffineFit:
         """Inverse of :meth:`to_dict` (None back to NaN)."""
-        return cls(**{k: math.nan if data[k] is None else float(data[k]) for k in asdict(NAN_FIT)})
+        return cls(**{k: math.nan if data[k] is None else float(data[k]) for k in asdict(_NAN_FIT)})
 
 
 def affine_fit(
@@ -977,7 +1005,7 @@ class _AffineSums:
     def fit(self) -> AffineFit:
         d = len(self.spacing)
         if self.count <= d or np.linalg.matrix_rank(self.s_qq) < d + 1:
-            return NAN_FIT
+            return _NAN_FIT
         b = np.linalg.solve(self.s_qq, self.s_qu)
         residual = max(self.s_uu - float(np.sum(b * self.s_qu)), 0.0)
         return AffineFit(
@@ -1041,7 +1069,7 @@ def _affine_sums(u, sel, every, start, step, parts):  # pragma: no cover - compi
 
 
 #: The fit of a transform whose voxels determine no affine map.
-NAN_FIT = AffineFit(math.nan, math.nan, math.nan)
+_NAN_FIT = AffineFit(math.nan, math.nan, math.nan)
 
 
 def combine(per_image: Sequence[Plausibility]) -> Plausibility:

@@ -100,7 +100,7 @@ import SimpleITK as sitk
 from itk_nrreval.plausibility import deformation_measures
 t = sitk.ReadTransform(sys.argv[1])
 reference = sitk.ReadImage(sys.argv[2])
-print(repr(deformation_measures(t, reference)[0].inverse_consistency_mm))
+print(repr(deformation_measures(t, reference).plausibility.inverse_consistency_mm))
 """
 
 

@@ -412,10 +412,12 @@ def test_jacobian_summary_is_one_pass_and_independent_of_slabs():
     t = field_transform(g.apply_to(img))
     mask = np.zeros(g.shape, bool)
     mask[3:-2, 2:-3, 1:-1] = True
-    whole_p, whole = deformation_measures(t, g, mask=mask, inverse_consistency=False)
-    slab_p, slab = deformation_measures(
+    whole_measures = deformation_measures(t, g, mask=mask, inverse_consistency=False)
+    whole_p, whole = whole_measures.plausibility, whole_measures.jacobian
+    slab_measures = deformation_measures(
         t, g, mask=mask, inverse_consistency=False, max_slab_voxels=3 * 20 * 18
     )
+    slab_p, slab = slab_measures.plausibility, slab_measures.jacobian
     assert whole_p == deformation_plausibility(t, g, mask=mask, inverse_consistency=False)
     assert slab_p.folded_fraction == whole_p.folded_fraction
     assert slab_p.sdlogj == pytest.approx(whole_p.sdlogj, rel=1e-12)  # merged slab by slab
