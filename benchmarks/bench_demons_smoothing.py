@@ -110,8 +110,8 @@ def _run(name: str, images, labels, to_template, settings) -> dict:
     from itk_nrreval.registration import register
     from itk_nrreval.registration.fluid import (
         FluidOptions,
+        _match_histogram,
         demons_register,
-        match_histogram,
     )
     from itk_nrreval.transforms import field_transform
 
@@ -142,7 +142,7 @@ def _run(name: str, images, labels, to_template, settings) -> dict:
                 transforms.append(a)
                 continue
             moved = sitk.Resample(img, ref, a, sitk.sitkLinear, 0.0, sitk.sitkFloat32)
-            pre = match_histogram(moved, ref, 256)
+            pre = _match_histogram(moved, ref, 256)
             transforms.append(sitk.CompositeTransform([a, field_transform(demons(ref, pre))]))
         seconds = time.perf_counter() - t0
         rows[label] = {

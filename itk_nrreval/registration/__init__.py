@@ -89,6 +89,7 @@ __all__ = [
     "FluidOptions",
     "BSplineOptions",
     "GroupwiseOptions",
+    "REFERENCE_CHOICES",
 ]
 
 #: The methods, in the order of the paper's Table 3.

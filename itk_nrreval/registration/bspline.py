@@ -38,6 +38,7 @@ __all__ = [
     "bspline_register",
     "bspline_to_reference",
     "ELASTIX_METRICS",
+    "elastix_parameters",
 ]
 
 #: elastix's metric for each of :data:`METRICS`.

@@ -56,7 +56,7 @@ __all__ = [
 #: Mass of the Gaussian kernel that ITK may leave out when it truncates it (ITK's default
 #: 0.1 cuts the kernel at about 1.6 standard deviations, which shrinks the effective
 #: standard deviation to about 0.82 of the one asked for; 0.001 keeps it within 1%).
-KERNEL_MAXIMUM_ERROR = 0.001
+_KERNEL_MAXIMUM_ERROR = 0.001
 #: Widest smoothing (pixels) handed to ITK. Its ``GaussianOperator`` computes
 #: ``exp(-s**2) * I_n(s**2)``, which overflows to ``0 * inf`` from about 26.6 pixels and fills
 #: the whole field with NaN without an error; wider smoothing is refused.
@@ -269,7 +269,7 @@ def demons_register(
             demons.SetSmoothUpdateField(True)
             demons.SetUpdateFieldStandardDeviations(update_sigmas)
             widest = max(widest, max(update_sigmas))
-        demons.SetMaximumError(KERNEL_MAXIMUM_ERROR)
+        demons.SetMaximumError(_KERNEL_MAXIMUM_ERROR)
         # Room for the whole kernel (ITK silently truncates it at 30 coefficients a side).
         demons.SetMaximumKernelWidth(max(30, int(math.ceil(4.0 * widest)) + 2))
         spacing = f.GetSpacing()
@@ -283,7 +283,7 @@ def demons_register(
     return field
 
 
-def match_histogram(moving: sitk.Image, reference: sitk.Image, levels: int) -> sitk.Image:
+def _match_histogram(moving: sitk.Image, reference: sitk.Image, levels: int) -> sitk.Image:
     """`moving`'s intensities mapped onto `reference`'s histogram (7 match points)."""
     return sitk.HistogramMatching(
         moving,
@@ -348,7 +348,7 @@ def fluid_to_reference(
         if i == reference_index:
             out.append(aff)
             continue
-        pre = match_histogram(resample(img, reference, aff), reference, options.histogram_levels)
+        pre = _match_histogram(resample(img, reference, aff), reference, options.histogram_levels)
         if engine == "ants":
             warp = ants_syn(ants, reference, pre, seed=seed + i)
         else:

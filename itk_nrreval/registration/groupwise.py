@@ -240,7 +240,7 @@ def groupwise_register_elastix(
     return transforms, group_mean(images, frame, transforms)
 
 
-def stack_parameters(options: GroupwiseOptions, *, seed: int) -> dict[str, list[str]]:
+def _stack_parameters(options: GroupwiseOptions, *, seed: int) -> dict[str, list[str]]:
     """elastix's groupwise map for a 2D + image-index stack (overrides of its defaults)."""
     levels = options.elastix_levels
     schedule = []
@@ -313,7 +313,7 @@ def groupwise_register_elastix_stack(
         stack,
         levels=options.elastix_levels,
         grid_spacing=options.grid_spacing,
-        parameters=stack_parameters(options, seed=seed),
+        parameters=_stack_parameters(options, seed=seed),
         what=f"the stack of {len(images)} images",
     )
     size = list(result.GetSize())

@@ -67,7 +67,14 @@ from .affine import AffineOptions, affine_register, affine_to_reference, choose_
 from .bspline import BSplineOptions, bspline_register, bspline_to_reference
 from .result import RegistrationResult
 
-__all__ = ["STRATEGIES", "MULTIMODAL_ENGINES", "MultimodalResult", "register_multimodal"]
+__all__ = [
+    "STRATEGIES",
+    "MULTIMODAL_ENGINES",
+    "MultimodalResult",
+    "register_multimodal",
+    "check_groups",
+    "record_groups",
+]
 
 #: The strategies of :func:`register_multimodal`.
 STRATEGIES = ("joint", "per-group")
@@ -162,7 +169,7 @@ class MultimodalResult(RegistrationResult):
         InputError
             The manifest's ``groups`` differ from this result's.
         """
-        check_manifest_groups(manifest, self.groups)  # before writing anything
+        _check_manifest_groups(manifest, self.groups)  # before writing anything
         path = super().add_to_manifest(
             manifest,
             name,
@@ -192,7 +199,7 @@ class MultimodalResult(RegistrationResult):
         }
 
 
-def check_manifest_groups(manifest: str | os.PathLike, groups: Sequence[Hashable]) -> None:
+def _check_manifest_groups(manifest: str | os.PathLike, groups: Sequence[Hashable]) -> None:
     """Refuse `groups` for a manifest that lists other groups (a missing manifest is fine).
 
     Raises
@@ -222,7 +229,7 @@ def record_groups(manifest: str | os.PathLike, groups: Sequence[Hashable]) -> No
     """
     from ..manifest import load_manifest, write_manifest  # noqa: PLC0415
 
-    check_manifest_groups(manifest, groups)
+    _check_manifest_groups(manifest, groups)
     m = load_manifest(manifest, check_files=False)
     if m.groups is None:
         write_manifest(dataclasses.replace(m, groups=tuple(str(g) for g in groups)), manifest)
