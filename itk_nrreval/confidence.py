@@ -80,6 +80,7 @@ __all__ = [
     "BOOTSTRAP_RANKS",
     "bootstrap_ranks",
     "significance_map",
+    "LEVEL",
 ]
 
 LEVEL = 0.95

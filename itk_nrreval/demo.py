@@ -34,7 +34,7 @@ from .correspondence import correspondence_error
 from .evaluation import EvaluationResult, evaluate, higher_is_better, ranks, relative_ranks
 from .manifest import add_registration, load_manifest, write_manifest
 
-__all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo"]
+__all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo", "DEMO_OUTPUTS"]
 
 #: (name, method, reference choice), in the order of the paper's Table 3.
 DEMO_REGISTRATIONS = (

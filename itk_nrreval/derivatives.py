@@ -117,10 +117,10 @@ def parse_bids_name(name: str) -> BidsName | None:
 # ----------------------------------------------------------------------------- BIDS
 
 
-SubjectKey = tuple  # (subject label, session label or "")
+_SubjectKey = tuple  # (subject label, session label or "")
 
 
-def _key_name(key: SubjectKey) -> str:
+def _key_name(key: _SubjectKey) -> str:
     return f"sub-{key[0]}" + (f"_ses-{key[1]}" if key[1] else "")
 
 
@@ -131,10 +131,10 @@ class _Folder:
     root: Path
     name: str  # the registration's name
     generated_by: str
-    t1w: dict  # SubjectKey -> [Path]
+    t1w: dict  # _SubjectKey -> [Path]
     dseg: dict
-    brain_mask: dict  # SubjectKey -> [Path]: desc-brain_mask in the T1w image's space
-    xfm: dict  # SubjectKey -> {space: [Path]}
+    brain_mask: dict  # _SubjectKey -> [Path]: desc-brain_mask in the T1w image's space
+    xfm: dict  # _SubjectKey -> {space: [Path]}
     space_images: dict  # space -> [(Path, BidsName)]
 
 
@@ -240,7 +240,7 @@ def _space(folders: list[_Folder], space: str | None) -> tuple[str, dict[str, st
     return spaces[0], {}
 
 
-def _registered(f: _Folder, space: str) -> dict[SubjectKey, Path]:
+def _registered(f: _Folder, space: str) -> dict[_SubjectKey, Path]:
     """Subject -> its transform into `space`; every transform's T1w image checked present."""
     out = {}
     for key, spaces in sorted(f.xfm.items()):
@@ -434,7 +434,7 @@ def _dseg_names(root: Path, labels: list[Path]) -> Path | None:
     return at_root[0] if len(at_root) == 1 else None
 
 
-def _brain_masks(folder: _Folder, kept: list[SubjectKey]) -> list[Path] | None:
+def _brain_masks(folder: _Folder, kept: list[_SubjectKey]) -> list[Path] | None:
     """Each kept subject's ``desc-brain_mask`` image beside its T1w image, in `kept`'s order;
     None when a subject has none (one-line warning, unless no subject has one: a pipeline
     that writes no masks)."""
@@ -477,7 +477,7 @@ def _in_one_frame(registrations: dict[str, dict]) -> dict[str, dict]:
 
 
 def _references(
-    folders: list[_Folder], kept: list[SubjectKey], space: str, entities: dict[str, str]
+    folders: list[_Folder], kept: list[_SubjectKey], space: str, entities: dict[str, str]
 ) -> list[Path]:
     """Per folder, its first kept subject's ``space-<SPACE>`` image; every such image of the
     kept subjects on one grid."""

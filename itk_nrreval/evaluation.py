@@ -83,6 +83,7 @@ __all__ = [
     "ranks",
     "relative_ranks",
     "tie_groups",
+    "higher_is_better",
 ]
 
 _DISTANCES = ("l1", "l2")

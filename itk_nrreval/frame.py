@@ -67,6 +67,8 @@ __all__ = [
     "resample_images",
     "resample_memberships",
     "label_values",
+    "ESTIMATE_FIELD_STEP",
+    "ESTIMATE_REFINE_STEPS",
 ]
 
 _INTERPOLATORS = {"linear": sitk.sitkLinear, "bspline": sitk.sitkBSpline}

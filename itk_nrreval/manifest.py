@@ -149,6 +149,8 @@ __all__ = [
     "TRANSFORM_SUFFIXES",
     "FIELD_SUFFIXES",
     "check_image_contents",
+    "IDENTITY_FRAME",
+    "MIN_IMAGES",
 ]
 
 
@@ -166,8 +168,8 @@ _TOP_KEYS = (
 )
 _REG_KEYS = ("reference", "transforms", "reference_index", "frame_transform", "parameters")
 
-ImageItem = "Path | InMemoryImage"
-TransformItem = "Path | InMemoryTransform"
+_ImageItem = "Path | InMemoryImage"
+_TransformItem = "Path | InMemoryTransform"
 _IN_MEMORY = (InMemoryImage, InMemoryTransform)
 
 
@@ -742,7 +744,7 @@ def _image_info(path: Path) -> tuple[int, int]:
 _TEXT_HEADER = re.compile(r"^Transform:\s*\S+?_(\d)_(\d)\s*$")
 
 
-def transform_file_dimension(path: Path) -> int:
+def _transform_file_dimension(path: Path) -> int:
     """Spatial dimension of a transform file or displacement-field image, cheaply.
 
     Text transform files are scanned for their ``Transform: Name_double_D_D`` line (elastix
@@ -804,7 +806,7 @@ def _check_item(item, what: str, dim: int | None, problems: list[str]) -> None:
             )
             return
         try:
-            d = transform_file_dimension(item)
+            d = _transform_file_dimension(item)
         except (RuntimeError, ValueError, OSError) as exc:
             reason = next((ln for ln in str(exc).splitlines() if ln.strip()), "unreadable")
             problems.append(f"{what}: cannot read transform {item.name} ({reason.strip()[:120]})")

@@ -44,6 +44,7 @@ __all__ = [
     "texture_measures",
     "compare_specificity",
     "loo_generalization",
+    "MAX_SEED",
 ]
 
 _DISTANCES = ("l1", "l2")
@@ -203,7 +204,7 @@ MAX_SEED = 2**63
 (:func:`itk_nrreval._sampling.stream_key`)."""
 
 
-def checked_seed(seed, *, name: str = "seed") -> int:
+def _checked_seed(seed, *, name: str = "seed") -> int:
     """`seed` as a Python int, or an :class:`InputError` naming parameter `name`.
 
     The one check of a seed: an integer (Python or numpy, not a bool) in ``[0, 2**63)``. A
@@ -225,14 +226,14 @@ def checked_seed(seed, *, name: str = "seed") -> int:
 
 
 def _check_options(n_samples: int, distance: str, exponent: float, seed) -> int:
-    """Check the options; return the seed as an int (:func:`checked_seed`)."""
+    """Check the options; return the seed as an int (:func:`_checked_seed`)."""
     if distance not in _DISTANCES:
         raise ValueError(f"distance must be one of {_DISTANCES}, got {distance!r}")
     if not (isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _sampling.MAX_SAMPLES):
         raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if not (exponent > 0 and math.isfinite(exponent)):
         raise ValueError(f"exponent must be a positive number, got {readable(exponent)}")
-    return checked_seed(seed)
+    return _checked_seed(seed)
 
 
 def _model(images, mask) -> TextureModel:
@@ -502,7 +503,7 @@ TextureModel or MixtureModel
     InputError
         Bad `groups`: not one hashable label per image, a group of 1 image, or a group whose
         images are all identical; an `n_samples` that leaves a group fewer than 2 samples;
-        or a `seed` that is not an integer in ``[0, 2**63)`` (:func:`checked_seed`).
+        or a `seed` that is not an integer in ``[0, 2**63)``.
 
     Notes
     -----

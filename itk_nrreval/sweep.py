@@ -49,7 +49,7 @@ from .manifest import add_registration, load_manifest, write_manifest
 from .report.sweep import write_sweep
 from .transforms import file_stem
 
-__all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter"]
+__all__ = ["SweepSetting", "SweepResult", "sweep", "parse_parameter", "SWEEP_OUTPUTS"]
 
 _TRUTH_MEASURE = "true_correspondence_error_mm"
 

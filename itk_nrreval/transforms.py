@@ -90,6 +90,7 @@ __all__ = [
     "is_linear",
     "jacobian_determinant",
     "folded_fraction",
+    "field_components_problem",
 ]
 
 #: File suffixes read with ``sitk.ReadTransform`` (ITK text / HDF5 / MATLAB, incl. ANTs affines).
@@ -97,7 +98,7 @@ TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
 #: File suffixes read as displacement-field images.
 FIELD_SUFFIXES = (".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd")
 
-TransformLike = "sitk.Transform | itk.Transform | InMemoryTransform | str | os.PathLike"
+_TransformLike = "sitk.Transform | itk.Transform | InMemoryTransform | str | os.PathLike"
 
 
 def file_stem(path: str | os.PathLike) -> str:

@@ -73,12 +73,16 @@ __all__ = [
     "max_safe_displacement",
     "warp_stack",
     "MEMBERSHIP_TOLERANCE",
+    "KNOT_RADIUS",
+    "MIN_JACOBIAN",
+    "REFINE",
+    "KNOT_BOX",
 ]
 
 #: Knots are placed within this fraction of the unit radius, away from the clamped boundary.
 KNOT_RADIUS = 0.7
 #: Pixels evaluated at once (bounds the (pixels x knots x dim) temporaries to ~40 MB).
-CHUNK = 65_536
+_CHUNK = 65_536
 #: Accepted warps have a Jacobian determinant at least this large at every check point.
 MIN_JACOBIAN = 0.05
 #: The fold check's sub-grid is this many times finer than the image (per axis).
@@ -386,8 +390,8 @@ class ClampedPlateSpline:
 
 
 def _chunks(n: int):
-    for start in range(0, n, CHUNK):
-        yield slice(start, min(start + CHUNK, n))
+    for start in range(0, n, _CHUNK):
+        yield slice(start, min(start + _CHUNK, n))
 
 
 # ----------------------------------------------------------------------------------------

@@ -64,7 +64,7 @@ from .evaluation_text import (
     specificity_units,
 )
 
-__all__ = ["report_html"]
+__all__ = ["report_html", "RANKED_SHOWN"]
 
 #: The overlap weightings the tables show (every one further down): each label counts the same.
 _TABLE_OVERLAPS = tuple(m for m, _ in TABLE_OVERLAPS)
