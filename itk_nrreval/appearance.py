@@ -50,7 +50,7 @@ from ._images import Geometry, read_image
 from ._progress import progress_bar
 from .frame import read_chains, resample_images, resample_onto
 from .manifest import Manifest, load_manifest
-from .model import TextureModel
+from .model import TextureModel, centred_gram
 from .transforms import chain_transform, displacement_field, field_transform, flatten, invert
 
 __all__ = [
@@ -172,7 +172,10 @@ def _pca(data: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mean = data.mean(axis=0)
     if not np.any(data != data[:1]):
         return mean, np.zeros((0, m)), np.zeros((n, 0))
-    model = TextureModel.from_images(data)
+    # a PCA of any items, not of a cohort's images: equal items (the reference subject's
+    # identity field and another's) are legitimate here, so from_images' checks are not
+    gram, mean_, _, _ = centred_gram(data)
+    model = TextureModel.from_gram(gram, mean=mean_)
     params = model.training_params
     # unit mode k = X_c^T v_k / sqrt(lambda_k) = X_c^T b_k / lambda_k (lambda: Gram eigenvalue)
     gram_eig = model.mode_variances * (n - 1)

@@ -19,7 +19,7 @@ import numpy as np
 from ._errors import InputError
 from ._images import Geometry, image_stack, mask_array
 
-__all__ = ["TextureModel", "MixtureModel"]
+__all__ = ["TextureModel", "MixtureModel", "centred_gram"]
 
 _CHUNK_VOXELS = 1 << 16
 
@@ -96,8 +96,9 @@ class TextureModel:
         Raises
         ------
         InputError
-            Fewer than 3 images, images on different grids, NaN or infinite voxels, or
-            images that are all identical (no mode of variation), images not 2D or 3D.
+            Fewer than 3 images, images on different grids, NaN or infinite voxels, an
+            image given twice (the same voxels where the model is fitted: its subject would
+            weigh twice), a constant image (no texture), images not 2D or 3D.
 
         Warns
         -----
@@ -112,16 +113,8 @@ class TextureModel:
         spatial = stack.data.shape[1:]
         mask_arr = mask_array(mask, shape=spatial, geometry=stack.geometry)
         voxels = np.flatnonzero(mask_arr) if mask_arr is not None else None
-        n_voxels = flat.shape[1] if voxels is None else voxels.size
-        gram = np.zeros((n, n))
-        mean = np.empty(n_voxels)
-        for start in range(0, n_voxels, _CHUNK_VOXELS):
-            stop = min(start + _CHUNK_VOXELS, n_voxels)
-            chunk = flat[:, start:stop] if voxels is None else flat[:, voxels[start:stop]]
-            chunk_mean = chunk.mean(axis=0)
-            centred = chunk - chunk_mean
-            mean[start:stop] = chunk_mean
-            gram += centred @ centred.T
+        gram, mean, low, high = centred_gram(flat, voxels)
+        _check_images_differ(gram, low, high, masked=voxels is not None)
         return cls.from_gram(gram, mean=mean, mask=mask_arr, geometry=stack.geometry)
 
     @classmethod
@@ -327,3 +320,74 @@ def _group_labels(groups, n_images: int) -> tuple[tuple[Hashable, ...], np.ndarr
                 f"groups[{i}]: a group label must be hashable, got {type(label).__name__}"
             ) from None
     return tuple(index), image_groups
+
+
+def centred_gram(flat: np.ndarray, voxels: np.ndarray | None = None):
+    """The Gram matrix of the centred rows of `flat`, their mean, and each row's range.
+
+    Parameters
+    ----------
+    flat : ndarray of shape (N, n_values)
+    voxels : ndarray of int, optional
+        The columns to use (a mask's flat indices); default all.
+
+    Returns
+    -------
+    gram : ndarray of shape (N, N)
+    mean : ndarray of shape (n_used,)
+    low, high : ndarray of shape (N,)
+        Each row's least and greatest value over the columns used.
+
+    Streams over chunks of ``_CHUNK_VOXELS`` columns: no centred copy of `flat` is made.
+    """
+    n = flat.shape[0]
+    n_voxels = flat.shape[1] if voxels is None else voxels.size
+    gram = np.zeros((n, n))
+    mean = np.empty(n_voxels)
+    low, high = np.full(n, np.inf), np.full(n, -np.inf)
+    for start in range(0, n_voxels, _CHUNK_VOXELS):
+        stop = min(start + _CHUNK_VOXELS, n_voxels)
+        chunk = flat[:, start:stop] if voxels is None else flat[:, voxels[start:stop]]
+        low, high = np.minimum(low, chunk.min(axis=1)), np.maximum(high, chunk.max(axis=1))
+        chunk_mean = chunk.mean(axis=0)
+        centred = chunk - chunk_mean
+        mean[start:stop] = chunk_mean
+        gram += centred @ centred.T
+    return gram, mean, low, high
+
+
+def _check_images_differ(gram: np.ndarray, low: np.ndarray, high: np.ndarray, *, masked: bool):
+    """Refuse an image given twice and a constant image, as the manifest check does for
+    evaluate's images: both would change the scores without a word (a subject counted twice
+    draws the model's samples near it twice as often).
+
+    Parameters
+    ----------
+    gram : ndarray of shape (N, N)
+        The centred images' Gram matrix: images i and j are the same where
+        ``gram[i, i] + gram[j, j] - 2 gram[i, j]`` (their squared distance) is 0, to
+        round-off.
+    low, high : ndarray of shape (N,)
+        Each image's least and greatest voxel value where the model is fitted.
+    masked : bool
+        Whether a mask chose those voxels (the message says so).
+    """
+    where = " inside the mask" if masked else ""
+    if np.all(high - low == 0) and np.all(low == low[0]):
+        raise InputError("all images are identical: the texture model has no mode of variation")
+    diagonal = np.diag(gram)
+    squared = diagonal[:, None] + diagonal[None, :] - 2.0 * gram
+    tolerance = 1e-12 * max(float(diagonal.max()), np.finfo(float).tiny)
+    for j in range(1, gram.shape[0]):
+        same = np.flatnonzero(squared[j, :j] <= tolerance)
+        if same.size:
+            raise InputError(
+                f"images[{j}] is the same as images[{same[0]}] (identical voxels{where}): give "
+                "each image once (twice, its subject weighs twice in the model)"
+            )
+    constant = np.flatnonzero(high - low == 0)
+    if constant.size:
+        raise InputError(
+            f"images[{constant[0]}] is constant ({low[constant[0]]:g}{where}): an image with no "
+            "texture scores as an outlier of the model"
+        )

@@ -379,8 +379,15 @@ def test_bad_groups_are_refused(two_contrasts, groups, message):
 def test_identical_group_and_too_few_samples_are_refused(two_contrasts):
     images = two_contrasts.copy()
     images[4] = images[1]
+    groups = ["y", "x", "y", "y", "x"] + ["y"] * 7
+    # given as images, the image given twice is refused first, by name
+    with pytest.raises(nr.InputError, match=r"images\[4\] is the same as images\[1\]"):
+        nr.specificity(images, groups=groups, n_samples=100)
+    # a model from its Gram matrix alone (as the pipeline builds it): the group's check
+    centred = images.reshape(len(images), -1) - images.reshape(len(images), -1).mean(axis=0)
+    model = nr.TextureModel.from_gram(centred @ centred.T)
     with pytest.raises(nr.InputError, match="the 2 images of group 'x' are identical"):
-        nr.specificity(images, groups=["y", "x", "y", "y", "x"] + ["y"] * 7, n_samples=100)
+        nr.specificity(model, groups=groups, n_samples=100)
     # 5 samples for groups of 10 and 2 images: 5 * 2 / 12 < 2, so group t2 gets 1 sample.
     groups = ["t1"] * 10 + ["t2"] * 2
     with pytest.raises(ValueError, match=r"n_samples=5 gives group 't2' 1 samples"):

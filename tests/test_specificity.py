@@ -212,6 +212,31 @@ def test_degenerate_inputs_are_refused(small_images):
         nr.specificity(small_images, n_samples=1)
 
 
+def test_an_image_given_twice_or_a_constant_image_is_refused_by_the_library(small_images):
+    """What ``nrreval specificity`` refuses, the library refuses too: an image given twice
+    (a subject weighs twice in the model, and the model's samples fall near it twice as
+    often: a lower specificity, silently) and a constant image (no texture). Both were
+    scored without a word through specificity(), texture_measures() and
+    TextureModel.from_images()."""
+    twice = small_images.copy()
+    twice[4] = twice[1]
+    for call in (nr.specificity, nr.texture_measures, nr.TextureModel.from_images):
+        with pytest.raises(nr.InputError, match=r"images\[4\] is the same as images\[1\]"):
+            call(twice)
+    flat = small_images.copy()
+    flat[2] = 7.0
+    with pytest.raises(nr.InputError, match=r"images\[2\] is constant"):
+        nr.specificity(flat)
+    # a mask that leaves only voxels where two images agree: the same, where it is scored
+    mask = np.zeros(small_images.shape[1:], bool)
+    mask[0, :3] = True
+    twice_inside = small_images.copy()
+    twice_inside[4][mask] = twice_inside[1][mask]
+    with pytest.raises(nr.InputError, match=r"images\[4\] is the same as images\[1\]"):
+        nr.TextureModel.from_images(twice_inside, mask=mask)
+    nr.TextureModel.from_images(twice_inside)  # they differ outside it
+
+
 def test_images_on_different_grids_name_the_first_offender(tmp_path, small_images):
     paths = _write_images(tmp_path, small_images)
     sitk.WriteImage(sitk.GetImageFromArray(small_images[4][:, :-1]), paths[4])  # a different size
