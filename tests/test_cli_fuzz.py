@@ -490,7 +490,8 @@ def test_ctrl_c_after_the_swap_is_exit_0_every_time(base, tmp_path, monkeypatch,
     _sandbox(base, tmp_path)
     monkeypatch.setattr(_output, "_interrupts_held_off", swap_then_ctrl_c)
     out = tmp_path / "results"
+    handler = signal.getsignal(signal.SIGINT)
     assert main(_command(command, tmp_path, out, [])) == 0
     assert (out / ".nrreval-output.json").is_file()
-    # outside a command the library leaves Ctrl-C as Python has it
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    # after the command, Ctrl-C is handled as it was before it (in a console: by Python)
+    assert signal.getsignal(signal.SIGINT) is handler

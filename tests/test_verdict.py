@@ -150,6 +150,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
     from itk_nrreval.verdict import (
         EXCHANGE_RATE,
         MIN_ROUGHNESS_DIFFERENCE,
+        MIN_SPECIFICITY_RATIO,
         NO_FOLDING_FRACTION,
         OVERLAP_EXCHANGE_RATE,
         SEVERE_FOLDED_FRACTION,
@@ -181,6 +182,8 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
             return False  # r does not deform locally (affine: no non-linear displacement)
         if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
             return False  # r folds more: not the smoother, whatever its SDlogJ
+        if scores[r].plausibility.folded_fraction >= NO_FOLDING_FRACTION:
+            return False  # r folds: not credited for smoothness at all
         for c in comparisons:
             if (
                 c.measure == "specificity"
@@ -201,9 +204,20 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         rougher = max(0.0, scores[r].plausibility.sdlogj - scores[o].plausibility.sdlogj)
         if measure == "specificity":
             gain = np.log(scores[o].specificity.value / scores[r].specificity.value)
-            return (by_spec == r and gain >= EXCHANGE_RATE * rougher) or too_little(r, o)
+            fr, fo = scores[r].plausibility.folded_fraction, scores[o].plausibility.folded_fraction
+            sr, so = scores[r].plausibility.sdlogj, scores[o].plausibility.sdlogj
+            if by_spec == r and gain >= EXCHANGE_RATE * rougher:
+                # against one that folds more (>= 1%): r charged as if o's fields were flat
+                if fo >= NO_FOLDING_FRACTION and fo > fr and gain < EXCHANGE_RATE * sr:
+                    return False
+                # a small ratio, where r is not smoother by MIN_ROUGHNESS_DIFFERENCE
+                return gain >= np.log(MIN_SPECIFICITY_RATIO) or so - sr >= MIN_ROUGHNESS_DIFFERENCE
+            return too_little(r, o)
         pr, po = scores[r].overlap["inverse_volume"], scores[o].overlap["inverse_volume"]
         gain = np.log((pr / (1 - pr)) / (po / (1 - po)))
+        fr, fo = scores[r].plausibility.folded_fraction, scores[o].plausibility.folded_fraction
+        if fo >= NO_FOLDING_FRACTION and fo > fr:  # as for specificity: o's fields taken flat
+            rougher = max(rougher, scores[r].plausibility.sdlogj)
         return by_overlap == r and gain >= OVERLAP_EXCHANGE_RATE * rougher and not scores[r].flags
 
     out = []
@@ -663,11 +677,101 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
     assert [(d.better, d.worse) for d in v.decisions] == [("affine", "rough")]
     # nor one that folds more than the rougher one: folds are roughness that SDlogJ ranks
     # poorly (a B-spline folding 3% with SDlogJ 0.5 corresponded worse than demons at 1.0)
-    for folds, expected in ((0.03, ()), (0.0, ("smooth",))):
+    # nor one that folds at all (1% or more), even less than the other: FRESH6's 25 mm
+    # B-spline folding 4.4% corresponded worse than a 10 mm one folding 8.6%
+    for folds, expected in ((0.03, ()), (0.0, ("smooth",)), (0.044, ()), (0.009, ("smooth",))):
         scores = {
             "smooth": _registration(base, "smooth", spec=10.0, sdlogj=0.1, folded=folds),
-            "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=0.1 + dr, folded=0.01),
+            "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=0.1 + dr, folded=0.086),
         }
         values = {k: s.specificity.value for k, s in scores.items()}
         v = verdict(scores, _separable_where(values, [{"smooth", "rough"}]), has_labels=False)
         assert tuple(d.better for d in v.decisions) == expected, folds
+
+
+def test_specificity_is_no_evidence_against_folds_or_by_a_small_ratio(cheat_case):
+    """Issue 41's held-out case outside the project, two wrong decisions, as numbers:
+
+    - demons at 1 mm (SDlogJ 0.29, no folds) was decided better than a 25 mm B-spline that
+      folds 2.3% (SDlogJ 0.54, inflated around its folds) on its separably lower
+      specificity, against the truth. Against a registration that folds, specificity is
+      evidence only beyond what the preferred registration's own roughness could buy
+      (exp(EXCHANGE_RATE * 0.29) = 4.9x);
+    - demons at 3 mm was decided better than a displacement-field registration at equal
+      roughness (SDlogJ 0.09 and 0.09) on a 1.16x lower specificity, against the truth. A
+      ratio below MIN_SPECIFICITY_RATIO decides nothing unless the preferred fields are
+      clearly smoother.
+    """
+    from itk_nrreval.verdict import EXCHANGE_RATE, MIN_SPECIFICITY_RATIO
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+
+    def decided(a, b):
+        scores = {a.name: a, b.name: b}
+        values = {k: s.specificity.value for k, s in scores.items()}
+        v = verdict(scores, _separable_where(values, [{a.name, b.name}]), has_labels=False)
+        return [(d.better, d.worse) for d in v.decisions], v
+
+    # a registration that folds 2.3% against demons whose specificity is 1.3x lower
+    bspline = _registration(base, "bspline", spec=13.0, sdlogj=0.54, folded=0.023)
+    demons = _registration(base, "demons", spec=10.0, sdlogj=0.29)
+    pairs, v = decided(demons, bspline)
+    assert pairs == []
+    (p,) = v.open_pairs
+    assert "bspline folds 2.3% of its voxels" in p.reason
+    assert f"less than the {np.exp(EXCHANGE_RATE * 0.29):.2f}x" in p.reason
+    # beyond what demons' own roughness could buy, it decides
+    far = _registration(base, "bspline", spec=10.0 * 1.02 * np.exp(EXCHANGE_RATE * 0.29),
+                        sdlogj=0.54, folded=0.023)  # fmt: skip
+    assert decided(demons, far)[0] == [("demons", "bspline")]
+    # against one that folds less than NO_FOLDING_FRACTION, as before
+    little = _registration(base, "bspline", spec=13.0, sdlogj=0.54, folded=0.005)
+    assert decided(demons, little)[0] == [("demons", "bspline")]
+
+    # equal roughness: 1.16x decides nothing, 1.25x does
+    field = _registration(base, "field", spec=11.6, sdlogj=0.09)
+    demons3 = _registration(base, "demons", spec=10.0, sdlogj=0.09)
+    pairs, v = decided(demons3, field)
+    assert pairs == [] and f"below the {MIN_SPECIFICITY_RATIO:g}x" in v.open_pairs[0].reason
+    field = _registration(base, "field", spec=12.5, sdlogj=0.09)
+    assert decided(demons3, field)[0] == [("demons", "field")]
+    # clearly smoother (by 0.06 >= MIN_ROUGHNESS_DIFFERENCE): a small ratio is evidence
+    field = _registration(base, "field", spec=11.6, sdlogj=0.15)
+    assert decided(demons3, field)[0] == [("demons", "field")]
+
+
+def test_the_overlap_is_no_evidence_against_folds_either(cheat_case):
+    """The benchmark's FRESH5 (declared before it ran): in 3D, demons at 2 mm (SDlogJ 0.47)
+    was decided better than a 10 mm B-spline that folds 1.7% (SDlogJ 0.64) and corresponds
+    better, by the overlap's separable 1.61x odds. Against a registration that folds, the
+    overlap too is evidence only beyond exp(OVERLAP_EXCHANGE_RATE * 0.47) = 6.9x."""
+    from itk_nrreval.verdict import OVERLAP_EXCHANGE_RATE
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+
+    def odds(p):
+        return p / (1 - p)
+
+    def decided(bspline_overlap):
+        scores = {
+            "demons": _registration(base, "demons", spec=10.0, overlap=0.6, sdlogj=0.47),
+            "bspline": _registration(
+                base, "bspline", spec=10.0, overlap=bspline_overlap, sdlogj=0.64, folded=0.017
+            ),
+        }
+        overlaps = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
+        pair = [{"demons", "bspline"}]
+        comparisons = _separable_where(overlaps, pair, "overlap.inverse_volume")
+        v = verdict(scores, comparisons, has_labels=True)
+        return [(d.better, d.worse) for d in v.decisions], v
+
+    bar = np.exp(OVERLAP_EXCHANGE_RATE * 0.47)
+    at_161 = odds(0.6) / 1.61  # the bspline's odds at FRESH5's ratio
+    pairs, v = decided(at_161 / (1 + at_161))
+    assert pairs == []
+    assert "bspline folds 1.7% of its voxels" in v.open_pairs[0].reason
+    assert f"1.61x the odds of overlap is less than the {bar:.2f}x" in v.open_pairs[0].reason
+    beyond = odds(0.6) / (1.02 * bar)
+    assert decided(beyond / (1 + beyond))[0] == [("demons", "bspline")]
