@@ -510,8 +510,9 @@ def validate_manifest(manifest, *, section=None, **options) -> ValidationResult:
             raise TypeError(f"validate_manifest() got an unexpected keyword argument {key!r}")
     from ._pipeline import COVERAGE_WARNING
 
-    source = str(manifest)
-    manifest = load_manifest(manifest)  # once: its checks read every image
+    given = manifest
+    manifest = load_manifest(manifest)  # once (a Manifest: as it is): its checks read every image
+    source = str(given) if given is not manifest else str(manifest.source or "manifest")
     images, members, grid, taken, (region, fraction, where, masked) = _manifest_arrays(
         manifest, section, options.get("progress", True)
     )

@@ -111,6 +111,14 @@ def test_validate_a_3d_manifest_where_one_image_lacks_a_label(case):
     assert all(0 < r.min_jacobian <= 1 for r in res.rows)
     # issue 44: the result says whose registered set it perturbed (the common frame)
     assert res.parameters["registration"] == "truth"
+    # a loaded Manifest is used as it is (nrreval validate loads it once, not twice): the
+    # same numbers, and its file as the source
+    from itk_nrreval.manifest import load_manifest
+
+    loaded = load_manifest(case / "manifest.yaml")
+    again = validate_manifest(loaded, displacements=(0.0, 0.05, 0.1), **KW)
+    assert [r.to_dict() for r in again.rows] == [r.to_dict() for r in res.rows]
+    assert again.source == str(loaded.source) and loaded.source is not None
 
 
 def test_large_label_values_give_the_same_numbers_as_small_ones():

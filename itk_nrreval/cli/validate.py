@@ -157,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         # perturbed is the common frame's, said before the (long) run
         perturbed = manifest.common_frame
         print(f"perturbing registration {perturbed!r} (the common frame) of {source}", flush=True)
-        result = validate_manifest(args.manifest, section=args.slice, source=source, **options)
+        # the manifest loaded above, not its file again: its check reads every image
+        result = validate_manifest(manifest, section=args.slice, source=source, **options)
     with staged_folder(out, keep=(), command="validate") as stage:
         paths = [out / p.name for p in result.write(stage)]
     s = result.summary
