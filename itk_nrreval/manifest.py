@@ -239,6 +239,11 @@ class Manifest:
         The labels' names (label value -> name), read from the manifest's ``label_names``
         (a ``dseg.tsv`` or FreeSurfer lookup table, or a mapping;
         :mod:`itk_nrreval.label_names`), shown beside the values; None: values only.
+    notes : tuple of str
+        The warnings the check gave, each also a ``UserWarning`` when the manifest was
+        loaded (a label found in one subject only; displacement fields that look like RAS
+        given as LPS), without the manifest's name; ``results.json`` keeps them
+        (``options.manifest_warnings``).
     """
 
     images: tuple[Any, ...]
@@ -252,6 +257,7 @@ class Manifest:
     subjects: tuple[str, ...] | None = None
     masks: tuple[Any, ...] | None = None
     label_names: Mapping[int, str] | None = None
+    notes: tuple[str, ...] = ()
 
     @property
     def n_images(self) -> int:
@@ -433,7 +439,7 @@ def load_manifest(
     assert manifest is not None
     for note in notes:
         warnings.warn(f"{label}: {note}", UserWarning, stacklevel=2)
-    return manifest
+    return replace(manifest, notes=tuple(notes)) if notes else manifest
 
 
 _PROBLEMS_LISTED = 10

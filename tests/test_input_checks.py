@@ -8,6 +8,7 @@ in process, on small files written here.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -486,6 +487,10 @@ def test_a_label_of_one_subject_only_is_warned_about_not_refused(tmp_path, capsy
     assert len(found) == 1, err
     assert found[0].startswith("nrreval evaluate: warning: ")
     assert "lab3.nii.gz" in found[0]
+    # and results.json keeps it, for a pipeline that reads the JSON and not stderr
+    kept = json.loads((out / "results.json").read_text())["options"]["manifest_warnings"]
+    assert len(kept) == 1 and "label 9 is only in labels[3]" in kept[0], kept
+    assert found[0].endswith(kept[0])
 
 
 def test_a_label_of_one_subject_with_several_images_is_that_subjects(tmp_path):
