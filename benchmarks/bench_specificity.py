@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _sampling
+from itk_nrreval import _search
 
 N, M, SHAPE = 36, 500_000, (64, 64)
 CHUNK = 8192
@@ -52,13 +52,13 @@ def main() -> dict:
     sd = np.sqrt(model.mode_variances)
     train_t = np.ascontiguousarray(train.T)
     nr.specificity(model, n_samples=1000)  # compile outside the timings
-    _sampling.nearest_of_samples(train_t, train[:10].copy(), False, 1024)
+    _search.sampling.nearest_of_samples(train_t, train[:10].copy(), False, 1024)
 
     t_draw, samples = _best_of(lambda: np.random.default_rng(1).standard_normal((M, 35)) * sd)
     t_naive, ref = _best_of(lambda: naive_search(train, samples), repeats=1)
     t_cdist, ref_cdist = _best_of(lambda: cdist_search(train, samples))
     t_ours, (ours, _) = _best_of(
-        lambda: _sampling.nearest_of_samples(train_t, samples, False, 4096)
+        lambda: _search.sampling.nearest_of_samples(train_t, samples, False, 4096)
     )
     t_whole, result = _best_of(lambda: nr.specificity(model, n_samples=M, seed=1))
     max_rel = float(np.max(np.abs(ours - ref) / ref))

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from . import _sampling
+from . import _search
 from ._errors import InputError, readable
 from ._images import Geometry, read_image
 from ._progress import progress_bar
@@ -307,10 +307,10 @@ class AppearanceModel:
         """Parameters ``c`` of model samples ``start:stop``: shape (stop - start, n_modes).
 
         ``c_k = z(seed, mu, k) sqrt(combined_variances[k])`` with the counter-based standard
-        normals of :mod:`itk_nrreval._sampling`: sample ``mu`` is the same whatever the chunk
+        normals of :mod:`itk_nrreval._search.sampling`: sample ``mu`` is the same whatever the chunk
         it is drawn in.
         """
-        z = _sampling.standard_normals(int(seed), int(start), int(stop), self.n_modes)
+        z = _search.sampling.standard_normals(int(seed), int(start), int(stop), self.n_modes)
         return z * np.sqrt(self.combined_variances)
 
     def instance(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -593,7 +593,7 @@ def _populations(counts: np.ndarray, values: np.ndarray) -> CellPopulations:
 def _check_options(n_samples, seed) -> None:
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)):
         raise ValueError(f"n_samples must be an integer >= 2, got {readable(n_samples)}")
-    if not 2 <= n_samples < _sampling.MAX_SAMPLES:
+    if not 2 <= n_samples < _search.sampling.MAX_SAMPLES:
         raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**63:
         raise ValueError(f"seed must be an integer in [0, 2**63), got {readable(seed)}")

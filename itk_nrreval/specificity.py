@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _sampling, _search
+from . import _search
 from ._errors import InputError, readable
 from .model import MixtureModel, TextureModel
 
@@ -201,7 +201,7 @@ class SpecificityComparison:
 
 MAX_SEED = 2**63
 """Seeds are integers in ``[0, MAX_SEED)``: the sampler mixes a seed into a 64-bit stream key
-(:func:`itk_nrreval._sampling.stream_key`)."""
+(:func:`itk_nrreval._search.sampling.stream_key`)."""
 
 
 def _checked_seed(seed, *, name: str = "seed") -> int:
@@ -229,7 +229,9 @@ def _check_options(n_samples: int, distance: str, exponent: float, seed) -> int:
     """Check the options; return the seed as an int (:func:`_checked_seed`)."""
     if distance not in _DISTANCES:
         raise ValueError(f"distance must be one of {_DISTANCES}, got {distance!r}")
-    if not (isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _sampling.MAX_SAMPLES):
+    if not (
+        isinstance(n_samples, (int, np.integer)) and 2 <= n_samples < _search.sampling.MAX_SAMPLES
+    ):
         raise ValueError(f"n_samples must be an integer in [2, 2**36), got {readable(n_samples)}")
     if not (exponent > 0 and math.isfinite(exponent)):
         raise ValueError(f"exponent must be a positive number, got {readable(exponent)}")
@@ -296,7 +298,7 @@ def _combine_groups(means, m2s, found: _search.Search, group_samples):
     """Per group (mean, M2) of the per-chunk moments (n_chunks,) over its chunks."""
     groups = found.spans[:, 2]
     return [
-        _sampling.combine_moments(means[groups == g], m2s[groups == g], int(m), found.chunk)
+        _search.sampling.combine_moments(means[groups == g], m2s[groups == g], int(m), found.chunk)
         for g, m in enumerate(group_samples)
     ]
 
@@ -349,7 +351,7 @@ def _summary(mix, group_samples, stats, stderrs, counts, spans) -> MixtureSummar
 
 
 def _check_modes(model: TextureModel) -> None:
-    if model.n_modes >= _sampling.MAX_MODES:
+    if model.n_modes >= _search.sampling.MAX_MODES:
         raise InputError(f"the model has {model.n_modes} modes; at most 262143 are supported")
 
 

@@ -70,18 +70,30 @@ def test_no_module_imports_a_private_name_of_a_sibling():
                     bound_modules[imported] = f"{target}.{imported}"
                 elif imported.startswith("_") and not imported.startswith("__"):
                     offences.append(f"{name}:{line} imports {imported} from {target}")
-        # attribute access into a module imported by name: `_sampling._key`
+        # attribute access into a module imported by name, `_search._key`, or into a
+        # submodule reached through it, `_search.sampling._key`
         tree = ast.parse(modules[name].read_text())
         for node in ast.walk(tree):
             if (
                 isinstance(node, ast.Attribute)
-                and isinstance(node.value, ast.Name)
-                and node.value.id in bound_modules
+                and _module_named(node.value, bound_modules, modules) is not None
                 and node.attr.startswith("_")
                 and not node.attr.startswith("__")
             ):
-                offences.append(f"{name}:{node.lineno} uses {node.value.id}.{node.attr}")
+                offences.append(f"{name}:{node.lineno} uses {ast.unparse(node)}")
     assert offences == []
+
+
+def _module_named(node: ast.expr, bound_modules: dict[str, str], modules: dict[str, Path]):
+    """The package module an expression names -- a module imported by name, or a submodule
+    reached from one by attributes (``_search.sampling``) -- or None."""
+    if isinstance(node, ast.Name):
+        return bound_modules.get(node.id)
+    if isinstance(node, ast.Attribute):
+        parent = _module_named(node.value, bound_modules, modules)
+        if parent is not None and f"{parent}.{node.attr}" in modules:
+            return f"{parent}.{node.attr}"
+    return None
 
 
 def test_no_import_cycle():

@@ -2,7 +2,7 @@
 
 The references never look inside the model: each group's mean and modes come from an SVD of
 that group's images in image space, samples are rebuilt as images from the package's
-standard normals (``_sampling.standard_normals``, the documented counter-based stream), and
+standard normals (``_search.sampling.standard_normals``, the documented counter-based stream), and
 distances are taken by numpy / scipy to every training image. Conventions the references
 follow because they are documented (not because the code does them): groups in order of
 first appearance; group g's samples are numbers ``offset_g .. offset_g + M_g - 1``; each group
@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _sampling
+from itk_nrreval import _search
 from itk_nrreval.cli import main
 from itk_nrreval.model import MixtureModel
 
@@ -83,7 +83,7 @@ def _brute_force(images, groups, result, seed):
     offset = 0
     for g, idx in enumerate(members):
         mean, modes, sd = _group_modes(flat[idx])
-        z = _sampling.standard_normals(seed, offset, offset + alloc[g], sd.size)
+        z = _search.sampling.standard_normals(seed, offset, offset + alloc[g], sd.size)
         samples.append(mean + (z * sd) @ modes)
         sample_group.append(np.full(alloc[g], g))
         offset += alloc[g]
@@ -195,19 +195,19 @@ def test_groups_none_is_todays_estimator(two_contrasts):
         spec, gen = nr.texture_measures(
             two_contrasts, n_samples=m, distance=distance, seed=seed, groups=None
         )
-        n_chunks = -(-m // _sampling.CHUNK)
-        means, m2s, counts, gmin = _sampling.run_single(
+        n_chunks = -(-m // _search.sampling.CHUNK)
+        means, m2s, counts, gmin = _search.sampling.run_single(
             np.ascontiguousarray(model.training_params.T),
             np.sqrt(model.mode_variances),
-            _sampling.stream_key(seed),
+            _search.sampling.stream_key(seed),
             m,
             distance == "l2",
             1.0,
-            _sampling.CHUNK,
+            _search.sampling.CHUNK,
             0,
             n_chunks,
         )
-        mean, m2 = _sampling.combine_moments(means, m2s, m, _sampling.CHUNK)
+        mean, m2 = _search.sampling.combine_moments(means, m2s, m, _search.sampling.CHUNK)
         assert spec.value == mean
         assert spec.stderr == math.sqrt(m2 / m) / math.sqrt(m - 1)
         np.testing.assert_array_equal(spec.nearest_counts, counts.sum(axis=0))

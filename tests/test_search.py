@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _sampling, _search
+from itk_nrreval import _search
 from itk_nrreval.model import MixtureModel
 
 HAS_TORCH = importlib.util.find_spec("torch") is not None
@@ -45,7 +45,7 @@ def test_every_backend_gives_the_same_specificity(small_images, monkeypatch, dis
     (spec, gen) = results["per-sample"]
     if groups is None:  # an independent reference for the single Gaussian
         model = nr.TextureModel.from_images(small_images)
-        z = _sampling.standard_normals(6, 0, 4099, model.n_modes)
+        z = _search.sampling.standard_normals(6, 0, 4099, model.n_modes)
         d = cdist(
             z * np.sqrt(model.mode_variances),
             model.training_params,

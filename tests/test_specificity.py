@@ -13,7 +13,7 @@ from scipy import stats
 from scipy.spatial.distance import cdist, pdist
 
 import itk_nrreval as nr
-from itk_nrreval import _sampling
+from itk_nrreval import _search
 from itk_nrreval.cli import main
 
 
@@ -51,7 +51,7 @@ def test_l2_specificity_equals_image_space_distances(small_images, exponent):
     m = 3000
     model = nr.TextureModel.from_images(small_images)
     r = nr.specificity(model, n_samples=m, distance="l2", exponent=exponent, seed=7)
-    z = _sampling.standard_normals(7, 0, m, model.n_modes)
+    z = _search.sampling.standard_normals(7, 0, m, model.n_modes)
     samples = _image_space_samples(small_images, model, z)
     d = cdist(samples, small_images.reshape(10, -1))
     per_sample = d.min(axis=1) ** exponent
@@ -65,7 +65,9 @@ def test_l1_specificity_and_generalization_match_brute_force(small_images):
     m = 5000  # not a multiple of the chunk size
     model = nr.TextureModel.from_images(small_images)
     spec, gen = nr.texture_measures(model, n_samples=m, distance="l1", seed=3)
-    samples = _sampling.standard_normals(3, 0, m, model.n_modes) * np.sqrt(model.mode_variances)
+    samples = _search.sampling.standard_normals(3, 0, m, model.n_modes) * np.sqrt(
+        model.mode_variances
+    )
     d = np.abs(samples[:, None, :] - model.training_params[None]).sum(axis=2)
     assert spec.value == pytest.approx(d.min(axis=1).mean(), rel=1e-12)
     assert spec.stderr == pytest.approx(d.min(axis=1).std() / math.sqrt(m - 1), rel=1e-9)
@@ -99,7 +101,7 @@ def test_results_do_not_depend_on_thread_count(small_images):
 
 
 def test_standard_normals_are_standard_normal_and_independent():
-    z = _sampling.standard_normals(0, 0, 40_000, 5)
+    z = _search.sampling.standard_normals(0, 0, 40_000, 5)
     assert stats.kstest(z.ravel(), "norm").pvalue > 1e-3
     corr = np.corrcoef(z.T)
     assert np.abs(corr - np.eye(5)).max() < 0.03
@@ -109,7 +111,7 @@ def test_standard_normals_are_standard_normal_and_independent():
 
 def test_standard_normal_tails_follow_the_normal_law():
     # Draws beyond the ziggurat's base strip (|z| > 3.654) take the tail path.
-    z = _sampling.standard_normals(9, 0, 50_000, 20).ravel()
+    z = _search.sampling.standard_normals(9, 0, 50_000, 20).ravel()
     for t in (2.0, 3.0, 3.654):
         expected = 2 * stats.norm.sf(t) * z.size
         observed = np.count_nonzero(np.abs(z) > t)
@@ -119,8 +121,8 @@ def test_standard_normal_tails_follow_the_normal_law():
 
 def test_common_random_numbers_share_normals_across_models():
     # A sample's first modes do not depend on how many modes the model has.
-    a = _sampling.standard_normals(4, 100, 110, 3)
-    b = _sampling.standard_normals(4, 100, 110, 8)
+    a = _search.sampling.standard_normals(4, 100, 110, 3)
+    b = _search.sampling.standard_normals(4, 100, 110, 8)
     np.testing.assert_array_equal(a, b[:, :3])
 
 

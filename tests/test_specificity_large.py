@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _blocked, _sampling
+from itk_nrreval import _search
 
 spec_mod = importlib.import_module("itk_nrreval.specificity")  # the module, not the function
 
@@ -63,10 +63,12 @@ def test_blocked_equals_per_sample(model_300, monkeypatch, distance, exponent):
 def test_blocked_is_bit_identical_to_run_single(model_300, distance):
     train = model_300.training_params
     sd = np.sqrt(model_300.mode_variances)
-    key = _sampling.stream_key(2)
+    key = _search.sampling.stream_key(2)
     l2 = distance == "l2"
-    old = _sampling.run_single(np.ascontiguousarray(train.T), sd, key, 1000, l2, 1.0, 256, 0, 4)
-    new = _blocked.run_single_blocked(train, sd, key, 1000, l2, 1.0, 256)
+    old = _search.sampling.run_single(
+        np.ascontiguousarray(train.T), sd, key, 1000, l2, 1.0, 256, 0, 4
+    )
+    new = _search.blocked.run_single_blocked(train, sd, key, 1000, l2, 1.0, 256)
     for a, b in zip(old, new, strict=True):
         np.testing.assert_array_equal(a, b)
 
@@ -75,13 +77,15 @@ def test_blocked_is_bit_identical_to_run_single(model_300, distance):
 def test_blocked_independent_of_chunks_blocks_and_threads(model_300, monkeypatch, distance):
     train = model_300.training_params
     sd = np.sqrt(model_300.mode_variances)
-    key = _sampling.stream_key(9)
+    key = _search.sampling.stream_key(9)
     l2 = distance == "l2"
     n = 1200
 
     def combined(chunk):
-        means, m2s, counts, gen = _blocked.run_single_blocked(train, sd, key, n, l2, 1.0, chunk)
-        return _sampling.combine_moments(means, m2s, n, chunk), counts.sum(0), gen.min(0)
+        means, m2s, counts, gen = _search.blocked.run_single_blocked(
+            train, sd, key, n, l2, 1.0, chunk
+        )
+        return _search.sampling.combine_moments(means, m2s, n, chunk), counts.sum(0), gen.min(0)
 
     (mean, m2), counts, gen = combined(4096)
     for chunk in (500, 333):
@@ -90,7 +94,7 @@ def test_blocked_independent_of_chunks_blocks_and_threads(model_300, monkeypatch
         assert m2_c == pytest.approx(m2, rel=1e-10)
         np.testing.assert_array_equal(counts_c, counts)
         np.testing.assert_array_equal(gen_c, gen)
-    monkeypatch.setattr(_blocked, "L2_BLOCK_RANGE", (37, 37))  # GEMM blocks of 37 samples
+    monkeypatch.setattr(_search.blocked, "L2_BLOCK_RANGE", (37, 37))  # GEMM blocks of 37 samples
     (mean_b, m2_b), counts_b, gen_b = combined(4096)
     assert (mean_b, m2_b) == (mean, m2)
     np.testing.assert_array_equal(counts_b, counts)
@@ -115,7 +119,9 @@ def test_blocked_against_brute_force(monkeypatch, distance, exponent):
     spec, gen = _measures(
         model, monkeypatch, distance, True, n_samples=m, exponent=exponent, seed=seed
     )
-    samples = _sampling.standard_normals(seed, 0, m, model.n_modes) * np.sqrt(model.mode_variances)
+    samples = _search.sampling.standard_normals(seed, 0, m, model.n_modes) * np.sqrt(
+        model.mode_variances
+    )
     d = cdist(samples, model.training_params, "cityblock" if distance == "l1" else "euclidean")
     per_sample = d.min(axis=1) ** exponent
     assert spec.value == pytest.approx(per_sample.mean(), rel=1e-10)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ._errors import readable
+from .._errors import readable
 
 __all__ = [
     "stream_key",

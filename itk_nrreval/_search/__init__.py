@@ -9,11 +9,11 @@ nearest sample (generalization); for a pair, also the moments of the paired diff
 Three searches, one protocol (:class:`_Backend`: ``run(first, last)`` over chunks, ``step``
 chunks per call so a progress bar can move between calls):
 
-* ``"per-sample"``: the fused numba kernels of :mod:`._sampling` (each sample against all N
+* ``"per-sample"``: the fused numba kernels of :mod:`.sampling` (each sample against all N
   training points in turn; chunks in parallel);
-* ``"blocked"``: :class:`._blocked.BlockedSearcher`, blocks of samples against cache-sized
+* ``"blocked"``: :class:`.blocked.BlockedSearcher`, blocks of samples against cache-sized
   tiles (L1) or by GEMM with exact re-summation (L2); bit-identical to ``"per-sample"``;
-* ``"torch"``: :class:`._blocked.TorchSearcher`, the blocks on a torch device in float64;
+* ``"torch"``: :class:`.blocked.TorchSearcher`, the blocks on a torch device in float64;
   equal to the CPU searches to rounding.
 
 The public names ``"auto"`` and ``"cpu"`` are policies that pick one of them by the size of
@@ -23,6 +23,17 @@ A single Gaussian (a :class:`TextureModel`, or a :class:`MixtureModel` of one gr
 single-Gaussian kernels (samples ``sd * z``); a mixture of two groups or more runs the mixture
 kernels (samples ``centre_g + z @ basis_g``). A single Gaussian is not run as a one-component
 mixture: that would cost ``n_modes`` multiply-adds per coordinate instead of one.
+
+The search in one place (private; :mod:`itk_nrreval.specificity` is its public face):
+
+* this module, ``itk_nrreval._search``: the engine a caller uses -- :func:`search`, the
+  backend names and policy (:data:`BACKENDS`, :data:`BLOCKED_MIN_IMAGES`), the results
+  (:class:`Search`, :class:`ChunkStats`) and the backend protocol;
+* :mod:`.sampling`: the sample stream (counter-based standard normals keyed by the seed,
+  :func:`~.sampling.stream_key`, :data:`~.sampling.CHUNK`, :func:`~.sampling.mixture_spans`),
+  the per-chunk moments and their combination, and the fused per-sample numba kernels;
+* :mod:`.blocked`: the numba kernels and searchers for large N -- blocks of samples against
+  cache-sized tiles (L1) or by GEMM with exact re-summation (L2), on the CPU or on torch.
 """
 
 from __future__ import annotations
@@ -35,8 +46,9 @@ from typing import Protocol
 import numba
 import numpy as np
 
-from . import _blocked, _progress, _sampling
-from .model import MixtureModel, TextureModel
+from .. import _progress
+from ..model import MixtureModel, TextureModel
+from . import blocked, sampling
 
 __all__ = ["BACKENDS", "PUBLIC_BACKENDS", "BLOCKED_MIN_IMAGES", "ChunkStats", "Search", "search"]
 
@@ -81,7 +93,7 @@ class Search:
     ----------
     spans : ndarray of int64, shape (n_chunks, 3)
         Chunk c is samples ``spans[c, 0] .. spans[c, 1] - 1`` of group ``spans[c, 2]``
-        (:func:`._sampling.mixture_spans`; one group for a single Gaussian).
+        (:func:`.sampling.mixture_spans`; one group for a single Gaussian).
     chunk : int
         The longest chunk, in samples: every chunk of a group but its last has this length.
     models : tuple of ChunkStats
@@ -172,7 +184,7 @@ def search(
     distance: str,
     exponent: float,
     backend: str,
-    chunk: int = _sampling.CHUNK,
+    chunk: int = sampling.CHUNK,
     progress: bool = False,
     desc: str = "specificity",
 ) -> Search:
@@ -187,7 +199,7 @@ def search(
         M_g, the samples of each group's Gaussian (one entry, M, for a single Gaussian);
         group g draws sample numbers ``offset_g .. offset_g + M_g - 1``.
     seed : int
-        Seed of the standard normals (:func:`._sampling.stream_key`).
+        Seed of the standard normals (:func:`.sampling.stream_key`).
     distance : {"l1", "l2"}
         Distance in the joint parameter space.
     exponent : float
@@ -220,13 +232,13 @@ def search(
             f"search: models of {sorted(n_images)} images and {sorted(n_groups)} groups "
             f"with samples for {len(samples_per_group)} groups"
         )
-    spans = _sampling.mixture_spans(samples_per_group, int(chunk))
+    spans = sampling.mixture_spans(samples_per_group, int(chunk))
     name, device = _resolve(backend, n_images.pop(), distance)
     job = _Job(
         models=[_sampled(m) for m in models],
         spans=spans,
         chunk=int(chunk),
-        key=_sampling.stream_key(seed),
+        key=sampling.stream_key(seed),
         l2=distance == "l2",
         exponent=float(exponent),
     )
@@ -272,7 +284,7 @@ class _Backend(Protocol):
 
 
 class _PerSample:
-    """The fused numba kernels of :mod:`._sampling`, parallel over chunks."""
+    """The fused numba kernels of :mod:`.sampling`, parallel over chunks."""
 
     def __init__(self, job: _Job):
         self.job = job
@@ -291,7 +303,7 @@ class _PerSample:
         if len(job.models) == 1:
             (model,), (train_t,), (stacked,) = job.models, self.train_t, self.stacked
             if stacked is None:
-                stats = _sampling.run_single(
+                stats = sampling.run_single(
                     train_t,
                     model.sd,
                     job.key,
@@ -303,19 +315,19 @@ class _PerSample:
                     last,
                 )
             else:
-                stats = _sampling.run_mixture(
+                stats = sampling.run_mixture(
                     train_t, model.centres, *stacked, job.spans, *common, first, last
                 )
             return [stats], None
         (a, b), (ta, tb), (sa, sb) = job.models, self.train_t, self.stacked
         if sa is None:
             assert (first, last) == (0, job.spans.shape[0])  # step: every chunk at once
-            outputs = _sampling.run_paired(
+            outputs = sampling.run_paired(
                 ta, a.sd, tb, b.sd, job.key, n_samples, job.l2, job.exponent, job.chunk
             )
         else:
             spans = np.ascontiguousarray(job.spans[first:last])
-            outputs = _sampling.run_mixture_paired(
+            outputs = sampling.run_mixture_paired(
                 ta, a.centres, *sa, tb, b.centres, *sb, spans, *common
             )
         moments, counts_a, counts_b, gen_a, gen_b = outputs
@@ -326,23 +338,23 @@ class _PerSample:
 
 
 class _Searching:
-    """The blocked CPU or torch searchers of :mod:`._blocked`, one chunk per call."""
+    """The blocked CPU or torch searchers of :mod:`.blocked`, one chunk per call."""
 
     step = 1
 
     def __init__(self, job: _Job, device):
         self.job = job
         if device is None:
-            self.searchers = [_blocked.BlockedSearcher(m.train, m.sd, job.l2) for m in job.models]
+            self.searchers = [blocked.BlockedSearcher(m.train, m.sd, job.l2) for m in job.models]
         else:
             self.searchers = [
-                _blocked.TorchSearcher(m.train, m.sd, job.l2, device) for m in job.models
+                blocked.TorchSearcher(m.train, m.sd, job.l2, device) for m in job.models
             ]
         self.components = [m.components for m in job.models]
 
     def run(self, first: int, last: int):
         job = self.job
-        return _blocked.search_chunks(
+        return blocked.search_chunks(
             self.searchers, self.components, job.spans, job.key, job.l2, job.exponent, first, last
         )
 

@@ -1,6 +1,6 @@
 """Specificity for large N: blocks of model samples against cache-sized tiles of training points.
 
-The per-sample search of :mod:`._sampling` streams the whole (n_modes x n_images) training
+The per-sample search of :mod:`.sampling` streams the whole (n_modes x n_images) training
 matrix once per sample: ideal for N ~ 36, memory-bound at N ~ 10,000 (800 MB per sample).
 Here a block of S samples is drawn at once (the same counter-based normals, so the same
 numbers) and compared with the training set in one sweep:
@@ -18,10 +18,10 @@ numbers) and compared with the training set in one sweep:
 
 A Gaussian mixture (``groups``) runs through the same searchers: chunk by chunk of its span
 table, each chunk's samples drawn from its group's component (:func:`draw_mixture_block`, the
-same sums as :func:`._sampling.draw_mixture`, so again the same bits as the per-sample path).
+same sums as :func:`.sampling.draw_mixture`, so again the same bits as the per-sample path).
 
-Chunks of samples are :data:`._sampling.CHUNK` long as in the per-sample path, and each chunk
-gives its (mean, M2) and gen minima in the same form, so :func:`._sampling.combine_moments`
+Chunks of samples are :data:`.sampling.CHUNK` long as in the per-sample path, and each chunk
+gives its (mean, M2) and gen minima in the same form, so :func:`.sampling.combine_moments`
 and everything after it are shared. Memory per block is O(S (n_modes + n_images)).
 """
 
@@ -32,7 +32,7 @@ import math
 import numba
 import numpy as np
 
-from ._sampling import chunk_moments, fill_normals, finish_distances, mixture_spans
+from .sampling import chunk_moments, fill_normals, finish_distances, mixture_spans
 
 __all__ = [
     "draw_block",
@@ -77,7 +77,7 @@ def draw_block(sd, key, start, stop, out):
 def _draw_mixture_tile(centre, basis, key, start, m, z, out):
     """Samples ``start .. start + m - 1`` of one mixture component into ``out[:m]``.
 
-    The same sums as :func:`._sampling.draw_mixture` (centre, then the modes in turn, for
+    The same sums as :func:`.sampling.draw_mixture` (centre, then the modes in turn, for
     every coordinate), so the same bits; but each basis row is loaded once for all m
     samples, not once per sample (the basis, K_g x K, outgrows the caches at large N).
     z (>= m, n_group_modes) is scratch.
@@ -368,7 +368,7 @@ class BlockedSearcher:
 
     Samples are ``sd * z`` (a single Gaussian, `sd` its mode standard deviations) or, when
     :meth:`chunk` is given a mixture component ``(centre, basis)``, ``centre + z @ basis``
-    (:func:`._sampling.draw_mixture`; `sd` is then unused and may be None).
+    (:func:`.sampling.draw_mixture`; `sd` is then unused and may be None).
     """
 
     def __init__(self, train: np.ndarray, sd: np.ndarray | None, l2: bool):
@@ -438,9 +438,9 @@ def search_chunks(searchers, components, spans, key, l2, exponent, first, last):
         basis)`` in joint parameters (a mixture).
     spans : ndarray of int64, shape (n_chunks, 3)
         Chunk c is samples ``spans[c, 0] .. spans[c, 1] - 1`` of group ``spans[c, 2]``
-        (:func:`._sampling.mixture_spans`).
+        (:func:`.sampling.mixture_spans`).
     key : np.uint64
-        Stream key of the seed (:func:`._sampling.stream_key`).
+        Stream key of the seed (:func:`.sampling.stream_key`).
     l2 : bool
         Squared L2 (True) or L1 sums (False).
     exponent : float
@@ -487,7 +487,7 @@ def search_chunks(searchers, components, spans, key, l2, exponent, first, last):
 
 
 def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
-    """As :func:`._sampling.run_single` over every chunk, by blocks of samples; the same numbers.
+    """As :func:`.sampling.run_single` over every chunk, by blocks of samples; the same numbers.
 
     Parameters
     ----------
@@ -496,7 +496,7 @@ def run_single_blocked(train, sd, key, n_samples, l2, exponent, chunk):
     sd : ndarray of shape (n_modes,)
         Mode standard deviations.
     key : np.uint64
-        Stream key of the seed (``_sampling.stream_key``).
+        Stream key of the seed (``sampling.stream_key``).
     n_samples, l2, exponent, chunk
         As ``run_single``.
 
