@@ -842,8 +842,7 @@ def evaluate(
             "left_out_of_scores": [i for i in range(m.n_images) if i not in set(_scored(run))],
             # what frame_spread_fraction is a fraction of: the reports state the limit in mm
             "field_of_view_mm": extent,
-            # the manifest check's warnings (a label of one subject only, ...), as given
-            "manifest_warnings": list(m.notes),
+            "manifest_warnings": list(m.notes),  # the manifest check's, as it gave them
         }
         result = _result(
             m,
