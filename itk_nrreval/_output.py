@@ -298,19 +298,14 @@ def swaps_done() -> int:
 
 
 @contextlib.contextmanager
-def _interrupts_held_off() -> Iterator[None]:
-    """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all.
-
-    An interrupt that arrives meanwhile is dropped: once the renames are done the result is
-    complete, and an exit code 130 would say that the previous result was kept when it was
-    replaced. What little work follows (the summary printed) then ends as usual.
+def sigint_handled_by(handler) -> Iterator[None]:
+    """Handle Ctrl-C (SIGINT) with `handler` for the block, then as before it.
 
     Only the main thread can set signal handlers; elsewhere (a Slicer or Dask thread) the
-    block runs as it is.
+    block runs with the handler there is.
     """
-    pending: list[int] = []
     try:
-        previous = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+        previous = signal.signal(signal.SIGINT, handler)
     except ValueError:  # not the main thread
         yield
         return
@@ -318,6 +313,16 @@ def _interrupts_held_off() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def _interrupts_held_off():
+    """Hold off Ctrl-C (SIGINT) for a few renames that must happen all or not at all.
+
+    An interrupt that arrives meanwhile is dropped: once the renames are done the result is
+    complete, and an exit code 130 would say that the previous result was kept when it was
+    replaced (the command line drops it after the swap too: :func:`swaps_done`).
+    """
+    return sigint_handled_by(lambda signum, frame: None)
 
 
 def _default_mode() -> int:

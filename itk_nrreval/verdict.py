@@ -431,7 +431,7 @@ def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) 
             discount = "flagged"
         elif gain < rate * max(0.0, rough[preferred] - rough[other]):
             discount = "rougher"
-        elif why := _against_folds(measure, preferred, other, gain, rough, folded):
+        elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded):
             discount = "folds"
         elif measure == _SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
@@ -439,14 +439,13 @@ def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) 
     return out
 
 
-def _against_folds(measure, preferred, other, gain, rough, folded) -> str | None:
+def _against_folds(measure, rate, preferred, other, gain, rough, folded) -> str | None:
     """Why `measure`'s preference for `preferred` is no evidence against `other`, which
     folds, in words; None where it is (the gain reaches what ``preferred``'s own roughness
-    could buy at the measure's rate, or `other` folds less than
+    could buy at the measure's exchange `rate`, or `other` folds less than
     :data:`NO_FOLDING_FRACTION`, or no more than `preferred`)."""
     if folded[other] < NO_FOLDING_FRACTION or folded[other] <= folded[preferred]:
         return None
-    rate = EXCHANGE_RATE if measure == _SPECIFICITY else OVERLAP_EXCHANGE_RATE
     if gain >= rate * rough[preferred]:
         return None
     what = "lower specificity" if measure == _SPECIFICITY else "the odds of overlap"

@@ -10,8 +10,6 @@ traceback.
 
 from __future__ import annotations
 
-import contextlib
-import signal
 import sys
 import warnings
 
@@ -65,15 +63,13 @@ def build_parser() -> OneLineParser:
     return parser
 
 
-@contextlib.contextmanager
 def _interrupts_dropped_once_complete():
     """Ctrl-C ends the command (exit code 130: the previous result is kept) until the
     command's result has been swapped into place (:func:`itk_nrreval._output.staged_folder`);
     after that it is dropped, and the little that is left (the summary printed) runs out.
 
     Without this, an interrupt between the swap and the end of the command ended it with 130
-    over a replaced result. Only the main thread can set a handler; elsewhere (a thread of a
-    Slicer console) the command runs with the handler it has.
+    over a replaced result.
     """
     swaps_before = _output.swaps_done()
 
@@ -82,15 +78,7 @@ def _interrupts_dropped_once_complete():
             return
         raise KeyboardInterrupt
 
-    try:
-        previous = signal.signal(signal.SIGINT, interrupt)
-    except ValueError:  # not the main thread
-        yield
-        return
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
+    return _output.sigint_handled_by(interrupt)
 
 
 def main(argv: list[str] | None = None) -> int:
