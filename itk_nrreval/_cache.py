@@ -38,6 +38,7 @@ import json
 import os
 import shutil
 import socket
+import threading
 import uuid
 import zlib
 from collections.abc import Iterator, Mapping
@@ -205,6 +206,10 @@ def _alive(pid: int) -> bool:
     return True
 
 
+_NPY_HEADER_LOCK = threading.Lock()
+"""Held while a cached array's ``.npy`` header is parsed (:meth:`CacheEntry.array`)."""
+
+
 @dataclass(frozen=True)
 class CacheEntry:
     """A verified entry: its folder and its metadata."""
@@ -214,7 +219,13 @@ class CacheEntry:
 
     def array(self, name: str, *, mmap: bool = False) -> np.ndarray:
         """Load array `name` (memory-mapped read-only when `mmap`)."""
-        return np.load(self.folder / f"{name}.npy", mmap_mode="r" if mmap else None)
+        # np.load reads the .npy header with ast.literal_eval, and CPython 3.11's AST
+        # conversion is not thread-safe: tasks loading entries in executor threads failed
+        # with "SystemError: AST constructor recursion depth mismatch" (once, in a full run
+        # of the tests). Headers are read one at a time; the data outside the lock.
+        with _NPY_HEADER_LOCK:
+            mapped = np.load(self.folder / f"{name}.npy", mmap_mode="r")
+        return mapped if mmap else np.array(mapped)
 
     def has(self, name: str) -> bool:
         """Whether the entry holds array `name`."""

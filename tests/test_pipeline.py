@@ -372,6 +372,39 @@ def test_cli_keep_resampled(tmp_path):
 # ----------------------------------------------------------------------------- the cache
 
 
+def test_cached_arrays_load_as_stored_from_many_threads_at_once(tmp_path):
+    """CacheEntry.array reads each .npy header under a lock (CPython 3.11's AST conversion,
+    which np.load's header parse uses, is not thread-safe: a full run of the tests once
+    failed with "AST constructor recursion depth mismatch"). The race itself could not be
+    reproduced on demand; this checks that loading, in memory or memory-mapped, from eight
+    threads at once gives back every array as stored: dtype, shape, values, a copy that can
+    be written unless memory-mapped."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(3)
+    arrays = {
+        "f32": rng.normal(size=(7, 5)).astype(np.float32),
+        "fortran": np.asfortranarray(rng.normal(size=(4, 6))),
+        "u4": np.arange(459, dtype=np.uint32),
+        "empty": np.zeros((0, 3), np.int16),
+        "scalar": np.float64(3.5),
+    }
+    cache = DiskCache(tmp_path)
+    cache.put("k", "cd34", arrays)
+    entry = cache.get("k", "cd34")
+
+    def load(_):
+        return [(n, m, entry.array(n, mmap=m)) for n in arrays for m in (False, True)] * 20
+
+    with ThreadPoolExecutor(8) as pool:
+        for got in pool.map(load, range(32)):
+            for name, mmap, a in got:
+                want = np.asarray(arrays[name])
+                assert a.dtype == want.dtype and a.shape == want.shape, name
+                np.testing.assert_array_equal(a, want)
+                assert isinstance(a, np.memmap) == mmap and a.flags.writeable == (not mmap)
+
+
 def test_disk_cache_round_trip_and_corruption(tmp_path):
     cache = DiskCache(tmp_path)
     a = np.arange(10.0)
