@@ -38,7 +38,6 @@ import json
 import os
 import shutil
 import socket
-import threading
 import uuid
 import zlib
 from collections.abc import Iterator, Mapping
@@ -47,6 +46,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ._executors import NPY_HEADER_LOCK
 
 __all__ = ["DiskCache", "CacheEntry", "digest_of", "file_digest", "content_digest"]
 
@@ -206,10 +207,6 @@ def _alive(pid: int) -> bool:
     return True
 
 
-_NPY_HEADER_LOCK = threading.Lock()
-"""Held while a cached array's ``.npy`` header is parsed (:meth:`CacheEntry.array`)."""
-
-
 @dataclass(frozen=True)
 class CacheEntry:
     """A verified entry: its folder and its metadata."""
@@ -219,11 +216,9 @@ class CacheEntry:
 
     def array(self, name: str, *, mmap: bool = False) -> np.ndarray:
         """Load array `name` (memory-mapped read-only when `mmap`)."""
-        # np.load reads the .npy header with ast.literal_eval, and CPython 3.11's AST
-        # conversion is not thread-safe: tasks loading entries in executor threads failed
-        # with "SystemError: AST constructor recursion depth mismatch" (once, in a full run
-        # of the tests). Headers are read one at a time; the data outside the lock.
-        with _NPY_HEADER_LOCK:
+        # np.load's header parse is not thread-safe on CPython 3.11 (NPY_HEADER_LOCK):
+        # headers are read one at a time, the data outside the lock
+        with NPY_HEADER_LOCK:
             mapped = np.load(self.folder / f"{name}.npy", mmap_mode="r")
         return mapped if mmap else np.array(mapped)
 

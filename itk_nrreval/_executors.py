@@ -29,6 +29,7 @@ __all__ = [
     "kernels_thread_safe",
     "default_threads",
     "ITK_READ_LOCK",
+    "NPY_HEADER_LOCK",
 ]
 
 
@@ -38,6 +39,12 @@ __all__ = [
 #: HDF5 reader about every file) takes this lock, so that tasks on threads of one process (or
 #: callers' own threads) can read; a read is about 3 % of a task's time at 1 mm.
 ITK_READ_LOCK = threading.Lock()
+
+#: ``np.load`` parses a ``.npy`` header with ``ast.literal_eval``, and CPython 3.11's AST
+#: conversion is not thread-safe (tasks loading cached arrays on threads once failed with
+#: "SystemError: AST constructor recursion depth mismatch"): every header read of the cache
+#: (:meth:`itk_nrreval._cache.CacheEntry.array`) takes this lock; the data is read outside it.
+NPY_HEADER_LOCK = threading.Lock()
 
 
 class Executor(Protocol):
