@@ -49,15 +49,8 @@ from ._elastix_files import is_elastix_parameter_file, read_elastix_transform
 from ._errors import InputError
 from ._executors import ITK_READ_LOCK
 from ._foreign_transforms import ForeignTransform
-from ._images import (
-    Geometry,
-    image_digest,
-    is_finite,
-    itk_kind,
-    read_image,
-    source_kind,
-    to_sitk_image,
-)
+from ._images import Geometry, read_image
+from ._in_memory_images import image_digest, is_finite, itk_kind, source_kind, to_sitk_image
 from ._itk_hdf5 import check_file as check_hdf5_file
 from ._itk_hdf5 import read_pieces as read_hdf5_pieces
 from ._output import atomic_path

@@ -46,6 +46,9 @@ on denser grids. :func:`max_safe_displacement` of a :class:`CPSWarp` uses exactl
 points.
 
 Pure numpy numerics; SimpleITK only in :func:`cps_warp` and :func:`max_safe_displacement`.
+The Green's function, the spline and its ball on a grid live in
+:mod:`itk_nrreval._clamped_plate_spline`, the fold check in :mod:`itk_nrreval._fold_check`;
+this module draws warps from them and applies them.
 """
 
 from __future__ import annotations
@@ -55,11 +58,20 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 import SimpleITK as sitk
 from scipy import ndimage
 
+from ._clamped_plate_spline import (
+    BallFrame,
+    ClampedPlateSpline,
+    as_points,
+    chunks,
+    green,
+    green_gradient,
+    grid_points,
+)
 from ._errors import readable
+from ._fold_check import KNOT_BOX, REFINE, fold_check, safe_scale
 
 __all__ = [
     "ClampedPlateSpline",
@@ -81,21 +93,10 @@ __all__ = [
 
 #: Knots are placed within this fraction of the unit radius, away from the clamped boundary.
 KNOT_RADIUS = 0.7
-#: Pixels evaluated at once (bounds the (pixels x knots x dim) temporaries to ~40 MB).
-_CHUNK = 65_536
 #: Accepted warps have a Jacobian determinant at least this large at every check point.
 MIN_JACOBIAN = 0.05
-#: The fold check's sub-grid is this many times finer than the image (per axis).
-REFINE = 4
-#: ... and covers every pixel cell within this many pixels (per axis) of a knot.
-KNOT_BOX = 0.5
 #: Memberships may leave [0, 1] by this much (rounding); they are clipped. More is an error.
 MEMBERSHIP_TOLERANCE = 1e-6
-#: Below this, ``z - log1p(z)`` and ``log1p(z) - z / (1 + z)`` are summed as series.
-_SERIES_Z = 1e-3
-_SERIES_TERMS = 8
-#: Sub-grid cells evaluated at once in the fold check (bounds its temporaries).
-_CELL_CHUNK = 2048
 
 
 class FoldingError(RuntimeError):
@@ -112,286 +113,6 @@ class FoldingError(RuntimeError):
         super().__init__(message)
         self.largest_safe = float(largest_safe)
         self.largest_safe_mm = float(largest_safe_mm)
-
-
-# ----------------------------------------------------------------------------------------
-# Green's function
-# ----------------------------------------------------------------------------------------
-
-
-def _series(z: np.ndarray, coef) -> np.ndarray:
-    """``sum_{k>=2} coef(k) (-z)^k`` by Horner, for small ``z``."""
-    out = np.zeros_like(z)
-    for k in range(_SERIES_TERMS, 1, -1):
-        out = out * (-z) + coef(k)
-    return out * z * z
-
-
-def _kernel(x: np.ndarray, y: np.ndarray, *, gradient: bool):
-    """Green's function and, optionally, the coefficients of its gradient.
-
-    Returns ``G (n, K)`` and, with `gradient`, ``cq, cd (n, K)`` such that
-    ``grad_x G = cq * (-2 x (1 - |y|^2)) + cd * (x - y)``. Rows of `x` must lie inside the
-    unit ball (callers drop the others); `y` likewise.
-    """
-    xx = np.einsum("nd,nd->n", x, x)
-    yy = np.einsum("kd,kd->k", y, y)
-    r2 = np.maximum(xx[:, None] + yy[None, :] - 2.0 * (x @ y.T), 0.0)
-    near = r2 < 1e-6  # the expansion loses digits near coincidence: recompute directly
-    if near.any():
-        i, k = np.nonzero(near)
-        r2[i, k] = np.sum((x[i] - y[k]) ** 2, axis=1)
-    q = (1.0 - xx)[:, None] * (1.0 - yy)[None, :]
-    if x.shape[1] == 2:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = q / r2
-            log_a2 = np.log1p(z)  # ln A^2
-            g = q - r2 * log_a2
-            cq = z / (1.0 + z) if gradient else None  # dG/dq
-        small = np.nonzero(z < _SERIES_Z)  # near the boundary: series, no cancellation
-        if small[0].size:
-            zs = z[small]
-            g[small] = r2[small] * _series(zs, lambda k: 1.0 / k)
-        coincident = np.nonzero(r2 == 0.0) if r2.size and r2.min() == 0.0 else (np.array([], int),)
-        if coincident[0].size:  # exact limit (1 - |x|^2)^2 = q
-            g[coincident] = q[coincident]
-        if not gradient:
-            return g, None, None
-        cd = -2.0 * (log_a2 - cq)  # 2 dG/dR
-        if small[0].size:
-            cd[small] = -2.0 * _series(zs, lambda k: (k - 1.0) / k)
-        if coincident[0].size:
-            cq[coincident] = np.where(q[coincident] > 0, 1.0, 0.0)
-            cd[coincident] = 0.0
-        return g, cq, cd
-    # 3D triharmonic: with s = sqrt(r^2 + q) = r A, A - 1 = q / (r (s + r)), and
-    # A^3/3 - 2A - 1/A + 8/3 = (A - 1)^3 (A + 3) / (3 A):
-    #   G = q^3 (s + 3 r) / (3 s (s + r)^3)          (no cancellation; s > 0 inside)
-    #   dG/dq = q^2 / (2 s^3),   dG/dR = -q^3 (3 s + r) / (2 s^3 (s + r)^3),  R = r^2
-    # (callers keep x and y strictly inside, so q > 0 and s > 0: no division by zero)
-    r = np.sqrt(r2)
-    s = np.sqrt(r2 + q)
-    sr = s + r
-    sr3 = sr * sr * sr
-    q2 = q * q
-    g = q2 * q * (s + 3.0 * r) / (3.0 * s * sr3)
-    if not gradient:
-        return g, None, None
-    s3 = s * s * s
-    cq = q2 / (2.0 * s3)
-    cd = -(q2 * q) * (3.0 * s + r) / (s3 * sr3)  # 2 dG/dR
-    return g, cq, cd
-
-
-def _split(x, y):
-    x, y = _as_points(x), _as_points(y)
-    if x.shape[1] != y.shape[1] or x.shape[1] not in (2, 3):
-        raise ValueError(
-            f"x and y must be (n, 2) or (n, 3) with the same dim, got {x.shape} and {y.shape}"
-        )
-    xin = np.einsum("nd,nd->n", x, x) < 1.0
-    yin = np.einsum("kd,kd->k", y, y) < 1.0
-    return x, y, xin, yin
-
-
-def green(x, y) -> np.ndarray:
-    """The clamped-plate Green's function ``G(x, y)`` on the unit disk or ball.
-
-    Parameters
-    ----------
-    x : array_like of shape (n, dim)
-    y : array_like of shape (K, dim)
-        Points in unit-ball coordinates, ``dim`` 2 or 3.
-
-    Returns
-    -------
-    ndarray of shape (n, K)
-        Zero where ``x`` or ``y`` lies on or outside the unit sphere.
-
-    Notes
-    -----
-    With ``r = |x - y|``, ``A^2 = (|x|^2 |y|^2 - 2 x.y + 1) / r^2`` and
-    ``q = (1 - |x|^2)(1 - |y|^2)`` (so that ``A^2 = 1 + q / r^2``), Boggio's Green's function
-    of ``(-Delta)^m`` on the unit ball of R^n with clamped boundary conditions is, up to a
-    positive constant, ``r^(2m - n) int_1^A (v^2 - 1)^(m - 1) v^(1 - n) dv``:
-
-    * 2D, biharmonic (m = 2, the paper's): ``G = r^2 (A^2 - 1 - ln A^2)``
-      ``= q - r^2 log1p(q / r^2)``, exact limit ``(1 - |x|^2)^2`` at ``x = y``;
-      ``z - log1p(z)`` is summed as a series for small ``z = q / r^2`` (near the boundary).
-      ``G = dG/dn = 0`` on the circle.
-    * 3D, triharmonic (m = 3): ``G = r^3 (A^3/3 - 2 A - 1/A + 8/3)``, evaluated as the
-      identical ``q^3 (s + 3 r) / (3 s (s + r)^3)`` with ``s = sqrt(r^2 + q)``, free of
-      cancellation; exact limit ``(1 - |x|^2)^3 / 3`` at ``x = y``.
-      ``G = dG/dn = d^2G/dn^2 = 0`` on the sphere (``G`` vanishes like the cube of the
-      distance to it), ``Delta^3 G = 0`` away from ``y``, and ``G - 8 r^3 / 3`` is smooth,
-      so ``G`` is C^2 (its third derivatives jump at ``x = y``).
-
-    Both are symmetric and strictly positive definite as kernels (Green's functions of
-    positive self-adjoint operators), so knot matrices are SPD.
-    """
-    x, y, xin, yin = _split(x, y)
-    out = np.zeros((len(x), len(y)))
-    out[np.ix_(xin, yin)] = _kernel(x[xin], y[yin], gradient=False)[0]
-    return out
-
-
-def green_gradient(x, y) -> np.ndarray:
-    """Gradient of :func:`green` with respect to its first argument.
-
-    Parameters
-    ----------
-    x : array_like of shape (n, dim)
-    y : array_like of shape (K, dim)
-
-    Returns
-    -------
-    ndarray of shape (n, K, dim)
-        ``d G(x_i, y_k) / d x_i``; zero on and outside the unit sphere. Continuous
-        everywhere, through ``x = y`` included.
-
-    Notes
-    -----
-    With ``G = G(q, R)``, ``R = r^2``: ``dq/dx = -2 x (1 - |y|^2)``, ``dR/dx = 2 (x - y)``.
-    2D: ``dG/dq = q / (R + q)``, ``dG/dR = -(log1p(z) - z / (1 + z))``.
-    3D: ``dG/dq = q^2 / (2 s^3)``, ``dG/dR = -q^3 (3 s + r) / (2 s^3 (s + r)^3)``.
-    """
-    x, y, xin, yin = _split(x, y)
-    out = np.zeros((len(x), len(y), x.shape[1]))
-    xi, yi = x[xin], y[yin]
-    _, cq, cd = _kernel(xi, yi, gradient=True)
-    grad = cq[..., None] * (-2.0 * xi[:, None, :] * (1.0 - np.sum(yi * yi, 1))[None, :, None])
-    grad += cd[..., None] * (xi[:, None, :] - yi[None, :, :])
-    out[np.ix_(xin, yin)] = grad
-    return out
-
-
-def _as_points(p) -> np.ndarray:
-    p = np.asarray(p, dtype=np.float64)
-    if p.ndim != 2:
-        raise ValueError(f"points must be an array of shape (n, dim), got shape {p.shape}")
-    return p
-
-
-# ----------------------------------------------------------------------------------------
-# The spline
-# ----------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ClampedPlateSpline:
-    """A clamped-plate spline interpolating knot displacements inside the unit ball.
-
-    ``u(x) = sum_k w_k G(x, y_k)`` with ``G`` the clamped-plate Green's function
-    (:func:`green`) and weights solving ``G(y_j, y_k) w = d`` (Cholesky).
-
-    Attributes
-    ----------
-    knots : ndarray of shape (K, dim)
-        Knot positions in unit-ball coordinates, strictly inside the unit sphere.
-    weights : ndarray of shape (K, dim)
-        Spline coefficients.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> knots = np.array([[0.0, 0.0], [0.5, 0.0], [0.0, -0.5]])
-    >>> moves = np.array([[0.1, 0.0], [0.0, 0.05], [0.0, 0.0]])
-    >>> cps = ClampedPlateSpline.from_knots(knots, moves)
-    >>> np.allclose(cps(knots), moves), cps(np.array([[1.0, 0.0], [2.0, 2.0]])).tolist()
-    (True, [[0.0, 0.0], [0.0, 0.0]])
-    """
-
-    knots: np.ndarray = field(repr=False)
-    weights: np.ndarray = field(repr=False)
-
-    @classmethod
-    def from_knots(cls, knots, displacements) -> ClampedPlateSpline:
-        """Fit the spline taking each knot ``knots[k]`` to ``knots[k] + displacements[k]``.
-
-        Parameters
-        ----------
-        knots : array_like of shape (K, dim)
-            Distinct points with ``|knot| < 1``, ``dim`` 2 or 3.
-        displacements : array_like of shape (K, dim)
-
-        Raises
-        ------
-        ValueError
-            Bad shapes, knots on or outside the unit sphere, or coincident knots (the knot
-            matrix is then singular: the message says so).
-        """
-        knots = _as_points(knots)
-        disp = np.asarray(displacements, dtype=np.float64)
-        if knots.shape[1] not in (2, 3):
-            raise ValueError(f"knots must have 2 or 3 columns, got shape {knots.shape}")
-        if disp.shape != knots.shape:
-            raise ValueError(
-                f"displacements must have the knots' shape {knots.shape}, got {disp.shape}"
-            )
-        radius = np.linalg.norm(knots, axis=1)
-        if np.any(radius >= 1.0):
-            k = int(np.argmax(radius))
-            raise ValueError(
-                f"knot {k} lies at radius {radius[k]:.4g}; knots must be inside the unit ball"
-            )
-        gram = green(knots, knots)
-        try:
-            factor = scipy.linalg.cho_factor(gram, lower=True)
-        except np.linalg.LinAlgError:
-            raise ValueError(
-                "knot matrix is not positive definite: are two knots coincident?"
-            ) from None
-        weights = scipy.linalg.cho_solve(factor, disp)
-        return cls(knots=knots, weights=weights)
-
-    @property
-    def dim(self) -> int:
-        return int(self.knots.shape[1])
-
-    def __call__(self, points) -> np.ndarray:
-        """Displacements ``u(points)``, shape (n, dim); exactly zero outside the unit ball."""
-        points = self._check(points)
-        out = np.zeros_like(points)
-        inside = np.flatnonzero(np.einsum("nd,nd->n", points, points) < 1.0)
-        for sl in _chunks(len(inside)):
-            rows = inside[sl]
-            out[rows] = _kernel(points[rows], self.knots, gradient=False)[0] @ self.weights
-        return out
-
-    def jacobian(self, points) -> np.ndarray:
-        """Displacement gradient ``J[n, i, j] = d u_i / d x_j`` at `points`, (n, dim, dim)."""
-        return self.value_and_jacobian(points)[1]
-
-    def value_and_jacobian(self, points) -> tuple[np.ndarray, np.ndarray]:
-        """``u(points)`` (n, dim) and its gradient (n, dim, dim) from one kernel pass."""
-        points = self._check(points)
-        dim = self.dim
-        val = np.zeros_like(points)
-        out = np.zeros((len(points), dim, dim))
-        inside = np.flatnonzero(np.einsum("nd,nd->n", points, points) < 1.0)
-        w, y = self.weights, self.knots
-        wy = (w[:, :, None] * y[:, None, :]).reshape(len(y), dim * dim)
-        oy = 1.0 - np.einsum("kd,kd->k", y, y)
-        for sl in _chunks(len(inside)):
-            rows = inside[sl]
-            x = points[rows]
-            g, cq, cd = _kernel(x, y, gradient=True)
-            val[rows] = g @ w
-            # sum_k w_ki [cq (-2 x_j (1 - |y_k|^2)) + cd (x_j - y_kj)]
-            a = cd @ w - 2.0 * ((cq * oy) @ w)
-            out[rows] = a[:, :, None] * x[:, None, :] - (cd @ wy).reshape(-1, dim, dim)
-        return val, out
-
-    def _check(self, points) -> np.ndarray:
-        points = _as_points(points)
-        if points.shape[1] != self.dim:
-            raise ValueError(f"points must have {self.dim} columns, got shape {points.shape}")
-        return points
-
-
-def _chunks(n: int):
-    for start in range(0, n, _CHUNK):
-        yield slice(start, min(start + _CHUNK, n))
 
 
 # ----------------------------------------------------------------------------------------
@@ -432,72 +153,6 @@ def knot_positions(n_knots: int, dim: int, *, radius: float = KNOT_RADIUS) -> np
         chosen.append(k)
         dist = np.minimum(dist, np.linalg.norm(cand - cand[k], axis=1))
     return cand[chosen].copy()
-
-
-def _check_shape(shape) -> tuple[int, ...]:
-    shape = tuple(int(s) for s in shape)
-    if len(shape) not in (2, 3) or min(shape) < 3:
-        raise ValueError(f"shape must be 2D or 3D with at least 3 pixels per axis, got {shape}")
-    return shape
-
-
-def _check_spacing(spacing, dim: int) -> tuple[float, ...]:
-    if spacing is None:
-        return (1.0,) * dim
-    try:
-        out = tuple(float(s) for s in spacing)
-    except TypeError:
-        raise ValueError(
-            f"spacing must be {dim} numbers (mm, ITK order), got {readable(spacing)}"
-        ) from None
-    if len(out) != dim or not all(math.isfinite(s) and s > 0 for s in out):
-        raise ValueError(
-            f"spacing must be {dim} positive numbers (mm, ITK order), got {readable(spacing)}"
-        )
-    return out
-
-
-@dataclass(frozen=True)
-class _Frame:
-    """The inscribed ball of a grid: pixel index <-> unit-ball coordinates (via mm)."""
-
-    shape: tuple[int, ...]  # numpy order
-    spacing: np.ndarray  # mm, ITK order
-    centre: np.ndarray  # pixel index, ITK order
-    radius: float  # mm
-
-    @classmethod
-    def of(cls, shape, spacing=None) -> _Frame:
-        shape = _check_shape(shape)
-        sp = np.array(_check_spacing(spacing, len(shape)))
-        size = np.array(shape[::-1], dtype=np.float64)
-        return cls(shape, sp, (size - 1.0) / 2.0, float((size * sp).min()) / 2.0)
-
-    @property
-    def dim(self) -> int:
-        return len(self.shape)
-
-    def unit(self, points: np.ndarray) -> np.ndarray:
-        """Pixel index points (n, dim) -> unit-ball coordinates."""
-        return (points - self.centre) * (self.spacing / self.radius)
-
-    def to_pixels(self, unit: np.ndarray) -> np.ndarray:
-        """Unit-ball coordinates (n, dim) -> pixel index points."""
-        return self.centre + unit * (self.radius / self.spacing)
-
-    def grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Unit coordinates of the pixel centres inside the ball (n_in, dim), and the flat
-        indices (numpy C order) of those pixels."""
-        unit = self.unit(_grid_points(self.shape))
-        inside = np.flatnonzero(np.einsum("nd,nd->n", unit, unit) < 1.0)
-        return unit[inside], inside
-
-
-def _grid_points(shape: tuple[int, ...]) -> np.ndarray:
-    """Pixel centres in ITK order ``(x, y[, z])``, flattened in numpy (C) order: (n, dim)."""
-    axes = [np.arange(n, dtype=np.float64) for n in shape]
-    grids = np.meshgrid(*axes, indexing="ij")
-    return np.stack(grids[::-1], axis=-1).reshape(-1, len(shape))
 
 
 @dataclass(frozen=True)
@@ -544,8 +199,8 @@ class CPSWarp:
         return len(self.shape)
 
     @property
-    def _frame(self) -> _Frame:
-        return _Frame.of(self.shape, self.spacing)
+    def _frame(self) -> BallFrame:
+        return BallFrame.of(self.shape, self.spacing)
 
     @property
     def radius_mm(self) -> float:
@@ -578,7 +233,7 @@ class CPSWarp:
 
     def displacement(self, points) -> np.ndarray:
         """``u(p) = psi(p) - p`` at `points` (n, dim), ITK order, pixels."""
-        points = _as_points(points)
+        points = as_points(points)
         if self.spline is None or self.scale == 0.0:
             return np.zeros_like(points)
         frame = self._frame
@@ -590,7 +245,7 @@ class CPSWarp:
         ``det(I + jacobian)`` is the Jacobian determinant of ``psi`` (the same in pixels
         and in mm: the two differ by a similarity with the spacing matrix).
         """
-        points = _as_points(points)
+        points = as_points(points)
         if self.spline is None or self.scale == 0.0:
             return np.zeros((len(points), self.dim, self.dim))
         frame = self._frame
@@ -628,7 +283,7 @@ class CPSWarp:
         out = np.zeros((int(np.prod(self.shape)), dim))
         if self.spline is None or self.scale == 0.0:
             return out.reshape(*self.shape, dim)
-        points = _grid_points(self.shape)
+        points = grid_points(self.shape)
         inside, u_in, jac_in = self._grid_values()
         u = np.zeros_like(points)
         u[inside] = u_in
@@ -699,13 +354,6 @@ def _pixel_jacobian(jac: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     return jac * (spacing[None, None, :] / spacing[None, :, None])
 
 
-def _det(a: np.ndarray) -> np.ndarray:
-    """Determinants of a stack of 2x2 or 3x3 matrices (n, dim, dim)."""
-    if a.shape[-1] == 2:
-        return a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-    return np.einsum("nj,nj->n", a[:, 0, :], np.cross(a[:, 1, :], a[:, 2, :]))
-
-
 def _solve_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Solve ``a[n] x[n] = b[n]`` for 2x2 or 3x3 matrices by Cramer's rule (n, dim)."""
     if a.shape[-1] == 2:
@@ -722,224 +370,6 @@ def _as_rng(seed) -> np.random.Generator:
     if isinstance(seed, np.random.Generator):
         return seed
     return np.random.default_rng(seed)
-
-
-# ----------------------------------------------------------------------------------------
-# The fold check
-# ----------------------------------------------------------------------------------------
-
-
-def _coefficients(jac: np.ndarray) -> list[np.ndarray]:
-    """``c1 .. c_dim`` of ``det(I + t A) = 1 + c1 t + ... + c_dim t^dim`` per matrix:
-    the trace, (3D) the sum of the principal 2x2 minors, and the determinant."""
-    c1 = np.trace(jac, axis1=1, axis2=2)
-    if jac.shape[-1] == 2:
-        return [c1, _det(jac)]
-    minors = (
-        jac[:, 0, 0] * jac[:, 1, 1]
-        - jac[:, 0, 1] * jac[:, 1, 0]
-        + jac[:, 0, 0] * jac[:, 2, 2]
-        - jac[:, 0, 2] * jac[:, 2, 0]
-        + jac[:, 1, 1] * jac[:, 2, 2]
-        - jac[:, 1, 2] * jac[:, 2, 1]
-    )
-    return [c1, minors, _det(jac)]
-
-
-def _first_crossing(jac: np.ndarray, min_jacobian: float) -> np.ndarray:
-    """Per matrix ``A`` of `jac` (n, dim, dim): the smallest ``t > 0`` with
-    ``det(I + t A) = min_jacobian`` (inf when there is none).
-
-    With ``w = 1 / t``: ``(1 - m) w^dim + c1 w^(dim-1) + ... + c_dim = 0`` (see
-    :func:`_coefficients`), whose leading coefficient never vanishes; the smallest positive
-    ``t`` is one over the largest positive real root ``w`` (companion-matrix eigenvalues).
-    Near-double roots (the determinant only touching the threshold) count as crossings.
-    """
-    n, dim = len(jac), jac.shape[-1]
-    if n == 0:
-        return np.zeros(0)
-    lead = 1.0 - min_jacobian
-    comp = np.zeros((n, dim, dim))
-    for k, c in enumerate(_coefficients(jac)):
-        comp[:, 0, k] = -c / lead
-    for k in range(1, dim):
-        comp[:, k, k - 1] = 1.0
-    w = np.linalg.eigvals(comp)
-    real = np.abs(w.imag) <= 1e-6 * np.maximum(np.abs(w.real), 1e-300)
-    pos = np.where(real & (w.real > 0), w.real, 0.0).max(axis=1)
-    with np.errstate(divide="ignore"):
-        return np.where(pos > 0, 1.0 / pos, np.inf)
-
-
-def _dips_below(jac: np.ndarray, min_jacobian: float, span: float) -> np.ndarray:
-    """Whether ``det(I + t A) < min_jacobian`` for some ``t`` in ``[0, span]``, per matrix:
-    the polynomial's minimum over the interval, at its ends and its real critical points
-    (closed form, no eigenvalues)."""
-    coef = _coefficients(jac)
-
-    def p(t):
-        out = (1.0 - min_jacobian) + coef[0] * t
-        for k, c in enumerate(coef[1:], start=2):
-            out = out + c * t**k
-        return out
-
-    low = np.minimum(1.0 - min_jacobian, p(np.full(len(jac), span)))  # p(0) = 1 - m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if len(coef) == 2:  # p' = c1 + 2 c2 t
-            crit = [-coef[0] / (2.0 * coef[1])]
-        else:  # p' = c1 + 2 c2 t + 3 c3 t^2, roots by the stable quadratic formula
-            c1, c2, c3 = coef
-            disc = np.sqrt(np.maximum(c2 * c2 - 3.0 * c3 * c1, 0.0))
-            qq = -(c2 + np.copysign(disc, c2))
-            crit = [qq / (3.0 * c3), c1 / qq]
-        for t in crit:
-            ok = np.isfinite(t) & (t > 0) & (t < span)
-            low = np.where(ok, np.minimum(low, p(np.where(ok, t, 0.0))), low)
-    return low < 0.0
-
-
-def _safe_scale(jac: np.ndarray, min_jacobian: float = 0.0, *, cap: float = np.inf) -> float:
-    """``min(cap, largest t)`` with ``det(I + s A) >= min_jacobian`` for every ``s`` in
-    ``[0, t]`` and every ``A`` in `jac` (n, dim, dim).
-
-    Exact below `cap`. With a finite `cap`, only the matrices whose determinant dips below
-    the threshold within ``[0, cap]`` (:func:`_dips_below`) are solved exactly. Otherwise
-    matrices are visited in order of the lower bound ``(1 - m^(1/dim)) / |A|_F`` on their
-    own ``t`` (every eigenvalue has modulus at most ``|A|_F``, so
-    ``det(I + s A) >= (1 - s |A|_F)^dim``), and the search stops once that bound reaches
-    the smallest ``t`` found.
-    """
-    if len(jac) == 0:
-        return float(cap)
-    if np.isfinite(cap):
-        dips = np.flatnonzero(_dips_below(jac, min_jacobian, cap))
-        if dips.size == 0:
-            return float(cap)
-        return min(float(cap), float(_first_crossing(jac[dips], min_jacobian).min()))
-    dim = jac.shape[-1]
-    norm = np.sqrt(np.einsum("nij,nij->n", jac, jac))
-    with np.errstate(divide="ignore"):
-        bound = (1.0 - min_jacobian ** (1.0 / dim)) / norm
-    order = np.argsort(bound, kind="stable")
-    best = float(cap)
-    for start in range(0, len(order), 8192):
-        idx = order[start : start + 8192]
-        if bound[idx[0]] >= best:
-            break
-        best = min(best, float(_first_crossing(jac[idx], min_jacobian).min()))
-    return best
-
-
-def _cells_near_knots(frame: _Frame, knots_px: np.ndarray) -> np.ndarray:
-    """Boolean mask over pixel cells (numpy shape ``n - 1`` per axis, a cell named by its
-    lowest corner) of the cells within :data:`KNOT_BOX` pixels of a knot."""
-    cells = np.zeros(tuple(n - 1 for n in frame.shape), dtype=bool)
-    for p in knots_px[:, ::-1]:  # numpy axis order
-        lo = np.clip(np.floor(p - KNOT_BOX).astype(int), 0, np.array(cells.shape) - 1)
-        hi = np.clip(np.floor(p + KNOT_BOX).astype(int), 0, np.array(cells.shape) - 1)
-        cells[tuple(slice(a, b + 1) for a, b in zip(lo, hi, strict=True))] = True
-    return cells
-
-
-def _cells_near_threshold(det_grid: np.ndarray, min_jacobian: float) -> np.ndarray:
-    """Cells whose corner determinants satisfy ``2 min - max < min_jacobian``: the linear
-    trend across the cell, continued for one more cell, would cross the threshold."""
-    dim = det_grid.ndim
-    lo = hi = None
-    for corner in np.ndindex(*([2] * dim)):
-        v = det_grid[
-            tuple(slice(b, n - 1 + b) for b, n in zip(corner, det_grid.shape, strict=True))
-        ]
-        lo = v if lo is None else np.minimum(lo, v)
-        hi = v if hi is None else np.maximum(hi, v)
-    return 2.0 * lo - hi < min_jacobian
-
-
-def _subgrid_offsets(dim: int) -> np.ndarray:
-    """Offsets (numpy order) of the sub-grid points of one cell, corners (pixel centres,
-    checked already) left out: ``(REFINE + 1)^dim - 2^dim`` points."""
-    a = np.arange(REFINE + 1) / REFINE
-    offs = np.stack(np.meshgrid(*([a] * dim), indexing="ij"), -1).reshape(-1, dim)
-    corner = np.all((offs == 0) | (offs == 1), axis=1)
-    return offs[~corner]
-
-
-def _subgrid_safety(
-    spline: ClampedPlateSpline,
-    frame: _Frame,
-    cells: np.ndarray,
-    scale: float,
-    min_jacobian: float,
-    *,
-    cap: float,
-) -> tuple[float, float]:
-    """Over the sub-grid of the masked `cells`: ``_safe_scale`` of ``scale * J`` (capped)
-    and the smallest ``det(I + scale J)``. Chunked over cells."""
-    corners = np.argwhere(cells).astype(np.float64)
-    offs = _subgrid_offsets(frame.dim)
-    t, min_det = float(cap), np.inf
-    for start in range(0, len(corners), _CELL_CHUNK):
-        pts = (corners[start : start + _CELL_CHUNK, None, :] + offs[None]).reshape(-1, frame.dim)
-        unit = frame.unit(pts[:, ::-1])
-        unit = unit[np.einsum("nd,nd->n", unit, unit) < 1.0]
-        if not len(unit):
-            continue
-        jac = scale * spline.jacobian(unit)
-        min_det = min(min_det, float(_det(jac + np.eye(frame.dim)).min()))
-        t = min(t, _safe_scale(jac, min_jacobian, cap=t))
-    return t, min_det
-
-
-def _safety(
-    spline: ClampedPlateSpline,
-    frame: _Frame,
-    jac_in: np.ndarray,
-    inside: np.ndarray,
-    scale: float,
-    min_jacobian: float,
-    *,
-    cap: float = np.inf,
-) -> tuple[float, float]:
-    """The fold check of a spline scaled by `scale`: ``(t, min_det)``.
-
-    ``t`` is ``min(cap, largest multiplier)`` such that ``det(I + s scale J) >= min_jacobian``
-    for every ``s <= t`` at every check point (pixel centres, the sub-grid around the knots,
-    the sub-grid of the cells near the threshold at ``scale`` and at ``t scale``); the warp
-    is acceptable when ``t >= 1``. ``min_det`` is the smallest ``det(I + scale J)`` over the
-    points checked at ``scale`` (pixel centres, knot and threshold cells).
-
-    `jac_in` are the unscaled unit-ball Jacobians at the pixel centres inside the ball
-    (flat indices `inside`); the determinant is the same in unit-ball, mm and pixel units.
-    """
-    eye = np.eye(frame.dim)
-    accept_only = cap <= 1.0  # only whether t >= 1 matters: stop at the first failure
-    t = _safe_scale(scale * jac_in, min_jacobian, cap=cap)
-    det_in = _det(scale * jac_in + eye)
-    min_det = float(det_in.min()) if len(det_in) else 1.0
-    if accept_only and t < 1.0:  # fails at the pixel centres already
-        return t, min_det
-    checked = _cells_near_knots(frame, frame.to_pixels(spline.knots))
-    tk, dk = _subgrid_safety(spline, frame, checked, scale, min_jacobian, cap=t)
-    t, min_det = min(t, tk), min(min_det, dk)
-    # the multiplier at which the cells near the threshold are chosen: the warp itself,
-    # unless it folds already (then where it would start to fold)
-    level = min(1.0, t)
-    for _ in range(6):
-        if accept_only and t < 1.0:
-            break
-        det_grid = np.ones(frame.shape)
-        det_grid.flat[inside] = _det(level * scale * jac_in + eye)
-        cells = _cells_near_threshold(det_grid, min_jacobian) & ~checked
-        if cells.any():
-            ts, ds = _subgrid_safety(spline, frame, cells, scale, min_jacobian, cap=t)
-            if level == 1.0:
-                min_det = min(min_det, ds)
-            checked |= cells
-            t = min(t, ts)
-        if not np.isfinite(t) or abs(t - level) <= 1e-9 * t:
-            break
-        level = t  # where the warp would fold: look at the cells near the threshold there
-    return t, min_det
 
 
 def random_cps(
@@ -1001,7 +431,7 @@ def random_cps(
     ``d <= 0.45`` px for ``R = 18`` px. (2D biharmonic: ``0.17 R`` inside the disk,
     ``d <= 9.4`` px on 141 x 141.) Random knot steps fold sooner.
     """
-    frame = _Frame.of(shape, spacing)
+    frame = BallFrame.of(shape, spacing)
     shape = frame.shape
     d = float(mean_displacement)
     if not (np.isfinite(d) and d >= 0):
@@ -1029,7 +459,7 @@ def random_cps(
         if d_hat == 0.0:
             continue
         scale = d / d_hat  # pixel displacement = scale * R * spline(unit) / S
-        t, min_det = _safety(spline, frame, jac, inside, scale, min_jacobian, cap=1.0)
+        t, min_det = fold_check(spline, frame, jac, inside, scale, min_jacobian, cap=1.0)
         if t >= 1.0:
             d_mm = scale * frame.radius * np.linalg.norm(u, axis=1).sum() / n_pix
             return CPSWarp(
@@ -1041,7 +471,7 @@ def random_cps(
     largest, largest_mm = math.nan, math.nan
     if best[1] is not None:  # the best draw's exact safe d (cap lifted)
         spline, jac, scale, d_hat, u = best[1]
-        t, _ = _safety(spline, frame, jac, inside, scale, min_jacobian)
+        t, _ = fold_check(spline, frame, jac, inside, scale, min_jacobian)
         largest = t * d
         largest_mm = largest * np.linalg.norm(u, axis=1).sum() * frame.radius / (n_pix * d_hat)
     raise FoldingError(
@@ -1185,7 +615,7 @@ def max_safe_displacement(field, *, min_jacobian: float = 0.0) -> float:
         frame = field._frame
         unit, inside = frame.grid()
         jac = field._jac if field._jac is not None else field.spline.jacobian(unit)
-        t, _ = _safety(field.spline, frame, jac, inside, field.scale, min_jacobian)
+        t, _ = fold_check(field.spline, frame, jac, inside, field.scale, min_jacobian)
         return t * field.mean_displacement
     arr = _field_pixels(field)
     dim = arr.shape[-1]
@@ -1195,7 +625,7 @@ def max_safe_displacement(field, *, min_jacobian: float = 0.0) -> float:
     # grad[..., i, j] = d u_i / d x_j, x_j ITK axis j = numpy axis dim - 1 - j
     grads = np.gradient(arr, axis=tuple(range(dim)))
     jac = np.stack([grads[dim - 1 - j] for j in range(dim)], axis=-1).reshape(-1, dim, dim)
-    return mean * _safe_scale(jac, min_jacobian)
+    return mean * safe_scale(jac, min_jacobian)
 
 
 # ----------------------------------------------------------------------------------------
@@ -1330,7 +760,7 @@ def _linear_sample(channels: np.ndarray, coords: np.ndarray) -> np.ndarray:
         stride *= spatial[a]
     n = coords.shape[1]
     out = np.empty((len(channels), n))
-    for sl in _chunks(n):
+    for sl in chunks(n):
         base, frac = [], []
         for a, size in enumerate(spatial):
             c = np.clip(coords[a, sl], 0.0, size - 1.0)

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from scipy import integrate, ndimage, optimize
 
 from itk_nrreval import warps as W
+from itk_nrreval._fold_check import safe_scale
 
 
 def random_inside(rng, n, dim, rmax=0.9):
@@ -400,8 +401,8 @@ def test_capped_fold_search_agrees_with_the_exact_one(dim):
     rng = np.random.default_rng(dim)
     jac = rng.normal(size=(400, dim, dim)) * rng.uniform(0.05, 1.5, size=(400, 1, 1))
     for m in (0.0, 0.05):
-        exact = np.array([W._safe_scale(a[None], m) for a in jac])
-        capped = np.array([W._safe_scale(a[None], m, cap=1.0) for a in jac])
+        exact = np.array([safe_scale(a[None], m) for a in jac])
+        capped = np.array([safe_scale(a[None], m, cap=1.0) for a in jac])
         np.testing.assert_allclose(capped, np.minimum(exact, 1.0), rtol=1e-9)
         for a, t in zip(jac[:40], exact[:40], strict=True):
             assert t == pytest.approx(brute_first_crossing(a, m), rel=1e-6) or (
