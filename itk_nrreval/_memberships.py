@@ -10,6 +10,10 @@ are mapped once, the ``2**dim`` interpolation weights of each point are computed
 each weight is added to the membership of the label of its corner. Only nonzero memberships
 are stored (:class:`SparseMemberships`, per label a sorted list of voxels and weights).
 
+Beside this module: the compiled kernels (:mod:`itk_nrreval._membership_kernels`), the label
+values as channels (:mod:`itk_nrreval._label_channels`) and the membership images on disk
+(:mod:`itk_nrreval._membership_files`).
+
 Conventions
 -----------
 * ``transform`` maps **grid (reference) points to label-map points**, physical mm, LPS, as
@@ -45,36 +49,41 @@ weights of 1e-16 (a change far below float32 resolution).
 
 from __future__ import annotations
 
-import json
-import os
-import re
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numba
 import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from ._errors import InputError, readable
-from ._images import Geometry, read_header
-from ._output import atomic_path, write_json
-from .transforms import PointMap, TransformPieces, file_stem, flatten, is_linear
+from ._errors import InputError
+from ._images import Geometry
+from ._label_channels import LABEL_INTERPOLATIONS, channel_codes, checked_labels, label_table
+from ._membership_files import write_membership_image
+from ._membership_kernels import (
+    by_label,
+    continuous_indices,
+    covered_from,
+    inside_at,
+    inside_flags,
+    near_border_points,
+    point_entries,
+    point_indices,
+    voxel_base,
+)
+from .transforms import PointMap, TransformPieces, flatten, is_linear
 
+# LABEL_INTERPOLATIONS (_label_channels) and write_membership_image (_membership_files) are
+# where the rest of the package has imported them from
 __all__ = [
     "LABEL_INTERPOLATIONS",
-    "MEMBERSHIPS_KIND",
     "SparseMemberships",
     "covered_voxels",
-    "membership_file_labels",
     "resample_label_memberships",
-    "sidecar_path",
     "write_membership_image",
 ]
 
-#: The ways label maps can be resampled into memberships (:func:`resample_label_memberships`).
-LABEL_INTERPOLATIONS = ("linear", "nearest", "gaussian")
 #: Smoothed memberships below this are not stored (Gaussian tails, recursive-filter noise).
 _GAUSSIAN_FLOOR = 1e-6
 
@@ -87,16 +96,6 @@ _BORDER_EPS = 1e-6
 _POINTWISE_LIMIT = 10_000
 #: Continuous indices closer than this (voxels) to a voxel centre are put on it.
 _SNAP = 1e-9
-#: Label-value ranges up to this many values are mapped to channels with a lookup table.
-_LUT_MAX = 1 << 22
-
-#: The ``kind`` in the JSON sidecar of a membership image (:func:`write_membership_image`).
-MEMBERSHIPS_KIND = "memberships"
-#: How the NIfTI description of a membership image starts (:func:`write_membership_image`).
-_HEADER = "nrreval memberships"
-_HEADER_WITH_LABELS = re.compile(r"nrreval memberships; labels (-?\d+(?:,-?\d+)*); ")
-#: ITK refuses a longer NIfTI description (``descrip`` holds 80 bytes with its terminator).
-_NIFTI_DESCRIPTION_MAX = 79
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,13 +240,13 @@ def resample_label_memberships(
     grids with ITK (4 bytes per grid voxel at a time).
     """
     g = grid if isinstance(grid, Geometry) else Geometry.from_image(grid)
-    labels = _checked_labels(label_map, transform, g, method, sigma_mm)
+    labels = checked_labels(label_map, transform, g, method, sigma_mm)
     dim = g.dimension
     labels3 = labels.reshape((1,) * (3 - dim) + labels.shape)  # 2D as one plane of 3D
-    labels3, vmin, lut, values = _label_table(labels3, values)
+    labels3, vmin, lut, values = label_table(labels3, values)
     if method != "linear":
         # Channel numbers + 1 as an image (0: no channel), so that ITK resamples channels.
-        codes = _channel_codes(labels3, vmin, lut).reshape(labels.shape)
+        codes = channel_codes(labels3, vmin, lut).reshape(labels.shape)
         code_image = sitk.GetImageFromArray(codes)
         code_image.CopyInformation(label_map)
         if method == "nearest":
@@ -325,8 +324,8 @@ def resample_image_and_memberships(
     lead = (1,) * (3 - g.dimension)  # 2D as one plane of 3D
     labels3, vmin, lut = None, 0, None
     if label_map is not None:
-        labels = _checked_labels(label_map, transform if built else None, g, "linear", None)
-        labels3, vmin, lut, values = _label_table(labels.reshape(lead + labels.shape), values)
+        labels = checked_labels(label_map, transform if built else None, g, "linear", None)
+        labels3, vmin, lut, values = label_table(labels.reshape(lead + labels.shape), values)
     elif image.GetDimension() != g.dimension:
         raise ValueError(f"image: {image.GetDimension()}D on a {g.dimension}D grid")
     pixels = sitk.GetArrayViewFromImage(image)
@@ -351,50 +350,6 @@ def shares_grid(image: sitk.Image, label_map: sitk.Image) -> bool:
     )
 
 
-def _checked_labels(
-    label_map: sitk.Image, transform: sitk.Transform | None, g: Geometry, method: str, sigma_mm
-) -> np.ndarray:
-    """The label map's values as an integer array (numpy order) once the arguments of
-    :func:`resample_label_memberships` are checked (InputError otherwise; `transform` None:
-    not yet built, its dimension unchecked)."""
-    dim = g.dimension
-    if dim not in (2, 3):
-        raise InputError(f"grid: {dim}D, expected 2D or 3D")
-    t_dim = dim if transform is None else transform.GetDimension()
-    if label_map.GetDimension() != dim or t_dim != dim:
-        raise InputError(
-            f"label map ({label_map.GetDimension()}D), transform ({t_dim}D) "
-            f"and grid ({dim}D) must have the same dimension"
-        )
-    if label_map.GetNumberOfComponentsPerPixel() != 1:
-        raise InputError("label map: expected a scalar image, got a vector image")
-    labels = sitk.GetArrayViewFromImage(label_map)
-    if labels.dtype.kind == "f":  # label maps saved as float by some tools: integers only
-        bad = ~np.isfinite(labels) | (labels != np.round(labels))
-        if bad.any():
-            raise InputError(
-                f"label map: non-integer value {float(labels[bad].flat[0]):g} in a "
-                f"{label_map.GetPixelIDTypeAsString()} label map; label values must be integers"
-            )
-        labels = labels.astype(np.int64)
-    elif labels.dtype.kind not in "iu":
-        raise InputError(
-            f"label map: expected an integer pixel type, got {label_map.GetPixelIDTypeAsString()}"
-        )
-    if method not in LABEL_INTERPOLATIONS:
-        raise InputError(f"label interpolation: {method!r} is not one of {LABEL_INTERPOLATIONS}")
-    if method == "gaussian":
-        if isinstance(sigma_mm, bool) or not isinstance(sigma_mm, (int, float)):
-            raise InputError(f"label smoothing: expected a number of mm, got {readable(sigma_mm)}")
-        if not 0 < sigma_mm < np.inf:
-            raise InputError(
-                f"label smoothing: expected a finite sigma > 0 mm, got {readable(sigma_mm)}"
-            )
-    elif sigma_mm is not None:
-        raise InputError(f"label smoothing: sigma_mm is only for method 'gaussian', not {method!r}")
-    return labels
-
-
 def _linear_memberships(
     image_grid: Geometry,
     labels3: np.ndarray | None,
@@ -407,7 +362,7 @@ def _linear_memberships(
     sampled: np.ndarray | PointMap | None = None,
 ) -> tuple[SparseMemberships | None, np.ndarray | None]:
     """The linear memberships of a label map on `image_grid` (`labels3` and its table,
-    :func:`_label_table`; None: no label map), slab by slab; with `image` (on that grid,
+    :func:`label_table`; None: no label map), slab by slab; with `image` (on that grid,
     numpy order, float64), also the image linearly resampled at the same points (flat
     float64, NaN outside the buffer: :func:`resample_image_and_memberships`). `sampled`: the
     transform's displacement on the whole grid, or its PointMap, when the caller has it
@@ -482,7 +437,7 @@ def covered_voxels(
         maps = _index_maps(grid, image_grid)
         points = displacement.reshape(-1, grid.dimension)
         size = np.asarray(grid.size, np.int64)
-        if not _covered_from(points, size, *maps, _BORDER_EPS, covered):
+        if not covered_from(points, size, *maps, _BORDER_EPS, covered):
             return covered
     # some points lie on the border (or no whole sampling was given): slab by slab, ITK
     # decides the points on the border
@@ -491,7 +446,7 @@ def covered_voxels(
         if near or border.whole is not None:
             covered[start : start + cidx.shape[0]] = border.slab(start, cidx, near)
         elif not whole:
-            _inside_flags(cidx, *_zyx(image_grid.shape), covered[start : start + cidx.shape[0]])
+            inside_flags(cidx, *_zyx(image_grid.shape), covered[start : start + cidx.shape[0]])
     return covered
 
 
@@ -528,7 +483,7 @@ def _slab_indices(
         if isinstance(sampled, PointMap):
             slab = Geometry(size, g.spacing, tuple(origin.tolist()), g.direction)
             points = sampled.points(slab, z0, out=points_buffer)
-            near_border = _point_indices(points, l_origin, l_inverse, l_size, _BORDER_EPS, cidx)
+            near_border = point_indices(points, l_origin, l_inverse, l_size, _BORDER_EPS, cidx)
             yield z0, cidx, near_border
             continue
         if sampled is None:
@@ -539,7 +494,7 @@ def _slab_indices(
         else:
             field = None
             disp = sampled[z0 : z0 + nz].reshape(-1, dim)
-        near_border = _continuous_indices(
+        near_border = continuous_indices(
             disp,
             np.asarray(size, np.int64),
             z0,
@@ -567,187 +522,6 @@ def _index_maps(g: Geometry, image_grid: Geometry) -> tuple[np.ndarray, ...]:
     l_origin = np.asarray(image_grid.origin, float)
     l_size = np.asarray(image_grid.size, np.int64)
     return np.asarray(g.origin, float), g_matrix, l_origin, l_inverse, l_size
-
-
-@numba.njit(cache=True, parallel=True)
-def _covered_from(
-    points, size, g_origin, g_matrix, l_origin, l_inverse, l_size, eps, out
-):  # pragma: no cover - compiled
-    """Into `out` (flat bool): whether ``p + points[f]`` of each grid voxel p (the grid of
-    ITK size `size`, C order) lies in the image's buffer, ITK's IsInsideBuffer by the
-    arithmetic of :func:`_continuous_indices` and :func:`_inside_at`. Returns the number of
-    points within `eps` voxels of the border (ITK decides those)."""
-    d = points.shape[1]
-    nx = size[0]
-    ny = size[1]
-    n_planes = size[d - 1]
-    per_plane = nx * ny if d == 3 else nx
-    near = 0
-    for z in numba.prange(n_planes):
-        idx = np.zeros(d)
-        q = np.empty(d)
-        idx[d - 1] = z
-        n_mid = ny if d == 3 else 1
-        for y in range(n_mid):
-            if d == 3:
-                idx[1] = y
-            for x in range(nx):
-                idx[0] = x
-                f = z * per_plane + y * nx + x if d == 3 else z * nx + x
-                for i in range(d):
-                    p = g_origin[i]
-                    for j in range(d):
-                        p += g_matrix[i, j] * idx[j]
-                    q[i] = (points[f, i] + p) - l_origin[i]
-                ok = True
-                for i in range(d):
-                    c = 0.0
-                    for j in range(d):
-                        c += l_inverse[i, j] * q[j]
-                    if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
-                        near += 1
-                    ok = ok and (c >= -0.5 and c < l_size[i] - 0.5)
-                out[f] = ok
-    return near
-
-
-@numba.njit(cache=True)
-def _inside_flags(cidx, nz, ny, nx, out):  # pragma: no cover - compiled
-    """ITK's IsInsideBuffer of each continuous index (:func:`_inside_at`), into `out`."""
-    none = np.empty(0, np.uint8)
-    for f in range(cidx.shape[0]):
-        out[f] = _inside_at(cidx, f, none, nz, ny, nx)[0]
-
-
-def _label_table(
-    labels3: np.ndarray, values: Sequence[int] | None
-) -> tuple[np.ndarray, int, np.ndarray, np.ndarray]:
-    """How label values become channels: ``channel = lut[label - vmin]`` (-1: no channel).
-
-    Parameters
-    ----------
-    labels3 : ndarray of shape (nz, ny, nx), integer
-        The label map (a 2D map as one plane).
-    values : sequence of int or None
-        Requested label values, or None for the sorted values present.
-
-    Returns
-    -------
-    labels : ndarray of shape (nz, ny, nx), integer
-        What the kernel reads: `labels3` itself, or its channel numbers when the values
-        spread too widely for a table.
-    vmin : int
-        Offset of the table.
-    lut : ndarray of int32
-        Channel per value ``vmin, vmin + 1, ...``; covers every value in `labels`.
-    values : ndarray of shape (n_labels,), int64
-        The channels' label values.
-    """
-    if values is not None:
-        requested = np.asarray(values)
-        if requested.ndim != 1 or (requested.size and requested.dtype.kind not in "iu"):
-            raise InputError(f"values: expected a sequence of integers, got {readable(values)}")
-        requested = requested.astype(np.int64)
-        if np.unique(requested).size != requested.size:
-            raise InputError(f"values: repeated label values in {requested.tolist()}")
-    if labels3.dtype == np.uint64 and labels3.size and labels3.max() > np.iinfo(np.int64).max:
-        raise InputError("label map: label values above 2**63 - 1")
-    lo, hi = (int(labels3.min()), int(labels3.max())) if labels3.size else (0, 0)
-    if hi - lo < _LUT_MAX:
-        # A table over the values' range: linear passes, never a sort of the label map.
-        if values is None:
-            seen = np.zeros(hi - lo + 1, np.bool_)
-            _mark_present(labels3, lo, seen)
-            requested = lo + np.flatnonzero(seen).astype(np.int64)
-        lut = np.full(hi - lo + 1, -1, np.int32)
-        hit = (requested >= lo) & (requested <= hi)
-        lut[requested[hit] - lo] = np.flatnonzero(hit)
-        return labels3, lo, lut, requested
-    # Values spread too widely for a table (e.g. hashes): channel numbers by a sort, read by
-    # the kernel through the table lut[c + 1] = c.
-    flat = labels3.astype(np.int64).ravel()
-    if values is None:
-        requested = np.unique(flat)
-    order = np.argsort(requested, kind="stable")
-    ranked = requested[order]
-    codes = np.full(flat.shape, -1, np.int32)
-    if ranked.size:
-        pos = np.minimum(np.searchsorted(ranked, flat), ranked.size - 1)
-        found = ranked[pos] == flat
-        codes[found] = order[pos[found]]
-    lut = np.arange(-1, requested.size, dtype=np.int32)
-    return codes.reshape(labels3.shape), -1, lut, requested
-
-
-@numba.njit(cache=True)
-def _mark_present(labels, vmin, seen):  # pragma: no cover - compiled
-    flat = labels.ravel()
-    for i in range(flat.size):
-        seen[np.int64(flat[i]) - vmin] = True
-
-
-@numba.njit(cache=True)
-def _continuous_indices(
-    points, size, z0, g_origin, g_matrix, l_origin, l_inverse, l_size, eps, out
-):  # pragma: no cover - compiled
-    """``T(p) - p`` (mm, `points` (m, dim)) of the slab's voxels -> their continuous indices
-    in the label map, into `out` (m, dim) (which may be `points` itself).
-
-    `size` is the slab's ITK size, `z0` its first plane in the grid (the last ITK axis).
-    Returns the number of points within `eps` voxels of the buffer border on some axis.
-    """
-    d = points.shape[1]
-    n_mid = size[1] if d == 3 else 1
-    idx = np.zeros(d)
-    q = np.empty(d)
-    near = 0
-    f = 0
-    for z in range(size[d - 1]):
-        idx[d - 1] = z0 + z
-        for y in range(n_mid):
-            if d == 3:
-                idx[1] = y
-            for x in range(size[0]):
-                idx[0] = x
-                for i in range(d):
-                    p = g_origin[i]
-                    for j in range(d):
-                        p += g_matrix[i, j] * idx[j]
-                    q[i] = (points[f, i] + p) - l_origin[i]
-                near += _index_into(q, l_inverse, l_size, eps, out, f)
-                f += 1
-    return near
-
-
-@numba.njit(cache=True)
-def _point_indices(points, l_origin, l_inverse, l_size, eps, out):  # pragma: no cover
-    """Physical points (`points` (m, 3), mm; a 2D point's third coordinate 0) -> their
-    continuous indices in the label map, ITK's ``(D diag(spacing))^-1 (q - origin)``, into
-    `out` (m, dim). Returns the number within `eps` voxels of the buffer border on some
-    axis (the test of :func:`_continuous_indices`)."""
-    d = out.shape[1]
-    q = np.empty(d)
-    near = 0
-    for f in range(out.shape[0]):
-        for i in range(d):
-            q[i] = points[f, i] - l_origin[i]
-        near += _index_into(q, l_inverse, l_size, eps, out, f)
-    return near
-
-
-@numba.njit(cache=True, inline="always")
-def _index_into(q, l_inverse, l_size, eps, out, f):  # pragma: no cover - compiled
-    """Row f of `out` = ``l_inverse @ q`` (q: a point less the label map's origin, mm): its
-    continuous index. Returns on how many axes it lies within `eps` of the buffer border."""
-    near = 0
-    for i in range(q.shape[0]):
-        c = 0.0
-        for j in range(q.shape[0]):
-            c += l_inverse[i, j] * q[j]
-        out[f, i] = c
-        if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
-            near += 1
-    return near
 
 
 def _slab_memberships(
@@ -778,121 +552,29 @@ def _slab_memberships(
     weight = np.empty(cap, np.float32)
     f = n = 0
     while True:
-        f, n = _point_entries(cidx, labels, vmin, lut, inside, _SNAP, f, n, code, index, weight)
+        f, n = point_entries(cidx, labels, vmin, lut, inside, _SNAP, f, n, code, index, weight)
         if f == m:
             break
         cap = max(cap + cap // 2, n + 8 * 1024)
         code, index, weight = (np.resize(a, cap) for a in (code, index, weight))
-    return _by_label(code[:n], index[:n], weight[:n], n_labels)
-
-
-@numba.njit(cache=True)
-def _point_entries(
-    cidx, labels, vmin, lut, inside, snap, f, n, out_code, out_index, out_weight
-):  # pragma: no cover - compiled
-    """Nonzero memberships of the slab's points from point `f` on, appended at entry `n`.
-
-    cidx : (m, dim) continuous indices (x, y[, z]) of the points in the label map.
-    labels : (nz, ny, nx) label values (a 2D map as one plane); channel = lut[value - vmin].
-    inside : (m,) uint8 ITK's inside-buffer decision, or empty to decide here.
-    Stops early when fewer than 8 entries of room are left. Returns (next point, entries).
-    """
-    m = cidx.shape[0]
-    nz, ny, nx = labels.shape
-    cap = out_code.size
-    val = np.empty(8, np.int64)
-    wgt = np.empty(8)
-    loc_code = np.empty(8, np.int64)
-    loc_w = np.empty(8)
-    while f < m:
-        if n + 8 > cap:
-            break
-        ok, cx, cy, cz = _inside_at(cidx, f, inside, nz, ny, nx)
-        if not ok:
-            f += 1
-            continue
-        bx, tx = _base(cx, nx, snap)
-        by, ty = _base(cy, ny, snap)
-        bz, tz = _base(cz, nz, snap)
-        # The upper neighbour exists whenever its weight t is nonzero (c was clamped to the
-        # outer voxel centres); with t == 0 the base voxel is read again at weight 0.
-        ux = bx + 1 if tx > 0.0 else bx
-        uy = by + 1 if ty > 0.0 else by
-        uz = bz + 1 if tz > 0.0 else bz
-        val[0] = labels[bz, by, bx]
-        val[1] = labels[bz, by, ux]
-        val[2] = labels[bz, uy, bx]
-        val[3] = labels[bz, uy, ux]
-        val[4] = labels[uz, by, bx]
-        val[5] = labels[uz, by, ux]
-        val[6] = labels[uz, uy, bx]
-        val[7] = labels[uz, uy, ux]
-        same = True
-        for j in range(1, 8):
-            if val[j] != val[0]:
-                same = False
-                break
-        if same:
-            # One label all around: exactly 1, as ITK's nested interpolation gives.
-            k = lut[val[0] - vmin]
-            if k >= 0:
-                out_code[n] = k
-                out_index[n] = f
-                out_weight[n] = 1.0
-                n += 1
-            f += 1
-            continue
-        wx0, wy0, wz0 = 1.0 - tx, 1.0 - ty, 1.0 - tz
-        wgt[0] = wx0 * wy0 * wz0
-        wgt[1] = tx * wy0 * wz0
-        wgt[2] = wx0 * ty * wz0
-        wgt[3] = tx * ty * wz0
-        wgt[4] = wx0 * wy0 * tz
-        wgt[5] = tx * wy0 * tz
-        wgt[6] = wx0 * ty * tz
-        wgt[7] = tx * ty * tz
-        nloc = 0
-        for j in range(8):
-            if wgt[j] == 0.0:
-                continue
-            k = lut[val[j] - vmin]
-            if k < 0:  # a value without a channel
-                continue
-            i = 0
-            while i < nloc and loc_code[i] != k:
-                i += 1
-            if i == nloc:
-                loc_code[i] = k
-                loc_w[i] = wgt[j]
-                nloc += 1
-            else:
-                loc_w[i] += wgt[j]
-        for i in range(nloc):
-            w = np.float32(loc_w[i])
-            if w > 0:
-                out_code[n] = loc_code[i]
-                out_index[n] = f
-                out_weight[n] = w
-                n += 1
-        f += 1
-    return f, n
+    return by_label(code[:n], index[:n], weight[:n], n_labels)
 
 
 @numba.njit(cache=True, parallel=True)
 def _linear_values(cidx, image, inside, out):  # pragma: no cover - compiled
     """``out[f]``: `image` (nz, ny, nx) linearly interpolated at continuous index ``cidx[f]``
     (x, y[, z]) as ITK's linear interpolator does (clamped to the outer voxel centres), NaN
-    outside the buffer. `inside` as in :func:`_point_entries` (empty: decide here). Each
+    outside the buffer. `inside` as in :func:`point_entries` (empty: decide here). Each
     point alone, by the same operations: the numbers do not depend on the threads."""
     nz, ny, nx = image.shape
     for f in numba.prange(cidx.shape[0]):
-        ok, cx, cy, cz = _inside_at(cidx, f, inside, nz, ny, nx)
+        ok, cx, cy, cz = inside_at(cidx, f, inside, nz, ny, nx)
         if not ok:
             out[f] = np.nan
             continue
-        bx, tx = _base(cx, nx, 0.0)
-        by, ty = _base(cy, ny, 0.0)
-        bz, tz = _base(cz, nz, 0.0)
+        bx, tx = voxel_base(cx, nx, 0.0)
+        by, ty = voxel_base(cy, ny, 0.0)
+        bz, tz = voxel_base(cz, nz, 0.0)
         ux = bx + 1 if tx > 0.0 else bx
         uy = by + 1 if ty > 0.0 else by
         uz = bz + 1 if tz > 0.0 else bz
@@ -904,51 +586,6 @@ def _linear_values(cidx, image, inside, out):  # pragma: no cover - compiled
         lo = a + (b - a) * ty
         hi = c + (e - c) * ty
         out[f] = lo + (hi - lo) * tz
-
-
-@numba.njit(cache=True, inline="always")
-def _inside_at(cidx, f, inside, nz, ny, nx):  # pragma: no cover - compiled
-    """Whether point `f` (continuous index ``cidx[f]``, x, y[, z]) is inside a buffer of
-    shape (nz, ny, nx), and its index (z 0 in 2D): ITK's decision ``inside[f]`` where given
-    (non-empty), else ITK's IsInsideBuffer, ``-0.5 <= c < size - 0.5`` on every axis
-    (half-open; NaN is outside)."""
-    cx = cidx[f, 0]
-    cy = cidx[f, 1]
-    cz = cidx[f, 2] if cidx.shape[1] == 3 else 0.0
-    if inside.size > 0:
-        return inside[f] != 0, cx, cy, cz
-    ok = (cx >= -0.5 and cx < nx - 0.5) and (cy >= -0.5 and cy < ny - 0.5)
-    return ok and (cz >= -0.5 and cz < nz - 0.5), cx, cy, cz
-
-
-@numba.njit(cache=True, inline="always")
-def _base(c, size, snap):  # pragma: no cover - compiled
-    """Lower interpolation neighbour and weight of the upper one along an axis of `size`."""
-    c = min(max(c, 0.0), size - 1.0)  # ITK's interpolator clamps to the outer voxel centres
-    r = np.floor(c + 0.5)
-    if abs(c - r) <= snap:
-        c = r
-    b = np.floor(c)
-    return np.int64(b), c - b
-
-
-@numba.njit(cache=True)
-def _by_label(code, index, weight, n_labels):  # pragma: no cover - compiled
-    """Stable counting sort of voxel-major entries by label (voxel order kept per label)."""
-    starts = np.zeros(n_labels + 1, np.int64)
-    for j in range(code.size):
-        starts[code[j] + 1] += 1
-    for k in range(n_labels):
-        starts[k + 1] += starts[k]
-    cursor = starts[:-1].copy()
-    out_index = np.empty(code.size, np.int32)
-    out_weight = np.empty(code.size, np.float32)
-    for j in range(code.size):
-        k = code[j]
-        out_index[cursor[k]] = index[j]
-        out_weight[cursor[k]] = weight[j]
-        cursor[k] += 1
-    return starts, out_index, out_weight
 
 
 class _BorderDecisions:
@@ -992,28 +629,12 @@ class _BorderDecisions:
         if self.whole is not None:
             return self.whole[start : start + m]
         flags = np.empty(m, np.bool_)
-        _inside_flags(cidx, *_zyx(self.image_grid.shape), flags)
-        doubtful = _near_border_points(cidx, np.asarray(self.image_grid.size), _BORDER_EPS, near)
+        inside_flags(cidx, *_zyx(self.image_grid.shape), flags)
+        doubtful = near_border_points(cidx, np.asarray(self.image_grid.size), _BORDER_EPS, near)
         flags[doubtful] = _itk_inside_at(
             self._pointwise(), self.grid, self.image_grid, start + doubtful
         )
         return flags
-
-
-@numba.njit(cache=True)
-def _near_border_points(cidx, l_size, eps, capacity):  # pragma: no cover - compiled
-    """The rows of `cidx` within `eps` voxels of the buffer border on some axis (the test of
-    :func:`_continuous_indices`); at most `capacity` of them."""
-    out = np.empty(capacity, np.int64)
-    n = 0
-    for f in range(cidx.shape[0]):
-        for i in range(cidx.shape[1]):
-            c = cidx[f, i]
-            if abs(c + 0.5) <= eps or abs(c - (l_size[i] - 0.5)) <= eps:
-                out[n] = f
-                n += 1
-                break
-    return out[:n]
 
 
 def _itk_inside_at(
@@ -1088,13 +709,6 @@ def _assemble(values: np.ndarray, shape: tuple[int, ...], pieces) -> SparseMembe
     return SparseMemberships(values, tuple(int(s) for s in shape), ptr, index, weight)
 
 
-def _channel_codes(labels3: np.ndarray, vmin: int, lut: np.ndarray) -> np.ndarray:
-    """Channel number + 1 of every voxel (0 where its value has no channel), int32."""
-    flat = labels3.astype(np.int64, copy=False).ravel()
-    codes = lut[flat - vmin].astype(np.int32) + 1
-    return codes.reshape(labels3.shape)
-
-
 def _resample_onto(image: sitk.Image, transform, g: Geometry, interpolator, pixel) -> np.ndarray:
     """`image` resampled through `transform` onto `g` (default 0): flat C-order array."""
     out = sitk.Resample(
@@ -1160,165 +774,3 @@ def _gaussian_memberships(
         idx = np.flatnonzero(w > _GAUSSIAN_FLOOR)
         per_label.append((idx, np.minimum(w[idx], 1.0).astype(np.float32)))
     return _csr(values, g.shape, per_label)
-
-
-# -- membership files ----------------------------------------------------------------------
-
-
-def sidecar_path(path: str | os.PathLike) -> Path:
-    """The JSON sidecar of the image at `path`: same folder and stem, ``.json``
-    (``memberships_000.nii.gz`` -> ``memberships_000.json``)."""
-    return Path(path).with_name(file_stem(path) + ".json")
-
-
-def write_membership_image(
-    path: str | os.PathLike,
-    memberships: np.ndarray,
-    *,
-    labels: Sequence[int],
-    geometry: Geometry,
-    about: Mapping[str, object] | None = None,
-) -> None:
-    """Write fuzzy memberships as one multi-component image that says which labels they are.
-
-    The file format of ``memberships_###.nii.gz`` (``nrreval evaluate --save-resampled``):
-
-    * the image: one float32 component per label, component k the membership in [0, 1] of
-      label ``labels[k]``; no background component (background is one minus the sum of
-      the components inside the field of view); every component 0 outside it. One label
-      gives a scalar image (NIfTI stores no one-component vector);
-    * its JSON sidecar (:func:`sidecar_path`): ``{"kind": "memberships", "labels": [...],
-      "background": false, "image": <file name>, ...}`` plus the entries of `about`;
-    * its NIfTI description: ``nrreval memberships; labels 2,5,9; no background``, or, when
-      the labels do not fit in the header's 79 characters, ``nrreval memberships; labels in
-      <sidecar>; no background``.
-
-    :func:`membership_file_labels` reads the labels back; ``nrreval overlap`` uses them
-    instead of taking component 0 for background.
-
-    Parameters
-    ----------
-    path : path
-        The image file (NIfTI, ``.nii.gz``); the sidecar is written beside it. Both are
-        written atomically (a temporary file renamed on success).
-    memberships : ndarray of shape (n_labels, *geometry.shape), float32
-        The memberships, numpy axis order (label, [z,] y, x).
-    labels : sequence of int, length n_labels
-        The label value of each component, nonzero, in component order.
-    geometry : Geometry
-        The grid (spacing mm, origin mm LPS, direction).
-    about : mapping of str to JSON values, optional
-        Added to the sidecar (e.g. the subject's index and the registration's name).
-    """
-    labels = [int(v) for v in labels]
-    if memberships.shape[0] != len(labels) or 0 in labels:
-        raise ValueError(
-            f"{len(labels)} nonzero labels for {memberships.shape[0]} components: {labels}"
-        )
-    path = Path(path)
-    sidecar = sidecar_path(path)
-    description = f"{_HEADER}; labels {','.join(map(str, labels))}; no background"
-    if len(description) > _NIFTI_DESCRIPTION_MAX:
-        description = f"{_HEADER}; labels in {sidecar.name}; no background"
-    img = sitk.GetImageFromArray(np.moveaxis(memberships, 0, -1), isVector=True)
-    geometry.apply_to(img)
-    # ITK's NIfTI writer puts this key in the header's description (`descrip`)
-    img.SetMetaData("ITK_FileNotes", description[:_NIFTI_DESCRIPTION_MAX])
-    with atomic_path(path) as tmp:
-        sitk.WriteImage(img, str(tmp), True)
-    write_json(
-        sidecar,
-        {
-            "kind": MEMBERSHIPS_KIND,
-            "image": path.name,
-            "labels": labels,
-            "background": False,
-            "components": "component k is the membership in [0, 1] of label labels[k]; "
-            "background is 1 minus their sum inside the field of view; all are 0 outside it",
-            **(about or {}),
-        },
-    )
-
-
-def membership_file_labels(item, *, name: str) -> tuple[int, ...] | None:
-    """The label value of each component of a membership image, when the image says so.
-
-    Parameters
-    ----------
-    item : path or sitk.Image
-        A membership image. For a path, its JSON sidecar (:func:`sidecar_path`) is read
-        when it has ``"kind": "memberships"`` (other JSON beside an image, e.g. a BIDS
-        sidecar, is not ours and is ignored); otherwise the header's description.
-    name : str
-        The image's name in messages.
-
-    Returns
-    -------
-    tuple of int, or None
-        ``labels[k]`` is the label of component k (a scalar image has one component). None
-        when neither sidecar nor header says (a third-party file: the caller's own rules).
-
-    Raises
-    ------
-    InputError
-        A memberships sidecar with malformed labels or as many labels as the image has
-        components, or a header that says the labels are in a sidecar that is missing.
-    """
-    if isinstance(item, sitk.Image):
-        n_components = item.GetNumberOfComponentsPerPixel()
-        keys = set(item.GetMetaDataKeys())
-        key = "descrip" if "descrip" in keys else "ITK_FileNotes"
-        description = item.GetMetaData(key) if key in keys else ""
-        sidecar = None
-    elif isinstance(item, (str, os.PathLike)):
-        reader = read_header(item)
-        n_components = reader.GetNumberOfComponents()
-        has = reader.HasMetaDataKey("descrip")
-        description = reader.GetMetaData("descrip") if has else ""
-        sidecar = sidecar_path(item)
-        labels = _sidecar_labels(sidecar)
-        if labels is not None:
-            if len(labels) != n_components:
-                raise InputError(
-                    f"{sidecar}: names {len(labels)} labels, but {name} has "
-                    f"{n_components} components"
-                )
-            return labels
-    else:
-        return None
-    if not description.startswith(_HEADER):
-        return None
-    found = _HEADER_WITH_LABELS.match(description)
-    if found is None:
-        where = sidecar.name if sidecar is not None else "its JSON sidecar"
-        raise InputError(
-            f"{name}: a membership image whose labels are listed in {where}, which is missing"
-            + (" (an in-memory image: pass the file)" if sidecar is None else "")
-        )
-    labels = tuple(int(v) for v in found.group(1).split(","))
-    if len(labels) != n_components:
-        raise InputError(
-            f"{name}: its description names {len(labels)} labels for {n_components} components"
-        )
-    return labels
-
-
-def _sidecar_labels(sidecar: Path) -> tuple[int, ...] | None:
-    """The labels of a memberships sidecar; None when there is none, or not ours."""
-    try:
-        data = json.loads(sidecar.read_text())
-    except (OSError, UnicodeDecodeError, ValueError):  # absent, or not a JSON sidecar of ours
-        return None
-    if not isinstance(data, dict) or data.get("kind") != MEMBERSHIPS_KIND:
-        return None
-    labels = data.get("labels")
-    if (
-        not isinstance(labels, list)
-        or not labels
-        or not all(isinstance(v, int) and not isinstance(v, bool) for v in labels)
-        or len(set(labels)) != len(labels)
-    ):
-        raise InputError(
-            f"{sidecar}: 'labels' must be a non-empty list of distinct integers, got {labels!r}"
-        )
-    return tuple(labels)

@@ -18,7 +18,7 @@ from test_bad_inputs import assert_one_line
 from test_evaluate import SIZE, make_case
 
 from itk_nrreval._images import Geometry
-from itk_nrreval._memberships import membership_file_labels, write_membership_image
+from itk_nrreval._membership_files import membership_file_labels, write_membership_image
 from itk_nrreval.cli import main
 from itk_nrreval.overlap import WEIGHTINGS
 
