@@ -79,7 +79,6 @@ def _evaluate(manifest, cache: Path):
             seed=SEED,
             confidence=False,
             progress=False,
-            figures=False,
             execution=nr.Execution(cache=cache),
         )
 

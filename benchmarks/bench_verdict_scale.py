@@ -5,7 +5,7 @@ field-smoothing sweeps open: the rougher setting has the lower specificity, not 
 to rule out that roughness bought it. If what rough fields fit were fine-scale noise, the
 texture model of smoothed images would lose that advantage. This benchmark takes the two
 sweeps that ``bench_verdict.py`` ran (run it first), resamples their images into the common
-frame once (``evaluate(save_resampled=...)``), smooths each by a Gaussian of sigma mm
+frame once (``export_resampled`` after ``evaluate``), smooths each by a Gaussian of sigma mm
 (0 = as registered) and counts, per scale, the pairs of settings that specificity orders as
 the true correspondence error does.
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -33,16 +34,17 @@ def _specificity_by_scale(case: str) -> tuple[dict, dict]:
     errors = json.loads((VERDICT / case / "truth.json").read_text())["true_error_mm"]
     saved = VERDICT / case / "resampled"
     if not (saved / "region.nii.gz").exists():
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), tempfile.TemporaryDirectory() as cache:
             warnings.simplefilter("ignore")  # the flags are bench_verdict's business
-            nr.evaluate(
+            result = nr.evaluate(
                 VERDICT / case / "sweep" / "manifest.yaml",
                 n_samples=2000,
                 seed=0,
                 progress=False,
                 confidence=False,
-                save_resampled=saved,
+                execution=nr.Execution(cache=cache, keep_resampled=True),
             )
+            nr.export_resampled(result, saved, cache=cache)
     region = sitk.GetArrayFromImage(sitk.ReadImage(str(saved / "region.nii.gz"))) > 0
     spec: dict[float, dict[str, float]] = {}
     for sigma in SIGMAS_MM:

@@ -103,7 +103,8 @@ def main() -> None:
     with output_folder(args.out, prefix="nrreval-demo-") as out:
         manifest = args.manifest or make_demo(out / "data")
         print(f"manifest: {manifest}")
-        result = nr.evaluate(manifest, n_samples=args.samples, seed=0, out=out / "results")
+        result = nr.evaluate(manifest, n_samples=args.samples, seed=0)
+        result.write(out / "results")  # the reports `nrreval evaluate` writes
         print(summary_table(result))
 
 

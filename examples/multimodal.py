@@ -72,9 +72,7 @@ def main(folder: Path, *, n: int = N_SUBJECTS, n_samples: int = 20_000) -> dict:
             print(f"registered {name:10s} in {result.seconds:5.1f} s", flush=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # groups: intervals are Monte-Carlo only
-        evaluation = nr.evaluate(
-            manifest, n_samples=n_samples, confidence=False, progress=False, figures=False
-        )
+        evaluation = nr.evaluate(manifest, n_samples=n_samples, confidence=False, progress=False)
     # The common frame is `truth` (the template): average the error over the head.
     head = sitk.GetArrayFromImage(pop.template_labels) > 0
     truth = [s.subject_to_template for c in CONTRASTS for s in pop.subjects]

@@ -166,7 +166,8 @@ def main(argv: list[str] | None = None) -> nr.EvaluationResult:
     with tempfile.TemporaryDirectory(prefix="nrreval-console-") as tmp:
         manifest = scene_from_slicer(tmp) if IN_SLICER else generated_scene()
         out = args.out or OUT or os.path.join(tmp, "reports")
-        result = nr.evaluate(manifest, n_samples=args.samples, progress=not args.quiet, out=out)
+        result = nr.evaluate(manifest, n_samples=args.samples, progress=not args.quiet)
+        result.write(out)  # the reports `nrreval evaluate` writes
         lines = [*result.verdict.text, ""]
         lines += [
             f"{name}: specificity {s.specificity.value:.4g}"

@@ -40,7 +40,6 @@ import contextlib
 import dataclasses
 import functools
 import math
-import os
 import tempfile
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -55,6 +54,7 @@ from . import _version
 from ._brain_masks import BrainMaskDice, resample_mask, subject_mask_dice
 from ._cache import DiskCache, digest_of
 from ._errors import InputError, readable
+from ._evaluation_options import Execution, Resampling
 from ._executors import Executor
 from ._images import (
     Geometry,
@@ -71,10 +71,10 @@ from ._memberships import (
     resample_image_and_memberships,
     resample_label_memberships,
     shares_grid,
-    write_membership_image,
 )
 from ._output import json_number
 from ._overlap_kernels import membership_gradient_sum, membership_pair_sums
+from ._resampled_images import ResampledImages, image_slice, stored_memberships, thumbnails
 from .frame import (
     FrameMapping,
     common_reference,
@@ -93,13 +93,7 @@ from .label_metrics import LabelMetrics, crisp_labels, directed_percentiles, lab
 from .manifest import Manifest
 from .model import TextureModel
 from .overlap import OverlapTable
-from .plausibility import (
-    LOG_JACOBIAN_BINS,
-    LOG_JACOBIAN_RANGE,
-    AffineFit,
-    Plausibility,
-    deformation_measures,
-)
+from .plausibility import AffineFit, Plausibility, SubjectThresholds, deformation_measures
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
 from .subject_qc import reference_subject
 from .transforms import (
@@ -515,18 +509,6 @@ def _shares_sampling(
     return lab is None or (label_method == "linear" and shares_grid(raw, lab))
 
 
-def _stored_memberships(entry, shape: tuple[int, ...], labels) -> SparseMemberships:
-    """The label memberships a ``resampled`` cache entry holds (its ``lab_*`` arrays), on a
-    grid of numpy `shape`, for the label values `labels` (the entry's meta records them)."""
-    return SparseMemberships(
-        values=np.asarray(labels, np.int64),
-        shape=shape,
-        ptr=entry.array("lab_ptr"),
-        index=entry.array("lab_idx"),
-        weight=entry.array("lab_val"),
-    )
-
-
 def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
     """Per label of one resampled image: its gradient sum and its presence, in the region.
 
@@ -540,7 +522,7 @@ def _label_sums_task(ctx: _Context, key: str) -> tuple[dict, bool]:
         return dict(found.meta), True
     g = ctx.grid
     entry = cache.open("resampled", key)
-    memb = _stored_memberships(entry, g.shape, entry.meta["labels"])
+    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
     mask = ctx.mask_flat()
     gsum, present = [], []
     row = np.zeros(int(np.prod(g.shape)), np.float32)
@@ -777,8 +759,9 @@ class ReducedRegistration:
         each two images of one subject (``subject_pairs``, ``subject_pair_min``; see
         :func:`~itk_nrreval.confidence.overlap_replicates`); None without labels.
     thumbnails : dict of str to ndarray
-        Small arrays for the HTML report, whatever N (:func:`_thumbnails`): middle slices of
-        two subjects' resampled images (and of the subjects `pictured_subjects` of
+        Small arrays for the HTML report, whatever N
+        (:func:`~itk_nrreval._resampled_images.thumbnails`): middle slices of two subjects'
+        resampled images (and of the subjects `pictured_subjects` of
         :func:`run_pipeline` names, ``image_<i>``), of the first subject's labels and of its
         det J, and the log det J histogram over all subjects.
     affine_fits : list of AffineFit, length n_images
@@ -827,6 +810,9 @@ class PipelineRun:
         The common grid.
     cache_reused, cache_computed : int
         Per-image results found in the cache, and computed.
+    resampled : ResampledImages or None
+        Where every registration's resampled images are in the cache (gone from it unless
+        ``keep_resampled``), and the evaluated region.
     """
 
     registrations: Mapping[str, ReducedRegistration]
@@ -834,6 +820,7 @@ class PipelineRun:
     grid: Geometry
     cache_reused: int
     cache_computed: int
+    resampled: ResampledImages | None = None
 
 
 @dataclass
@@ -858,19 +845,15 @@ def run_pipeline(
     m: Manifest,
     executor: Executor,
     *,
-    cache: str | os.PathLike | None,
     n_samples: int,
     seed: int,
     distance: str,
-    interpolation: str,
     progress: bool,
-    save_resampled: str | os.PathLike | None = None,
+    resampling: Resampling | None = None,
+    execution: Execution | None = None,
+    subject_thresholds: SubjectThresholds | None = None,
     inverse_consistency: bool = True,
-    label_interpolation: str = "linear",
-    label_sigma_mm: float | None = None,
-    off_grid_coverage: float = 0.5,
     pictured_subjects: Callable[[ReducedRegistration, Callable], Sequence[int]] | None = None,
-    keep_resampled: bool = False,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -880,24 +863,25 @@ def run_pipeline(
         Already checked.
     executor : Executor
         Where tasks run.
-    cache : path, optional
-        The per-image result cache (default: a temporary folder, removed afterwards).
-    n_samples, seed, distance, interpolation
+    n_samples, seed, distance
         As :func:`itk_nrreval.evaluate`.
     progress : bool
         Progress bars on stderr.
-    save_resampled : path, optional
-        Write each registration's resampled images and label memberships (NIfTI, each with
-        a JSON sidecar saying what it is: :func:`_save_resampled`) in a folder of its name
-        here, and the evaluated region as ``region.nii.gz``.
+    resampling : Resampling, optional
+        How images and label maps become the common frame's (default ``Resampling()``).
+    execution : Execution, optional
+        Its `cache` (default: a temporary folder, removed afterwards) and `keep_resampled`:
+        keep every registration's resampled images and memberships in the cache (about
+        50 MB per image and registration at 1 mm), so that a rerun does not resample them
+        again, and :func:`itk_nrreval._resampled_images.export_resampled` can write them. By
+        default each registration's go once its scores are taken: the cache then holds one
+        registration's at a time, and keeps the frames and every transform's measures.
+    subject_thresholds : SubjectThresholds, optional
+        Its `off_grid_coverage`: leave out of the scores every image that covers less of the
+        common grid than this fraction of the median image, under any registration
+        (:func:`off_grid_subjects`); they are named in a warning.
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
-    label_interpolation, label_sigma_mm
-        How label maps become memberships (:func:`itk_nrreval.evaluate`).
-    off_grid_coverage : float
-        Leave out of the scores every image that covers less of the common grid than this
-        fraction of the median image, under any registration (:func:`off_grid_subjects`);
-        they are named in a warning.
     pictured_subjects : callable, optional
         Given a registration's finished :class:`ReducedRegistration` (without these pictures)
         and a function that resamples images through changed transforms and returns their
@@ -906,20 +890,18 @@ def run_pipeline(
         the subjects (manifest indices) whose resampled middle slice its thumbnails should
         also hold (``image_<i>``), e.g. the subjects its quality control flags: read from
         the cache before it goes, a few slices rather than all N.
-    keep_resampled : bool
-        Keep every registration's resampled images and memberships in the cache (about
-        50 MB per image and registration at 1 mm), so that a rerun does not resample them
-        again. By default each registration's go once its scores are taken: the cache then
-        holds one registration's at a time, and keeps the frames and every transform's
-        measures (coverage, plausibility).
 
     Returns
     -------
     PipelineRun
     """
+    resampling = resampling or Resampling()
+    execution = execution or Execution()
+    off_grid = (subject_thresholds or SubjectThresholds()).off_grid_coverage
     grid = Geometry.from_image(common_reference(m))
     mask = mask_array(m.mask, shape=grid.shape, geometry=grid) if m.mask is not None else None
     with contextlib.ExitStack() as stack:
+        cache = execution.cache
         if cache is None:
             cache = stack.enter_context(tempfile.TemporaryDirectory(prefix="nrreval-cache-"))
         disk = stack.enter_context(DiskCache(cache).in_use())
@@ -937,72 +919,98 @@ def run_pipeline(
             for name in m.registrations
         }
         entries = {k: (r.keys, r.metas, r.frame) for k, r in measured.items()}
-        left_out = _left_out_of_scores(m, entries, off_grid_coverage)
+        left_out = _left_out_of_scores(m, entries, off_grid)
         scored = tuple(i for i in range(m.n_images) if i not in left_out)
         region, coverage = _region(disk, grid, mask, m, entries, left_out)
-        if save_resampled is not None:
-            _save_region(Path(save_resampled), grid, region)
         region_ctx = ctx
         if region is not None and (mask is None or not np.array_equal(region, mask)):
             region_ctx = dataclasses.replace(ctx, mask_key=_stored_mask(disk, region))
-        warned: set[int] = set()
-        runs = {}
+        score = functools.partial(
+            _score_registration,
+            executor, ctx, region_ctx, disk, m,
+            counts=counts, warned=set(), own_values=own_values, mask=mask, scored=scored,
+            values=values, region=region, n_samples=n_samples, seed=seed, distance=distance,
+            resampling=resampling, keep_resampled=execution.keep_resampled,
+            progress=progress, pictured_subjects=pictured_subjects,
+        )  # fmt: skip
+        runs, resampled = {}, {}
         for name, reg in measured.items():  # one registration's images in the cache at a time
-            r = _resample_registration(
-                executor,
-                ctx,
-                disk,
-                m,
-                name,
-                reg,
-                counts=counts,
-                warned=warned,
-                own_values=own_values,
-                interpolation=interpolation,
-                labels=(label_interpolation, label_sigma_mm),
-                progress=progress,
-            )
-            _check_region_covered(disk, name, r.keys, scored, region, grid)
-            if save_resampled is not None:
-                _save_resampled(disk, r.keys, r.metas, grid, Path(save_resampled) / name, values)
-            # before the reduction: the subjects' assessment (pictured_subjects) reads them
-            brain_masks = _brain_mask_dice(
-                executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
-                method=label_interpolation, progress=progress,
-            )  # fmt: skip
-            runs[name] = _reduce_registration(
-                executor,
-                region_ctx,
-                disk,
-                m,
-                name,
-                r,
-                brain_masks=brain_masks,
-                scored=scored,
-                values=values,
-                region=region,
-                coverage=coverage[name],
-                n_samples=n_samples,
-                seed=seed,
-                distance=distance,
-                interpolation=interpolation,
-                progress=progress,
-                pictured_subjects=pictured_subjects,
-            )
-            label_metrics = _label_metrics(
-                executor, region_ctx, disk, m, name, r, scored=scored, values=values,
-                keep=keep_resampled, progress=progress,
-            )  # fmt: skip
-            runs[name] = dataclasses.replace(runs[name], label_metrics=label_metrics)
-            if not keep_resampled:
-                for key in set(r.keys):
-                    disk.remove("resampled", key)
-            # on disk until the end, not in memory while the next registrations' tasks run
-            mean_key = digest_of([name, r.keys])
-            disk.put("mean_image", mean_key, {"mean": runs[name].mean_image})
-            runs[name] = dataclasses.replace(runs[name], mean_image=mean_key)
+            runs[name], resampled[name] = score(name, reg, coverage=coverage[name])
         runs = _with_held_arrays(runs, measured, grid, disk)
-    return PipelineRun(runs, values, grid, counts.reused, counts.computed)
+    record = ResampledImages(
+        grid=grid,
+        region=region,
+        label_values=None if values is None else tuple(values),
+        keys={name: tuple(r.keys) for name, r in resampled.items()},
+        labels={
+            name: tuple(None if values is None else tuple(meta["labels"]) for meta in r.metas)
+            for name, r in resampled.items()
+        },
+        coverage={name: tuple(runs[name].coverage.per_image) for name in runs},
+    )
+    return PipelineRun(runs, values, grid, counts.reused, counts.computed, record)
+
+
+def _score_registration(
+    executor, ctx, region_ctx, disk, m, name, reg: _Measured, *, coverage, counts, warned,
+    own_values, mask, scored, values, region, n_samples, seed, distance, resampling,
+    keep_resampled, progress, pictured_subjects,
+) -> tuple[ReducedRegistration, _Resampled]:  # fmt: skip
+    """Registration `name` resampled, reduced to its scores, and its label metrics; its
+    resampled images leave the cache unless `keep_resampled`, its mean image goes to the
+    cache until the end (:func:`_with_held_arrays`)."""
+    method = resampling.label_interpolation
+    r = _resample_registration(
+        executor,
+        ctx,
+        disk,
+        m,
+        name,
+        reg,
+        counts=counts,
+        warned=warned,
+        own_values=own_values,
+        interpolation=resampling.interpolation,
+        labels=(method, resampling.label_sigma_mm),
+        progress=progress,
+    )
+    _check_region_covered(disk, name, r.keys, scored, region, ctx.grid)
+    # before the reduction: the subjects' assessment (pictured_subjects) reads them
+    brain_masks = _brain_mask_dice(
+        executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
+        method=method, progress=progress,
+    )  # fmt: skip
+    run = _reduce_registration(
+        executor,
+        region_ctx,
+        disk,
+        m,
+        name,
+        r,
+        brain_masks=brain_masks,
+        scored=scored,
+        values=values,
+        region=region,
+        coverage=coverage,
+        n_samples=n_samples,
+        seed=seed,
+        distance=distance,
+        interpolation=resampling.interpolation,
+        progress=progress,
+        pictured_subjects=pictured_subjects,
+    )
+    label_metrics = _label_metrics(
+        executor, region_ctx, disk, m, name, r, scored=scored, values=values,
+        keep=keep_resampled, progress=progress,
+    )  # fmt: skip
+    run = dataclasses.replace(run, label_metrics=label_metrics)
+    if not keep_resampled:
+        for key in set(r.keys):
+            disk.remove("resampled", key)
+    # on disk until the end, not in memory while the next registrations' tasks run
+    mean_key = digest_of([name, r.keys])
+    disk.put("mean_image", mean_key, {"mean": run.mean_image})
+    return dataclasses.replace(run, mean_image=mean_key), r
 
 
 def _with_held_arrays(
@@ -1140,9 +1148,9 @@ def _resample_registration(
         counts.add(reused)
         if meta.get("label_like") and i not in warned:
             warned.add(i)
-            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=4)
-    thumbnails = _thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
-    return _Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, thumbnails)
+            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=5)
+    pictures = thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
+    return _Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, pictures)
 
 
 def _brain_mask_task(
@@ -1302,7 +1310,7 @@ def _reduce_registration(
         interpolation,
     )
     extra = {
-        f"image_{i}": _image_slice(disk, region_ctx.grid, r.keys[i])
+        f"image_{i}": image_slice(disk, region_ctx.grid, r.keys[i])
         for i in pictured_subjects(run, products)
         if f"image_{i}" not in r.thumbnails
     }
@@ -1478,7 +1486,7 @@ def _reduce(
                 f"labels {readable([values[c] for c in skipped])} are absent from every image and "
                 "are skipped",
                 UserWarning,
-                stacklevel=4,
+                stacklevel=5,
             )
         sums = {
             "labels": comps[present],
@@ -1665,167 +1673,6 @@ def _registration_mask(
     return key
 
 
-#: The evaluated region, written beside the registrations' folders by --save-resampled.
-_REGION_FILE = "region.nii.gz"
-
-
-def _save_resampled(
-    disk: DiskCache,
-    keys: Sequence[str],
-    metas: Sequence[dict],
-    grid: Geometry,
-    folder: Path,
-    values: list[int] | None,
-) -> None:
-    """Write ``image_###.nii.gz`` and (with labels) ``memberships_###.nii.gz``, each with a
-    JSON sidecar (``image_###.json``, ``memberships_###.json``) that says what it is.
-
-    The images are float64, in the input's intensity units, 0 outside the subject's field of
-    view (NIfTI keeps no NaN). The memberships have one component per nonzero label value
-    (``values[1:]``, in that order) and no background component
-    (:func:`itk_nrreval._memberships.write_membership_image` gives the format).
-    """
-    from ._output import atomic_path, write_json
-
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, key in enumerate(keys):
-        entry = disk.open("resampled", key)
-        # float64 as documented, whatever the cache holds
-        img = sitk.GetImageFromArray(entry.array("image").astype(np.float64).reshape(grid.shape))
-        grid.apply_to(img)
-        # ITK's NIfTI writer puts this key in the header's description (`descrip`)
-        img.SetMetaData("ITK_FileNotes", "nrreval resampled image; 0 outside the field of view")
-        with atomic_path(folder / f"image_{i:03d}.nii.gz") as tmp:
-            sitk.WriteImage(img, str(tmp), True)
-        about = {
-            "subject": i,
-            "registration": folder.name,
-            "evaluated_region": f"../{_REGION_FILE}",
-        }
-        write_json(
-            folder / f"image_{i:03d}.json",
-            {
-                "kind": "resampled image",
-                "image": f"image_{i:03d}.nii.gz",
-                "outside_field_of_view": 0.0,
-                "coverage": metas[i]["coverage"],
-                **about,
-            },
-        )
-        if values is None:
-            continue
-        memb = _stored_memberships(entry, grid.shape, metas[i]["labels"])
-        dense = np.zeros((len(values) - 1, *grid.shape), np.float32)
-        own = memb.dense()
-        for j, v in enumerate(metas[i]["labels"]):
-            dense[values.index(v) - 1] = own[j]
-        write_membership_image(
-            folder / f"memberships_{i:03d}.nii.gz",
-            dense,
-            labels=values[1:],
-            geometry=grid,
-            about=about,
-        )
-
-
-def _save_region(folder: Path, grid: Geometry, region: np.ndarray | None) -> None:
-    """Write ``region.nii.gz`` (uint8, 1 where the scores were taken) beside the
-    registrations' folders of saved images: ``nrreval overlap --mask`` with it reproduces
-    evaluate's overlap from the saved memberships. `region` None is the whole grid."""
-    from ._output import atomic_path
-
-    where = np.ones(grid.shape, np.uint8) if region is None else region.astype(np.uint8)
-    img = sitk.GetImageFromArray(where)
-    grid.apply_to(img)
-    # ITK's NIfTI writer puts this key in the header's description (`descrip`)
-    img.SetMetaData("ITK_FileNotes", "nrreval evaluated region; 1 where the scores were taken")
-    folder.mkdir(parents=True, exist_ok=True)
-    with atomic_path(folder / _REGION_FILE) as tmp:
-        sitk.WriteImage(img, str(tmp), True)
-
-
-def _image_slice(disk: DiskCache, grid: Geometry, key: str) -> np.ndarray:
-    """The middle slice (numpy index ``shape[0] // 2``; the whole grid in 2D) of a resampled
-    image's cache entry, float32, NaN outside its field of view; read from the memory-mapped
-    entry without loading the volume."""
-    per = int(np.prod(grid.shape[1:])) if grid.dimension == 3 else int(np.prod(grid.shape))
-    start = per * (grid.shape[0] // 2) if grid.dimension == 3 else 0
-    shape = grid.shape[1:] if grid.dimension == 3 else grid.shape
-    entry = disk.open("resampled", key)
-    img = np.array(entry.array("image", mmap=True)[start : start + per], np.float32)
-    bits = entry.array("covered", mmap=True)[start // 8 : (start + per + 7) // 8]
-    covered = np.unpackbits(np.asarray(bits))[start % 8 : start % 8 + per].astype(bool)
-    img[~covered] = np.nan
-    return img.reshape(shape)
-
-
-def _thumbnails(
-    disk: DiskCache,
-    grid: Geometry,
-    reg_grid: Geometry,
-    keys: Sequence[str],
-    measures_key: str,
-    metas: Sequence[dict],
-) -> dict[str, np.ndarray]:
-    """The report's small arrays for one registration, read back from its cache entries:
-    the resampled images' `keys` and the first subject's measures (`measures_key`).
-
-    A constant number of 2D slices whatever N (the middle slice, numpy index
-    ``shape[0] // 2``, of a 3D grid; the whole grid in 2D), each read from the memory-mapped
-    entry without loading a volume:
-
-    * ``image_0``, ``image_1`` (float32): subjects 0 and 1 resampled into the common frame,
-      NaN outside their fields of view (``image_1`` only when N >= 2; :func:`_image_slice`;
-      :func:`run_pipeline` adds ``image_<i>`` of the subjects it is asked to picture);
-    * ``labels_0`` (int32, with labels): subject 0's label value of largest resampled
-      membership, 0 where the background's (one minus the labels') is at least as large;
-    * ``detj_0`` (float32): det J of subject 0's transform on the middle slice of the
-      registration's reference grid, NaN outside its mask;
-    * ``log_jacobian_counts`` (int64, ``LOG_JACOBIAN_BINS``), ``log_jacobian_edges`` and
-      ``log_jacobian_outside`` (int64: below, above the bins, folded): the histogram of
-      log det J summed over all N subjects;
-    * ``common_spacing``, ``reference_spacing`` (mm, numpy order (row, column)): the pixel
-      size of the common-grid and reference-grid slices.
-    """
-    per = int(np.prod(grid.shape[1:])) if grid.dimension == 3 else int(np.prod(grid.shape))
-    start = per * (grid.shape[0] // 2) if grid.dimension == 3 else 0
-    shape = grid.shape[1:] if grid.dimension == 3 else grid.shape
-    out: dict[str, np.ndarray] = {}
-    for i in range(min(2, len(keys))):
-        out[f"image_{i}"] = _image_slice(disk, grid, keys[i])
-    entry = disk.open("resampled", keys[0])
-    if "labels" in metas[0]:
-        ptr = entry.array("lab_ptr")
-        idx, val = entry.array("lab_idx", mmap=True), entry.array("lab_val", mmap=True)
-        best = np.zeros(per, np.float32)
-        total = np.zeros(per, np.float32)
-        lab = np.zeros(per, np.int32)
-        for j, v in enumerate(metas[0]["labels"]):
-            own = idx[ptr[j] : ptr[j + 1]]
-            lo, hi = np.searchsorted(own, [start, start + per])
-            at = np.asarray(own[lo:hi]) - start
-            w = np.asarray(val[ptr[j] + lo : ptr[j] + hi])
-            total[at] += w
-            better = w > best[at]
-            best[at[better]] = w[better]
-            lab[at[better]] = v
-        lab[best <= 1.0 - total] = 0
-        out["labels_0"] = lab.reshape(shape)
-    out["detj_0"] = np.array(disk.open("measures", measures_key).array("detj_middle"), np.float32)
-    counts = np.zeros(LOG_JACOBIAN_BINS, np.int64)
-    outside = np.zeros(3, np.int64)
-    for meta in metas:
-        h = meta["log_jacobian_histogram"]
-        counts += np.asarray(h["counts"], np.int64)
-        outside += np.array([h["below"], h["above"], h["folded"]], np.int64)
-    out["log_jacobian_counts"] = counts
-    out["log_jacobian_edges"] = np.linspace(*LOG_JACOBIAN_RANGE, LOG_JACOBIAN_BINS + 1)
-    out["log_jacobian_outside"] = outside
-    out["common_spacing"] = np.array([grid.spacing[1], grid.spacing[0]])
-    out["reference_spacing"] = np.array([reg_grid.spacing[1], reg_grid.spacing[0]])
-    return out
-
-
 # ------------------------------------------------------------- Dice and HD95 per label
 
 
@@ -1852,7 +1699,7 @@ def _crisp_task(ctx: _Context, key: str, codes: Sequence[int], n_codes: int) -> 
     if found is not None:
         return crisp_key, dict(found.meta)
     entry = cache.open("resampled", key)
-    memb = _stored_memberships(entry, g.shape, entry.meta["labels"])
+    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
     mask = ctx.mask_flat()
     region = None if mask is None else mask.reshape(g.shape)
     labels = crisp_labels(memb, codes=codes, n_codes=n_codes, region=region)

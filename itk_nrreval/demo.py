@@ -19,6 +19,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import SimpleITK as sitk
 from scipy import stats
 
@@ -32,7 +33,7 @@ from ._output import (
 )
 from .correspondence import correspondence_error
 from .evaluation import EvaluationResult, evaluate, higher_is_better, ranks, relative_ranks
-from .manifest import add_registration, load_manifest, write_manifest
+from .manifest import Manifest, add_registration, load_manifest, write_manifest
 
 __all__ = ["DEMO_REGISTRATIONS", "DemoResult", "run_demo", "DEMO_OUTPUTS"]
 
@@ -184,9 +185,6 @@ def run_demo(
     """
     from data_synth import make_population, write_population
 
-    from .registration import register
-    from .registration._elastix_worker import ElastixWorker, elastix_available
-
     say = log or (lambda line: print(line, file=sys.stderr, flush=True))
     out = claim_output_folder(
         check_output_folder(out, option="out", command="demo"),
@@ -206,6 +204,58 @@ def run_demo(
         manifest.unlink()  # a fresh comparison: registrations of an earlier run do not mix in
     stems = [Path(p).name.split(".")[0] for p in truth.images]
     images = list(truth.images)
+    results = _register_five(images, seed=seed, progress=progress, say=say, seconds=seconds)
+    for name, _, _ in DEMO_REGISTRATIONS:  # fluid first: its frame is the common one
+        files = results[name].write(out / "registrations" / name, names=stems)
+        add_registration(
+            manifest,
+            name,
+            reference=files["reference"],
+            transforms=files["transforms"],
+            reference_index=results[name].reference_index,
+            images=images,
+            labels=list(truth.labels),
+        )
+
+    m, mask = _brain_mask(out, manifest, dim)
+
+    say(f"[demo] evaluating in the fluid frame (M = {n_samples:,} samples, L1)")
+    t = time.perf_counter()
+    evaluation = evaluate(manifest, n_samples=n_samples, seed=seed, progress=progress)
+    evaluation.write(out / "evaluation")  # figures, report.html, results.*
+    seconds["evaluate"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    error = correspondence_error(
+        evaluation, m, [s.subject_to_template for s in pop.subjects], mask=mask
+    )
+    seconds["correspondence_error"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - t0
+
+    table = _table(evaluation, error)
+    agreement = _agreement(evaluation, error)
+    write_text(out / "demo_table.md", table)
+    write_json(
+        out / "demo.json",
+        {
+            "population": {"kind": kind, "dim": dim, "n": n, "seed": seed},
+            "n_samples": n_samples,
+            "true_correspondence_error_mm": error,
+            "spearman_vs_specificity_ranks": agreement,
+            "seconds": {stage: round(v, 2) for stage, v in seconds.items()},
+            "evaluation": evaluation.to_dict(),
+        },
+    )
+    return DemoResult(evaluation, error, agreement, seconds, table, out)
+
+
+def _register_five(images, *, seed, progress, say, seconds) -> dict:
+    """The paper's five registrations of `images` (:data:`DEMO_REGISTRATIONS`), by name; each
+    stage's time added to `seconds`. The elastix methods run in one elastix worker, or on
+    SimpleITK where itk-elastix is missing."""
+    from .registration import register
+    from .registration._elastix_worker import ElastixWorker, elastix_available
+
     use_elastix = elastix_available()
     results = {}
     with ElastixWorker() if use_elastix else contextlib.nullcontext() as worker:
@@ -236,20 +286,16 @@ def run_demo(
                 affine=affine_stage[choice or "near-mean"],
             )
             seconds[f"register_{name}"] = time.perf_counter() - t
-    for name, _, _ in DEMO_REGISTRATIONS:  # fluid first: its frame is the common one
-        files = results[name].write(out / "registrations" / name, names=stems)
-        add_registration(
-            manifest,
-            name,
-            reference=files["reference"],
-            transforms=files["transforms"],
-            reference_index=results[name].reference_index,
-            images=images,
-            labels=list(truth.labels),
-        )
+    return results
 
-    # Like the paper's cropped brain slices, evaluate inside the brain (with a margin) of the
-    # common frame: the fluid reference is a training image, whose labels say where that is.
+
+def _brain_mask(out: Path, manifest: Path, dim: int) -> tuple[Manifest, np.ndarray]:
+    """Write ``brain_mask.nii.gz`` and make it `manifest`'s mask; the manifest as it was
+    before (without the mask), and the mask (bool, numpy order).
+
+    Like the paper's cropped brain slices, evaluate inside the brain (with a margin of 3
+    voxels) of the common frame: the fluid reference is a training image, whose labels say
+    where that is."""
     m = load_manifest(manifest)
     k = m.registrations[m.common_frame].reference_index
     brain = sitk.BinaryDilate(
@@ -258,33 +304,4 @@ def run_demo(
     with atomic_path(out / "brain_mask.nii.gz") as tmp:
         sitk.WriteImage(brain, str(tmp))
     write_manifest(dataclasses.replace(m, mask=(out / "brain_mask.nii.gz").absolute()), manifest)
-    mask = sitk.GetArrayFromImage(brain) > 0
-
-    say(f"[demo] evaluating in the fluid frame (M = {n_samples:,} samples, L1)")
-    t = time.perf_counter()
-    evaluation = evaluate(manifest, n_samples=n_samples, seed=seed, progress=progress)
-    evaluation.write(out / "evaluation")  # figures, report.html, results.*
-    seconds["evaluate"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    error = correspondence_error(
-        evaluation, m, [s.subject_to_template for s in pop.subjects], mask=mask
-    )
-    seconds["correspondence_error"] = time.perf_counter() - t
-    seconds["total"] = time.perf_counter() - t0
-
-    table = _table(evaluation, error)
-    agreement = _agreement(evaluation, error)
-    write_text(out / "demo_table.md", table)
-    write_json(
-        out / "demo.json",
-        {
-            "population": {"kind": kind, "dim": dim, "n": n, "seed": seed},
-            "n_samples": n_samples,
-            "true_correspondence_error_mm": error,
-            "spearman_vs_specificity_ranks": agreement,
-            "seconds": {stage: round(v, 2) for stage, v in seconds.items()},
-            "evaluation": evaluation.to_dict(),
-        },
-    )
-    return DemoResult(evaluation, error, agreement, seconds, table, out)
+    return m, sitk.GetArrayFromImage(brain) > 0

@@ -383,11 +383,10 @@ def run(m, cache):
     return run_pipeline(
         m,
         InProcessExecutor(),
-        cache=cache,
+        execution=nr.Execution(cache=cache),
         n_samples=200,
         seed=0,
         distance="l1",
-        interpolation="linear",
         progress=False,
     )
 
@@ -444,9 +443,8 @@ def test_a_misplaced_mask_flags_its_subject_in_results_and_subjects_csv(tmp_path
         sitk.Resample(moved, mask, sitk.Transform(), sitk.sitkNearestNeighbor), str(path)
     )
     m = nr.manifest_from_derivatives([root])
-    result = nr.evaluate(
-        m, n_samples=200, confidence=False, progress=False, out=tmp_path / "o", figures=False
-    )  # (what is read back is subjects.csv)
+    result = nr.evaluate(m, n_samples=200, confidence=False, progress=False)
+    result.write(tmp_path / "o", figures=False)  # (what is read back is subjects.csv)
     (subjects,) = [s.subjects for s in result.scores.values()]
     flagged = [q.index for q in subjects if any("brain mask" in f for f in q.flags)]
     assert flagged == [1], [q.flags for q in subjects]

@@ -279,7 +279,7 @@ def test_results_state_the_number_of_replicates_the_jackknife_ran():
             }
         },
     }
-    res = nr.evaluate(manifest, n_samples=200, seed=1, progress=False, figures=False)
+    res = nr.evaluate(manifest, n_samples=200, seed=1, progress=False)
     used = res.scores["identity"].intervals["specificity"].n_replicates
     assert used == 50
     assert res.options["resamples"] == used

@@ -30,7 +30,7 @@ from itk_nrreval.transforms import PointwiseInverse
 
 pytest.importorskip("dask.distributed")
 
-KW = dict(n_samples=2000, seed=5, progress=False, figures=False)
+KW = dict(n_samples=2000, seed=5, progress=False)
 REL = 1e-9  # every float of results.json, relative (absolute near zero: ABS)
 ABS = 1e-12
 # What legitimately differs between the two runs: how the run was executed. Nothing else
@@ -80,13 +80,12 @@ def population(tmp_path, *, size: int = 96):
 
 def test_dask_results_json_equals_in_process(tmp_path):
     manifest = population(tmp_path)
-    nr.evaluate(manifest, out=tmp_path / "single", **KW)
+    nr.evaluate(manifest, **KW).write(tmp_path / "single", figures=False)
     nr.evaluate(
         manifest,
-        out=tmp_path / "dask",
         execution=nr.Execution(scheduler="local", workers=1),
         **KW,
-    )
+    ).write(tmp_path / "dask", figures=False)
     single, scaled = results_json(tmp_path / "single"), results_json(tmp_path / "dask")
     # inverse consistency is computable here, and not the 0.0 of issue 25
     assert single["registrations"]["truth"]["plausibility"]["inverse_consistency_mm"] > 1e-6

@@ -240,7 +240,7 @@ def test_sessions_matched_in_label_order_and_evaluated_from_python(tmp_path, pop
     assert_same_files(found, nr.load_manifest(hand))
     # a subject's sessions are one subject to the jackknife
     assert found.subjects == ("sub-01", "sub-01", "sub-02", "sub-02", "sub-10")
-    kw = dict(n_samples=500, progress=False, figures=False, confidence=False)
+    kw = dict(n_samples=500, progress=False, confidence=False)
     a = nr.evaluate(found, **kw).scores["SynthPrep-1.0"]
     b = nr.evaluate(hand, **kw).scores["SynthPrep-1.0"]
     assert a.specificity.value == b.specificity.value

@@ -6,6 +6,8 @@ import functools
 import json
 import math
 import re
+import tempfile
+import warnings
 
 import numpy as np
 import pytest
@@ -257,7 +259,7 @@ def test_confidence_settings_reach_the_jackknife(tmp_path):
     of the 6 subjects and the given samples per replicate; True runs ``Confidence()``:
     leave one subject out (6 groups), ``min(n_samples, 100_000)`` samples."""
     make_case(tmp_path, with_labels=False)
-    kw = dict(n_samples=400, seed=3, progress=False, figures=False)
+    kw = dict(n_samples=400, seed=3, progress=False)
     default = nr.evaluate(tmp_path / "manifest.yaml", confidence=True, **kw)
     grouped = nr.evaluate(
         tmp_path / "manifest.yaml", confidence=nr.Confidence(resamples=3, samples=300), **kw
@@ -274,6 +276,42 @@ def test_confidence_settings_reach_the_jackknife(tmp_path):
         assert scores.intervals["specificity"] != default.scores[name].intervals["specificity"]
     off = nr.evaluate(tmp_path / "manifest.yaml", confidence=False, **kw)
     assert off.options["confidence"] is False and off.scores["truth"].intervals == {}
+
+
+def test_evaluate_writes_nothing_but_a_temporary_cache(tmp_path, monkeypatch):
+    """Issue 43: evaluate computes and returns; writing is the result's. Run in a read-only
+    working folder, it leaves that folder and its inputs' as they were (every file, size
+    and time); its cache, in the system's temporary folder, is gone afterwards. Writing is
+    then ``result.write``'s."""
+    inputs, work, temp = tmp_path / "inputs", tmp_path / "work", tmp_path / "temp"
+    for folder in (inputs, work, temp):
+        folder.mkdir()
+    make_case(inputs)
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))  # the system's temporary folder
+
+    def files() -> dict:
+        return {
+            str(p): (p.stat().st_size, p.stat().st_mtime_ns)
+            for folder in (inputs, work)
+            for p in [folder, *folder.rglob("*")]
+        }
+
+    before = files()
+    work.chmod(0o555)
+    monkeypatch.chdir(work)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = nr.evaluate(
+                inputs / "manifest.yaml", n_samples=200, confidence=False, progress=False
+            )
+    finally:
+        work.chmod(0o755)
+    assert files() == before
+    assert list(temp.iterdir()) == []  # the temporary cache, removed
+    assert result.to_dict()["registrations"].keys() == {"truth", "perturbed", "identity"}
+    written = result.write(tmp_path / "out", figures=False)
+    assert {p.name for p in written} >= {"results.json", "results.csv", "summary.md"}
 
 
 # ----------------------------------------------------------------------------- ranks

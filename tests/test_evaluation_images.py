@@ -15,7 +15,7 @@ from itk_nrreval._errors import InputError
 from itk_nrreval.cli import main
 from itk_nrreval.manifest import load_manifest, write_manifest
 
-KW = dict(n_samples=2000, seed=3, progress=False, figures=False)
+KW = dict(n_samples=2000, seed=3, progress=False)
 N = 6
 
 

@@ -211,8 +211,9 @@ def test_dice_and_hd95_per_case_against_counts_and_point_sets(dim, tmp_path):
             inverse_consistency=False,
             resampling=nr.Resampling(label_interpolation="nearest"),
             progress=False,
-            out=out,
         )
+    if out is not None:
+        result.write(out)
     own = [set(np.unique(sitk.GetArrayViewFromImage(lab)).tolist()) - {0} for lab in labels]
     # where every image has a value under every registration, as ITK decides it
     ones = sitk.GetImageFromArray(np.ones(sitk.GetArrayViewFromImage(ref).shape, np.uint8))

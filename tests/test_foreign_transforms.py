@@ -609,7 +609,6 @@ def test_same_motions_as_fsl_niftyreg_and_itk_score_the_same(tmp_path):
         progress=False,
         confidence=False,
         inverse_consistency=False,
-        figures=False,
     )
     itk = result.scores["itk"]
     for name in ("fsl", "niftyreg"):

@@ -149,7 +149,8 @@ def case2d(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("html2d")
     make_case(tmp)
     out = tmp / "out"
-    result = nr.evaluate(tmp / "manifest.yaml", n_samples=1000, progress=False, out=out)
+    result = nr.evaluate(tmp / "manifest.yaml", n_samples=1000, progress=False)
+    result.write(out)
     return tmp, out, result
 
 
@@ -309,7 +310,7 @@ def test_report_size_grows_sublinearly_with_n(case2d, tmp_path, monkeypatch):
     sizes = {6: (out / "report.html").stat().st_size}
     monkeypatch.setattr(test_evaluate, "N_IMAGES", 12)
     make_case(tmp_path)
-    nr.evaluate(tmp_path / "manifest.yaml", n_samples=1000, progress=False, out=tmp_path / "o")
+    nr.evaluate(tmp_path / "manifest.yaml", n_samples=1000, progress=False).write(tmp_path / "o")
     sizes[12] = (tmp_path / "o" / "report.html").stat().st_size
     assert sizes[6] < 2_000_000
     assert sizes[12] < 1.3 * sizes[6], sizes  # twice the images, about the same report
@@ -368,7 +369,8 @@ def case3d(tmp_path_factory):
     }
     (tmp / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
     out = tmp / "out"
-    result = nr.evaluate(tmp / "manifest.yaml", n_samples=500, progress=False, out=out)
+    result = nr.evaluate(tmp / "manifest.yaml", n_samples=500, progress=False)
+    result.write(out)
     return tmp, out, result
 
 

@@ -836,14 +836,15 @@ def test_evaluate_out_writes_what_the_cli_writes(case, tmp_path, capsys):
     args += ["--samples", "1000", "--seed", "4", "--no-inverse-consistency"]
     assert main([*args, "--no-figures", "--quiet"]) == 0
     capsys.readouterr()
+    cache = api_out / "cache"
     result = nr.evaluate(
         sitk_objects(data, folder),
-        out=api_out,
-        figures=False,
-        save_resampled=True,
         inverse_consistency=False,
+        execution=nr.Execution(cache=cache, keep_resampled=True),
         **KW,
     )
+    result.write(api_out, figures=False)
+    nr.export_resampled(result, api_out / "resampled", cache=cache)
     for name in ("results.csv", "metrics.csv"):
         assert (api_out / name).read_text() == (cli_out / name).read_text(), name
     # summary.md names subjects by their images, as the inputs do: in memory or a file
@@ -872,8 +873,8 @@ def test_evaluate_out_writes_what_the_cli_writes(case, tmp_path, capsys):
     assert _subjects_unnamed(tmp_path / "again" / "summary.md") == _subjects_unnamed(
         cli_out / "summary.md"
     )
-    with pytest.raises(ValueError, match="save_resampled=True: only with out="):
-        nr.evaluate(folder / "manifest.yaml", save_resampled=True, **KW)
+    with pytest.raises(nr.InputError, match="no longer holds the evaluation's resampled"):
+        nr.export_resampled(result, tmp_path / "none", cache=tmp_path / "empty")
 
 
 def test_image_lists_take_itk_images_and_arrays_too(case):

@@ -97,20 +97,19 @@ def test_the_manifest_reads_label_names_and_reports_a_bad_table(tmp_path):
         load_manifest({**data, "label_names": "bad.tsv"}, base_dir=tmp_path, check_files=False)
 
 
-def _evaluate(folder, **options):
+def _evaluate(folder, figures=True):
     """Evaluate ``folder/manifest.yaml`` quickly into ``folder/out``; return that folder."""
     out = folder / "out"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        nr.evaluate(
+        result = nr.evaluate(
             folder / "manifest.yaml",
             n_samples=200,
             confidence=False,
             inverse_consistency=False,
             progress=False,
-            out=out,
-            **options,
         )
+    result.write(out, figures=figures)
     return out
 
 

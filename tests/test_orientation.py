@@ -286,13 +286,13 @@ def test_images_of_a_mean_frame_registration_equal_itk_resampling_through_the_co
         warnings.simplefilter("ignore", RuntimeWarning)
         result = nr.evaluate(
             folder / "manifest.yaml",
-            out=tmp_path / "out",
-            save_resampled=True,
             n_samples=2000,
             seed=5,
             progress=False,
-            figures=False,  # what is checked is the resampled images saved
+            execution=nr.Execution(cache=tmp_path / "cache", keep_resampled=True),
         )
+    # what is checked is the resampled images saved
+    nr.export_resampled(result, tmp_path / "out" / "resampled", cache=tmp_path / "cache")
     frame = result.scores["perturbed"].frame
     assert frame.method == "mean"
     common = sitk.ReadImage(str(folder / "template.nii.gz"))

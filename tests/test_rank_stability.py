@@ -31,8 +31,8 @@ def clear_order(tmp_path_factory):
             n_samples=1000,
             inverse_consistency=False,
             progress=False,
-            out=out,
         )
+    result.write(out)
     return result, out
 
 

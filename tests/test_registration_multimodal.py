@@ -292,9 +292,7 @@ def test_the_manifest_written_loads_and_evaluates_with_groups(results, populatio
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        evaluation = nr.evaluate(
-            manifest, n_samples=2000, confidence=False, progress=False, figures=False
-        )
+        evaluation = nr.evaluate(manifest, n_samples=2000, confidence=False, progress=False)
     for name in m.registrations:
         mix = evaluation.scores[name].specificity.mixture
         assert mix is not None and tuple(mix.groups) == ("t1", "t2"), name

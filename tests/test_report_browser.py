@@ -145,9 +145,9 @@ def flagged_report(tmp_path_factory) -> Path:
             tmp / "manifest.yaml",
             n_samples=500,
             progress=False,
-            out=tmp / "out",
             thresholds=Thresholds(folded_mean=-1.0, sdlogj_ratio=-1.0, sdlogj_floor=-1.0),
         )
+    result.write(tmp / "out")
     assert all(len(s.flags) >= 2 for s in result.scores.values()), result.scores
     return tmp / "out" / "report.html"
 

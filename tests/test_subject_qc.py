@@ -53,15 +53,16 @@ def cohort(population, tmp_path_factory):
 def _evaluate(manifest, out):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # coverage and flagged-registration warnings
-        return nr.evaluate(
+        result = nr.evaluate(
             manifest,
             n_samples=200,
             confidence=False,
-            out=out,
-            save_resampled=True,
-            figures=False,
             progress=False,
+            execution=nr.Execution(cache=out / "cache", keep_resampled=True),
         )
+    result.write(out, figures=False)
+    nr.export_resampled(result, out / "resampled", cache=out / "cache")
+    return result
 
 
 @pytest.fixture(scope="module")
@@ -266,7 +267,6 @@ def test_mixup_checks_in_chunks_of_one_alternative_give_the_same_fits(mixed_up, 
             folder / "damaged.yaml",
             n_samples=200,
             confidence=False,
-            figures=False,
             progress=False,
         )
     for q, r in zip(
@@ -518,7 +518,7 @@ def test_each_subjects_frame_estimate_deviation_is_reported(tmp_path):
     }
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = nr.evaluate(m, n_samples=200, confidence=False, progress=False, figures=False)
+        result = nr.evaluate(m, n_samples=200, confidence=False, progress=False)
     expected = np.linalg.norm(shifts - shifts.mean(axis=0), axis=1)
     got = [q.deformation["frame_deviation_mm"] for q in result.scores["shifted"].subjects]
     # b's inverse is numerical (the true transforms are fields): within 0.015 mm

@@ -40,7 +40,8 @@ def damaged(tmp_path_factory):
     out = folder / "out"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # off-grid and flagged-registration warnings
-        result = nr.evaluate(manifest, n_samples=300, confidence=False, progress=False, out=out)
+        result = nr.evaluate(manifest, n_samples=300, confidence=False, progress=False)
+    result.write(out)
     return folder, out, result
 
 

@@ -76,7 +76,8 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--save-resampled",
         action="store_true",
-        help="also write the resampled images and membership maps (NIfTI) under DIR/resampled",
+        help="also write the resampled images and membership maps (NIfTI) under DIR/resampled "
+        "(exported from the cache once the scores are taken)",
     )
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_quiet_option(p)
@@ -430,10 +431,9 @@ SUBJECT_OPTIONS = (
 
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
-    from .._output import check_output_folder
+    from .._output import check_output_folder, staged_folder
     from .._scaleout import JOB_QUEUES, check_job_queue
-    from ..evaluation import Confidence, Execution, Resampling, evaluate
-    from ..plausibility import SubjectThresholds, Thresholds
+    from ..evaluation import Execution, evaluate, export_resampled
     from ..report import summary_table
 
     if (args.label_interpolation == "gaussian") != (args.label_sigma is not None):
@@ -449,11 +449,45 @@ def run(args: argparse.Namespace) -> int:
     if args.scheduler in JOB_QUEUES:
         # the submit command, and a cache that can be written: before any job is submitted
         check_job_queue(args.scheduler, cache=cache, option="--cache")
-    result = evaluate(  # writes into a staged copy of `out`, swapped in when complete
-        manifest,
-        out=out,
-        figures=not args.no_figures,
-        save_resampled=bool(args.save_resampled),
+    execution = Execution(
+        scheduler=args.scheduler,
+        workers=args.workers,
+        threads=args.threads,
+        cache=cache,
+        # --save-resampled exports them from the cache once the scores are taken
+        keep_resampled=args.keep_resampled or args.save_resampled,
+        # an option not given: Execution's default (no directive: None, not [])
+        **{dest: getattr(args, dest) for _, dest in JOB_OPTIONS if getattr(args, dest)},
+    )
+    # DIR is claimed and locked for the whole run; everything but the cache is written into a
+    # staged copy of it, swapped in when complete (an error or Ctrl-C keeps the previous one)
+    with staged_folder(out, command="evaluate") as stage:
+        result = evaluate(manifest, **_evaluate_options(args), execution=execution)
+        result.write(stage, figures=not args.no_figures)
+        if args.save_resampled:
+            export_resampled(result, stage / "resampled", cache=cache, keep=args.keep_resampled)
+    print(summary_table(result), end="")
+    r = result.run
+    where = (
+        f"on {r['workers']} Dask workers"
+        if r["scheduler"]
+        else f"in this process ({r['threads']} task{'s' if r['threads'] > 1 else ''} at once)"
+    )
+    print(
+        f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
+        f"{r['cache_computed']} computed"
+    )
+    print(f"results written to {out}/")
+    return 0
+
+
+def _evaluate_options(args: argparse.Namespace) -> dict:
+    """:func:`~itk_nrreval.evaluation.evaluate`'s options from the command line's, but
+    `execution`."""
+    from ..evaluation import Confidence, Resampling
+    from ..plausibility import SubjectThresholds, Thresholds
+
+    return dict(
         n_samples=args.samples,
         seed=args.seed,
         distance=args.distance,
@@ -463,15 +497,6 @@ def run(args: argparse.Namespace) -> int:
             label_sigma_mm=args.label_sigma,
         ),
         progress=not args.quiet,
-        execution=Execution(
-            scheduler=args.scheduler,
-            workers=args.workers,
-            threads=args.threads,
-            cache=cache,
-            keep_resampled=args.keep_resampled,
-            # an option not given: Execution's default (no directive: None, not [])
-            **{dest: getattr(args, dest) for _, dest in JOB_OPTIONS if getattr(args, dest)},
-        ),
         confidence=(
             False
             if args.no_confidence
@@ -489,19 +514,6 @@ def run(args: argparse.Namespace) -> int:
             **{field: getattr(args, f"subject_{field}") for _, field, *_ in SUBJECT_OPTIONS}
         ),
     )
-    print(summary_table(result), end="")
-    r = result.run
-    where = (
-        f"on {r['workers']} Dask workers"
-        if r["scheduler"]
-        else f"in this process ({r['threads']} task{'s' if r['threads'] > 1 else ''} at once)"
-    )
-    print(
-        f"ran {where}; per-image results: {r['cache_reused']} reused from {cache}/, "
-        f"{r['cache_computed']} computed"
-    )
-    print(f"results written to {out}/")
-    return 0
 
 
 def _manifest(args: argparse.Namespace):
