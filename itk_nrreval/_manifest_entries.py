@@ -43,6 +43,8 @@ _PROBLEMS_LISTED = 10
 
 
 def raise_problems(label: str, problems: list[str]) -> None:
+    """Raise one InputError under `label` listing `problems` (the first ten, and how many
+    more); nothing when there are none."""
     if not problems:
         return
     if len(problems) == 1:
@@ -82,6 +84,8 @@ def image_entry(value, base: Path, what: str, problems: list[str]):
 
 
 def image_list(value, base: Path, what: str, problems: list[str]) -> tuple | None:
+    """The images of a list under `what` (paths or objects, item i named ``what[i]``); None,
+    with the problems added, when it is not a non-empty list or an item is bad."""
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         problems.append(
             f"{what}: expected a list of file paths or images, got {type(value).__name__}"
@@ -163,6 +167,9 @@ is estimated: e.g. two pipelines' outputs in one template space."""
 
 
 def relative_path(path, folder: Path | None) -> str:
+    """An item as a manifest file lists it: its path relative to `folder` (as given when
+    `folder` is None or the path is relative), or ``identity``; an object cannot be written
+    to a file (InputError)."""
     if isinstance(path, InMemoryTransform) and path.source == IDENTITY_FRAME:
         return IDENTITY_FRAME
     if isinstance(path, IN_MEMORY):
@@ -187,6 +194,9 @@ def _relative_transform(item, folder: Path | None):
 
 
 def manifest_as_mapping(m, folder: Path | None) -> dict:
+    """The mapping a manifest file holds for the manifest `m`, paths relative to `folder`
+    (as held, absolute, when None): what :func:`itk_nrreval.manifest.load_manifest` reads
+    back."""
     out: dict[str, Any] = {"images": [relative_path(p, folder) for p in m.images]}
     if m.labels is not None:
         out["labels"] = [relative_path(p, folder) for p in m.labels]

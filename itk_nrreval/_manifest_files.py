@@ -6,9 +6,9 @@ negative labels, a label map off its image, a mask that is not binary); and the 
 image files given elsewhere (a command line's) to a manifest's images.
 
 :func:`check_manifest_files` is what :func:`itk_nrreval.manifest.load_manifest` runs; a
-manifest's structure is read before, entry by entry (:mod:`itk_nrreval._manifest_entries`). A manifest
-is passed in as its :class:`~itk_nrreval.manifest.Manifest`, not annotated as one: that module
-imports this one.
+manifest's structure is read before, entry by entry (:mod:`itk_nrreval._manifest_entries`). A
+manifest is passed in as its :class:`~itk_nrreval.manifest.Manifest`, not annotated as one:
+that module imports this one.
 """
 
 from __future__ import annotations

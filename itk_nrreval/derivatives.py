@@ -36,7 +36,8 @@ output folder ``"out/sub-*/"`` (its last ``TransformParameters.<k>.txt``, which 
 whole chain of runs: :mod:`itk_nrreval._elastix_files`), an FSL or NiftyReg file
 ``"flirt/sub-*.mat"`` (one per subject, an entry ``{file:, format:}`` whose images are the
 reference and the subject's image: :mod:`itk_nrreval._foreign_transforms`). The reference is
-the fixed image every subject was registered to.
+the fixed image every subject was registered to. The patterns are read by
+:mod:`itk_nrreval._transform_patterns`.
 
 A small entity parser is used rather than pybids: the layouts read here need a file name
 split at ``_`` and ``-``, and pybids (with its SQL index and dependencies) would add seconds
@@ -45,7 +46,6 @@ of start-up and a heavy install for that.
 
 from __future__ import annotations
 
-import glob
 import json
 import os
 import re
@@ -56,9 +56,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._elastix_files import final_parameter_file
 from ._errors import InputError
 from ._images import read_header
+from ._transform_patterns import matches, registrations_found, subject_label
 from .manifest import IDENTITY_FRAME, Manifest, load_manifest
 
 __all__ = [
@@ -357,33 +357,9 @@ def manifest_from_derivatives(
         f.name = name
     space_name, space_entities = _space(scanned, space)
     registered = [_registered(f, space_name) for f in scanned]
-
-    keys = sorted(set().union(*registered))
-    kept = [k for k in keys if all(k in r for r in registered)]
-    for key in keys:
-        if key not in kept:
-            missing = [
-                str(f.root) for f, r in zip(scanned, registered, strict=True) if key not in r
-            ]
-            warnings.warn(
-                f"{_key_name(key)}: no transform into {space_name} in {', '.join(missing)}; "
-                "left out",
-                stacklevel=2,
-            )
-    if not kept:
-        raise InputError(f"no subject has a transform into {space_name} in every folder")
-
+    kept = _subjects_in_every_folder(scanned, registered, space_name)
     first = scanned[0]
-    images = [first.t1w[k][0] for k in kept]
-    grids = {k: _grid(p) for k, p in zip(kept, images, strict=True)}
-    for f in scanned[1:]:
-        for key in kept:
-            own = f.t1w[key][0]
-            if not _same_grid(_grid(own), grids[key]):
-                raise InputError(
-                    f"{own}: not on the grid of {first.t1w[key][0]} (the folders' transforms "
-                    "map into different T1w spaces)"
-                )
+    images = _t1w_images(scanned, kept)
     labels = None
     no_dseg = [k for k in kept if k not in first.dseg]
     if no_dseg:
@@ -422,6 +398,45 @@ def manifest_from_derivatives(
         ),
     }
     return load_manifest(data)
+
+
+def _subjects_in_every_folder(
+    scanned: list[_Folder], registered: list[dict[_SubjectKey, Path]], space_name: str
+) -> list[_SubjectKey]:
+    """The subjects (and sessions) with a transform into the space in every folder, in
+    order; each one left out is warned about, as a warning of the caller's caller."""
+    keys = sorted(set().union(*registered))
+    kept = [k for k in keys if all(k in r for r in registered)]
+    for key in keys:
+        if key not in kept:
+            missing = [
+                str(f.root) for f, r in zip(scanned, registered, strict=True) if key not in r
+            ]
+            warnings.warn(
+                f"{_key_name(key)}: no transform into {space_name} in {', '.join(missing)}; "
+                "left out",
+                stacklevel=3,
+            )
+    if not kept:
+        raise InputError(f"no subject has a transform into {space_name} in every folder")
+    return kept
+
+
+def _t1w_images(scanned: list[_Folder], kept: list[_SubjectKey]) -> list[Path]:
+    """The first folder's T1w image of each kept subject, once every other folder's is
+    checked to be on the same grid (the folders' transforms map into the same T1w spaces)."""
+    first = scanned[0]
+    images = [first.t1w[k][0] for k in kept]
+    grids = {k: _grid(p) for k, p in zip(kept, images, strict=True)}
+    for f in scanned[1:]:
+        for key in kept:
+            own = f.t1w[key][0]
+            if not _same_grid(_grid(own), grids[key]):
+                raise InputError(
+                    f"{own}: not on the grid of {first.t1w[key][0]} (the folders' transforms "
+                    "map into different T1w spaces)"
+                )
+    return images
 
 
 def _dseg_names(root: Path, labels: list[Path]) -> Path | None:
@@ -511,132 +526,6 @@ def _references(
 # ----------------------------------------------------------------------------- ANTs, elastix
 
 
-def _pattern_regex(pattern: str) -> str:
-    """A shell pattern as a regular expression whose groups are what its wildcards match."""
-    out, i = [], 0
-    while i < len(pattern):
-        c = pattern[i]
-        if c == "*":
-            while i + 1 < len(pattern) and pattern[i + 1] == "*":
-                i += 1
-            out.append("([^/]*)")
-        elif c == "?":
-            out.append("([^/])")
-        elif c == "[" and "]" in pattern[i + 2 :]:
-            end = pattern.index("]", i + 2)
-            body = pattern[i + 1 : end]
-            body = "^" + body[1:] if body.startswith("!") else body
-            out.append(f"([{body.replace(chr(92), chr(92) * 2)}])")
-            i = end
-        else:
-            out.append(re.escape(c))
-        i += 1
-    return "".join(out)
-
-
-def _matches(pattern: str, tail: str = "", *, what: str) -> dict[tuple, list[tuple[Path, tuple]]]:
-    """Files (or folders) matching `pattern` then the regular expression `tail`, by subject
-    label (what the wildcards matched): label -> [(path, tail's groups)]."""
-    pattern = os.path.expanduser(pattern)
-    if not any(c in pattern for c in "*?["):
-        raise InputError(
-            f"{what} {pattern}: no * in the pattern to stand for the subject (quote the "
-            "pattern: the shell replaces an unquoted one by the files it matches)"
-        )
-    regex = re.compile(_pattern_regex(pattern.rstrip("/")) + tail + "/?$")
-    n_wild = re.compile(_pattern_regex(pattern.rstrip("/"))).groups
-    out: dict[tuple, list] = {}
-    for name in sorted(glob.glob(pattern + ("*" if tail else ""))):
-        m = regex.match(name)
-        if m is None:
-            continue
-        groups = m.groups()
-        out.setdefault(groups[:n_wild], []).append((Path(name).absolute(), groups[n_wild:]))
-    return out
-
-
-def _label(key: tuple) -> str:
-    return "/".join(key)
-
-
-_ANTS_TAIL = (
-    r"(?:(\d+)(GenericAffine|Rigid|Affine|Similarity|Translation)\.mat|(\d+)(Warp)\.nii(?:\.gz)?"
-    r"|(Composite)\.h5)"
-)
-
-
-def _ants_chains(pattern: str, *, what: str) -> dict[tuple, list[Path]]:
-    """Subject -> its ANTs chain in ``fwdtransforms`` order (highest stage first)."""
-    chains = {}
-    for key, files in _matches(pattern, _ANTS_TAIL, what=what).items():
-        composite = [p for p, g in files if g[4]]
-        stages = sorted(((int(g[0] or g[2]), p) for p, g in files if not g[4]), key=lambda s: -s[0])
-        if composite and stages:
-            raise InputError(
-                f"{composite[0]}: two candidate transforms for subject {_label(key)} "
-                f"(this and {stages[0][1].name}); keep one"
-            )
-        numbers = [k for k, _ in stages]
-        if len(set(numbers)) != len(numbers):
-            dup = next(p for k, p in stages if numbers.count(k) > 1)
-            raise InputError(
-                f"{dup}: two candidate transforms for subject {_label(key)} at one ANTs stage"
-            )
-        chains[key] = composite or [p for _, p in stages]
-    return chains
-
-
-def _elastix_files(pattern: str, *, what: str) -> dict[tuple, list[Path]]:
-    """Subject -> [its elastix output folder's last parameter file]."""
-    out = {}
-    for key, found in _matches(pattern, what=what).items():
-        folder = found[0][0]
-        if not folder.is_dir():
-            continue
-        last = final_parameter_file(folder)
-        if last is None:
-            warnings.warn(f"{folder}: no TransformParameters.<k>.txt; left out", stacklevel=3)
-            continue
-        out[key] = [last]
-    return out
-
-
-def _foreign_files(fmt: str):
-    """The reader of a pattern of transform files in another tool's format (``fsl``,
-    ``niftyreg``): subject -> [its manifest entry, ``{file:, format:}``], whose images default
-    to the reference and the subject's image (:mod:`itk_nrreval._foreign_transforms`)."""
-
-    def read(pattern: str, *, what: str) -> dict[tuple, list]:
-        out = {}
-        for key, found in _matches(pattern, what=what).items():
-            files = [p for p, _ in found if p.is_file()]
-            if len(files) > 1:
-                raise InputError(
-                    f"{files[1]}: two candidate transforms for subject {_label(key)} (this and "
-                    f"{files[0].name}); make the pattern match one"
-                )
-            if files:
-                out[key] = [{"file": str(files[0]), "format": fmt}]
-        return out
-
-    return read
-
-
-def _file_of(item) -> str:
-    """The file of a chain item: a path, or an entry naming its format."""
-    return str(item["file"]) if isinstance(item, Mapping) else str(item)
-
-
-def _named(value: Mapping[str, str] | Sequence[str] | str | None, default: str) -> dict:
-    """Registrations given as {name: pattern}, [pattern, ...], or one pattern."""
-    if value is None:
-        return {}
-    if isinstance(value, Mapping):
-        return dict(value)
-    items = [value] if isinstance(value, str) else list(value)
-    return {default if k == 0 else f"{default}-{k + 1}": p for k, p in enumerate(items)}
-
-
 def manifest_from_transforms(
     *,
     images: str,
@@ -695,53 +584,22 @@ def manifest_from_transforms(
         One line per subject left out (no transform in one registration), and when labels
         are left out (a subject has none).
     """
-    found = _matches(images, what="--images")
+    found = matches(images, what="--images")
     if not found:
         raise InputError(f"--images {images}: no file matches")
     image_of = {k: v[0][0] for k, v in found.items()}
-    registrations: dict[str, dict[tuple, list[Path]]] = {}
-    named = [
-        *((n, p, _ants_chains, "--ants") for n, p in _named(ants, "ants").items()),
-        *((n, p, _elastix_files, "--elastix") for n, p in _named(elastix, "elastix").items()),
-        *((n, p, _foreign_files("fsl"), "--fsl") for n, p in _named(fsl, "fsl").items()),
-        *(
-            (n, p, _foreign_files("niftyreg"), "--niftyreg")
-            for n, p in _named(niftyreg, "niftyreg").items()
-        ),
-    ]
-    if not named:
-        raise InputError("no registration given (--ants, --elastix, --fsl or --niftyreg)")
-    for name, pattern, read, option in named:
-        if name in registrations:
-            raise InputError(f"{option} {pattern}: a second registration named {name!r}")
-        chains = read(pattern, what=option)
-        if not chains:
-            raise InputError(f"{option} {pattern}: no transform matches")
-        for key, chain in chains.items():
-            if key not in image_of:
-                raise InputError(
-                    f"{_file_of(chain[0])}: a transform without its image (no --images file "
-                    f"for subject {_label(key)})"
-                )
-        registrations[name] = chains
-    kept = sorted(image_of)
-    for key in list(kept):
-        missing = [n for n, chains in registrations.items() if key not in chains]
-        if missing:
-            warnings.warn(
-                f"{image_of[key]}: no transform in {', '.join(missing)}; left out", stacklevel=2
-            )
-            kept.remove(key)
-    if not kept:
-        raise InputError("no subject has a transform in every registration")
+    registrations = registrations_found(
+        image_of, ants=ants, elastix=elastix, fsl=fsl, niftyreg=niftyreg
+    )
+    kept = _subjects_in_every_registration(image_of, registrations)
     label_files = None
     if labels is not None:
-        label_of = {k: v[0][0] for k, v in _matches(labels, what="--labels").items()}
+        label_of = {k: v[0][0] for k, v in matches(labels, what="--labels").items()}
         lacking = [k for k in kept if k not in label_of]
         if lacking:
             warnings.warn(
                 f"--labels {labels}: labels left out (no label map for subject "
-                f"{_label(lacking[0])})",
+                f"{subject_label(lacking[0])})",
                 stacklevel=2,
             )
         else:
@@ -765,3 +623,21 @@ def manifest_from_transforms(
         ),
     }
     return load_manifest(data)
+
+
+def _subjects_in_every_registration(
+    image_of: dict[tuple, Path], registrations: dict[str, dict[tuple, list[Path]]]
+) -> list[tuple]:
+    """The subjects with a transform in every registration, in label order; each one left
+    out is warned about, as a warning of the caller's caller."""
+    kept = sorted(image_of)
+    for key in list(kept):
+        missing = [n for n, chains in registrations.items() if key not in chains]
+        if missing:
+            warnings.warn(
+                f"{image_of[key]}: no transform in {', '.join(missing)}; left out", stacklevel=3
+            )
+            kept.remove(key)
+    if not kept:
+        raise InputError("no subject has a transform in every registration")
+    return kept
