@@ -80,7 +80,7 @@ def _transform_file_dimension(path: Path) -> int:
     Text transform files are scanned for their ``Transform: Name_double_D_D`` line (elastix
     parameter files are read with their initial transforms, cheap text); HDF5 files of
     composites, affine maps and displacement fields from their layout
-    (:func:`_hdf5_transform_dimension`); other transform files are read whole;
+    (:func:`~itk_nrreval._itk_hdf5.transform_dimension`); other transform files are read whole;
     displacement-field images give their header's dimension.
 
     Raises

@@ -397,7 +397,7 @@ def overlap_table(
         - a sequence of multi-component images or files (one per subject, components as
           above): fuzzy memberships;
         - a sequence of membership files that name their labels (a JSON sidecar or header
-          from :func:`itk_nrreval._memberships.write_membership_image`, as written by
+          from :func:`itk_nrreval._membership_files.write_membership_image`, as written by
           ``nrreval evaluate --save-resampled``): component k is the membership of the label
           the file names for it, and there is no background component. One label may come
           as a scalar image.
