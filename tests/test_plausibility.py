@@ -572,9 +572,9 @@ def test_pointwise_inverse_of_a_chain_round_trips():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_voxel_points_are_itks(dim):
-    """composed_displacement's voxel points (transforms._add_voxel_points): ITK's own index
+    """composed_displacement's voxel points (_field_kernels.add_voxel_points): ITK's own index
     -> physical point, C order (x fastest)."""
-    from itk_nrreval.transforms import _add_voxel_points
+    from itk_nrreval._field_kernels import add_voxel_points
 
     g = OBLIQUE_GRID if dim == 3 else _grid((7, 5), (1.2, 0.9), (-10.0, 4.0), _rotation(2, [30]))
     origin, matrix, size = np.zeros(3), np.zeros((3, 3)), np.ones(3, np.int64)
@@ -582,7 +582,7 @@ def test_voxel_points_are_itks(dim):
     matrix[:dim, :dim] = np.asarray(g.direction).reshape(dim, dim) * g.spacing
     size[:dim] = g.size
     points = np.zeros((int(np.prod(g.size)), 3))
-    _add_voxel_points(points, origin, matrix, size, 1.0)
+    add_voxel_points(points, origin, matrix, size, 1.0)
     np.testing.assert_allclose(points[:, :dim], voxel_points(g), rtol=0, atol=1e-12)
 
 
