@@ -352,51 +352,22 @@ def register_multimodal(
     imgs, paths = load_images(images)
     labels = check_groups(groups, len(imgs))
     ref_group, members = _group_members(labels, reference_group)
-    needs_elastix = deformable and engine == "elastix"
-    with elastix_worker_for(elastix_worker, needed=needs_elastix) as worker:
+    with elastix_worker_for(elastix_worker, needed=deformable and engine == "elastix") as worker:
         started = time.perf_counter()
         run = _Run(
             imgs, seed=seed, engine=engine, worker=worker, progress=progress, deformable=deformable
         )
-        # "joint" registers every image to the reference group's reference; "per-group"
-        # each group to its own.
-        chosen_for = [ref_group] if strategy == "joint" else list(members)
-        references = run.references(members, chosen_for, within)
-        if strategy == "joint":
-            transforms, links = run.joint(members[ref_group], references[ref_group], cross), {}
-        else:
-            transforms, links = run.per_group(members, references, ref_group, within, cross)
-    r0 = references[ref_group].index
-    group_refs = {g: chosen.index for g, chosen in references.items()}
-    settings = {
-        "method": "multimodal",
-        "strategy": strategy,
-        "engine": engine,
-        **input_settings(seed=seed, paths=paths),
-        "groups": [str(g) for g in labels],
-        "reference_group": str(ref_group),
-        "reference_choice": "near-mean of the reference group",
-        "group_references": {str(g): i for g, i in group_refs.items()},
-        "metric": metric,
-        "cross_metric": cross_metric,
-        "deformable": bool(deformable),
-        "affine_options": _without_metric(within.affine),
-        "options": _without_metric(within.bspline),
-    }
-    result = MultimodalResult.from_transforms(
-        imgs,
-        transforms,
-        reference=imgs[r0],
-        reference_index=r0,
-        settings=settings,
-        started=started,
-        method="multimodal",
-        engine=engine if deformable else "simpleitk",
+        registered = run.register(strategy, members, ref_group, within, cross)
+    result = run.result(
+        registered,
         strategy=strategy,
-        groups=labels,
+        labels=labels,
         reference_group=ref_group,
-        group_references=group_refs,
-        links=links,
+        paths=paths,
+        metric=metric,
+        cross_metric=cross_metric,
+        within=within,
+        started=started,
     )
     if out is not None:
         result.write(out)
@@ -485,6 +456,75 @@ class _Run:
     ) -> None:
         self.imgs, self.seed, self.engine = imgs, seed, engine
         self.worker, self.progress, self.deformable = worker, progress, deformable
+
+    def register(
+        self,
+        strategy: str,
+        members: Mapping[Hashable, list[int]],
+        reference_group: Hashable,
+        within: _StageOptions,
+        cross: _StageOptions,
+    ) -> tuple[dict[Hashable, _GroupReference], list[sitk.Transform], dict]:
+        """The references chosen, the transforms and the links (none for "joint") of
+        `strategy`: "joint" registers every image to the reference group's reference,
+        "per-group" each group to its own and then links the references."""
+        chosen_for = [reference_group] if strategy == "joint" else list(members)
+        references = self.references(members, chosen_for, within)
+        if strategy == "joint":
+            reference = references[reference_group]
+            return references, self.joint(members[reference_group], reference, cross), {}
+        transforms, links = self.per_group(members, references, reference_group, within, cross)
+        return references, transforms, links
+
+    def result(
+        self,
+        registered: tuple[dict[Hashable, _GroupReference], list[sitk.Transform], dict],
+        *,
+        strategy: str,
+        labels: tuple,
+        reference_group: Hashable,
+        paths: list[str | None],
+        metric: str,
+        cross_metric: str,
+        within: _StageOptions,
+        started: float,
+    ) -> MultimodalResult:
+        """The :class:`MultimodalResult` of what :meth:`register` gave, with the settings
+        ``registration.json`` records (`paths` as :func:`load_images` gives them, `started`
+        the ``time.perf_counter()`` the run started at)."""
+        references, transforms, links = registered
+        r0 = references[reference_group].index
+        group_refs = {g: chosen.index for g, chosen in references.items()}
+        settings = {
+            "method": "multimodal",
+            "strategy": strategy,
+            "engine": self.engine,
+            **input_settings(seed=self.seed, paths=paths),
+            "groups": [str(g) for g in labels],
+            "reference_group": str(reference_group),
+            "reference_choice": "near-mean of the reference group",
+            "group_references": {str(g): i for g, i in group_refs.items()},
+            "metric": metric,
+            "cross_metric": cross_metric,
+            "deformable": bool(self.deformable),
+            "affine_options": _without_metric(within.affine),
+            "options": _without_metric(within.bspline),
+        }
+        return MultimodalResult.from_transforms(
+            self.imgs,
+            transforms,
+            reference=self.imgs[r0],
+            reference_index=r0,
+            settings=settings,
+            started=started,
+            method="multimodal",
+            engine=self.engine if self.deformable else "simpleitk",
+            strategy=strategy,
+            groups=labels,
+            reference_group=reference_group,
+            group_references=group_refs,
+            links=links,
+        )
 
     def references(
         self,
