@@ -52,7 +52,6 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
@@ -65,13 +64,14 @@ from ._membership_kernels import (
     by_label,
     continuous_indices,
     covered_from,
-    inside_at,
     inside_flags,
     near_border_points,
     point_entries,
     point_indices,
-    voxel_base,
 )
+
+# bound under this name: benchmarks/bench_image_task.py times the image's resampling here
+from ._membership_kernels import linear_values as _linear_values
 from .transforms import PointMap, TransformPieces, flatten, is_linear
 
 # LABEL_INTERPOLATIONS (_label_channels) and write_membership_image (_membership_files) are
@@ -558,34 +558,6 @@ def _slab_memberships(
         cap = max(cap + cap // 2, n + 8 * 1024)
         code, index, weight = (np.resize(a, cap) for a in (code, index, weight))
     return by_label(code[:n], index[:n], weight[:n], n_labels)
-
-
-@numba.njit(cache=True, parallel=True)
-def _linear_values(cidx, image, inside, out):  # pragma: no cover - compiled
-    """``out[f]``: `image` (nz, ny, nx) linearly interpolated at continuous index ``cidx[f]``
-    (x, y[, z]) as ITK's linear interpolator does (clamped to the outer voxel centres), NaN
-    outside the buffer. `inside` as in :func:`point_entries` (empty: decide here). Each
-    point alone, by the same operations: the numbers do not depend on the threads."""
-    nz, ny, nx = image.shape
-    for f in numba.prange(cidx.shape[0]):
-        ok, cx, cy, cz = inside_at(cidx, f, inside, nz, ny, nx)
-        if not ok:
-            out[f] = np.nan
-            continue
-        bx, tx = voxel_base(cx, nx, 0.0)
-        by, ty = voxel_base(cy, ny, 0.0)
-        bz, tz = voxel_base(cz, nz, 0.0)
-        ux = bx + 1 if tx > 0.0 else bx
-        uy = by + 1 if ty > 0.0 else by
-        uz = bz + 1 if tz > 0.0 else bz
-        # ITK's order: along x, then y, then z, each as a + (b - a) t
-        a = image[bz, by, bx] + (image[bz, by, ux] - image[bz, by, bx]) * tx
-        b = image[bz, uy, bx] + (image[bz, uy, ux] - image[bz, uy, bx]) * tx
-        c = image[uz, by, bx] + (image[uz, by, ux] - image[uz, by, bx]) * tx
-        e = image[uz, uy, bx] + (image[uz, uy, ux] - image[uz, uy, bx]) * tx
-        lo = a + (b - a) * ty
-        hi = c + (e - c) * ty
-        out[f] = lo + (hi - lo) * tz
 
 
 class _BorderDecisions:
