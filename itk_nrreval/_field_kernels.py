@@ -7,7 +7,12 @@ point is a row of 3 coordinates (mm, ITK (x, y, z) order), a 2D grid or field on
 3D one (:func:`as_plane`, :func:`voxel_point_map`, :func:`index_map`). The kernels run in
 parallel over points or slices, each computed alone by the same operations, so the numbers
 do not depend on the number of threads. Used by :mod:`itk_nrreval._displacements` and
-:mod:`itk_nrreval._transform_inversion`.
+:mod:`itk_nrreval._transform_inversion` (whose fixed-point steps, :func:`fixed_point_step`
+and :func:`fixed_point_at_points`, are here too).
+
+Kernels that inline one another stay in this one module: numba's cache (``cache=True``)
+checks only the file of the kernel it compiled, so a kernel inlining an edited kernel of
+another file would keep its stale compiled code.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ __all__ = [
     "trilinear",
     "linear_at_index",
     "linear_at",
+    "fixed_point_step",
+    "fixed_point_at_points",
 ]
 
 
@@ -208,3 +215,61 @@ def linear_at(a, p0, p1, p2, origin, to_index):  # pragma: no cover - compiled
     clamped to its grid (`origin` (3,), `to_index` (3, 3): mm -> index, ITK axis order)."""
     c0, c1, c2 = continuous_index(p0, p1, p2, origin, to_index)
     return linear_at_index(a, c0, c1, c2)
+
+
+@numba.njit(cache=True, parallel=True)
+def fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, v_on_grid):  # pragma: no cover
+    """``out(q) = -u(q + v(q))`` on out's grid (nz, ny, nx, 3), whose node i is u's
+    continuous index ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order; with
+    `v_on_grid`, v is on out's own grid and read at its nodes); `to_index` (3, 3) maps mm to
+    u's index steps. u and v are sampled linearly, clamped to their grids.
+
+    Slices run in parallel; each node is computed alone by the same operations, so the
+    numbers do not depend on the number of threads."""
+    nz, ny, nx, _ = out.shape
+    uz, uy, ux, _ = u.shape
+    vz, vy, vx, _ = v.shape
+    t00, t01, t02 = to_index[0, 0], to_index[0, 1], to_index[0, 2]
+    t10, t11, t12 = to_index[1, 0], to_index[1, 1], to_index[1, 2]
+    t20, t21, t22 = to_index[2, 0], to_index[2, 1], to_index[2, 2]
+    for k in numba.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                if v_on_grid:
+                    a0, a1, a2 = v[k, j, i, 0], v[k, j, i, 1], v[k, j, i, 2]
+                else:
+                    x0, x1, fx = corner(offset[0] + i * ratio[0], vx)
+                    y0, y1, fy = corner(offset[1] + j * ratio[1], vy)
+                    z0, z1, fz = corner(offset[2] + k * ratio[2], vz)
+                    a0 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+                    a1 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+                    a2 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+                x0, x1, fx = corner(i + u_offset[0] + (t00 * a0 + t01 * a1 + t02 * a2), ux)
+                y0, y1, fy = corner(j + u_offset[1] + (t10 * a0 + t11 * a1 + t12 * a2), uy)
+                z0, z1, fz = corner(k + u_offset[2] + (t20 * a0 + t21 * a1 + t22 * a2), uz)
+                out[k, j, i, 0] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
+                out[k, j, i, 1] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
+                out[k, j, i, 2] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
+
+
+@numba.njit(cache=True, parallel=True)
+def fixed_point_at_points(
+    y, u, u_origin, u_to_index, lower, upper, v, v_origin, v_to_index, steps
+):  # pragma: no cover - compiled
+    """In place, each point r of `y` (m, 3) -> the inverse of ``p -> p + u(p)`` at r: the
+    coarse inverse `v` interpolated there, then `steps` steps ``y <- r - u(y)``; r itself
+    where it lies beyond the grown grid (`lower`, `upper`: its buffer in u's continuous
+    index). Fields are sampled linearly, clamped to their grids (:func:`fixed_point_step`'s
+    rules). Each point alone, by the same operations: the numbers do not depend on the
+    threads."""
+    for f in numba.prange(y.shape[0]):
+        r0, r1, r2 = y[f, 0], y[f, 1], y[f, 2]
+        c0, c1, c2 = continuous_index(r0, r1, r2, u_origin, u_to_index)
+        if not in_box(c0, c1, c2, lower, upper):
+            continue
+        w0, w1, w2 = linear_at(v, r0, r1, r2, v_origin, v_to_index)
+        a0, a1, a2 = r0 + w0, r1 + w1, r2 + w2
+        for _ in range(steps):
+            w0, w1, w2 = linear_at(u, a0, a1, a2, u_origin, u_to_index)
+            a0, a1, a2 = r0 - w0, r1 - w1, r2 - w2
+        y[f, 0], y[f, 1], y[f, 2] = a0, a1, a2

@@ -26,13 +26,10 @@ from ._field_kernels import (
     add_voxel_points,
     affine_in_place,
     as_plane,
-    continuous_index,
-    corner,
-    in_box,
+    fixed_point_at_points,
+    fixed_point_step,
     index_map,
-    linear_at,
     linear_parts,
-    trilinear,
     voxel_point_map,
 )
 from ._images import Geometry
@@ -242,7 +239,7 @@ def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> si
     on_grid = False
     for n in range(max(int(steps), 1)):
         out = buffers[n % 2]
-        _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, on_grid)
+        fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, on_grid)
         v, on_grid = out, True
     del buffers, out  # the other buffer goes before the image copies `v` (283 MB at 1 mm)
     result = sitk.GetImageFromArray(v[0, ..., :2] if dim == 2 else v, isVector=True)
@@ -250,41 +247,6 @@ def _fixed_point_steps(field: sitk.Image, inverse: sitk.Image, steps: int) -> si
     result.SetDirection(field.GetDirection())
     result.SetOrigin(origin.tolist())
     return result
-
-
-@numba.njit(cache=True, parallel=True)
-def _fixed_point_step(u, v, out, u_offset, to_index, ratio, offset, v_on_grid):  # pragma: no cover
-    """``out(q) = -u(q + v(q))`` on out's grid (nz, ny, nx, 3), whose node i is u's
-    continuous index ``i + u_offset`` and v's ``offset + ratio * i`` (ITK axis order; with
-    `v_on_grid`, v is on out's own grid and read at its nodes); `to_index` (3, 3) maps mm to
-    u's index steps. u and v are sampled linearly, clamped to their grids.
-
-    Slices run in parallel; each node is computed alone by the same operations, so the
-    numbers do not depend on the number of threads."""
-    nz, ny, nx, _ = out.shape
-    uz, uy, ux, _ = u.shape
-    vz, vy, vx, _ = v.shape
-    t00, t01, t02 = to_index[0, 0], to_index[0, 1], to_index[0, 2]
-    t10, t11, t12 = to_index[1, 0], to_index[1, 1], to_index[1, 2]
-    t20, t21, t22 = to_index[2, 0], to_index[2, 1], to_index[2, 2]
-    for k in numba.prange(nz):
-        for j in range(ny):
-            for i in range(nx):
-                if v_on_grid:
-                    a0, a1, a2 = v[k, j, i, 0], v[k, j, i, 1], v[k, j, i, 2]
-                else:
-                    x0, x1, fx = corner(offset[0] + i * ratio[0], vx)
-                    y0, y1, fy = corner(offset[1] + j * ratio[1], vy)
-                    z0, z1, fz = corner(offset[2] + k * ratio[2], vz)
-                    a0 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
-                    a1 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
-                    a2 = trilinear(v, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
-                x0, x1, fx = corner(i + u_offset[0] + (t00 * a0 + t01 * a1 + t02 * a2), ux)
-                y0, y1, fy = corner(j + u_offset[1] + (t10 * a0 + t11 * a1 + t12 * a2), uy)
-                z0, z1, fz = corner(k + u_offset[2] + (t20 * a0 + t21 * a1 + t22 * a2), uz)
-                out[k, j, i, 0] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 0)
-                out[k, j, i, 1] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 1)
-                out[k, j, i, 2] = -trilinear(u, z0, z1, fz, y0, y1, fy, x0, x1, fx, 2)
 
 
 class PointwiseInverse:
@@ -355,14 +317,14 @@ class PointwiseInverse:
         """:meth:`map_points` on points as 3-vectors (m, 3), in place."""
         for piece in self._pieces:
             if isinstance(piece, _FieldPiece):
-                _fixed_point_at_points(y, *piece.arrays(), self.refine_steps)
+                fixed_point_at_points(y, *piece.arrays(), self.refine_steps)
             else:
                 affine_in_place(y, *piece)
 
 
 @dataclass(frozen=True)
 class _FieldPiece:
-    """A displacement field and its coarse inverse, as :func:`_fixed_point_at_points` reads
+    """A displacement field and its coarse inverse, as :func:`fixed_point_at_points` reads
     them (3D arrays; a 2D field as one plane)."""
 
     u: np.ndarray  # (nz, ny, nx, 3), mm
@@ -419,29 +381,6 @@ def _pointwise_piece(t: sitk.Transform, grid, step: int):
     lower[:dim] = -pad - 0.5
     upper[:dim] = np.asarray(field.GetSize()) + pad - 0.5
     return _FieldPiece(u, *index_map(field), lower, upper, v, *index_map(coarse), (field, coarse))
-
-
-@numba.njit(cache=True, parallel=True)
-def _fixed_point_at_points(
-    y, u, u_origin, u_to_index, lower, upper, v, v_origin, v_to_index, steps
-):  # pragma: no cover - compiled
-    """In place, each point r of `y` (m, 3) -> the inverse of ``p -> p + u(p)`` at r: the
-    coarse inverse `v` interpolated there, then `steps` steps ``y <- r - u(y)``; r itself
-    where it lies beyond the grown grid (`lower`, `upper`: its buffer in u's continuous
-    index). Fields are sampled linearly, clamped to their grids (:func:`_fixed_point_step`'s
-    rules). Each point alone, by the same operations: the numbers do not depend on the
-    threads."""
-    for f in numba.prange(y.shape[0]):
-        r0, r1, r2 = y[f, 0], y[f, 1], y[f, 2]
-        c0, c1, c2 = continuous_index(r0, r1, r2, u_origin, u_to_index)
-        if not in_box(c0, c1, c2, lower, upper):
-            continue
-        w0, w1, w2 = linear_at(v, r0, r1, r2, v_origin, v_to_index)
-        a0, a1, a2 = r0 + w0, r1 + w1, r2 + w2
-        for _ in range(steps):
-            w0, w1, w2 = linear_at(u, a0, a1, a2, u_origin, u_to_index)
-            a0, a1, a2 = r0 - w0, r1 - w1, r2 - w2
-        y[f, 0], y[f, 1], y[f, 2] = a0, a1, a2
 
 
 def composed_displacement(
