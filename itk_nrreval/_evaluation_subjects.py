@@ -2,21 +2,18 @@
 
 For every registration, :func:`registration_subjects` assesses each subject against its
 cohort (:func:`itk_nrreval.subject_qc.assess_subjects`: distance to the model of the others,
-deformation, overlap, coverage, brain mask), and :func:`subject_assessor` is the pipeline's
-``pictured_subjects`` callback that does so once per registration, looks for inverted or
-swapped transforms among the flagged subjects (which takes resampling them again), and names
-the flagged subjects the report pictures.
+deformation, overlap, coverage, brain mask), and :func:`subject_assessor` makes the
+pipeline's ``assess_subjects``, which does so once per registration and looks for inverted
+or swapped transforms among the flagged subjects (which takes resampling them again).
 """
 
 from __future__ import annotations
 
 from .manifest import Manifest
 from .plausibility import SubjectThresholds
-from .report import FLAGGED_SUBJECTS_SHOWN
 from .subject_qc import (
     SubjectQC,
     assess_subjects,
-    ranked,
     reference_subject,
     transform_mixups,
 )
@@ -24,12 +21,12 @@ from .subject_qc import (
 __all__ = ["subject_assessor", "registration_subjects"]
 
 
-def subject_assessor(m: Manifest, thresholds: SubjectThresholds, assessed: dict):
-    """The pipeline's ``pictured_subjects`` callback: it assesses each registration's
-    subjects once, while the pipeline still has the cache, into `assessed`, and returns the
-    flagged subjects the report pictures, worst first (read from the cache)."""
+def subject_assessor(m: Manifest, thresholds: SubjectThresholds):
+    """The pipeline's ``assess_subjects``: each registration's subjects assessed once, while
+    the pipeline still has the cache (an inverted or swapped transform is looked for among
+    the flagged subjects, through `products`)."""
 
-    def pictured(r, products) -> list[int]:
+    def assess(r, products) -> tuple[SubjectQC, ...]:
         first = registration_subjects(m, r, thresholds)
         # an inverted or another subject's transform is looked for among the flagged
         # subjects only: it takes resampling them through changed transforms
@@ -40,10 +37,9 @@ def subject_assessor(m: Manifest, thresholds: SubjectThresholds, assessed: dict)
             gram=r.gram,
             products=products,
         )
-        assessed[r.name] = registration_subjects(m, r, thresholds, mixups) if mixups else first
-        return [q.index for q in ranked(assessed[r.name]) if q.flags][:FLAGGED_SUBJECTS_SHOWN]
+        return registration_subjects(m, r, thresholds, mixups) if mixups else first
 
-    return pictured
+    return assess
 
 
 def registration_subjects(

@@ -95,7 +95,7 @@ from .model import TextureModel
 from .overlap import OverlapTable
 from .plausibility import AffineFit, Plausibility, SubjectThresholds, deformation_measures
 from .specificity import GeneralizationResult, SpecificityResult, texture_measures
-from .subject_qc import reference_subject
+from .subject_qc import SubjectQC, ranked, reference_subject
 from .transforms import (
     PointMap,
     TransformPieces,
@@ -761,8 +761,8 @@ class ReducedRegistration:
     thumbnails : dict of str to ndarray
         Small arrays for the HTML report, whatever N
         (:func:`~itk_nrreval._resampled_images.thumbnails`): middle slices of two subjects'
-        resampled images (and of the subjects `pictured_subjects` of
-        :func:`run_pipeline` names, ``image_<i>``), of the first subject's labels and of its
+        resampled images (and of the flagged subjects :func:`run_pipeline` pictures,
+        ``image_<i>``), of the first subject's labels and of its
         det J, and the log det J histogram over all subjects.
     affine_fits : list of AffineFit, length n_images
         Each transform's closest affine map on the reference grid
@@ -776,6 +776,9 @@ class ReducedRegistration:
     label_metrics : LabelMetrics or None
         Dice and HD95 (mm) per label and case in the common frame
         (:mod:`itk_nrreval.label_metrics`, :func:`_label_metrics`); None without labels.
+    subjects : tuple of SubjectQC
+        Every subject's quality control under this registration, by `assess_subjects` of
+        :func:`run_pipeline` (empty without it).
     """
 
     name: str
@@ -793,6 +796,7 @@ class ReducedRegistration:
     scored: tuple[int, ...] = ()
     brain_masks: BrainMaskDice | None = None
     label_metrics: LabelMetrics | None = None
+    subjects: tuple[SubjectQC, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -853,7 +857,8 @@ def run_pipeline(
     execution: Execution | None = None,
     subject_thresholds: SubjectThresholds | None = None,
     inverse_consistency: bool = True,
-    pictured_subjects: Callable[[ReducedRegistration, Callable], Sequence[int]] | None = None,
+    assess_subjects: Callable[[ReducedRegistration, Callable], Sequence[SubjectQC]] | None = None,
+    flagged_pictured: int = 0,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -882,14 +887,16 @@ def run_pipeline(
         (:func:`off_grid_subjects`); they are named in a warning.
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
-    pictured_subjects : callable, optional
-        Given a registration's finished :class:`ReducedRegistration` (without these pictures)
-        and a function that resamples images through changed transforms and returns their
-        inner products with the scored images (:func:`_alternative_products`, its first
-        arguments bound; for the subject QC's :func:`itk_nrreval.subject_qc.transform_mixups`),
-        the subjects (manifest indices) whose resampled middle slice its thumbnails should
-        also hold (``image_<i>``), e.g. the subjects its quality control flags: read from
-        the cache before it goes, a few slices rather than all N.
+    assess_subjects : callable, optional
+        Given a registration's finished :class:`ReducedRegistration` and a function that
+        resamples images through changed transforms and returns their inner products with
+        the scored images (:func:`_alternative_products`, its first arguments bound; for
+        :func:`itk_nrreval.subject_qc.transform_mixups`), every subject's quality control
+        (:class:`~itk_nrreval.subject_qc.SubjectQC`): run while the cache still holds the
+        registration's images, kept in its ``subjects``.
+    flagged_pictured : int
+        How many of the flagged subjects, worst first, the thumbnails also picture
+        (``image_<i>``: read from the cache before it goes, a few slices rather than all N).
 
     Returns
     -------
@@ -931,7 +938,8 @@ def run_pipeline(
             counts=counts, warned=set(), own_values=own_values, mask=mask, scored=scored,
             values=values, region=region, n_samples=n_samples, seed=seed, distance=distance,
             resampling=resampling, keep_resampled=execution.keep_resampled,
-            progress=progress, pictured_subjects=pictured_subjects,
+            progress=progress, assess_subjects=assess_subjects,
+            flagged_pictured=flagged_pictured,
         )  # fmt: skip
         runs, resampled = {}, {}
         for name, reg in measured.items():  # one registration's images in the cache at a time
@@ -954,7 +962,7 @@ def run_pipeline(
 def _score_registration(
     executor, ctx, region_ctx, disk, m, name, reg: _Measured, *, coverage, counts, warned,
     own_values, mask, scored, values, region, n_samples, seed, distance, resampling,
-    keep_resampled, progress, pictured_subjects,
+    keep_resampled, progress, assess_subjects, flagged_pictured,
 ) -> tuple[ReducedRegistration, _Resampled]:  # fmt: skip
     """Registration `name` resampled, reduced to its scores, and its label metrics; its
     resampled images leave the cache unless `keep_resampled`, its mean image goes to the
@@ -975,7 +983,7 @@ def _score_registration(
         progress=progress,
     )
     _check_region_covered(disk, name, r.keys, scored, region, ctx.grid)
-    # before the reduction: the subjects' assessment (pictured_subjects) reads them
+    # before the reduction: the subjects' assessment (assess_subjects) reads them
     brain_masks = _brain_mask_dice(
         executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
         method=method, progress=progress,
@@ -997,7 +1005,8 @@ def _score_registration(
         distance=distance,
         interpolation=resampling.interpolation,
         progress=progress,
-        pictured_subjects=pictured_subjects,
+        assess_subjects=assess_subjects,
+        flagged_pictured=flagged_pictured,
     )
     label_metrics = _label_metrics(
         executor, region_ctx, disk, m, name, r, scored=scored, values=values,
@@ -1257,7 +1266,8 @@ def _left_out_of_scores(m: Manifest, entries, off_grid_coverage: float) -> tuple
 
 def _reduce_registration(
     executor, region_ctx, disk, m, name, r: _Resampled, *, brain_masks, scored, values, region,
-    coverage, n_samples, seed, distance, interpolation, progress, pictured_subjects,
+    coverage, n_samples, seed, distance, interpolation, progress, assess_subjects,
+    flagged_pictured,
 ) -> ReducedRegistration:  # fmt: skip
     """Registration `name`'s scores from its cache entries inside the region, with every
     image's deformation, and the thumbnails of the subjects the report pictures."""
@@ -1296,7 +1306,7 @@ def _reduce_registration(
         scored=scored,
         brain_masks=brain_masks,
     )
-    if pictured_subjects is None:
+    if assess_subjects is None:
         return run
     products = functools.partial(
         _alternative_products,
@@ -1309,12 +1319,14 @@ def _reduce_registration(
         run.mean_image,
         interpolation,
     )
+    subjects = tuple(assess_subjects(run, products))
+    worst = [q.index for q in ranked(subjects) if q.flags][:flagged_pictured]
     extra = {
         f"image_{i}": image_slice(disk, region_ctx.grid, r.keys[i])
-        for i in pictured_subjects(run, products)
+        for i in worst
         if f"image_{i}" not in r.thumbnails
     }
-    return dataclasses.replace(run, thumbnails={**r.thumbnails, **extra})
+    return dataclasses.replace(run, thumbnails={**r.thumbnails, **extra}, subjects=subjects)
 
 
 def _alternative_products(

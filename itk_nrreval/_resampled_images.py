@@ -99,8 +99,8 @@ def export_resampled(
     Raises
     ------
     InputError
-        The cache no longer holds a registration's resampled images (nothing more is
-        written).
+        The result records none, or the cache no longer holds them all (checked before
+        anything is written).
     """
     record: ResampledImages | None = result.resampled
     if record is None:

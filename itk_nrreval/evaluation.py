@@ -61,7 +61,7 @@ from .plausibility import (
     flags,
     smallest_extent_mm,
 )
-from .report import write_evaluation
+from .report import FLAGGED_SUBJECTS_SHOWN, write_evaluation
 from .specificity import GeneralizationResult, SpecificityResult
 from .subject_qc import SubjectQC, across_registrations
 from .verdict import Decision, OpenPair, Verdict, verdict
@@ -442,32 +442,34 @@ def evaluate(
     resampling = option_or_default("resampling", resampling, Resampling)
     execution = option_or_default("execution", execution, Execution)
     thresholds = option_or_default("thresholds", thresholds, Thresholds)
-    subjects = option_or_default("subject_thresholds", subject_thresholds, SubjectThresholds)
+    subject_thresholds = option_or_default(
+        "subject_thresholds", subject_thresholds, SubjectThresholds
+    )
     asked, settings = confidence_settings(confidence)
     m = load_manifest(manifest)
-    assessed: dict[str, tuple[SubjectQC, ...]] = {}  # filled while the pipeline runs
     run, run_info = _execute(
         m, n_samples=int(n_samples), seed=seed, distance=distance, progress=progress,
-        resampling=resampling, execution=execution, subject_thresholds=subjects,
+        resampling=resampling, execution=execution, subject_thresholds=subject_thresholds,
         inverse_consistency=inverse_consistency,
-        pictured_subjects=subject_assessor(m, subjects, assessed),
+        assess_subjects=subject_assessor(m, subject_thresholds),
+        flagged_pictured=FLAGGED_SUBJECTS_SHOWN,  # the report's pictures of flagged subjects
     )  # fmt: skip
     return _assembled(
-        m, run, run_info, assessed, weightings=weightings, n_samples=n_samples, seed=seed,
+        m, run, run_info, weightings=weightings, n_samples=n_samples, seed=seed,
         distance=distance, resampling=resampling, asked=asked, settings=settings,
-        thresholds=thresholds, subject_thresholds=subjects,
+        thresholds=thresholds, subject_thresholds=subject_thresholds,
         inverse_consistency=inverse_consistency, progress=progress,
     )  # fmt: skip
 
 
 def _assembled(
-    m: Manifest, run, run_info, assessed, *, weightings, n_samples, seed, distance,
+    m: Manifest, run, run_info, *, weightings, n_samples, seed, distance,
     resampling: Resampling, asked: bool, settings: Confidence, thresholds, subject_thresholds,
     inverse_consistency, progress,
 ) -> EvaluationResult:  # fmt: skip
     """The pipeline's `run` turned into the result: every registration's scores with their
     subject-level confidence (where `asked` for and possible), flags and subjects
-    (`assessed` while the pipeline ran), ranked, with the options recorded."""
+    (assessed while the pipeline ran), ranked, with the options recorded."""
     # the default depends on n_samples: resolved here, not in Confidence
     confidence_samples = settings.samples
     if confidence_samples is None:
@@ -487,7 +489,9 @@ def _assembled(
         run,
         values,
         level,
-        across_registrations(assessed, thresholds=subject_thresholds),
+        across_registrations(
+            {name: r.subjects for name, r in regs.items()}, thresholds=subject_thresholds
+        ),
         weightings=weightings,
         thresholds=thresholds,
         extent_mm=extent,
