@@ -66,7 +66,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import importlib.util
 import io
 import itertools
@@ -827,85 +826,12 @@ def _load(case: str):
 
 def _verdict(case: str, *, labels: bool = True, evaluation=None):
     """The verdict of a saved case, recomputed by today's :func:`verdict`; with
-    ``labels=False`` as if the case had no label maps (specificity and folding alone).
-    An evaluation saved before specificity at a common smoothness existed gets it from the
-    case's ``smoothed.json`` (:func:`_add_smoothed`), where that has been computed."""
+    ``labels=False`` as if the case had no label maps (specificity and folding alone)."""
     from itk_nrreval.evaluation import verdict
 
     evaluation = _load(case) if evaluation is None else evaluation
     has_labels = labels and any(s.overlap for s in evaluation.scores.values())
-    scores = _with_smoothed(case, evaluation.scores)
-    return verdict(scores, evaluation.comparisons, has_labels=has_labels)
-
-
-SMOOTHED_JSON = "smoothed.json"
-
-
-def _manifest_of(case: str) -> Path:
-    """The manifest a saved case was scored from."""
-    if case == "cheat":
-        return OUT / "demo" / "manifest_cheat.yaml"
-    if case == "multimodal":
-        return OUT / case / "data" / "manifest.yaml"
-    for path in (OUT / case / "manifest.yaml", OUT / case / "sweep" / "manifest.yaml"):
-        if path.exists():
-            return path
-    raise FileNotFoundError(f"{case}: no manifest in {OUT / case}")
-
-
-def _add_smoothed(case: str) -> None:
-    """Specificity at a common smoothness of a case saved before it was a measure: the
-    package's own smoothing (:func:`itk_nrreval._smoothed_fields.smoothed_manifest`, in the
-    frames the registrations were scored in) scored as the case was (M, seed), into
-    ``smoothed.json``; the registrations are not run again."""
-    import tempfile
-
-    import itk_nrreval as nr
-    from itk_nrreval._smoothed_fields import COMMON_SMOOTHNESS_MM, smoothed_manifest
-    from itk_nrreval.manifest import load_manifest
-
-    evaluation = _load(case)
-    m = _quiet(load_manifest, _manifest_of(case))
-    frames = {name: s.frame.transform for name, s in evaluation.scores.items()}
-    t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as folder:
-        smoothed = smoothed_manifest(m, sigma_mm=COMMON_SMOOTHNESS_MM, folder=folder, frames=frames)
-        result = _quiet(
-            nr.evaluate,
-            smoothed,
-            n_samples=N_SAMPLES,
-            seed=SEED,
-            confidence=False,
-            inverse_consistency=False,
-            progress=False,
-        )
-    values = {
-        name: [s.specificity.value, s.specificity.stderr] for name, s in result.scores.items()
-    }
-    record = {"sigma_mm": COMMON_SMOOTHNESS_MM, "specificity": values}
-    record["seconds"] = round(time.perf_counter() - t0, 1)
-    (OUT / case / SMOOTHED_JSON).write_text(json.dumps(record, indent=1) + "\n")
-    print(f"[verdict] {case}: smoothed, {record['seconds']:.0f} s", flush=True)
-
-
-def _with_smoothed(case: str, scores: dict) -> dict:
-    """`scores` with ``smoothed_specificity`` from the case's ``smoothed.json`` where they
-    have none (M and seed as the case's own specificity)."""
-    path = OUT / case / SMOOTHED_JSON
-    if not path.exists() or all(
-        getattr(s, "smoothed_specificity", None) is not None for s in scores.values()
-    ):
-        return scores
-    values = json.loads(path.read_text())["specificity"]
-    return {
-        name: dataclasses.replace(
-            s,
-            smoothed_specificity=dataclasses.replace(
-                s.specificity, value=float(values[name][0]), stderr=float(values[name][1])
-            ),
-        )
-        for name, s in scores.items()
-    }
+    return verdict(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
 
 
 def _overlap_says(evaluation, better: str, worse: str) -> str:
@@ -1114,11 +1040,6 @@ def main(argv: list[str] | None = None) -> dict:
         help="recompute only the verdict from the saved evaluations (no registration)",
     )
     parser.add_argument(
-        "--smoothed",
-        action="store_true",
-        help="first add specificity at a common smoothness to saved cases without it",
-    )
-    parser.add_argument(
         "--new",
         action="store_true",
         help="only the cases of issue 41 (families_*) and their second scans",
@@ -1131,10 +1052,6 @@ def main(argv: list[str] | None = None) -> dict:
     unknown = [c for c in cases if c not in known]
     if unknown:
         parser.error(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(known)}")
-    if args.smoothed:
-        for case in cases:
-            if not (OUT / case / SMOOTHED_JSON).exists():
-                _add_smoothed(case)
     if args.rejudge:
         missing = [c for c in cases if not (OUT / c / "evaluation.pkl").exists()]
         if missing:

@@ -532,7 +532,7 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
     used = [m for m, p in evidence.items() if p.discount is None]
     gains = [
         f"{math.exp(evidence[m].gain):.2f}x "
-        + ("lower specificity" if m == _SPECIFICITY else "the odds of overlap")
+        + ("the odds of overlap" if m == _OVERLAP else f"lower {_WORD[m]}")
         for m in used
         if evidence[m].rougher_at_most is None
     ]
@@ -600,10 +600,9 @@ def _times(x: float, y: float) -> str:
 def _why_open(evidence, rough, has_labels, confidence) -> str:
     if not confidence:
         return "subject-level confidence was not computed, so no difference is known to hold"
-    if len(_counted(evidence)) == 2:
-        return (
-            f"specificity prefers {evidence[_SPECIFICITY].preferred}, "
-            f"overlap prefers {evidence[_OVERLAP].preferred}"
+    if len(_counted(evidence)) == 2:  # each measure that counts, and whom it prefers
+        return ", ".join(
+            f"{_WORD[m]} prefers {p.preferred}" for m, p in evidence.items() if p.discount is None
         )
     if evidence:
         return "; ".join(_discounted(m, p, rough) for m, p in evidence.items())
