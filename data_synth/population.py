@@ -207,14 +207,7 @@ def make_population(
     FileNotFoundError
         ``kind="mni"`` without nilearn's data files.
     """
-    if kind not in _KINDS:
-        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
-    if dim not in (2, 3) or isinstance(dim, bool):
-        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n must be a positive number of subjects, got {n!r}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    _check_sizes(kind, dim, n, seed)
     params = {
         "warp_mm": warp_mm,
         "smoothness_mm": smoothness_mm,
@@ -264,6 +257,18 @@ def make_population(
         contrasts=contrasts,
         templates=MappingProxyType({c: t.image for c, t in tmpls.items()}),
     )
+
+
+def _check_sizes(kind, dim, n, seed) -> None:
+    """Refuse an unknown `kind`, a `dim` other than 2 or 3, ``n < 1`` or a negative seed."""
+    if kind not in _KINDS:
+        raise ValueError(f"kind must be one of {_KINDS}, got {kind!r}")
+    if dim not in (2, 3) or isinstance(dim, bool):
+        raise ValueError(f"dim must be 2 or 3, got {dim!r}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"n must be a positive number of subjects, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
 
 
 def _check_contrasts(contrasts) -> tuple[str, ...]:
