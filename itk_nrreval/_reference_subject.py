@@ -71,6 +71,8 @@ def reference_subject(
             if _file_identity(images[i]) == same_file:
                 return i
     digest = _content_digest(reference)
+    if digest is None:
+        return None  # nothing to compare: two digests not taken are not two equal images
     for i in still:
         if _content_digest(images[i]) == digest:
             return i

@@ -257,9 +257,9 @@ def test_the_swap_and_inversion_ratios_are_brute_force_fits_in_image_space(mixed
 def test_mixup_checks_in_chunks_of_one_alternative_give_the_same_fits(mixed_up, monkeypatch):
     """The changed images are resampled and reduced a bounded chunk at a time (64
     alternatives of a 1 mm region would be 2.5 GB at once): one at a time, the same fits."""
-    from itk_nrreval import _pipeline
+    from itk_nrreval._pipeline import _reduction
 
-    monkeypatch.setattr(_pipeline, "ALTERNATIVE_CHUNK_BYTES", 1)  # one alternative per chunk
+    monkeypatch.setattr(_reduction, "ALTERNATIVE_CHUNK_BYTES", 1)  # one alternative per chunk
     result, _, folder = mixed_up
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -960,3 +960,14 @@ def test_concern_scores_are_the_weighted_means_written_out_by_hand(values, missi
         else:
             assert concern[i] == pytest.approx(expected, rel=1e-12, abs=1e-12)
             assert CONCERN_TERMS[largest[i]].words == words
+
+
+def test_a_reference_whose_content_cannot_be_read_names_no_subject(tmp_path):
+    """Two digests that could not be taken are not two equal images: an identity-transform
+    subject is not named the reference because neither file could be read."""
+    from itk_nrreval.subject_qc import reference_subject
+
+    missing = [tmp_path / "gone_reference.nii.gz", tmp_path / "gone_subject.nii.gz"]
+    assert reference_subject(missing[0], [missing[1]], displacement_rms_mm=[0.0]) is None
+    # the same file, even unreadable, is still the same file
+    assert reference_subject(missing[0], [missing[0]], displacement_rms_mm=[0.0]) is None
