@@ -5,8 +5,9 @@ registrations of it: ``field`` (its true template-to-subject transform, an affin
 1 mm displacement field) and ``affine`` (the affine part alone); and ``field, no labels``,
 the field registration of the image alone, as a cohort without label maps runs it. For
 each, the task the pipeline runs per image and registration
-(:func:`itk_nrreval._pipeline._resample_task`) runs on a cold cache, in a fresh process on
-one thread (SimpleITK and numba), with its parts timed by wrapping the functions it calls:
+(:func:`itk_nrreval._pipeline._image_tasks.resample_task`) runs on a cold cache, in a fresh
+process on one thread (SimpleITK and numba), with its parts timed by wrapping the functions
+it calls:
 
 - ``read``: the image and label map read from disk;
 - ``resample``: the image resampled onto the common grid (since issue 30, when it shares the
@@ -22,16 +23,17 @@ one thread (SimpleITK and numba), with its parts timed by wrapping the functions
   plausibility's own sampling of the transform, and timed apart from it);
 - ``coverage``: which common-grid voxels the transform brings the image's field of view to
   (since issue 30, measured with the plausibility in a task of its own before any image is
-  resampled, :func:`itk_nrreval._pipeline._measures_task`; the two tasks are timed together);
+  resampled, :func:`~itk_nrreval._pipeline._image_tasks.measures_task`; the two tasks are
+  timed together);
 - ``cache write``: the entries written (hashed and renamed into place);
 - ``other``: the rest of the task.
 
-A third run times the frame-estimate task (:func:`itk_nrreval._pipeline._estimate_task`) of
-the ``field`` registration with ``affine`` as the common frame -- ``F = T_field^-1 o
-T_affine`` sampled on the common grid, the task a registration whose frame is not the
-common one runs per image -- with its inversion apart (since issue 30 the coarse inverse
-alone: the refinement runs at the grid's points as it is sampled), and its cache entry's
-size.
+A third run times the frame-estimate task
+(:func:`itk_nrreval._pipeline._common_frame._estimate_task`) of the ``field`` registration
+with ``affine`` as the common frame -- ``F = T_field^-1 o T_affine`` sampled on the common
+grid, the task a registration whose frame is not the common one runs per image -- with
+its inversion apart (since issue 30 the coarse inverse alone: the refinement runs at the
+grid's points as it is sampled), and its cache entry's size.
 
 The floor is SimpleITK's own ``sitk.Resample`` of the same float32 volume through the same
 composed transform onto the same grid (linear), timed in the same process; the task's cost
@@ -110,6 +112,19 @@ def subject() -> dict:
     return info
 
 
+def _task_modules() -> tuple:
+    """The modules in which the pipeline's per-image tasks and its frame-estimate task look
+    up what they call, and the class of the context every task takes: since issue 43
+    ``_pipeline`` is a package of modules, before it one module."""
+    from itk_nrreval import _pipeline
+
+    try:
+        from itk_nrreval._pipeline import _common_frame, _image_tasks, _task_keys
+    except ImportError:
+        return _pipeline, _pipeline, _pipeline._Context
+    return _image_tasks, _common_frame, _task_keys.TaskContext
+
+
 def _measure(info: dict, name: str) -> dict:
     """One registration's task on a cold cache, its parts, and the floor (this process)."""
     import tempfile
@@ -117,12 +132,13 @@ def _measure(info: dict, name: str) -> dict:
     import numpy as np
     import SimpleITK as sitk
 
-    from itk_nrreval import _pipeline, plausibility
+    from itk_nrreval import plausibility
     from itk_nrreval._cache import DiskCache
     from itk_nrreval._images import Geometry, read_image
     from itk_nrreval.frame import label_values, resampling_transform
     from itk_nrreval.transforms import chain_transform
 
+    tasks, _frames, Context = _task_modules()
     spent = dict.fromkeys(PARTS, 0.0)
 
     def timed(part, fn):
@@ -136,21 +152,19 @@ def _measure(info: dict, name: str) -> dict:
         return wrapper
 
     # the task's own calls, wrapped where it looks them up
-    _pipeline.read_image = timed("read", _pipeline.read_image)
-    _pipeline.resample_images = timed("resample", _pipeline.resample_images)
-    _pipeline.resample_label_memberships = timed(
-        "memberships", _pipeline.resample_label_memberships
-    )
+    tasks.read_image = timed("read", tasks.read_image)
+    tasks.resample_images = timed("resample", tasks.resample_images)
+    tasks.resample_label_memberships = timed("memberships", tasks.resample_label_memberships)
     # since issue 30 the image is resampled inside the memberships' pass, from their sampling
-    shared_sampling = hasattr(_pipeline, "resample_image_and_memberships")
+    shared_sampling = hasattr(tasks, "resample_image_and_memberships")
     if shared_sampling:
         from itk_nrreval import _memberships
 
-        _pipeline.resample_image_and_memberships = timed(
-            "memberships", _pipeline.resample_image_and_memberships
+        tasks.resample_image_and_memberships = timed(
+            "memberships", tasks.resample_image_and_memberships
         )
         _memberships._linear_values = timed("resample", _memberships._linear_values)
-    _pipeline.deformation_measures = timed("plausibility", _pipeline.deformation_measures)
+    tasks.deformation_measures = timed("plausibility", tasks.deformation_measures)
     if hasattr(plausibility, "PointwiseInverse"):  # since issue 30: the coarse inverse
         plausibility.PointwiseInverse = timed("invert", plausibility.PointwiseInverse)
     else:
@@ -160,7 +174,7 @@ def _measure(info: dict, name: str) -> dict:
     if shared_fit:
         plausibility._AffineSums.add = timed("affine fit", plausibility._AffineSums.add)
     else:
-        _pipeline.affine_fit = timed("affine fit", _pipeline.affine_fit)
+        tasks.affine_fit = timed("affine fit", tasks.affine_fit)
     DiskCache.put = timed("cache write", DiskCache.put)
     direct_round_trip = hasattr(plausibility, "_mean_round_trip")  # since issue 30
     if direct_round_trip:
@@ -173,20 +187,23 @@ def _measure(info: dict, name: str) -> dict:
     own = None if unlabelled else [int(v) for v in label_values([labels]) if v != 0]
     item = Path(info["transforms"][name])
     # since issue 30 the transform's measures are a task of their own, before resampling
-    two_tasks = hasattr(_pipeline, "_measures_task")
+    # since issue 43 public names of their module (_image_tasks)
+    measures_task = getattr(tasks, "measures_task", getattr(tasks, "_measures_task", None))
+    resample_task = getattr(tasks, "resample_task", getattr(tasks, "_resample_task", None))
+    two_tasks = measures_task is not None
     if two_tasks:
-        _pipeline.covered_voxels = timed("coverage", _pipeline.covered_voxels)
+        tasks.covered_voxels = timed("coverage", tasks.covered_voxels)
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
-        ctx = _pipeline._Context(root, grid, None, True)
+        ctx = Context(root, grid, None, True)
         args = (ctx, Path(info["image"]), labels, item, ("identity",), "identity", grid)
 
         def run_tasks() -> list[tuple]:
             if not two_tasks:
-                return [("resampled", *_pipeline._resample_task(*args, "linear", None, own))]
-            measured = _pipeline._measures_task(*args[:2], *args[3:], None)
+                return [("resampled", *resample_task(*args, "linear", None, own))]
+            measured = measures_task(*args[:2], *args[3:], None)
             return [
                 ("measures", *measured),
-                ("resampled", *_pipeline._resample_task(*args, "linear", own)),
+                ("resampled", *resample_task(*args, "linear", own)),
             ]
 
         # a first run compiles the numba kernels (when their disk cache is cold) and reads
@@ -255,10 +272,11 @@ def _measure_estimate(info: dict) -> dict:
     frame: ``F_i = T_field^-1 o T_affine`` sampled on the common grid, on a cold cache."""
     import tempfile
 
-    from itk_nrreval import _pipeline, frame
+    from itk_nrreval import frame
     from itk_nrreval._cache import DiskCache
     from itk_nrreval._images import Geometry, read_image
 
+    _tasks, frames, Context = _task_modules()
     spent = {"invert": 0.0}
     # since issue 30 the estimate's inverse is pointwise: its coarse inverse is timed
     name = "PointwiseInverse" if hasattr(frame, "PointwiseInverse") else "invert"
@@ -275,18 +293,18 @@ def _measure_estimate(info: dict) -> dict:
     grid = Geometry.from_image(read_image(info["reference"], what="reference image"))
     common, item = Path(info["transforms"]["affine"]), Path(info["transforms"]["field"])
     with tempfile.TemporaryDirectory(prefix="bench-image-task-") as root:
-        ctx = _pipeline._Context(root, grid, None, True)
-        key = _pipeline._estimate_key(ctx, common, item, grid)
+        ctx = Context(root, grid, None, True)
+        key = frames._estimate_key(ctx, common, item, grid)
         # since issue 30: float32 for the mean (removed once added up) and 16-bit steps for
         # the spread, two entries
         kinds = ("estimate", "estimate_steps") if hasattr(frame, "in_steps") else ("estimate",)
         args = (ctx, key, common, item, grid, *((True,) if len(kinds) == 2 else ()))
-        _pipeline._estimate_task(*args)  # warm-up, as in _measure
+        frames._estimate_task(*args)  # warm-up, as in _measure
         for kind in kinds:
             shutil.rmtree(Path(root) / kind)
         spent["invert"] = 0.0
         t0 = time.process_time()
-        reused = _pipeline._estimate_task(*args)
+        reused = frames._estimate_task(*args)
         total = time.process_time() - t0
         assert not reused
         size = sum(

@@ -137,11 +137,13 @@ def test_coverage_that_disagrees_with_the_resampling_is_an_error_not_a_score(tmp
     image is resampled. Were the two to disagree, an image's 0 outside its field of view
     would enter the scores: a silent wrong number. Simulated by a coverage that claims every
     voxel of the cropped images."""
-    from itk_nrreval import _pipeline
+    from itk_nrreval._pipeline import _image_tasks
 
     cropped_case(tmp_path)
     monkeypatch.setattr(
-        _pipeline, "covered_voxels", lambda image_grid, t, g, **kw: np.ones(np.prod(g.shape), bool)
+        _image_tasks,
+        "covered_voxels",
+        lambda image_grid, t, g, **kw: np.ones(np.prod(g.shape), bool),
     )
     with pytest.raises(RuntimeError, match=r"has no value at \d+ voxels of the evaluated region"):
         nr.evaluate(tmp_path / "manifest.yaml", **KW)

@@ -20,7 +20,8 @@ from test_evaluate import make_case
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval import _pipeline, _version
+from itk_nrreval import _version
+from itk_nrreval._pipeline import _task_keys
 from itk_nrreval.plausibility import (
     INVERSE_CONSISTENCY_STEP,
     INVERSE_FIELD_STEP,
@@ -207,10 +208,10 @@ def test_cache_not_reused_across_computation_versions(tmp_path, monkeypatch):
     current one recomputes them (the transforms' measures: since issue 30 their own task).
     """
     manifest, cache = one_registration(tmp_path)
-    current = _pipeline._TASK_VERSIONS["measures"]
+    current = _task_keys._TASK_VERSIONS["measures"]
     execution = nr.Execution(cache=cache, **KEPT)
     with monkeypatch.context() as patch:
-        patch.setitem(_pipeline._TASK_VERSIONS, "measures", current - 1)
+        patch.setitem(_task_keys._TASK_VERSIONS, "measures", current - 1)
         right = inverse_consistency(nr.evaluate(manifest, execution=execution, **FAST))
         for path in measures_metas(cache):
             entry = json.loads(path.read_text())

@@ -201,8 +201,8 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     transform, sampled by ITK (the pieces in another order are another map). F is the
     identity, or a zero field from the cache (the path of a registration not in the common
     frame); the grid is oblique, anisotropic, and the image covers only part of it."""
-    from itk_nrreval import _pipeline
     from itk_nrreval._cache import DiskCache
+    from itk_nrreval._pipeline import _image_tasks, _task_keys
     from itk_nrreval.plausibility import affine_fit
 
     rng = np.random.default_rng(3)
@@ -217,13 +217,13 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     sitk.WriteTransform(_transforms(3)["composite"], str(h5))
     sitk.WriteTransform(_affine(3, 12), str(mat))
     item = [str(mat), str(h5)]  # ANTs order: the .mat acts first
-    ctx = _pipeline._Context(str(tmp_path / "cache"), grid, None, True)
+    ctx = _task_keys.TaskContext(str(tmp_path / "cache"), grid, None, True)
     frame = ("identity",)
     if frame_kind == "field":
         zero = {"disp": np.zeros((*grid.shape, 3), np.float32)}
         DiskCache(tmp_path / "cache").put("frame", "zero", zero)
         frame = ("field", "zero")
-    _key, reused, meta = _pipeline._measures_task(
+    _key, reused, meta = _image_tasks.measures_task(
         ctx, image_path, item, frame, frame_kind, grid, None
     )
     assert not reused

@@ -185,19 +185,19 @@ def test_cache_holds_one_registrations_resampled_images_at_a_time(
     """Issue 30: every transform's coverage is measured before any image is resampled, so a
     registration's resampled images (50 MB each at 1 mm) leave the cache once its scores
     are taken; the cache keeps the measures. Kept or not, and rerun, the same numbers."""
-    from itk_nrreval import _pipeline
+    from itk_nrreval._pipeline import _driver
 
     manifest = with_mask(tmp_path)
     cache = tmp_path / "c"
     on_disk = []
-    reduce = _pipeline._reduce_registration
+    reduce = _driver._reduce_registration
 
     def observed(executor_, ctx, disk, m, name, r, **kw):
         keys = {p.parent.name for p in (cache / "resampled").glob("*/*/entry.json")}
         on_disk.append((name, keys, set(r.keys)))
         return reduce(executor_, ctx, disk, m, name, r, **kw)
 
-    monkeypatch.setattr(_pipeline, "_reduce_registration", observed)
+    monkeypatch.setattr(_driver, "_reduce_registration", observed)
     execution = nr.Execution(cache=cache, **executor_options)
     first = nr.evaluate(manifest, execution=execution, **KW)
     assert [name for name, _, _ in on_disk] == list(first.scores)
@@ -529,8 +529,8 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
     """Issue 30: F is added up from the estimates as their tasks finish, each removed once
     added, so that a registration's N float32 estimates (3.9 GB at 1 mm, N = 36) are not
     all on disk at once; in image order, so that the bits do not depend on the timing."""
-    from itk_nrreval import _pipeline
     from itk_nrreval._cache import DiskCache
+    from itk_nrreval._pipeline import _common_frame
 
     rng = np.random.default_rng(8)
     ests = [
@@ -549,7 +549,7 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
     ):
         for k, e in zip(keys, ests, strict=True):
             disk.put("estimate", k, {"disp": e})
-        mean = _pipeline._MeanOfEstimates(disk, keys)
+        mean = _common_frame._MeanOfEstimates(disk, keys)
         on_disk = []
         for i in order:
             mean.arrived(i)
@@ -558,14 +558,14 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
         np.testing.assert_array_equal(mean.result(), expected)
     # two images with the same inputs share one entry: it stays until both are added
     disk.put("estimate", "k0", {"disp": ests[0]})
-    twice = _pipeline._MeanOfEstimates(disk, ["k0", "k0"])
+    twice = _common_frame._MeanOfEstimates(disk, ["k0", "k0"])
     twice.arrived(1)
     twice.arrived(0)
     np.testing.assert_array_equal(twice.result(), ests[0].astype(np.float64))
     assert disk.get("estimate", "k0") is None
     with pytest.raises(RuntimeError, match="1 of 6 estimates arrived"):
         disk.put("estimate", keys[0], {"disp": ests[0]})
-        early = _pipeline._MeanOfEstimates(disk, keys)
+        early = _common_frame._MeanOfEstimates(disk, keys)
         early.arrived(0)
         early.result()
 
@@ -577,18 +577,18 @@ def test_frame_estimates_are_stored_within_half_a_16_bit_step(tmp_path, shape, s
     once; stored in 65535 steps per component, each value comes back within half a step,
     (max - min) / 131070, the extremes exactly or within rounding, a constant component
     exactly; a field that is not finite everywhere is stored as float32."""
-    from itk_nrreval import _pipeline
     from itk_nrreval._cache import DiskCache
+    from itk_nrreval._pipeline import _common_frame
     from itk_nrreval.frame import from_steps, in_steps
 
     rng = np.random.default_rng(3)
     disp = rng.normal(scale=scale, size=shape) + rng.normal(scale=10 * scale, size=shape[-1])
     disp[..., -1] = 0.25 * scale  # a constant component
     disk = DiskCache(tmp_path)
-    disk.put("estimate", "a", _pipeline._stored_estimate(disp))
+    disk.put("estimate", "a", _common_frame._stored_estimate(disp))
     entry = disk.get("estimate", "a")
     assert entry.array("disp").dtype == np.uint16 and entry.array("disp").shape == shape
-    back = _pipeline._estimate_values(entry)
+    back = _common_frame._estimate_values(entry)
     assert back.dtype == np.float64 and back.shape == shape
     flat, got = disp.reshape(-1, shape[-1]), back.reshape(-1, shape[-1])
     half_step = (flat.max(axis=0) - flat.min(axis=0)) / 131070
@@ -603,10 +603,10 @@ def test_frame_estimates_are_stored_within_half_a_16_bit_step(tmp_path, shape, s
     assert np.all(err8 <= half_step * 65535 / 255 + rounding)
     disp.reshape(-1)[5] = np.nan
     assert in_steps(disp) is None
-    disk.put("estimate", "b", _pipeline._stored_estimate(disp))
+    disk.put("estimate", "b", _common_frame._stored_estimate(disp))
     entry = disk.get("estimate", "b")
     assert entry.array("disp").dtype == np.float32
-    np.testing.assert_array_equal(_pipeline._estimate_values(entry), disp.astype(np.float32))
+    np.testing.assert_array_equal(_common_frame._estimate_values(entry), disp.astype(np.float32))
 
 
 def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
@@ -616,16 +616,16 @@ def test_float32_cache_entries_give_the_float64_scores(tmp_path, monkeypatch):
     # The reductions add up in float64, so every score and frame spread stays within 1e-5
     # (relative) of float64 entries', and the deformation measures, which never read the
     # entries, are the same.
-    from itk_nrreval import _pipeline
+    from itk_nrreval._pipeline import _common_frame, _image_tasks
 
     data = make_case(tmp_path)
     manifest = tmp_path / "manifest.yaml"
     manifest.write_text(yaml.safe_dump(data, sort_keys=False))
     kept = dict(keep_resampled=True)
     single = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache32", **kept), **KW)
-    monkeypatch.setattr(_pipeline, "_STORED_IMAGE", np.float64)
-    monkeypatch.setattr(_pipeline, "_STORED_ESTIMATE", np.float64)
-    monkeypatch.setattr(_pipeline, "_STORED_FRAME", np.float64)
+    monkeypatch.setattr(_image_tasks, "_STORED_IMAGE", np.float64)
+    monkeypatch.setattr(_common_frame, "_STORED_ESTIMATE", np.float64)
+    monkeypatch.setattr(_common_frame, "_STORED_FRAME", np.float64)
     double = nr.evaluate(manifest, execution=nr.Execution(cache=tmp_path / "cache64", **kept), **KW)
     for cache, dtype in (("cache32", np.float32), ("cache64", np.float64)):
         # (the frame estimates are removed once F and its spread are kept)

@@ -1,0 +1,491 @@
+"""The per-image tasks of the evaluate pipeline, and their mapping over one registration.
+
+Per image and registration, each cached (:func:`~itk_nrreval._pipeline._task_keys.task_key`):
+the transform's measures (:func:`measures_task`: the common-grid voxels it brings the
+image's field of view to, and the deformation's plausibility) before any image is
+resampled; then the image resampled into the common frame with its label memberships
+(:func:`resample_task`); the per-label sums the overlap needs (:func:`label_sums_task`);
+the subject's brain mask in the common frame (:func:`brain_mask_task`).
+:func:`measure_registration`, :func:`resample_registration` and :func:`brain_mask_dice`
+map them over a registration's images through the executor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+
+from .._brain_masks import BrainMaskDice, resample_mask, subject_mask_dice
+from .._cache import DiskCache
+from .._images import (
+    Geometry,
+    InMemoryImage,
+    label_like_values,
+    read_header,
+    read_image,
+    warn_label_like,
+)
+from .._memberships import (
+    SparseMemberships,
+    covered_voxels,
+    resample_image_and_memberships,
+    resample_label_memberships,
+    shares_grid,
+)
+from .._overlap_kernels import membership_gradient_sum
+from .._resampled_images import stored_memberships, thumbnails
+from ..frame import resample_images, resampling_transform
+from ..plausibility import deformation_measures
+from ..transforms import (
+    PointMap,
+    TransformPieces,
+    displacement_array,
+    displacement_field,
+    flatten,
+    has_only_fields,
+    transform_pieces,
+)
+from ._common_frame import frame_transform, registration_frame, registration_mask
+from ._task_keys import TaskContext, task_key
+
+#: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
+#: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
+#: tests/test_pipeline.py bounds it against float64 entries).
+_STORED_IMAGE = np.float32
+
+
+@dataclass(frozen=True)
+class Measured:
+    """One registration's frame and its transforms' measures (cache entries, metadata)."""
+
+    keys: list[str]
+    metas: list[dict]
+    frame: Any
+    frame_spec: tuple
+    frame_digest: str
+    reference_grid: Geometry
+
+
+@dataclass(frozen=True)
+class Resampled:
+    """One registration's resampled images (cache entries; metadata with its measures')
+    and what resampling it again needs."""
+
+    keys: list[str]
+    metas: list[dict]
+    frame: Any
+    frame_spec: tuple
+    reference_grid: Geometry
+    thumbnails: dict[str, np.ndarray]
+
+
+def measure_registration(
+    executor, ctx, disk, m, name, *, mask, counts, progress
+) -> Measured:  # fmt: skip
+    """Registration `name`'s frame F and every image's transform measured
+    (:func:`measures_task`: coverage of the common grid, plausibility), cached."""
+    reg = m.registrations[name]
+    reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
+    frame_spec, frame_digest, frame = registration_frame(
+        executor, ctx, disk, m, name, reg_grid, counts, progress
+    )
+    reg_mask_key = registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
+    if frame_spec[0] == "field":
+        # The tasks read F from the cache; the driver holds its transform (a full-size
+        # field, 0.2 GB at 1 mm per registration) only once the reductions are done
+        # (the driver's ``_with_held_arrays``).
+        frame = dataclasses.replace(frame, transform=None)
+    calls = [
+        (
+            ctx,
+            m.scored_images[i],
+            reg.transforms[i],
+            frame_spec,
+            frame_digest,
+            reg_grid,
+            reg_mask_key,
+        )
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    metas: list[dict] = [{}] * m.n_images
+    for i, (key, reused, meta) in executor.map(
+        measures_task, calls, desc=f"{name}: measures", progress=progress
+    ):
+        keys[i], metas[i] = key, meta
+        counts.add(reused)
+    return Measured(keys, metas, frame, frame_spec, frame_digest, reg_grid)
+
+
+def measures_task(
+    ctx: TaskContext,
+    image: Path,
+    item,
+    frame: tuple,
+    frame_digest: str,
+    reg_grid: Geometry,
+    reg_mask_key: str | None,
+) -> tuple[str, bool, dict]:
+    """One image's transform, measured without resampling the image; cache it.
+
+    The entry holds ``covered``: the common-grid voxels that ``T_i^R o F`` maps into the
+    image's field of view (``np.packbits`` of a bool (n,); ITK's decisions,
+    :func:`~itk_nrreval._memberships.covered_voxels`, where the resampled image has a
+    value), and ``detj_middle`` (float32: det J on the middle slice of `reg_grid`, NaN
+    outside its mask, for the report). Its metadata holds the fraction of the mask (or grid)
+    covered, the deformation's plausibility measures and the transform's closest affine map
+    (:func:`~itk_nrreval.plausibility.affine_fit`, from the same sampling of the transform:
+    ``deformation_measures(..., affine=True)``) on the registration's reference grid
+    `reg_grid` (inside the mask mapped there, `reg_mask_key`), and the fixed-bin counts of
+    log det J over the same voxels (``log_jacobian_histogram``).
+
+    Every image's coverage is known before any image is resampled, so each registration's
+    resampled images can leave the cache once its scores are taken (:func:`run_pipeline`).
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    key = task_key(
+        "measures",
+        g,
+        ctx.mask_key,
+        image,
+        item,
+        frame_digest,
+        reg_grid,
+        reg_mask_key,
+        ctx.inverse_consistency,
+    )
+    entry = cache.get("measures", key)
+    if entry is not None:
+        return key, True, dict(entry.meta)
+    pieces = transform_pieces(item)
+    # with F the identity on T's own grid, T's displacement on the whole common grid (an
+    # array) also serves the plausibility
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True, whole=True)
+    covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
+    mask = ctx.mask_flat()
+    inside = covered[mask] if mask is not None else covered
+    arrays = {"covered": np.packbits(covered)}
+    meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
+    shared = sampled if isinstance(sampled, np.ndarray) else None  # T's own on g
+    del covered, inside, full
+    if shared is None:  # freed before the plausibility samples T on its own grid
+        sampled = None
+    reg_mask = None
+    if reg_mask_key is not None:
+        reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
+    # the affine fit from the measures' own sampling of the transform (one pass, not two)
+    measures = deformation_measures(
+        pieces,
+        reg_grid,
+        mask=reg_mask,
+        inverse_consistency=ctx.inverse_consistency,
+        affine=True,
+        displacement=shared,
+    )
+    del shared, sampled, pieces
+    # for the report: one slice, det J on reg_grid
+    arrays["detj_middle"] = measures.jacobian.middle
+    meta.update(
+        plausibility=measures.plausibility.to_dict(),
+        affine_fit=measures.affine.to_dict(),
+        log_jacobian_histogram=measures.jacobian.histogram(),
+    )
+    cache.put("measures", key, arrays, meta)
+    return key, False, meta
+
+
+def _image_grid(image) -> Geometry:
+    """An image's grid from its header (a manifest's in-memory image: its own)."""
+    if isinstance(image, InMemoryImage):
+        return Geometry.from_image(image.image)
+    return Geometry.from_image(read_header(image))
+
+
+def resample_registration(
+    executor, ctx, disk, m, name, reg: Measured, *, counts, warned, own_values,
+    interpolation, labels, progress,
+) -> Resampled:  # fmt: skip
+    """Every image of registration `name` resampled into the common frame (cached), with
+    its labels' memberships; label-like images warned once."""
+    items = m.registrations[name].transforms
+    calls = [
+        (
+            ctx,
+            m.scored_images[i],
+            m.labels[i] if m.labels is not None else None,
+            items[i],
+            reg.frame_spec,
+            reg.frame_digest,
+            reg.reference_grid,
+            interpolation,
+            own_values[i],
+            labels,
+        )
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    metas: list[dict] = [{}] * m.n_images
+    for i, (key, reused, meta) in executor.map(
+        resample_task, calls, desc=f"{name}: resampling", progress=progress
+    ):
+        keys[i], metas[i] = key, {**reg.metas[i], **meta}
+        counts.add(reused)
+        if meta.get("label_like") and i not in warned:
+            warned.add(i)
+            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=5)
+    pictures = thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
+    return Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, pictures)
+
+
+def resample_task(
+    ctx: TaskContext,
+    image: Path,
+    labels: Path | None,
+    item,
+    frame: tuple,
+    frame_digest: str,
+    reg_grid: Geometry,
+    interpolation: str,
+    own_values: Sequence[int] | None,
+    label_resampling: tuple[str, float | None] = ("linear", None),
+) -> tuple[str, bool, dict]:
+    """Resample one image (and its label memberships) into the common frame; cache it.
+
+    The entry holds ``image`` (n,) over the whole grid (``_STORED_IMAGE``, float32; 0 outside
+    the image's field of view), ``covered`` (the voxels inside that field of view,
+    ``np.packbits`` of a bool (n,)), and for the labels the nonzero memberships of the image's
+    own nonzero label values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat
+    voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
+    (float32). Its metadata holds the label values and the image's label-like values
+    (:func:`~itk_nrreval._images.label_like_values`). `own_values` are the label map's own
+    nonzero values (found once by the driver); `label_resampling` is ``(method, sigma_mm)``
+    of :func:`~itk_nrreval._memberships.resample_label_memberships`. `reg_grid`, the
+    registration's reference grid, only says whether T's displacement on the common grid
+    can be sampled whole (:func:`_sampling`). The transform's measures are
+    :func:`measures_task`'s.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    key = task_key(
+        "resampled",
+        g,
+        image,
+        labels,
+        item,
+        frame_digest,
+        reg_grid,
+        interpolation,
+        list(label_resampling),
+        np.dtype(_STORED_IMAGE).str,
+    )
+    entry = cache.get("resampled", key)
+    if entry is not None:
+        return key, True, dict(entry.meta)
+    pieces = transform_pieces(item)
+    raw = read_image(image, what="image")
+    lab = None if labels is None else read_image(labels, what="label map")
+    own = None if labels is None else [int(v) for v in own_values]
+    one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
+    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=one_sampling)
+    del pieces  # `full` holds them where it needs them
+    values, memb = _resampled_image_and_memberships(
+        raw,
+        lab,
+        full,
+        g,
+        interpolation=interpolation,
+        values=own,
+        labels=label_resampling,
+        one_sampling=one_sampling,
+        displacement=sampled,
+    )
+    del full, sampled
+    covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
+    values[~covered] = 0.0
+    arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
+    meta: dict = {"label_like": label_like_values(raw)}
+    if memb is not None:
+        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
+        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
+        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
+        meta.update(labels=own)
+    cache.put("resampled", key, arrays, meta)
+    return key, False, meta
+
+
+def _sampling(
+    pieces: TransformPieces, frame: tuple, g: Geometry, reg_grid: Geometry,
+    cache: DiskCache, *, one_sampling: bool, whole: bool = False,
+) -> tuple:  # fmt: skip
+    """Image i's transform from the common frame, ``T_i^R o F`` (:func:`resampling_transform`),
+    T given as its pieces (:func:`~itk_nrreval.transforms.transform_pieces`), and, where one
+    sampling of it on the common grid `g` serves more than one use (`one_sampling`), that
+    sampling: ``(transform, sampling or None)``; otherwise the memberships sample the
+    transform slab by slab.
+
+    When T is linear maps and displacement fields, the compiled kernels sample it (to about
+    1e-13 mm of ITK's): a slab of `g` at a time, as a
+    :class:`~itk_nrreval.transforms.PointMap` of T after F's displacement (F a field the
+    pipeline estimated, frame ``("field", key)``, read from its cache entry) or after none
+    (F the identity); with `whole`, F the identity and T on the common grid, as T's
+    displacement on the whole grid, which also serves the plausibility. The transform
+    returned with it is then a function that gives ``T_i^R o F`` as its pieces, called only
+    if ITK's own decisions are needed at a buffer's border: ITK maps those points piece by
+    piece, and builds the composite, which copies every field (0.1 to 0.25 s and 0.2 GB
+    per 1 mm field), only to resample the whole grid.
+    """
+
+    def from_common() -> TransformPieces:
+        return resampling_transform(pieces, frame_transform(frame, g, cache))
+
+    if one_sampling and has_only_fields(pieces):
+        if frame[0] == "field":
+            return from_common, PointMap(pieces, cache.open("frame", frame[1]).array("disp"))
+        if frame[0] == "identity" and whole and reg_grid == g:
+            return from_common, displacement_array(pieces, g)
+        if frame[0] == "identity":
+            return from_common, PointMap(pieces)
+    if one_sampling and frame[0] == "identity" and reg_grid == g:
+        t = flatten(pieces)
+        return t, sitk.GetArrayFromImage(displacement_field(t, g))  # F: the identity
+    return flatten(from_common()), None
+
+
+def _resampled_image_and_memberships(
+    raw: sitk.Image,
+    lab: sitk.Image | None,
+    full: sitk.Transform,
+    g: Geometry,
+    *,
+    interpolation: str,
+    values: list[int] | None,
+    labels: tuple[str, float | None],
+    one_sampling: bool,
+    displacement: np.ndarray | PointMap | None = None,
+) -> tuple[np.ndarray, SparseMemberships | None]:
+    """The image on `g` (flat float64, NaN outside its field of view) and the label map's
+    memberships (None without one): through one sampling of `full` with `one_sampling`
+    (:func:`_shares_sampling`; `displacement`, that sampling when the caller has it), else
+    one resampling each."""
+    method, sigma_mm = labels
+    if one_sampling:
+        return resample_image_and_memberships(
+            raw, lab, full, g, values=values, displacement=displacement
+        )
+    image = resample_images(
+        [raw], [full], g, interpolation=interpolation, progress=False, outside=np.nan
+    )
+    memb = None
+    if lab is not None:
+        memb = resample_label_memberships(
+            lab, full, g, values=values, method=method, sigma_mm=sigma_mm
+        )
+    return image[0].reshape(-1), memb
+
+
+def _shares_sampling(
+    raw: sitk.Image, lab: sitk.Image | None, interpolation: str, label_method: str
+) -> bool:
+    """Whether a scalar image, and its label map if it has one, can be resampled linearly
+    through one sampling of the transform by the compiled kernels
+    (:func:`resample_image_and_memberships`): the image linear, the labels linear and on its
+    grid."""
+    if interpolation != "linear" or raw.GetNumberOfComponentsPerPixel() != 1:
+        return False
+    return lab is None or (label_method == "linear" and shares_grid(raw, lab))
+
+
+def label_sums_task(ctx: TaskContext, key: str) -> tuple[dict, bool]:
+    """Per label of one resampled image: its gradient sum and its presence, in the region.
+
+    The region is ``ctx.mask_key`` (the voxels every image covers, inside the mask). Returns
+    ``({"gsum": [...], "present": [...]}, reused)``, one entry per label of the image.
+    """
+    cache = ctx.cache()
+    sums_key = task_key("label_sums", key, ctx.mask_key)
+    found = cache.get("label_sums", sums_key)
+    if found is not None:
+        return dict(found.meta), True
+    g = ctx.grid
+    entry = cache.open("resampled", key)
+    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
+    mask = ctx.mask_flat()
+    gsum, present = [], []
+    row = np.zeros(int(np.prod(g.shape)), np.float32)
+    for k in range(len(memb.values)):
+        idx, val = memb.label(k)
+        row[idx] = val
+        gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
+        row[idx] = 0
+        present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
+    meta = {"gsum": gsum, "present": present}
+    cache.put("label_sums", sums_key, {}, meta)
+    return meta, False
+
+
+def brain_mask_dice(
+    executor, ctx, disk, m, name, reg: Measured, *, mask, counts, method, progress
+) -> BrainMaskDice | None:  # fmt: skip
+    """Every subject's brain mask (the manifest's ``masks``) in the common frame under
+    registration `name`, and its Dice against the common mask: the manifest's `mask` (on
+    the common grid) where given, else the majority vote of the resampled masks
+    (:func:`~itk_nrreval._brain_masks.subject_mask_dice`). Resampled as the label maps are:
+    nearest neighbour for ``label_interpolation="nearest"``, else linear and inside at 0.5
+    (`method`). None without ``masks``."""
+    if m.masks is None:
+        return None
+    items = m.registrations[name].transforms
+    method = "nearest" if method == "nearest" else "linear"
+    calls = [
+        (ctx, m.masks[i], items[i], reg.frame_spec, reg.frame_digest, method)
+        for i in range(m.n_images)
+    ]
+    keys: list[str] = [""] * m.n_images
+    for i, (key, reused) in executor.map(
+        brain_mask_task, calls, desc=f"{name}: brain masks", progress=progress
+    ):
+        keys[i] = key
+        counts.add(reused)
+    return subject_mask_dice(_CachedMasks(disk, keys, ctx.grid.shape), common=mask)
+
+
+def brain_mask_task(
+    ctx: TaskContext, mask, item, frame: tuple, frame_digest: str, method: str
+) -> tuple[str, bool]:
+    """One subject's brain mask brought into the common frame through ``T_i^R o F`` (as its
+    image is), cached as ``mask``: ``np.packbits`` of a bool (n,) over the common grid
+    (numpy order). `method` is :func:`~itk_nrreval._brain_masks.resample_mask`'s. Returns
+    ``(key, reused)``."""
+    cache = ctx.cache()
+    g = ctx.grid
+    key = task_key("brain_mask", g, mask, item, frame_digest, method)
+    if cache.get("brain_mask", key) is not None:
+        return key, True
+    full = flatten(resampling_transform(transform_pieces(item), frame_transform(frame, g, cache)))
+    inside = resample_mask(read_image(mask, what="brain mask"), full, g, method=method)
+    cache.put("brain_mask", key, {"mask": np.packbits(inside.reshape(-1))})
+    return key, False
+
+
+class _CachedMasks(Sequence):
+    """The subjects' resampled brain masks read from the cache one at a time (bool, the
+    common grid's numpy shape): N masks are never held at once."""
+
+    def __init__(self, disk: DiskCache, keys: Sequence[str], shape: tuple[int, ...]):
+        self._disk, self._keys, self._shape = disk, list(keys), tuple(shape)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __getitem__(self, i):
+        bits = self._disk.open("brain_mask", self._keys[i]).array("mask")
+        n = math.prod(self._shape)
+        return np.unpackbits(bits, count=n).astype(bool).reshape(self._shape)

@@ -1,0 +1,199 @@
+"""Dice and HD95 per label in the common frame, as tasks of the evaluate pipeline.
+
+Two small tasks per scored subject: its crisp label map and label boundaries in the
+evaluated region (:func:`_crisp_task`), then its side of its cases: the directed HD95
+distances and the Dice counts against the subjects it is compared with
+(:func:`_distances_task`); :func:`registration_label_metrics` runs them and assembles the
+registration's :class:`~itk_nrreval.label_metrics.LabelMetrics`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .._output import json_number
+from .._resampled_images import stored_memberships
+from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
+from ..subject_qc import reference_subject
+from ._image_tasks import Resampled
+from ._task_keys import TaskContext, task_key
+
+
+def registration_label_metrics(
+    executor, ctx, disk, m, name, r: Resampled, *, scored, values, keep, progress
+) -> LabelMetrics | None:  # fmt: skip
+    """Registration `name`'s Dice and HD95 (mm) per label and case in the common frame
+    (:mod:`itk_nrreval.label_metrics`), from its resampled entries (`r`): two small tasks
+    per scored subject, its crisp map (:func:`_crisp_task`) then its side of its cases
+    (:func:`_distances_task`). The cases: each scored subject against the registration's
+    reference subject where it has one among the scored
+    (:func:`~itk_nrreval.subject_qc.reference_subject`), else every pair of scored
+    subjects. The crisp maps leave the cache afterwards unless `keep`. None without
+    labels."""
+    if values is None:
+        return None
+    n_codes = len(values)
+    code_of = {int(v): c for c, v in enumerate(values)}
+    own = {i: [code_of[int(v)] for v in r.metas[i]["labels"]] for i in scored}
+    crisp_keys = [""] * m.n_images
+    counts: dict[int, np.ndarray] = {}
+    calls = [(ctx, r.keys[i], own[i], n_codes) for i in scored]
+    for k, (crisp_key, meta) in executor.map(
+        _crisp_task, calls, desc=f"{name}: label maps", progress=progress
+    ):
+        crisp_keys[scored[k]] = crisp_key
+        counts[scored[k]] = np.asarray(meta["counts"], np.int64)
+    reg = m.registrations[name]
+    ref = reference_subject(
+        reg.reference,
+        m.images,
+        reference_index=reg.reference_index,
+        displacement_rms_mm=[
+            (meta.get("affine_fit") or {}).get("displacement_rms_mm") for meta in r.metas
+        ],
+    )
+    if ref not in scored:
+        ref = None  # off the common grid, or none: every pair
+    if ref is None:
+        cases = [(a, b) for ka, a in enumerate(scored) for b in scored[ka + 1 :]]
+        targets = {i: [j for j in scored if j != i] for i in scored}
+        dice_with = {i: [j for j in scored if j > i] for i in scored}
+    else:
+        cases = [(i, ref) for i in scored if i != ref]
+        targets = {i: [ref] for i in scored if i != ref}
+        targets[ref] = [i for i in scored if i != ref]
+        dice_with = {i: [ref] for i in scored if i != ref}
+        dice_with[ref] = []
+    calls = [(ctx, crisp_keys, i, targets[i], dice_with[i], n_codes) for i in scored]
+    sides: dict[int, dict] = {}
+    for k, side in executor.map(
+        _distances_task, calls, desc=f"{name}: Dice and HD95", progress=progress
+    ):
+        sides[scored[k]] = side
+    if not keep:
+        for key in set(crisp_keys) - {""}:
+            disk.remove("crisp_labels", key)
+    at = {i: {j: row for row, j in enumerate(targets[i])} for i in scored}
+    shared = {i: {j: row for row, j in enumerate(dice_with[i])} for i in scored}
+    dice = np.full((len(cases), n_codes), np.nan)
+    hd95 = np.full((len(cases), n_codes), np.nan)
+    for row, (a, b) in enumerate(cases):
+        # a's boundary read in b's distance map, and b's in a's
+        to_b = np.array(sides[b]["d95"][at[b][a]], np.float64)
+        to_a = np.array(sides[a]["d95"][at[a][b]], np.float64)
+        first, second = (a, b) if b in shared[a] else (b, a)
+        inter = np.asarray(sides[first]["inter"][shared[first][second]], np.float64)
+        for c in set(own[a]) & set(own[b]):  # a label both label maps have
+            total = counts[a][c] + counts[b][c]
+            if total:
+                dice[row, c] = 2.0 * inter[c] / total
+            if np.isfinite(to_a[c]) and np.isfinite(to_b[c]):
+                hd95[row, c] = max(to_a[c], to_b[c])
+    compared = [c for c in range(1, n_codes) if np.isfinite(dice[:, c]).any()]
+    return LabelMetrics(
+        labels=tuple(int(values[c]) for c in compared),
+        cases=tuple((int(a), int(b)) for a, b in cases),
+        reference=None if ref is None else int(ref),
+        dice=dice[:, compared],
+        hd95_mm=hd95[:, compared],
+    )
+
+
+def _crisp_task(ctx: TaskContext, key: str, codes: Sequence[int], n_codes: int) -> tuple[str, dict]:
+    """One subject's crisp label map in the evaluated region, and its label boundaries.
+
+    From the resampled entry `key`'s memberships (:func:`~itk_nrreval.label_metrics.
+    crisp_labels`, channel k written as ``codes[k]``, an index into the run's label values;
+    background outside ``ctx.mask_key``'s region) and
+    :func:`~itk_nrreval.label_metrics.label_surfaces`. Cached as ``crisp_labels``:
+    ``labels`` (n,) in the smallest unsigned dtype for `n_codes`, ``b_ptr`` (n_codes + 1,)
+    and ``b_idx`` (flat voxel indices of every code's boundary; uint32 below 2**32 voxels);
+    its metadata ``counts``, each code's voxels in the region. Returns ``(crisp key,
+    metadata)``.
+
+    Costs one pass over the grid per label for the memberships' maximum (as the label sums
+    do), one ``find_objects`` pass and each label's box: about 0.2 s at 1 mm (9 labels,
+    docs/label-metrics.md), and n bytes in the cache until the registration is done.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    crisp_key = task_key("crisp_labels", key, ctx.mask_key, list(codes), n_codes)
+    found = cache.get("crisp_labels", crisp_key)
+    if found is not None:
+        return crisp_key, dict(found.meta)
+    entry = cache.open("resampled", key)
+    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
+    mask = ctx.mask_flat()
+    region = None if mask is None else mask.reshape(g.shape)
+    labels = crisp_labels(memb, codes=codes, n_codes=n_codes, region=region)
+    surfaces = label_surfaces(labels, n_codes, region=region)
+    index = surfaces.index.astype(np.uint32) if labels.size < 2**32 else surfaces.index
+    meta = {"counts": surfaces.counts.tolist()}
+    arrays = {"labels": labels.reshape(-1), "b_ptr": surfaces.ptr, "b_idx": index}
+    cache.put("crisp_labels", crisp_key, arrays, meta)
+    return crisp_key, meta
+
+
+def _distances_task(
+    ctx: TaskContext,
+    crisp_keys: Sequence[str],
+    subject: int,
+    targets: Sequence[int],
+    dice_with: Sequence[int],
+    n_codes: int,
+) -> dict:
+    """Subject `subject`'s side of its cases, from the crisp entries `crisp_keys` (by
+    manifest index).
+
+    Returns ``{"d95": (len(targets), n_codes), "inter": (len(dice_with), n_codes)}`` as
+    lists: per target, per code, the 95th percentile of the distances (mm) from the
+    target's boundary to the subject's nearest boundary voxel (None: no boundary in one of
+    them; one distance transform of the subject's boundary per code,
+    :func:`~itk_nrreval.label_metrics.directed_percentiles`, read at every target's); per
+    partner of `dice_with`, per code, the voxels where both maps have it. Cached (metadata
+    only) as ``label_distances``.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    key = task_key(
+        "label_distances",
+        g,
+        crisp_keys[subject],
+        [crisp_keys[j] for j in targets],
+        [crisp_keys[j] for j in dice_with],
+    )
+    found = cache.get("label_distances", key)
+    if found is not None:
+        return dict(found.meta)
+    own = cache.open("crisp_labels", crisp_keys[subject])
+    ptr, idx = own.array("b_ptr"), own.array("b_idx", mmap=True)
+    others = []
+    for j in targets:
+        e = cache.open("crisp_labels", crisp_keys[j])
+        others.append((e.array("b_ptr"), e.array("b_idx", mmap=True)))
+    d95 = np.full((len(targets), n_codes), np.nan)
+    for code in range(1, n_codes):
+        mine = np.asarray(idx[ptr[code] : ptr[code + 1]], np.int64)
+        if mine.size:
+            d95[:, code] = directed_percentiles(
+                mine,
+                [np.asarray(t[p[code] : p[code + 1]], np.int64) for p, t in others],
+                shape=g.shape,
+                spacing=g.spacing,
+            )
+    del others
+    inter = np.zeros((len(dice_with), n_codes), np.int64)
+    if dice_with:
+        labels = own.array("labels")
+        for row, j in enumerate(dice_with):  # one other map in memory at a time
+            other = cache.open("crisp_labels", crisp_keys[j]).array("labels", mmap=True)
+            both = labels[labels == np.asarray(other)]
+            inter[row] = np.bincount(both, minlength=n_codes)[:n_codes]
+    meta = {
+        "d95": [[json_number(v) for v in row] for row in d95],
+        "inter": inter.tolist(),
+    }
+    cache.put("label_distances", key, {}, meta)
+    return meta
