@@ -44,7 +44,6 @@ from ._task_keys import TaskContext, task_key
 #: (``_STORED_FRAME``), each removed once added (:class:`_MeanOfEstimates`).
 _STORED_ESTIMATE = np.uint16
 
-
 #: The dtype of the frame F (mean of the estimates, ``F(p) - p``, mm) in the cache, and of
 #: the estimates it is added up from: float32 halves the entries (216 -> 108 MB at 1 mm)
 #: and rounds a displacement of up to 100 mm by less than 1e-5 mm.

@@ -37,7 +37,6 @@ from ._task_keys import TaskContext
 
 _BLOCK_BYTES = 1 << 26  # float64 bytes of one voxel block over all N images (64 MiB)
 
-
 #: Bytes of changed images (float64, over the region) the subject checks of
 #: :func:`alternative_products` hold at once: 64 alternatives of a 1 mm brain region would
 #: otherwise take 2.5 GB.

@@ -19,7 +19,6 @@ from .._images import Geometry
 
 _FORMAT = 7  # bump when what a cache entry holds changes
 
-
 #: The computation version of each cached task: bump a task's number whenever what it
 #: computes changes (a fix, a new default), so that entries computed the old way are never
 #: reused. Every key also holds the package version (:func:`task_key`).
