@@ -18,7 +18,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ._brain_masks import BRAIN_MASK_DICE_MIN
-from ._subject_measures import leave_one_out_distances, pair_distances, robust_z, subject_overlaps
+from ._subject_measures import (
+    appearance_distances,
+    leave_one_out_distances,
+    pair_distances,
+    robust_z,
+    subject_overlaps,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from .plausibility import SubjectThresholds
@@ -103,11 +109,14 @@ class Cohort:
     overlap: np.ndarray | None
     overlap_z: np.ndarray
     brain_mask_dice: np.ndarray | None = None
+    appearance: np.ndarray | None = None
+    appearance_z: np.ndarray | None = None
 
 
 def cohort_statistics(
-    *, n_all, scored, gram, deformation, coverage, overlap_sums, judged, brain_mask_dice=None
-) -> Cohort:
+    *, n_all, scored, gram, deformation, coverage, overlap_sums, judged, brain_mask_dice=None,
+    appearance_squares=None,
+) -> Cohort:  # fmt: skip
     """The statistics every subject is judged against (see
     :func:`~itk_nrreval.subject_qc.assess_subjects`): the medians and MADs over the subjects
     `judged` (boolean, length N) alone."""
@@ -158,6 +167,9 @@ def cohort_statistics(
         overlap[scored] = values
         overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"], among=rows)
         medians["overlap"] = _median(overlap[judged])
+    appearance = appearance_z = None
+    if appearance_squares is not None:
+        appearance, appearance_z = _appearance(appearance_squares, n_all, scored, rows)
     dice = None
     if brain_mask_dice is not None:
         dice = np.array([math.nan if v is None else float(v) for v in brain_mask_dice])
@@ -173,6 +185,8 @@ def cohort_statistics(
         overlap,
         overlap_z,
         dice,
+        appearance,
+        appearance_z,
     )
 
 
@@ -330,3 +344,17 @@ def shared_kinds(
             words = FLAG_KINDS.get(kind, f"carry the flag {kind!r}")
             out[kind] = f"{len(who)} of the {n} subjects {words}"
     return out
+
+
+def _appearance(squares, n_all: int, scored, rows) -> tuple[np.ndarray, np.ndarray]:
+    """Every subject's appearance distance (:func:`appearance_distances`) and its robust z of
+    the log over the judged `rows` (as the model distance's), NaN for those not scored."""
+    distance = appearance_distances(squares)
+    values = np.full(n_all, np.nan)
+    z = np.full(n_all, np.nan)
+    values[scored] = distance
+    if len(scored) >= 4:
+        tiny = max(float(np.max(distance)), 1.0) * 1e-12
+        least = _LEAST_SPREAD_OF_SCORE * float(np.median(distance[rows]))
+        z[scored] = robust_z(distance, log=True, floor=tiny, least_spread=least, among=rows)
+    return values, z

@@ -33,6 +33,7 @@ from ._coverage import check_region_covered, evaluated_region, left_out_of_score
 from ._image_tasks import (
     Measured,
     Resampled,
+    bias_corrected_task,
     brain_mask_dice,
     label_sums_task,
     measure_registration,
@@ -276,6 +277,7 @@ def _reduce_registration(
             label_sums_task, calls, desc=f"{name}: label sums", progress=progress
         ):
             metas[i].update(sums)
+    bias_keys = _bias_corrected(executor, region_ctx, name, [r.keys[i] for i in scored], progress)
     run = reduce_to_scores(
         executor,
         region_ctx,
@@ -292,7 +294,10 @@ def _reduce_registration(
         seed=seed,
         distance=distance,
         progress=progress,
+        bias_keys=bias_keys,
     )
+    for key in set(bias_keys):  # derived and cheap: not kept
+        disk.remove("bias_corrected", key)
     run = dataclasses.replace(
         run,
         thumbnails=r.thumbnails,
@@ -323,6 +328,18 @@ def _reduce_registration(
         if f"image_{i}" not in r.thumbnails
     }
     return dataclasses.replace(run, thumbnails={**r.thumbnails, **extra}, subjects=subjects)
+
+
+def _bias_corrected(executor, ctx, name: str, keys: Sequence[str], progress) -> list[str]:
+    """Each of `keys`' resampled images divided by its local mean in the region (cached:
+    :func:`bias_corrected_task`), for the subjects' appearance distances; their keys."""
+    out = [""] * len(keys)
+    calls = [(ctx, k) for k in keys]
+    for i, (key, _reused) in executor.map(
+        bias_corrected_task, calls, desc=f"{name}: bias correction", progress=progress
+    ):
+        out[i] = key
+    return out
 
 
 def _with_held_arrays(

@@ -41,6 +41,7 @@ from .._memberships import (
 )
 from .._overlap_kernels import membership_gradient_sum
 from .._resampled_images import stored_memberships, thumbnails
+from .._subject_measures import BIAS_SCALE_MM, bias_corrected
 from ..frame import resample_images, resampling_transform
 from ..plausibility import deformation_measures
 from ..transforms import (
@@ -429,6 +430,27 @@ def label_sums_task(ctx: TaskContext, key: str) -> tuple[dict, bool]:
     meta = {"gsum": gsum, "present": present}
     cache.put("label_sums", sums_key, {}, meta)
     return meta, False
+
+
+def bias_corrected_task(ctx: TaskContext, key: str) -> tuple[str, bool]:
+    """One resampled image divided by its local mean in the region; cache it.
+
+    The region is ``ctx.mask_key`` (the voxels every image covers, inside the mask), where
+    :func:`~itk_nrreval._subject_measures.bias_corrected` takes the local mean; the entry
+    holds ``image`` (float32, over the whole grid, 0 outside the region). Returns
+    ``(its key, reused)``.
+    """
+    cache = ctx.cache()
+    g = ctx.grid
+    out_key = task_key("bias_corrected", key, ctx.mask_key, BIAS_SCALE_MM)
+    if cache.get("bias_corrected", out_key) is not None:
+        return out_key, True
+    image = cache.open("resampled", key).array("image").reshape(g.shape)
+    mask = ctx.mask_flat()
+    region = np.ones(g.shape, bool) if mask is None else mask.reshape(g.shape)
+    corrected = bias_corrected(image, region, spacing=g.spacing, scale_mm=BIAS_SCALE_MM)
+    cache.put("bias_corrected", out_key, {"image": corrected.reshape(-1).astype(np.float32)}, {})
+    return out_key, False
 
 
 def brain_mask_dice(

@@ -100,6 +100,10 @@ class ReducedRegistration:
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, by `assess_subjects` of
         :func:`run_pipeline` (empty without it).
+    appearance_squares : ndarray of shape (n_scored,) or None
+        Per scored image, the sum over the region of its bias-corrected image's squared
+        difference from their mean (:func:`~itk_nrreval._subject_measures.appearance_distances`);
+        None when not computed.
     """
 
     name: str
@@ -118,6 +122,7 @@ class ReducedRegistration:
     brain_masks: BrainMaskDice | None = None
     label_metrics: LabelMetrics | None = None
     subjects: tuple[SubjectQC, ...] = ()
+    appearance_squares: np.ndarray | None = field(default=None, repr=False)
 
 
 def reduce_to_scores(
@@ -137,16 +142,19 @@ def reduce_to_scores(
     seed,
     distance,
     progress,
+    bias_keys=None,
 ) -> ReducedRegistration:
-    """Block sums -> model -> specificity and generalization; pair sums -> overlap table."""
+    """Block sums -> model -> specificity and generalization; pair sums -> overlap table;
+    with `bias_keys` (each scored image's ``bias_corrected`` entry), the appearance sums."""
     grid = ctx.grid
     n = len(keys)
     n_vox = int(np.prod(grid.shape))
     bounds = _block_bounds(n, n_vox)
     components = values[1:] if values is not None else []
     pairs = _subject_pairs(subjects)
-    calls = [(ctx, keys, a, b, components, pairs) for a, b in bounds]
+    calls = [(ctx, keys, a, b, components, pairs, bias_keys) for a, b in bounds]
     gram = np.zeros((n, n))
+    appearance = np.zeros(n) if bias_keys is not None else None
     mean = np.empty(n_vox)
     n_lab = len(components)
     p, q = np.zeros(n_lab), np.zeros(n_lab)
@@ -167,6 +175,8 @@ def reduce_to_scores(
             vol += res["vol"]
             spair += res["spair"]
             pair_min += res["subject_pair_min"]
+            if appearance is not None:
+                appearance += res["appearance"]
             next_block += 1
     model = TextureModel.from_gram(
         gram,
@@ -227,8 +237,9 @@ def reduce_to_scores(
         )
     plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
     return ReducedRegistration(
-        name, spec, gen, table, frame, plaus, coverage, mean.reshape(grid.shape), gram, sums
-    )
+        name, spec, gen, table, frame, plaus, coverage, mean.reshape(grid.shape), gram, sums,
+        appearance_squares=appearance,
+    )  # fmt: skip
 
 
 def _block_bounds(n_images: int, n_voxels: int) -> list[tuple[int, int]]:
@@ -250,6 +261,18 @@ def _subject_pairs(subjects: Sequence[str] | None) -> np.ndarray:
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
+def _appearance_block(cache, bias_keys, start: int, stop: int, mask) -> np.ndarray:
+    """Per image, the block's sum of squares of its bias-corrected image minus their mean
+    (inside the mask), shape (N,)."""
+    h = np.empty((len(bias_keys), stop - start))
+    for i, k in enumerate(bias_keys):
+        h[i] = cache.open("bias_corrected", k).array("image", mmap=True)[start:stop]
+    if mask is not None:
+        h = h[:, mask]
+    h -= h.mean(axis=0)
+    return np.einsum("iv,iv->i", h, h)
+
+
 def _block_task(
     ctx: TaskContext,
     keys: Sequence[str],
@@ -257,13 +280,16 @@ def _block_task(
     stop: int,
     components: Sequence[int],
     subject_pairs: np.ndarray,
+    bias_keys: Sequence[str] | None = None,
 ) -> dict:
     """One voxel block [start, stop) of the flattened grid, over all N images.
 
     Returns the block's Gram matrix of the centred masked intensities (N, N), the mean
     image on the block (stop - start,), and per label value of `components` the pair sums
     p, q (L,), per image the volume and target-overlap sums (N, L), and for each of
-    `subject_pairs` (n_pairs, 2) its sum of minima (n_pairs, L), voxel units.
+    `subject_pairs` (n_pairs, 2) its sum of minima (n_pairs, L), voxel units; with
+    `bias_keys`, per image its appearance sum of squares on the block (N,)
+    (:func:`_appearance_block`).
     """
     cache = ctx.cache()
     entries = [cache.open("resampled", k) for k in keys]
@@ -282,6 +308,8 @@ def _block_task(
         x -= mean
     out = {"gram": x @ x.T, "mean": mean}
     del x
+    if bias_keys is not None:
+        out["appearance"] = _appearance_block(cache, bias_keys, start, stop, mask)
     n_labels = len(components)
     p, q = np.zeros(n_labels), np.zeros(n_labels)
     vol, spair = np.zeros((n, n_labels)), np.zeros((n, n_labels))

@@ -41,6 +41,7 @@ _TASK_VERSIONS = {
     "measures": 2,  # coverage and plausibility, before any image is resampled (issue 30)
     # 2: the non-diffeomorphic fraction and volume (issue 42)
     "label_sums": 1,
+    "bias_corrected": 1,  # a resampled image divided by its local mean (issue 42)
     "brain_mask": 1,  # a subject's brain mask in the common frame (issue 42)
     "crisp_labels": 1,  # a subject's crisp label map and label boundaries (issue 45)
     "label_distances": 1,  # its Dice counts and directed HD95 against others (issue 45)
