@@ -53,7 +53,7 @@ split's numbers of an earlier run, and is imported from the package). Written to
 subject's flags, terms and true error).
 
 *Declared 2026-11-28, on the tuning split alone, before any other split was measured with
-it:* the concern's model-distance term becomes a bias-corrected appearance distance. Each
+it:* the concern's model-distance term becomes a bias-corrected bias-corrected distance. Each
 subject's image in the common frame is divided by its local mean (a Gaussian of 10 mm,
 normalised within the evaluation region), which takes away its gain and smooth bias field;
 the term is the Euclidean distance over the region between that and the mean of the
@@ -123,8 +123,9 @@ FLAG_WORDS = (
 TERMS = (
     ("concern", ("concern",), 1.0),
     ("largest z (before)", ("concern",), 1.0),
+    ("concern with the model distance (before)", ("concern",), 1.0),
     ("model distance z", ("z",), 1.0),
-    ("appearance z", ("appearance", "z"), 1.0),
+    ("bias-corrected distance z", ("corrected_distance", "z"), 1.0),
     ("- overlap z", ("overlap", "z"), -1.0),
     ("SDlogJ z", ("plausibility", "sdlogj_z"), 1.0),
     ("non-linear displacement z", ("plausibility", "nonlinear_rms_z"), 1.0),
@@ -168,7 +169,7 @@ def _get(q: dict, path: tuple[str, ...]) -> float:
 #: Where each z-score of the concern is in a saved subject (``results.json``).
 _Z_WHERE = {
     "z": ("z",),
-    "appearance_z": ("appearance", "z"),
+    "corrected_z": ("corrected_distance", "z"),
     "overlap_z": ("overlap", "z"),
     "sdlogj_z": ("plausibility", "sdlogj_z"),
     "nonlinear_rms_z": ("plausibility", "nonlinear_rms_z"),
@@ -184,14 +185,17 @@ _LARGEST_Z_TERMS = (
 )
 
 
-def concern(q: dict, *, labels: bool) -> float:
+def concern(q: dict, *, labels: bool, image_term: str = "corrected_z") -> float:
     """A saved subject's concern recomputed from its z-scores
     (:func:`~itk_nrreval.subject_qc.concern_scores`), with or without the overlap term; NaN
-    for the reference or when no term was measured."""
+    for the reference or when no term was measured. ``image_term="z"`` puts the model
+    distance's z where the appearance's is: the concern before the bias-corrected distance."""
     if q["reference"]:
         return math.nan
     z_scores = {
-        t.key: _get(q, _Z_WHERE[t.key]) for t in CONCERN_TERMS if labels or t.key != "overlap_z"
+        t.key: _get(q, _Z_WHERE[image_term if t.key == "corrected_z" else t.key])
+        for t in CONCERN_TERMS
+        if labels or t.key != "overlap_z"
     }
     return float(concern_scores(z_scores)[0][0])
 
@@ -236,6 +240,8 @@ def subject_view(q: dict, *, labels: bool) -> dict:
     for name, path, sign in TERMS:
         if name == "concern":
             terms[name] = concern(q, labels=labels)
+        elif name == "concern with the model distance (before)":
+            terms[name] = concern(q, labels=labels, image_term="z")
         elif name == "largest z (before)":
             terms[name] = largest_z(q, labels=labels)
         elif name == "- overlap z" and not labels:

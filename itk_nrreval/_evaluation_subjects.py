@@ -80,7 +80,7 @@ def registration_subjects(
         overlap_volume=None if sums is None else sums["volume"],
         overlap_target_sums=None if sums is None else sums["target_sums"],
         overlap_weights=None if r.overlap is None else r.overlap.weights("volume"),
-        appearance_squares=r.appearance_squares,
+        corrected_squares=r.corrected_squares,
         mixups=mixups,
         # a subject registered to itself (reference_index, or the reference's own image with
         # the identity): not judged

@@ -19,8 +19,8 @@ import numpy as np
 
 from ._brain_masks import BRAIN_MASK_DICE_MIN
 from ._subject_measures import (
-    appearance_distances,
     leave_one_out_distances,
+    others_mean_distances,
     pair_distances,
     robust_z,
     subject_overlaps,
@@ -109,13 +109,13 @@ class Cohort:
     overlap: np.ndarray | None
     overlap_z: np.ndarray
     brain_mask_dice: np.ndarray | None = None
-    appearance: np.ndarray | None = None
-    appearance_z: np.ndarray | None = None
+    corrected_distance: np.ndarray | None = None
+    corrected_z: np.ndarray | None = None
 
 
 def cohort_statistics(
     *, n_all, scored, gram, deformation, coverage, overlap_sums, judged, brain_mask_dice=None,
-    appearance_squares=None,
+    corrected_squares=None,
 ) -> Cohort:  # fmt: skip
     """The statistics every subject is judged against (see
     :func:`~itk_nrreval.subject_qc.assess_subjects`): the medians and MADs over the subjects
@@ -167,9 +167,11 @@ def cohort_statistics(
         overlap[scored] = values
         overlap_z[scored] = robust_z(values, least_spread=_LEAST_SPREAD["overlap"], among=rows)
         medians["overlap"] = _median(overlap[judged])
-    appearance = appearance_z = None
-    if appearance_squares is not None:
-        appearance, appearance_z = _appearance(appearance_squares, n_all, scored, rows)
+    corrected_distance = corrected_z = None
+    if corrected_squares is not None:
+        corrected_distance, corrected_z = _corrected_distances(
+            corrected_squares, n_all, scored, rows
+        )
     dice = None
     if brain_mask_dice is not None:
         dice = np.array([math.nan if v is None else float(v) for v in brain_mask_dice])
@@ -185,8 +187,8 @@ def cohort_statistics(
         overlap,
         overlap_z,
         dice,
-        appearance,
-        appearance_z,
+        corrected_distance,
+        corrected_z,
     )
 
 
@@ -346,10 +348,10 @@ def shared_kinds(
     return out
 
 
-def _appearance(squares, n_all: int, scored, rows) -> tuple[np.ndarray, np.ndarray]:
-    """Every subject's appearance distance (:func:`appearance_distances`) and its robust z of
+def _corrected_distances(squares, n_all: int, scored, rows) -> tuple[np.ndarray, np.ndarray]:
+    """Every subject's bias-corrected distance (:func:`others_mean_distances`) and its robust z of
     the log over the judged `rows` (as the model distance's), NaN for those not scored."""
-    distance = appearance_distances(squares)
+    distance = others_mean_distances(squares)
     values = np.full(n_all, np.nan)
     z = np.full(n_all, np.nan)
     values[scored] = distance

@@ -9,8 +9,8 @@ All of them come from what the evaluation has already computed, nothing is resam
   (:class:`AffineSpans`, which the transform mix-up checks query too);
 * each subject's label overlap with the others, from the per-image overlap sums
   (:func:`subject_overlaps`);
-* each subject's appearance distance: the distance of its bias-corrected image
-  (:func:`bias_corrected`) to the mean of the others' (:func:`appearance_distances`), from
+* each subject's bias-corrected distance: the distance of its bias-corrected image
+  (:func:`bias_corrected`) to the mean of the others' (:func:`others_mean_distances`), from
   sums the pipeline takes block by block;
 * robust z-scores over the cohort (:func:`robust_z`), and the concern that ranks the subjects:
   the weighted mean of their signed z-scores (:data:`CONCERN_TERMS`, :func:`concern_scores`).
@@ -30,7 +30,7 @@ __all__ = [
     "robust_z",
     "BIAS_SCALE_MM",
     "bias_corrected",
-    "appearance_distances",
+    "others_mean_distances",
     "leave_one_out_distances",
     "pair_distances",
     "subject_overlaps",
@@ -163,7 +163,7 @@ def bias_corrected(
     return out
 
 
-def appearance_distances(centred_squares: np.ndarray) -> np.ndarray:
+def others_mean_distances(centred_squares: np.ndarray) -> np.ndarray:
     """Each subject's Euclidean distance to the mean of the others, from its sum of squares.
 
     Parameters
@@ -361,11 +361,11 @@ class ConcernTerm(NamedTuple):
 #: 0.80 (second scan 0.82) Spearman with the true error, mean over the deformable
 #: registrations, without 0.63 (0.65). Then (issue 42, fifth session, again on tuning
 #: alone, declared before the other splits were measured) the model distance gave its
-#: place to the appearance distance of bias-corrected images (:func:`bias_corrected`),
+#: place to the bias-corrected distance of bias-corrected images (:func:`bias_corrected`),
 #: weights unchanged: with labels 0.84, without 0.83.
 CONCERN_TERMS = (
     ConcernTerm("overlap", "overlap_z", -1.0, 3.0, False),
-    ConcernTerm("appearance distance", "appearance_z", 1.0, 1.0, False),
+    ConcernTerm("bias-corrected distance", "corrected_z", 1.0, 1.0, False),
     ConcernTerm("SDlogJ", "sdlogj_z", 1.0, 1.0, True),
     ConcernTerm("inverse consistency", "inverse_consistency_z", 1.0, 1.0, True),
 )
@@ -377,7 +377,7 @@ def concern_scores(z_scores: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]
     Parameters
     ----------
     z_scores : mapping of str to array_like of shape (n,)
-        Per key of :data:`CONCERN_TERMS` (``overlap_z``, ``appearance_z``, ``sdlogj_z``,
+        Per key of :data:`CONCERN_TERMS` (``overlap_z``, ``corrected_z``, ``sdlogj_z``,
         ``inverse_consistency_z``), the subjects' robust z-scores as
         :func:`~itk_nrreval.subject_qc.assess_subjects` computes them (unsigned); NaN, or a
         key left out, where a term was not measured.

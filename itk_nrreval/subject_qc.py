@@ -10,7 +10,7 @@ nothing is resampled again for them:
   region) to the texture model of the other N - 1 subjects with all their modes, i.e. to the
   affine span of the others (:func:`itk_nrreval.specificity.loo_generalization`, from the
   N x N Gram matrix alone);
-* **appearance distance** (``appearance``): the distance of its image, divided by its own
+* **bias-corrected distance** (``appearance``): the distance of its image, divided by its own
   10 mm local mean (which takes away a scanner gain and a smooth bias field), to the mean
   of the others' so divided (:func:`~itk_nrreval._subject_measures.bias_corrected`);
 * **deformation**: its transform's folded fraction, SDlogJ, det J range and inverse
@@ -61,7 +61,7 @@ registration that folds more than 1% of the voxels in 13 of 16 subjects).
 **Concern, the ranking.** Each subject's :attr:`~SubjectQC.concern` is a weighted mean of
 its robust z-scores, each signed so that positive is worse (:data:`CONCERN_TERMS`,
 :func:`concern_scores`): minus the overlap z (with labels) with weight 3, and the log
-appearance distance z, the log SDlogJ z and the log inverse-consistency z with weight 1
+bias-corrected distance z, the log SDlogJ z and the log inverse-consistency z with weight 1
 each; the two deformation terms count only above zero
 (a field smoother than its cohort's is no sign that the subject was registered well: an
 affine-only transform has the least SDlogJ of all). With labels the overlap is half of it
@@ -72,7 +72,7 @@ chosen on the tuning split of the genuine registrations alone
 the subjects' true errors better than the largest of the z-scores it replaced (Spearman
 mean over the deformable registrations 0.80 against 0.68 with labels, 0.63 against 0.53
 without): a mean is not decided by one noisy deformation term. Its image term was the
-model distance until the appearance distance replaced it (chosen on the same tuning split:
+model distance until the bias-corrected distance replaced it (chosen on the same tuning split:
 0.84 with labels, 0.83 without), because gain and bias dominate raw intensities' distances.
 Every subject is listed worst first by it (:func:`ranked`), so the few most unlike their
 cohort can be looked at even when none crosses a threshold. It ranks, it does not flag:
@@ -181,13 +181,13 @@ class SubjectQC:
         The Dice of its brain mask, brought into the common frame through its transform,
         with the common mask (:func:`itk_nrreval._brain_masks.subject_mask_dice`); None
         where the inputs have no brain masks.
-    appearance : float or None
-        Its appearance distance: the distance of its bias-corrected image
+    corrected_distance : float or None
+        Its bias-corrected distance: the distance of its bias-corrected image
         (:func:`~itk_nrreval._subject_measures.bias_corrected`: divided by its 10 mm local
         mean, which takes away gain and smooth bias) to the mean of the others' (intensity
         ratio units); None where not measured.
-    appearance_z : float or None
-        The robust z-score of its log `appearance` over the cohort: the image term of its
+    corrected_z : float or None
+        The robust z-score of its log `corrected_distance` over the cohort: the image term of its
         `concern`.
     in_scores : bool
         False when it was left out of every registration's scores (off the common grid).
@@ -210,13 +210,13 @@ class SubjectQC:
     concern : float or None
         The weighted mean of its robust z-scores, each signed so that positive is worse
         (:data:`CONCERN_TERMS`, :func:`concern_scores`: minus the overlap z with weight 3,
-        the log appearance, log SDlogJ and log inverse-consistency z with weight 1, the
+        the log bias-corrected distance, log SDlogJ and log inverse-consistency z with weight 1, the
         last two counted above zero only; unitless, in robust standard deviations): what the
         subjects are ranked by (:func:`ranked`). None for the reference, or when none of
         them was measured.
     concern_from : str or None
         Which term contributes most to it (the largest weighted term), in words (e.g.
-        ``"appearance distance"``).
+        ``"bias-corrected distance"``).
     """
 
     index: int
@@ -228,8 +228,8 @@ class SubjectQC:
     overlap_z: float | None = None
     coverage: float = math.nan
     brain_mask_dice: float | None = None
-    appearance: float | None = None
-    appearance_z: float | None = None
+    corrected_distance: float | None = None
+    corrected_z: float | None = None
     in_scores: bool = True
     flags: tuple[str, ...] = ()
     diagnosis: str | None = None
@@ -259,10 +259,13 @@ class SubjectQC:
             ),
             "coverage": json_number(self.coverage),
             "brain_mask_dice": json_number(self.brain_mask_dice),
-            "appearance": (
+            "corrected_distance": (
                 None
-                if self.appearance is None
-                else {"value": json_number(self.appearance), "z": json_number(self.appearance_z)}
+                if self.corrected_distance is None
+                else {
+                    "value": json_number(self.corrected_distance),
+                    "z": json_number(self.corrected_z),
+                }
             ),
             "in_scores": self.in_scores,
             "flags": list(self.flags),
@@ -288,7 +291,7 @@ def assess_subjects(
     mixups: Mapping[int, tuple[float, str]] | None = None,
     reference: int | None = None,
     brain_mask_dice: Sequence[float] | None = None,
-    appearance_squares: Sequence[float] | None = None,
+    corrected_squares: Sequence[float] | None = None,
     thresholds: SubjectThresholds,
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under one registration: scores, z, flags, diagnosis.
@@ -329,8 +332,8 @@ def assess_subjects(
         Each subject's brain-mask Dice with the common mask in the common frame
         (:func:`itk_nrreval._brain_masks.subject_mask_dice`; NaN: not measured); None where
         the inputs have no brain masks.
-    appearance_squares : sequence of float, length n, optional
-        Per scored subject, what :func:`~._subject_measures.appearance_distances` takes:
+    corrected_squares : sequence of float, length n, optional
+        Per scored subject, what :func:`~._subject_measures.others_mean_distances` takes:
         the concern's image term. None: not measured (the concern rests on the others).
     thresholds : SubjectThresholds
 
@@ -391,7 +394,7 @@ def assess_subjects(
         else (overlap_volume, overlap_target_sums, overlap_weights),
         judged=judged,
         brain_mask_dice=brain_mask_dice,
-        appearance_squares=appearance_squares,
+        corrected_squares=corrected_squares,
     )
     return _judged_against(cohort, images, judged, mixups, thresholds)
 
@@ -451,11 +454,11 @@ def _subject_qc(
         ),
     }
     z, overlap_z = number(c.z[i]), number(c.overlap_z[i])
-    appearance_z = None if c.appearance_z is None else number(c.appearance_z[i])
+    corrected_z = None if c.corrected_z is None else number(c.corrected_z[i])
     concern, concern_from = (
         (None, None)
         if reference
-        else subject_concern({**deformation, "appearance_z": appearance_z, "overlap_z": overlap_z})
+        else subject_concern({**deformation, "corrected_z": corrected_z, "overlap_z": overlap_z})
     )
     return SubjectQC(
         index=i,
@@ -471,8 +474,10 @@ def _subject_qc(
             if c.brain_mask_dice is None or math.isnan(c.brain_mask_dice[i])
             else float(c.brain_mask_dice[i])
         ),
-        appearance=None if c.appearance is None else number(c.appearance[i]),
-        appearance_z=appearance_z,
+        corrected_distance=None
+        if c.corrected_distance is None
+        else number(c.corrected_distance[i]),
+        corrected_z=corrected_z,
         in_scores=i in c.scored,
         flags=tuple(words for _, words in flags),
         diagnosis=causes[0] if causes and flags else None,

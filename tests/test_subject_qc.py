@@ -752,13 +752,13 @@ def test_a_registration_folding_in_every_subject_is_one_registration_flag(own_su
 #: whether only above zero counts; the concern is the weighted mean of those measured.
 CONCERN_BY_HAND = {
     "overlap_z": (-1, 3, False),
-    "appearance_z": (1, 1, False),
+    "corrected_z": (1, 1, False),
     "sdlogj_z": (1, 1, True),
     "inverse_consistency_z": (1, 1, True),
 }
 CONCERN_WORDS = {
     "overlap_z": "overlap",
-    "appearance_z": "appearance distance",
+    "corrected_z": "bias-corrected distance",
     "sdlogj_z": "SDlogJ",
     "inverse_consistency_z": "inverse consistency",
 }
@@ -782,10 +782,10 @@ def _concern_by_hand(z: dict) -> tuple[float | None, str | None]:
 
 def test_subjects_csv_lists_every_subject_worst_first_by_its_concern(damaged):
     """Issue 42: one documented score per subject, the concern (the weighted mean of its
-    z-scores signed so that positive is worse: overlap 3, appearance, SDlogJ and inverse
-    consistency 1, the last two above zero only), and every subject listed by it, worst
-    first. Checked on each row's own z-score columns; the damages the appearance and the
-    overlap see rank at the top."""
+    z-scores signed so that positive is worse: overlap 3, bias-corrected distance, SDlogJ
+    and inverse consistency 1, the last two above zero only), and every subject listed by
+    it, worst first. Checked on each row's own z-score columns; the damages the
+    bias-corrected distance and the overlap see rank at the top."""
     result, out = damaged
     with open(out / "subjects.csv", newline="") as f:
         rows = list(csv.DictReader(f))
@@ -891,7 +891,7 @@ def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first(
     defo["sdlogj"][7] *= 4  # rough
     defo["sdlogj"][4], defo["nonlinear_rms_mm"][4] = 0.002, 0.01  # stopped early
     rng = np.random.default_rng(3)
-    numbers["appearance_squares"] = rng.uniform(90, 110, n)  # the image term, measured
+    numbers["corrected_squares"] = rng.uniform(90, 110, n)  # the image term, measured
     volume = rng.uniform(80, 120, size=(n, n_labels))
     share = rng.uniform(0.75, 0.85, n)
     share[9] = 0.3  # poor overlap
@@ -913,12 +913,12 @@ def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first(
         for q in others:
             z = {
                 "overlap_z": q.overlap_z,
-                "appearance_z": q.appearance_z,
+                "corrected_z": q.corrected_z,
                 "sdlogj_z": q.deformation["sdlogj_z"],
                 "inverse_consistency_z": q.deformation["inverse_consistency_z"],
             }
             assert (q.overlap_z is not None) == labels
-            assert q.appearance_z is not None
+            assert q.corrected_z is not None
             by_hand[q.index], words = _concern_by_hand(z)
             assert q.concern == pytest.approx(by_hand[q.index], rel=1e-12), q.index
             assert q.concern_from == words, q.index
@@ -942,7 +942,7 @@ def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first(
         min_size=1,
         max_size=8,
     ),
-    missing=st.sampled_from([(), ("overlap_z",), ("appearance_z", "sdlogj_z")]),
+    missing=st.sampled_from([(), ("overlap_z",), ("corrected_z", "sdlogj_z")]),
 )
 def test_concern_scores_are_the_weighted_means_written_out_by_hand(values, missing):
     """concern_scores on arrays (NaN: not measured; a key left out: no such term, e.g. no

@@ -332,7 +332,7 @@ def _reduce_registration(
 
 def _bias_corrected(executor, ctx, name: str, keys: Sequence[str], progress) -> list[str]:
     """Each of `keys`' resampled images divided by its local mean in the region (cached:
-    :func:`bias_corrected_task`), for the subjects' appearance distances; their keys."""
+    :func:`bias_corrected_task`), for the subjects' bias-corrected distances; their keys."""
     out = [""] * len(keys)
     calls = [(ctx, k) for k in keys]
     for i, (key, _reused) in executor.map(

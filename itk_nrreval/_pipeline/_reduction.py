@@ -100,9 +100,9 @@ class ReducedRegistration:
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, by `assess_subjects` of
         :func:`run_pipeline` (empty without it).
-    appearance_squares : ndarray of shape (n_scored,) or None
+    corrected_squares : ndarray of shape (n_scored,) or None
         Per scored image, the sum over the region of its bias-corrected image's squared
-        difference from their mean (:func:`~itk_nrreval._subject_measures.appearance_distances`);
+        difference from their mean (:func:`~itk_nrreval._subject_measures.others_mean_distances`);
         None when not computed.
     """
 
@@ -122,7 +122,7 @@ class ReducedRegistration:
     brain_masks: BrainMaskDice | None = None
     label_metrics: LabelMetrics | None = None
     subjects: tuple[SubjectQC, ...] = ()
-    appearance_squares: np.ndarray | None = field(default=None, repr=False)
+    corrected_squares: np.ndarray | None = field(default=None, repr=False)
 
 
 def reduce_to_scores(
@@ -145,7 +145,7 @@ def reduce_to_scores(
     bias_keys=None,
 ) -> ReducedRegistration:
     """Block sums -> model -> specificity and generalization; pair sums -> overlap table;
-    with `bias_keys` (each scored image's ``bias_corrected`` entry), the appearance sums."""
+    with `bias_keys` (each scored image's ``bias_corrected`` entry), the bias-corrected sums."""
     grid = ctx.grid
     n = len(keys)
     n_vox = int(np.prod(grid.shape))
@@ -154,7 +154,7 @@ def reduce_to_scores(
     pairs = _subject_pairs(subjects)
     calls = [(ctx, keys, a, b, components, pairs, bias_keys) for a, b in bounds]
     gram = np.zeros((n, n))
-    appearance = np.zeros(n) if bias_keys is not None else None
+    corrected = np.zeros(n) if bias_keys is not None else None
     mean = np.empty(n_vox)
     n_lab = len(components)
     p, q = np.zeros(n_lab), np.zeros(n_lab)
@@ -175,8 +175,8 @@ def reduce_to_scores(
             vol += res["vol"]
             spair += res["spair"]
             pair_min += res["subject_pair_min"]
-            if appearance is not None:
-                appearance += res["appearance"]
+            if corrected is not None:
+                corrected += res["corrected"]
             next_block += 1
     model = TextureModel.from_gram(
         gram,
@@ -238,7 +238,7 @@ def reduce_to_scores(
     plaus = [Plausibility.from_dict(meta["plausibility"]) for meta in metas]
     return ReducedRegistration(
         name, spec, gen, table, frame, plaus, coverage, mean.reshape(grid.shape), gram, sums,
-        appearance_squares=appearance,
+        corrected_squares=corrected,
     )  # fmt: skip
 
 
@@ -261,7 +261,7 @@ def _subject_pairs(subjects: Sequence[str] | None) -> np.ndarray:
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def _appearance_block(cache, bias_keys, start: int, stop: int, mask) -> np.ndarray:
+def _corrected_block(cache, bias_keys, start: int, stop: int, mask) -> np.ndarray:
     """Per image, the block's sum of squares of its bias-corrected image minus their mean
     (inside the mask), shape (N,)."""
     h = np.empty((len(bias_keys), stop - start))
@@ -288,8 +288,8 @@ def _block_task(
     image on the block (stop - start,), and per label value of `components` the pair sums
     p, q (L,), per image the volume and target-overlap sums (N, L), and for each of
     `subject_pairs` (n_pairs, 2) its sum of minima (n_pairs, L), voxel units; with
-    `bias_keys`, per image its appearance sum of squares on the block (N,)
-    (:func:`_appearance_block`).
+    `bias_keys`, per image its bias-corrected sum of squares on the block (N,)
+    (:func:`_corrected_block`).
     """
     cache = ctx.cache()
     entries = [cache.open("resampled", k) for k in keys]
@@ -309,7 +309,7 @@ def _block_task(
     out = {"gram": x @ x.T, "mean": mean}
     del x
     if bias_keys is not None:
-        out["appearance"] = _appearance_block(cache, bias_keys, start, stop, mask)
+        out["corrected"] = _corrected_block(cache, bias_keys, start, stop, mask)
     n_labels = len(components)
     p, q = np.zeros(n_labels), np.zeros(n_labels)
     vol, spair = np.zeros((n, n_labels)), np.zeros((n, n_labels))

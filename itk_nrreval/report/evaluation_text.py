@@ -357,14 +357,22 @@ def subjects_csv(result) -> str:
     Columns: registration, rank, index (manifest), image, reference (the registration's
     reference: not judged), concern and concern_from (the term that contributes most to
     it), in_scores,
-    score (distance to the model of the others, intensity units), z, appearance (distance of
-    its bias-corrected image to the others' mean) and appearance_z, overlap, overlap_z,
+    score (distance to the model of the others, intensity units), z, corrected_distance (distance of
+    its bias-corrected image to the others' mean) and corrected_z, overlap, overlap_z,
     coverage, brain_mask_dice (with brain masks), the deformation measures (mm where a
     length) and their z, flags (the subject's own, joined by "; "), registration_flags (the
     registration's flags it shares, joined by "; "), diagnosis. Empty cells: not computed.
     """
     fields = ["registration", "rank", "index", "image", "reference", "concern", "concern_from"]
-    fields += ["in_scores", "score", "z", "appearance", "appearance_z", "overlap", "overlap_z"]
+    fields += [
+        "in_scores",
+        "score",
+        "z",
+        "corrected_distance",
+        "corrected_z",
+        "overlap",
+        "overlap_z",
+    ]
     fields += ["coverage", "brain_mask_dice"]
     fields += [*_SUBJECT_DEFORMATION, "flags", "registration_flags", "diagnosis"]
     buf = io.StringIO()
@@ -383,8 +391,8 @@ def subjects_csv(result) -> str:
                 "in_scores": q.in_scores,
                 "score": q.score,
                 "z": q.z,
-                "appearance": q.appearance,
-                "appearance_z": q.appearance_z,
+                "corrected_distance": q.corrected_distance,
+                "corrected_z": q.corrected_z,
                 "overlap": q.overlap,
                 "overlap_z": q.overlap_z,
                 "coverage": q.coverage,

@@ -1,4 +1,4 @@
-"""The subjects' appearance distance (issue 42): bias-corrected images and their distance to
+"""The subjects' bias-corrected distance (issue 42): bias-corrected images and their distance to
 the mean of the others, against brute-force references, and through ``evaluate`` on an
 oblique, anisotropic 3D case not co-located with its reference."""
 
@@ -18,9 +18,9 @@ from test_orientation import ROTATION_3D, SHIFT_3D, make_case_3d, moved_copy
 import itk_nrreval as nr
 from itk_nrreval._subject_measures import (
     CONCERN_TERMS,
-    appearance_distances,
     bias_corrected,
     concern_scores,
+    others_mean_distances,
 )
 
 
@@ -80,24 +80,24 @@ def test_bias_corrected_rejects_a_region_of_another_shape():
 
 @settings(max_examples=30, deadline=None)
 @given(n=st.integers(2, 9), v=st.integers(1, 40), seed=st.integers(0, 10_000))
-def test_appearance_distances_are_the_distances_to_the_others_mean(n, v, seed):
+def test_others_mean_distances_are_the_distances_to_the_others_mean(n, v, seed):
     h = np.random.default_rng(seed).normal(size=(n, v))
     centred = h - h.mean(axis=0)
-    got = appearance_distances(np.einsum("iv,iv->i", centred, centred))
+    got = others_mean_distances(np.einsum("iv,iv->i", centred, centred))
     want = [np.linalg.norm(h[k] - np.delete(h, k, axis=0).mean(axis=0)) for k in range(n)]
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
 
 
-def test_the_concern_takes_the_appearance_z_not_the_model_distance():
+def test_the_concern_takes_the_corrected_z_not_the_model_distance():
     keys = {t.key for t in CONCERN_TERMS}
-    assert "appearance_z" in keys and "z" not in keys
-    concern, _ = concern_scores({"appearance_z": [2.0], "z": [100.0]})
+    assert "corrected_z" in keys and "z" not in keys
+    concern, _ = concern_scores({"corrected_z": [2.0], "z": [100.0]})
     assert concern[0] == pytest.approx(2.0)  # the model distance is no term of it
 
 
-def test_evaluate_reports_each_subjects_appearance_distance(tmp_path):
+def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
     """Oblique, anisotropic 3D images not co-located with their reference: every subject's
-    appearance distance in results equals the one recomputed from the exported resampled
+    bias-corrected distance in results equals the one recomputed from the exported resampled
     images and the region, and its z enters the concern."""
     (tmp_path / "plain").mkdir()
     make_case_3d(tmp_path / "plain")
@@ -137,7 +137,7 @@ def test_evaluate_reports_each_subjects_appearance_distance(tmp_path):
             np.linalg.norm(corrected[k] - np.delete(corrected, k, axis=0).mean(axis=0))
             for k in range(len(images))
         ]
-        got = [q.appearance for q in scores.subjects]
+        got = [q.corrected_distance for q in scores.subjects]
         # the cache holds the resampled and the corrected images in float32
         np.testing.assert_allclose(got, want, rtol=1e-4)
-        assert all(q.appearance_z is not None for q in scores.subjects)
+        assert all(q.corrected_z is not None for q in scores.subjects)
