@@ -53,17 +53,17 @@ split's numbers of an earlier run, and is imported from the package). Written to
 subject's flags, terms and true error).
 
 *Declared 2026-11-28, on the tuning split alone, before any other split was measured with
-it:* the concern's model-distance term becomes a bias-corrected bias-corrected distance. Each
-subject's image in the common frame is divided by its local mean (a Gaussian of 10 mm,
-normalised within the evaluation region), which takes away its gain and smooth bias field;
-the term is the Euclidean distance over the region between that and the mean of the
-others' so corrected (its log, as a robust z like the model distance's). The weights stay
-(1, overlap 3, SDlogJ+ 1, inverse consistency+ 1). On tuning (12 deformable
-registrations), Spearman with the true error: the model distance alone 0.57 (lowest 0.25),
-the new distance alone 0.84 (0.56); the concern with labels 0.80 (0.53) -> 0.84 (0.62),
-without 0.63 (0.30) -> 0.83 (0.57). Scales of 5 and 20 mm, an L1 distance and the distance
-to the others' affine span gave 0.81-0.85; 10 mm in L2 was taken because it is computed
-from a Gram matrix's diagonal. No flag or threshold is set from it.
+it:* the concern's model-distance term becomes a bias-corrected distance (declared as
+"appearance distance"; renamed since). Each subject's image in the common frame is divided
+by its local mean (a Gaussian of 10 mm, normalised within the evaluation region), which
+takes away its gain and smooth bias field; the term is the Euclidean distance over the
+region between that and the mean of the others' so corrected (its log, as a robust z like
+the model distance's). The weights stay (1, overlap 3, SDlogJ+ 1, inverse consistency+ 1).
+On tuning (12 deformable registrations), Spearman with the true error: the model distance
+alone 0.57 (lowest 0.25), the new distance alone 0.84 (0.56); the concern with labels 0.80
+(0.53) -> 0.84 (0.62), without 0.63 (0.30) -> 0.83 (0.57). Scales of 5 and 20 mm, an L1
+distance and the distance to the others' affine span gave 0.81-0.85; 10 mm in L2 was taken
+because it is computed from a Gram matrix's diagonal. No flag or threshold is set from it.
 
 Run: ``python benchmarks/bench_subject_qc_genuine.py`` or
 ``python benchmarks/run_all.py subject_qc_genuine`` (``nice -n 5`` on a shared machine).
