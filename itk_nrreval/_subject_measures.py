@@ -141,19 +141,21 @@ def bias_corrected(
 
     Returns
     -------
-    ndarray of float64, the same shape
+    ndarray of float32, the same shape
         ``x / m`` inside `region`, with ``m = G * (x 1_R) / G * 1_R`` (Gaussian-weighted
         means over the region); 0 outside it and where ``m`` is not above ``1e-6`` of its
         largest magnitude (for positive, MR-like intensities: a local mean near 0 says no
         signal to compare).
     """
-    x = np.asarray(image, np.float64)
+    # float32, as the images are cached: half the time of float64 (about 1 s for a 1 mm
+    # brain), at a relative error of 1e-6
+    x = np.asarray(image, np.float32)
     inside = np.asarray(region, bool)
     if x.shape != inside.shape:
         raise ValueError(f"image shape {x.shape} and region shape {inside.shape} differ")
     sigma = scale_mm / np.asarray(spacing, np.float64)[::-1]  # per numpy axis
-    weight = ndimage.gaussian_filter(inside.astype(np.float64), sigma, mode="constant")
-    local = ndimage.gaussian_filter(np.where(inside, x, 0.0), sigma, mode="constant")
+    weight = ndimage.gaussian_filter(inside.astype(np.float32), sigma, mode="constant")
+    local = ndimage.gaussian_filter(np.where(inside, x, np.float32(0)), sigma, mode="constant")
     with np.errstate(divide="ignore", invalid="ignore"):
         local = np.where(inside, local / weight, 0.0)
     floor = 1e-6 * float(np.max(np.abs(local), initial=0.0))

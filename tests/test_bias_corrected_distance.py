@@ -53,7 +53,7 @@ def test_bias_corrected_is_the_image_over_its_region_weighted_local_mean():
     local = _brute_force_local_mean(x, region, spacing, 3.0)
     want = np.where(region, x / np.where(region, local, 1.0), 0.0)
     got = bias_corrected(x, region, spacing=spacing, scale_mm=3.0)
-    np.testing.assert_allclose(got, want, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=0)  # computed in float32
 
 
 def test_bias_corrected_takes_away_a_gain_and_a_smooth_bias():
@@ -70,7 +70,9 @@ def test_bias_corrected_takes_away_a_gain_and_a_smooth_bias():
     raw = np.linalg.norm(1.7 * bias * anatomy / np.mean(anatomy) - anatomy / np.mean(anatomy))
     assert np.linalg.norm(a - b) < 0.1 * raw
     # a gain alone is taken away exactly
-    np.testing.assert_allclose(bias_corrected(3.0 * anatomy, region, spacing=(1.0, 1.0)), a)
+    np.testing.assert_allclose(
+        bias_corrected(3.0 * anatomy, region, spacing=(1.0, 1.0)), a, rtol=1e-5
+    )
 
 
 def test_bias_corrected_rejects_a_region_of_another_shape():
