@@ -125,6 +125,30 @@ def _task_modules() -> tuple:
     return _image_tasks, _common_frame, _task_keys.TaskContext
 
 
+def _run_task_objects(root, grid, info, labels, item, own) -> list[tuple]:
+    """The two per-image tasks as frozen task objects run through the cache (issue 43):
+    ``(kind, key, reused, meta)`` each."""
+    from itk_nrreval._pipeline import _image_tasks, _tasks
+
+    common = {"grid": grid, "image": Path(info["image"]), "item": item, "reg_grid": grid}
+    common |= {"frame": ("identity",), "frame_digest": "identity"}
+    measure = _image_tasks.MeasureTransform(
+        **common, mask_key=None, reg_mask_key=None, inverse_consistency=True
+    )
+    resample = _image_tasks.ResampleImage(
+        **common,
+        labels=labels,
+        interpolation="linear",
+        label_resampling=("linear", None),
+        own_values=None if own is None else tuple(own),
+    )
+    out = []
+    for task in (measure, resample):
+        key, meta, reused = _tasks.run_cached(root, task)
+        out.append((task.kind, key, reused, meta))
+    return out
+
+
 def _measure(info: dict, name: str) -> dict:
     """One registration's task on a cold cache, its parts, and the floor (this process)."""
     import tempfile
@@ -198,6 +222,8 @@ def _measure(info: dict, name: str) -> dict:
         args = (ctx, Path(info["image"]), labels, item, ("identity",), "identity", grid)
 
         def run_tasks() -> list[tuple]:
+            if hasattr(tasks, "MeasureTransform"):  # since issue 43: task objects
+                return _run_task_objects(root, grid, info, labels, item, own)
             if not two_tasks:
                 return [("resampled", *resample_task(*args, "linear", None, own))]
             measured = measures_task(*args[:2], *args[3:], None)

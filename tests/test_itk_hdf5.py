@@ -202,7 +202,7 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     identity, or a zero field from the cache (the path of a registration not in the common
     frame); the grid is oblique, anisotropic, and the image covers only part of it."""
     from itk_nrreval._cache import DiskCache
-    from itk_nrreval._pipeline import _image_tasks, _task_keys
+    from itk_nrreval._pipeline import _image_tasks, _tasks
     from itk_nrreval.plausibility import affine_fit
 
     rng = np.random.default_rng(3)
@@ -217,15 +217,23 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     sitk.WriteTransform(_transforms(3)["composite"], str(h5))
     sitk.WriteTransform(_affine(3, 12), str(mat))
     item = [str(mat), str(h5)]  # ANTs order: the .mat acts first
-    ctx = _task_keys.TaskContext(str(tmp_path / "cache"), grid, None, True)
     frame = ("identity",)
     if frame_kind == "field":
         zero = {"disp": np.zeros((*grid.shape, 3), np.float32)}
         DiskCache(tmp_path / "cache").put("frame", "zero", zero)
         frame = ("field", "zero")
-    _key, reused, meta = _image_tasks.measures_task(
-        ctx, image_path, item, frame, frame_kind, grid, None
+    task = _image_tasks.MeasureTransform(
+        grid=grid,
+        mask_key=None,
+        image=image_path,
+        item=item,
+        frame=frame,
+        frame_digest=frame_kind,
+        reg_grid=grid,
+        reg_mask_key=None,
+        inverse_consistency=True,
     )
+    _key, meta, reused = _tasks.run_cached(str(tmp_path / "cache"), task)
     assert not reused
     reference = chain_transform(item)
     ones = sitk.Image(image.GetSize(), sitk.sitkFloat32) + 1.0

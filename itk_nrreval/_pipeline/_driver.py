@@ -33,9 +33,9 @@ from ._coverage import check_region_covered, evaluated_region, left_out_of_score
 from ._image_tasks import (
     Measured,
     Resampled,
-    bias_corrected_task,
+    bias_corrected_images,
     brain_mask_dice,
-    label_sums_task,
+    label_sums,
     measure_registration,
     resample_registration,
 )
@@ -270,14 +270,11 @@ def _reduce_registration(
     image's deformation, and the thumbnails of the subjects the report pictures."""
     metas = r.metas
     if values is not None:
-        calls = [(region_ctx, k) for k in r.keys]
-        metas = [dict(meta) for meta in metas]
         # cheap and derived from the resampled entries: not in the counts
-        for i, (sums, _reused) in executor.map(
-            label_sums_task, calls, desc=f"{name}: label sums", progress=progress
-        ):
-            metas[i].update(sums)
-    bias_keys = _bias_corrected(executor, region_ctx, name, [r.keys[i] for i in scored], progress)
+        sums = label_sums(executor, region_ctx, name, r.keys, progress)
+        metas = [{**meta, **s} for meta, s in zip(metas, sums, strict=True)]
+    scored_keys = [r.keys[i] for i in scored]
+    bias_keys = bias_corrected_images(executor, region_ctx, name, scored_keys, progress)
     run = reduce_to_scores(
         executor,
         region_ctx,
@@ -328,18 +325,6 @@ def _reduce_registration(
         if f"image_{i}" not in r.thumbnails
     }
     return dataclasses.replace(run, thumbnails={**r.thumbnails, **extra}, subjects=subjects)
-
-
-def _bias_corrected(executor, ctx, name: str, keys: Sequence[str], progress) -> list[str]:
-    """Each of `keys`' resampled images divided by its local mean in the region (cached:
-    :func:`bias_corrected_task`), for the subjects' bias-corrected distances; their keys."""
-    out = [""] * len(keys)
-    calls = [(ctx, k) for k in keys]
-    for i, (key, _reused) in executor.map(
-        bias_corrected_task, calls, desc=f"{name}: bias correction", progress=progress
-    ):
-        out[i] = key
-    return out
 
 
 def _with_held_arrays(

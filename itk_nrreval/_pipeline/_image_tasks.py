@@ -1,13 +1,15 @@
-"""The per-image tasks of the evaluate pipeline, and their mapping over one registration.
+"""The per-image tasks of the evaluate pipeline, and their plan over one registration.
 
-Per image and registration, each cached (:func:`~itk_nrreval._pipeline._task_keys.task_key`):
-the transform's measures (:func:`measures_task`: the common-grid voxels it brings the
-image's field of view to, and the deformation's plausibility) before any image is
-resampled; then the image resampled into the common frame with its label memberships
-(:func:`resample_task`); the per-label sums the overlap needs (:func:`label_sums_task`);
-the subject's brain mask in the common frame (:func:`brain_mask_task`).
-:func:`measure_registration`, :func:`resample_registration` and :func:`brain_mask_dice`
-map them over a registration's images through the executor.
+Per image and registration, each a frozen task object run through the content-keyed cache
+(:func:`~itk_nrreval._pipeline._tasks.cached`): the transform's measures
+(:class:`MeasureTransform`: the common-grid voxels it brings the image's field of view to,
+and the deformation's plausibility) before any image is resampled; then the image resampled
+into the common frame with its label memberships (:class:`ResampleImage`); the per-label
+sums the overlap needs (:class:`LabelSums`); the image divided by its local mean
+(:class:`BiasCorrect`); the subject's brain mask in the common frame
+(:class:`ResampleBrainMask`). :func:`measure_registration`, :func:`resample_registration`,
+:func:`bias_corrected_images` and :func:`brain_mask_dice` plan them over a registration's
+images and run the plan through the executor.
 """
 
 from __future__ import annotations
@@ -15,9 +17,8 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 import SimpleITK as sitk
@@ -54,7 +55,8 @@ from ..transforms import (
     transform_pieces,
 )
 from ._common_frame import frame_transform, registration_frame, registration_mask
-from ._task_keys import TaskContext, task_key
+from ._task_keys import TaskContext
+from ._tasks import NOT_KEYED, Task, mask_flat, run_cached
 
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
@@ -91,7 +93,7 @@ def measure_registration(
     executor, ctx, disk, m, name, *, mask, counts, progress
 ) -> Measured:  # fmt: skip
     """Registration `name`'s frame F and every image's transform measured
-    (:func:`measures_task`: coverage of the common grid, plausibility), cached."""
+    (:class:`MeasureTransform`: coverage of the common grid, plausibility), cached."""
     reg = m.registrations[name]
     reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
     frame_spec, frame_digest, frame = registration_frame(
@@ -103,38 +105,34 @@ def measure_registration(
         # field, 0.2 GB at 1 mm per registration) only once the reductions are done
         # (the driver's ``_with_held_arrays``).
         frame = dataclasses.replace(frame, transform=None)
-    calls = [
-        (
-            ctx,
-            m.scored_images[i],
-            reg.transforms[i],
-            frame_spec,
-            frame_digest,
-            reg_grid,
-            reg_mask_key,
+    plan = [
+        MeasureTransform(
+            grid=ctx.grid,
+            mask_key=ctx.mask_key,
+            image=m.scored_images[i],
+            item=reg.transforms[i],
+            frame=frame_spec,
+            frame_digest=frame_digest,
+            reg_grid=reg_grid,
+            reg_mask_key=reg_mask_key,
+            inverse_consistency=ctx.inverse_consistency,
         )
         for i in range(m.n_images)
     ]
     keys: list[str] = [""] * m.n_images
     metas: list[dict] = [{}] * m.n_images
-    for i, (key, reused, meta) in executor.map(
-        measures_task, calls, desc=f"{name}: measures", progress=progress
+    calls = [(ctx.root, task) for task in plan]
+    for i, (key, meta, reused) in executor.map(
+        run_cached, calls, desc=f"{name}: measures", progress=progress
     ):
         keys[i], metas[i] = key, meta
         counts.add(reused)
     return Measured(keys, metas, frame, frame_spec, frame_digest, reg_grid)
 
 
-def measures_task(
-    ctx: TaskContext,
-    image: Path,
-    item,
-    frame: tuple,
-    frame_digest: str,
-    reg_grid: Geometry,
-    reg_mask_key: str | None,
-) -> tuple[str, bool, dict]:
-    """One image's transform, measured without resampling the image; cache it.
+@dataclass(frozen=True)
+class MeasureTransform(Task):
+    """One image's transform, measured without resampling the image.
 
     The entry holds ``covered``: the common-grid voxels that ``T_i^R o F`` maps into the
     image's field of view (``np.packbits`` of a bool (n,); ITK's decisions,
@@ -149,58 +147,59 @@ def measures_task(
 
     Every image's coverage is known before any image is resampled, so each registration's
     resampled images can leave the cache once its scores are taken (:func:`run_pipeline`).
+    `frame` is F's description, `frame_digest` its content (keyed).
     """
-    cache = ctx.cache()
-    g = ctx.grid
-    key = task_key(
-        "measures",
-        g,
-        ctx.mask_key,
-        image,
-        item,
-        frame_digest,
-        reg_grid,
-        reg_mask_key,
-        ctx.inverse_consistency,
-    )
-    entry = cache.get("measures", key)
-    if entry is not None:
-        return key, True, dict(entry.meta)
-    pieces = transform_pieces(item)
-    # with F the identity on T's own grid, T's displacement on the whole common grid (an
-    # array) also serves the plausibility
-    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=True, whole=True)
-    covered = covered_voxels(_image_grid(image), full, g, displacement=sampled)
-    mask = ctx.mask_flat()
-    inside = covered[mask] if mask is not None else covered
-    arrays = {"covered": np.packbits(covered)}
-    meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
-    shared = sampled if isinstance(sampled, np.ndarray) else None  # T's own on g
-    del covered, inside, full
-    if shared is None:  # freed before the plausibility samples T on its own grid
-        sampled = None
-    reg_mask = None
-    if reg_mask_key is not None:
-        reg_mask = cache.open("reg_mask", reg_mask_key).array("mask").reshape(reg_grid.shape)
-    # the affine fit from the measures' own sampling of the transform (one pass, not two)
-    measures = deformation_measures(
-        pieces,
-        reg_grid,
-        mask=reg_mask,
-        inverse_consistency=ctx.inverse_consistency,
-        affine=True,
-        displacement=shared,
-    )
-    del shared, sampled, pieces
-    # for the report: one slice, det J on reg_grid
-    arrays["detj_middle"] = measures.jacobian.middle
-    meta.update(
-        plausibility=measures.plausibility.to_dict(),
-        affine_fit=measures.affine.to_dict(),
-        log_jacobian_histogram=measures.jacobian.histogram(),
-    )
-    cache.put("measures", key, arrays, meta)
-    return key, False, meta
+
+    kind: ClassVar[str] = "measures"
+    grid: Geometry
+    mask_key: str | None
+    image: Any
+    item: Any
+    frame: tuple = field(metadata=NOT_KEYED)
+    frame_digest: str
+    reg_grid: Geometry
+    reg_mask_key: str | None
+    inverse_consistency: bool
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g, reg_grid = self.grid, self.reg_grid
+        pieces = transform_pieces(self.item)
+        # with F the identity on T's own grid, T's displacement on the whole common grid (an
+        # array) also serves the plausibility
+        full, sampled = _sampling(
+            pieces, self.frame, g, reg_grid, cache, one_sampling=True, whole=True
+        )
+        covered = covered_voxels(_image_grid(self.image), full, g, displacement=sampled)
+        mask = mask_flat(cache, self.mask_key)
+        inside = covered[mask] if mask is not None else covered
+        arrays = {"covered": np.packbits(covered)}
+        meta: dict = {"coverage": float(inside.mean()) if inside.size else 0.0}
+        shared = sampled if isinstance(sampled, np.ndarray) else None  # T's own on g
+        del covered, inside, full
+        if shared is None:  # freed before the plausibility samples T on its own grid
+            sampled = None
+        reg_mask = None
+        if self.reg_mask_key is not None:
+            reg_mask = cache.open("reg_mask", self.reg_mask_key).array("mask")
+            reg_mask = reg_mask.reshape(reg_grid.shape)
+        # the affine fit from the measures' own sampling of the transform (one pass, not two)
+        measures = deformation_measures(
+            pieces,
+            reg_grid,
+            mask=reg_mask,
+            inverse_consistency=self.inverse_consistency,
+            affine=True,
+            displacement=shared,
+        )
+        del shared, sampled, pieces
+        # for the report: one slice, det J on reg_grid
+        arrays["detj_middle"] = measures.jacobian.middle
+        meta.update(
+            plausibility=measures.plausibility.to_dict(),
+            affine_fit=measures.affine.to_dict(),
+            log_jacobian_histogram=measures.jacobian.histogram(),
+        )
+        return arrays, meta
 
 
 def _image_grid(image) -> Geometry:
@@ -217,25 +216,26 @@ def resample_registration(
     """Every image of registration `name` resampled into the common frame (cached), with
     its labels' memberships; label-like images warned once."""
     items = m.registrations[name].transforms
-    calls = [
-        (
-            ctx,
-            m.scored_images[i],
-            m.labels[i] if m.labels is not None else None,
-            items[i],
-            reg.frame_spec,
-            reg.frame_digest,
-            reg.reference_grid,
-            interpolation,
-            own_values[i],
-            labels,
+    plan = [
+        ResampleImage(
+            grid=ctx.grid,
+            image=m.scored_images[i],
+            labels=m.labels[i] if m.labels is not None else None,
+            item=items[i],
+            frame=reg.frame_spec,
+            frame_digest=reg.frame_digest,
+            reg_grid=reg.reference_grid,
+            interpolation=interpolation,
+            label_resampling=tuple(labels),
+            own_values=None if own_values[i] is None else tuple(own_values[i]),
         )
         for i in range(m.n_images)
     ]
     keys: list[str] = [""] * m.n_images
     metas: list[dict] = [{}] * m.n_images
-    for i, (key, reused, meta) in executor.map(
-        resample_task, calls, desc=f"{name}: resampling", progress=progress
+    calls = [(ctx.root, task) for task in plan]
+    for i, (key, meta, reused) in executor.map(
+        run_cached, calls, desc=f"{name}: resampling", progress=progress
     ):
         keys[i], metas[i] = key, {**reg.metas[i], **meta}
         counts.add(reused)
@@ -246,19 +246,9 @@ def resample_registration(
     return Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, pictures)
 
 
-def resample_task(
-    ctx: TaskContext,
-    image: Path,
-    labels: Path | None,
-    item,
-    frame: tuple,
-    frame_digest: str,
-    reg_grid: Geometry,
-    interpolation: str,
-    own_values: Sequence[int] | None,
-    label_resampling: tuple[str, float | None] = ("linear", None),
-) -> tuple[str, bool, dict]:
-    """Resample one image (and its label memberships) into the common frame; cache it.
+@dataclass(frozen=True)
+class ResampleImage(Task):
+    """One image (and its label memberships) resampled into the common frame.
 
     The entry holds ``image`` (n,) over the whole grid (``_STORED_IMAGE``, float32; 0 outside
     the image's field of view), ``covered`` (the voxels inside that field of view,
@@ -267,59 +257,61 @@ def resample_task(
     voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
     (float32). Its metadata holds the label values and the image's label-like values
     (:func:`~itk_nrreval._images.label_like_values`). `own_values` are the label map's own
-    nonzero values (found once by the driver); `label_resampling` is ``(method, sigma_mm)``
-    of :func:`~itk_nrreval._memberships.resample_label_memberships`. `reg_grid`, the
+    nonzero values (found once by the driver from `labels`, so not keyed);
+    `label_resampling` is ``(method, sigma_mm)`` of
+    :func:`~itk_nrreval._memberships.resample_label_memberships`. `reg_grid`, the
     registration's reference grid, only says whether T's displacement on the common grid
     can be sampled whole (:func:`_sampling`). The transform's measures are
-    :func:`measures_task`'s.
+    :class:`MeasureTransform`'s.
     """
-    cache = ctx.cache()
-    g = ctx.grid
-    key = task_key(
-        "resampled",
-        g,
-        image,
-        labels,
-        item,
-        frame_digest,
-        reg_grid,
-        interpolation,
-        list(label_resampling),
-        np.dtype(_STORED_IMAGE).str,
-    )
-    entry = cache.get("resampled", key)
-    if entry is not None:
-        return key, True, dict(entry.meta)
-    pieces = transform_pieces(item)
-    raw = read_image(image, what="image")
-    lab = None if labels is None else read_image(labels, what="label map")
-    own = None if labels is None else [int(v) for v in own_values]
-    one_sampling = _shares_sampling(raw, lab, interpolation, label_resampling[0])
-    full, sampled = _sampling(pieces, frame, g, reg_grid, cache, one_sampling=one_sampling)
-    del pieces  # `full` holds them where it needs them
-    values, memb = _resampled_image_and_memberships(
-        raw,
-        lab,
-        full,
-        g,
-        interpolation=interpolation,
-        values=own,
-        labels=label_resampling,
-        one_sampling=one_sampling,
-        displacement=sampled,
-    )
-    del full, sampled
-    covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
-    values[~covered] = 0.0
-    arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
-    meta: dict = {"label_like": label_like_values(raw)}
-    if memb is not None:
-        # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
-        index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
-        arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
-        meta.update(labels=own)
-    cache.put("resampled", key, arrays, meta)
-    return key, False, meta
+
+    kind: ClassVar[str] = "resampled"
+    grid: Geometry
+    image: Any
+    labels: Any
+    item: Any
+    frame: tuple = field(metadata=NOT_KEYED)
+    frame_digest: str
+    reg_grid: Geometry
+    interpolation: str
+    label_resampling: tuple
+    stored: str = np.dtype(_STORED_IMAGE).str
+    own_values: tuple | None = field(default=None, metadata=NOT_KEYED)
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g = self.grid
+        pieces = transform_pieces(self.item)
+        raw = read_image(self.image, what="image")
+        lab = None if self.labels is None else read_image(self.labels, what="label map")
+        own = None if self.labels is None else [int(v) for v in self.own_values]
+        method = self.label_resampling[0]
+        one_sampling = _shares_sampling(raw, lab, self.interpolation, method)
+        full, sampled = _sampling(
+            pieces, self.frame, g, self.reg_grid, cache, one_sampling=one_sampling
+        )
+        del pieces  # `full` holds them where it needs them
+        values, memb = _resampled_image_and_memberships(
+            raw,
+            lab,
+            full,
+            g,
+            interpolation=self.interpolation,
+            values=own,
+            labels=self.label_resampling,
+            one_sampling=one_sampling,
+            displacement=sampled,
+        )
+        del full, sampled
+        covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
+        values[~covered] = 0.0
+        arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
+        meta: dict = {"label_like": label_like_values(raw)}
+        if memb is not None:
+            # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)
+            index = memb.index.astype(np.uint32) if values.size < 2**32 else memb.index
+            arrays.update(lab_ptr=memb.ptr, lab_idx=index, lab_val=memb.weight)
+            meta.update(labels=own)
+        return arrays, meta
 
 
 def _sampling(
@@ -404,53 +396,81 @@ def _shares_sampling(
     return lab is None or (label_method == "linear" and shares_grid(raw, lab))
 
 
-def label_sums_task(ctx: TaskContext, key: str) -> tuple[dict, bool]:
-    """Per label of one resampled image: its gradient sum and its presence, in the region.
+@dataclass(frozen=True)
+class LabelSums(Task):
+    """Per label of one resampled image (the ``resampled`` entry `resampled`): its gradient
+    sum and its presence in the region (`mask_key`: the voxels every image covers, inside
+    the mask). Metadata only: ``{"gsum": [...], "present": [...]}``, one entry per label of
+    the image."""
 
-    The region is ``ctx.mask_key`` (the voxels every image covers, inside the mask). Returns
-    ``({"gsum": [...], "present": [...]}, reused)``, one entry per label of the image.
-    """
-    cache = ctx.cache()
-    sums_key = task_key("label_sums", key, ctx.mask_key)
-    found = cache.get("label_sums", sums_key)
-    if found is not None:
-        return dict(found.meta), True
-    g = ctx.grid
-    entry = cache.open("resampled", key)
-    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
-    mask = ctx.mask_flat()
-    gsum, present = [], []
-    row = np.zeros(int(np.prod(g.shape)), np.float32)
-    for k in range(len(memb.values)):
-        idx, val = memb.label(k)
-        row[idx] = val
-        gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
-        row[idx] = 0
-        present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
-    meta = {"gsum": gsum, "present": present}
-    cache.put("label_sums", sums_key, {}, meta)
-    return meta, False
+    kind: ClassVar[str] = "label_sums"
+    resampled: str
+    mask_key: str | None
+    grid: Geometry = field(metadata=NOT_KEYED)  # the resampled entry's (in its key)
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g = self.grid
+        entry = cache.open("resampled", self.resampled)
+        memb = stored_memberships(entry, g.shape, entry.meta["labels"])
+        mask = mask_flat(cache, self.mask_key)
+        gsum, present = [], []
+        row = np.zeros(int(np.prod(g.shape)), np.float32)
+        for k in range(len(memb.values)):
+            idx, val = memb.label(k)
+            row[idx] = val
+            gsum.append(membership_gradient_sum(row, shape=g.shape, spacing=g.spacing, mask=mask))
+            row[idx] = 0
+            present.append(bool(mask[idx].any()) if mask is not None else bool(idx.size))
+        return {}, {"gsum": gsum, "present": present}
 
 
-def bias_corrected_task(ctx: TaskContext, key: str) -> tuple[str, bool]:
-    """One resampled image divided by its local mean in the region; cache it.
+@dataclass(frozen=True)
+class BiasCorrect(Task):
+    """One resampled image (the ``resampled`` entry `resampled`) divided by its local mean
+    in the region (`mask_key`), where
+    :func:`~itk_nrreval._subject_measures.bias_corrected` takes it: the entry holds
+    ``image`` (float32, over the whole grid, 0 outside the region)."""
 
-    The region is ``ctx.mask_key`` (the voxels every image covers, inside the mask), where
-    :func:`~itk_nrreval._subject_measures.bias_corrected` takes the local mean; the entry
-    holds ``image`` (float32, over the whole grid, 0 outside the region). Returns
-    ``(its key, reused)``.
-    """
-    cache = ctx.cache()
-    g = ctx.grid
-    out_key = task_key("bias_corrected", key, ctx.mask_key, BIAS_SCALE_MM)
-    if cache.get("bias_corrected", out_key) is not None:
-        return out_key, True
-    image = cache.open("resampled", key).array("image").reshape(g.shape)
-    mask = ctx.mask_flat()
-    region = np.ones(g.shape, bool) if mask is None else mask.reshape(g.shape)
-    corrected = bias_corrected(image, region, spacing=g.spacing, scale_mm=BIAS_SCALE_MM)
-    cache.put("bias_corrected", out_key, {"image": corrected.reshape(-1).astype(np.float32)}, {})
-    return out_key, False
+    kind: ClassVar[str] = "bias_corrected"
+    resampled: str
+    mask_key: str | None
+    grid: Geometry = field(metadata=NOT_KEYED)  # the resampled entry's (in its key)
+    scale_mm: float = BIAS_SCALE_MM
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g = self.grid
+        image = cache.open("resampled", self.resampled).array("image").reshape(g.shape)
+        mask = mask_flat(cache, self.mask_key)
+        region = np.ones(g.shape, bool) if mask is None else mask.reshape(g.shape)
+        corrected = bias_corrected(image, region, spacing=g.spacing, scale_mm=self.scale_mm)
+        return {"image": corrected.reshape(-1).astype(np.float32)}, {}
+
+
+def label_sums(executor, ctx: TaskContext, name: str, keys: Sequence[str], progress) -> list:
+    """Every resampled image's :class:`LabelSums` (metadata, in the order of `keys`)."""
+    plan = [LabelSums(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
+    out: list[dict] = [{}] * len(plan)
+    calls = [(ctx.root, task) for task in plan]
+    for i, (_key, meta, _reused) in executor.map(
+        run_cached, calls, desc=f"{name}: label sums", progress=progress
+    ):
+        out[i] = meta
+    return out
+
+
+def bias_corrected_images(
+    executor, ctx: TaskContext, name: str, keys: Sequence[str], progress
+) -> list[str]:
+    """Each of `keys`' resampled images divided by its local mean in the region
+    (:class:`BiasCorrect`), for the subjects' bias-corrected distances; their keys."""
+    plan = [BiasCorrect(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
+    out = [""] * len(plan)
+    calls = [(ctx.root, task) for task in plan]
+    for i, (key, _meta, _reused) in executor.map(
+        run_cached, calls, desc=f"{name}: bias correction", progress=progress
+    ):
+        out[i] = key
+    return out
 
 
 def brain_mask_dice(
@@ -466,35 +486,49 @@ def brain_mask_dice(
         return None
     items = m.registrations[name].transforms
     method = "nearest" if method == "nearest" else "linear"
-    calls = [
-        (ctx, m.masks[i], items[i], reg.frame_spec, reg.frame_digest, method)
+    plan = [
+        ResampleBrainMask(
+            grid=ctx.grid,
+            mask=m.masks[i],
+            item=items[i],
+            frame=reg.frame_spec,
+            frame_digest=reg.frame_digest,
+            method=method,
+        )
         for i in range(m.n_images)
     ]
     keys: list[str] = [""] * m.n_images
-    for i, (key, reused) in executor.map(
-        brain_mask_task, calls, desc=f"{name}: brain masks", progress=progress
+    calls = [(ctx.root, task) for task in plan]
+    for i, (key, _meta, reused) in executor.map(
+        run_cached, calls, desc=f"{name}: brain masks", progress=progress
     ):
         keys[i] = key
         counts.add(reused)
     return subject_mask_dice(_CachedMasks(disk, keys, ctx.grid.shape), common=mask)
 
 
-def brain_mask_task(
-    ctx: TaskContext, mask, item, frame: tuple, frame_digest: str, method: str
-) -> tuple[str, bool]:
+@dataclass(frozen=True)
+class ResampleBrainMask(Task):
     """One subject's brain mask brought into the common frame through ``T_i^R o F`` (as its
-    image is), cached as ``mask``: ``np.packbits`` of a bool (n,) over the common grid
-    (numpy order). `method` is :func:`~itk_nrreval._brain_masks.resample_mask`'s. Returns
-    ``(key, reused)``."""
-    cache = ctx.cache()
-    g = ctx.grid
-    key = task_key("brain_mask", g, mask, item, frame_digest, method)
-    if cache.get("brain_mask", key) is not None:
-        return key, True
-    full = flatten(resampling_transform(transform_pieces(item), frame_transform(frame, g, cache)))
-    inside = resample_mask(read_image(mask, what="brain mask"), full, g, method=method)
-    cache.put("brain_mask", key, {"mask": np.packbits(inside.reshape(-1))})
-    return key, False
+    image is): the entry holds ``mask``, ``np.packbits`` of a bool (n,) over the common grid
+    (numpy order). `method` is :func:`~itk_nrreval._brain_masks.resample_mask`'s."""
+
+    kind: ClassVar[str] = "brain_mask"
+    grid: Geometry
+    mask: Any
+    item: Any
+    frame: tuple = field(metadata=NOT_KEYED)
+    frame_digest: str
+    method: str
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g = self.grid
+        frame = frame_transform(self.frame, g, cache)
+        full = flatten(resampling_transform(transform_pieces(self.item), frame))
+        inside = resample_mask(
+            read_image(self.mask, what="brain mask"), full, g, method=self.method
+        )
+        return {"mask": np.packbits(inside.reshape(-1))}, {}
 
 
 class _CachedMasks(Sequence):

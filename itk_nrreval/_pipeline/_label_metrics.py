@@ -1,24 +1,28 @@
 """Dice and HD95 per label in the common frame, as tasks of the evaluate pipeline.
 
-Two small tasks per scored subject: its crisp label map and label boundaries in the
-evaluated region (:func:`_crisp_task`), then its side of its cases: the directed HD95
+Two small tasks per scored subject, each run through the content-keyed cache
+(:func:`~itk_nrreval._pipeline._tasks.cached`): its crisp label map and label boundaries in
+the evaluated region (:class:`CrispLabels`), then its side of its cases: the directed HD95
 distances and the Dice counts against the subjects it is compared with
-(:func:`_distances_task`); :func:`registration_label_metrics` runs them and assembles the
-registration's :class:`~itk_nrreval.label_metrics.LabelMetrics`.
+(:class:`LabelDistances`); :func:`registration_label_metrics` plans and runs them and
+assembles the registration's :class:`~itk_nrreval.label_metrics.LabelMetrics`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
+from .._cache import DiskCache
+from .._images import Geometry
 from .._output import json_number
 from .._resampled_images import stored_memberships
 from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
 from ..subject_qc import reference_subject
 from ._image_tasks import Resampled
-from ._task_keys import TaskContext, task_key
+from ._tasks import NOT_KEYED, Task, mask_flat, run_cached
 
 
 def registration_label_metrics(
@@ -26,8 +30,8 @@ def registration_label_metrics(
 ) -> LabelMetrics | None:  # fmt: skip
     """Registration `name`'s Dice and HD95 (mm) per label and case in the common frame
     (:mod:`itk_nrreval.label_metrics`), from its resampled entries (`r`): two small tasks
-    per scored subject, its crisp map (:func:`_crisp_task`) then its side of its cases
-    (:func:`_distances_task`). The cases: each scored subject against the registration's
+    per scored subject, its crisp map (:class:`CrispLabels`) then its side of its cases
+    (:class:`LabelDistances`). The cases: each scored subject against the registration's
     reference subject where it has one among the scored
     (:func:`~itk_nrreval.subject_qc.reference_subject`), else every pair of scored
     subjects. The crisp maps leave the cache afterwards unless `keep`. None without
@@ -39,9 +43,19 @@ def registration_label_metrics(
     own = {i: [code_of[int(v)] for v in r.metas[i]["labels"]] for i in scored}
     crisp_keys = [""] * m.n_images
     counts: dict[int, np.ndarray] = {}
-    calls = [(ctx, r.keys[i], own[i], n_codes) for i in scored]
-    for k, (crisp_key, meta) in executor.map(
-        _crisp_task, calls, desc=f"{name}: label maps", progress=progress
+    plan = [
+        CrispLabels(
+            resampled=r.keys[i],
+            mask_key=ctx.mask_key,
+            codes=tuple(own[i]),
+            n_codes=n_codes,
+            grid=ctx.grid,
+        )
+        for i in scored
+    ]
+    calls = [(ctx.root, task) for task in plan]
+    for k, (crisp_key, meta, _reused) in executor.map(
+        run_cached, calls, desc=f"{name}: label maps", progress=progress
     ):
         crisp_keys[scored[k]] = crisp_key
         counts[scored[k]] = np.asarray(meta["counts"], np.int64)
@@ -66,10 +80,20 @@ def registration_label_metrics(
         targets[ref] = [i for i in scored if i != ref]
         dice_with = {i: [ref] for i in scored if i != ref}
         dice_with[ref] = []
-    calls = [(ctx, crisp_keys, i, targets[i], dice_with[i], n_codes) for i in scored]
+    plan = [
+        LabelDistances(
+            grid=ctx.grid,
+            subject=crisp_keys[i],
+            targets=tuple(crisp_keys[j] for j in targets[i]),
+            dice_with=tuple(crisp_keys[j] for j in dice_with[i]),
+            n_codes=n_codes,
+        )
+        for i in scored
+    ]
+    calls = [(ctx.root, task) for task in plan]
     sides: dict[int, dict] = {}
-    for k, side in executor.map(
-        _distances_task, calls, desc=f"{name}: Dice and HD95", progress=progress
+    for k, (_key, side, _reused) in executor.map(
+        run_cached, calls, desc=f"{name}: Dice and HD95", progress=progress
     ):
         sides[scored[k]] = side
     if not keep:
@@ -101,99 +125,93 @@ def registration_label_metrics(
     )
 
 
-def _crisp_task(ctx: TaskContext, key: str, codes: Sequence[int], n_codes: int) -> tuple[str, dict]:
+@dataclass(frozen=True)
+class CrispLabels(Task):
     """One subject's crisp label map in the evaluated region, and its label boundaries.
 
-    From the resampled entry `key`'s memberships (:func:`~itk_nrreval.label_metrics.
+    From the resampled entry `resampled`'s memberships (:func:`~itk_nrreval.label_metrics.
     crisp_labels`, channel k written as ``codes[k]``, an index into the run's label values;
-    background outside ``ctx.mask_key``'s region) and
-    :func:`~itk_nrreval.label_metrics.label_surfaces`. Cached as ``crisp_labels``:
-    ``labels`` (n,) in the smallest unsigned dtype for `n_codes`, ``b_ptr`` (n_codes + 1,)
-    and ``b_idx`` (flat voxel indices of every code's boundary; uint32 below 2**32 voxels);
-    its metadata ``counts``, each code's voxels in the region. Returns ``(crisp key,
-    metadata)``.
+    background outside `mask_key`'s region) and
+    :func:`~itk_nrreval.label_metrics.label_surfaces`. The entry holds ``labels`` (n,) in the
+    smallest unsigned dtype for `n_codes`, ``b_ptr`` (n_codes + 1,) and ``b_idx`` (flat
+    voxel indices of every code's boundary; uint32 below 2**32 voxels); its metadata
+    ``counts``, each code's voxels in the region.
 
     Costs one pass over the grid per label for the memberships' maximum (as the label sums
     do), one ``find_objects`` pass and each label's box: about 0.2 s at 1 mm (9 labels,
     docs/label-metrics.md), and n bytes in the cache until the registration is done.
     """
-    cache = ctx.cache()
-    g = ctx.grid
-    crisp_key = task_key("crisp_labels", key, ctx.mask_key, list(codes), n_codes)
-    found = cache.get("crisp_labels", crisp_key)
-    if found is not None:
-        return crisp_key, dict(found.meta)
-    entry = cache.open("resampled", key)
-    memb = stored_memberships(entry, g.shape, entry.meta["labels"])
-    mask = ctx.mask_flat()
-    region = None if mask is None else mask.reshape(g.shape)
-    labels = crisp_labels(memb, codes=codes, n_codes=n_codes, region=region)
-    surfaces = label_surfaces(labels, n_codes, region=region)
-    index = surfaces.index.astype(np.uint32) if labels.size < 2**32 else surfaces.index
-    meta = {"counts": surfaces.counts.tolist()}
-    arrays = {"labels": labels.reshape(-1), "b_ptr": surfaces.ptr, "b_idx": index}
-    cache.put("crisp_labels", crisp_key, arrays, meta)
-    return crisp_key, meta
+
+    kind: ClassVar[str] = "crisp_labels"
+    resampled: str
+    mask_key: str | None
+    codes: tuple[int, ...]
+    n_codes: int
+    grid: Geometry = field(metadata=NOT_KEYED)  # the resampled entry's (in its key)
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g = self.grid
+        entry = cache.open("resampled", self.resampled)
+        memb = stored_memberships(entry, g.shape, entry.meta["labels"])
+        mask = mask_flat(cache, self.mask_key)
+        region = None if mask is None else mask.reshape(g.shape)
+        codes, n_codes = list(self.codes), self.n_codes
+        labels = crisp_labels(memb, codes=codes, n_codes=n_codes, region=region)
+        surfaces = label_surfaces(labels, n_codes, region=region)
+        index = surfaces.index.astype(np.uint32) if labels.size < 2**32 else surfaces.index
+        meta = {"counts": surfaces.counts.tolist()}
+        arrays = {"labels": labels.reshape(-1), "b_ptr": surfaces.ptr, "b_idx": index}
+        return arrays, meta
 
 
-def _distances_task(
-    ctx: TaskContext,
-    crisp_keys: Sequence[str],
-    subject: int,
-    targets: Sequence[int],
-    dice_with: Sequence[int],
-    n_codes: int,
-) -> dict:
-    """Subject `subject`'s side of its cases, from the crisp entries `crisp_keys` (by
-    manifest index).
+@dataclass(frozen=True)
+class LabelDistances(Task):
+    """One subject's side of its cases, from the ``crisp_labels`` entries of the subject
+    (`subject`), of its `targets` and of its `dice_with` partners.
 
-    Returns ``{"d95": (len(targets), n_codes), "inter": (len(dice_with), n_codes)}`` as
-    lists: per target, per code, the 95th percentile of the distances (mm) from the
+    Metadata only: ``{"d95": (len(targets), n_codes), "inter": (len(dice_with), n_codes)}``
+    as lists: per target, per code, the 95th percentile of the distances (mm) from the
     target's boundary to the subject's nearest boundary voxel (None: no boundary in one of
     them; one distance transform of the subject's boundary per code,
     :func:`~itk_nrreval.label_metrics.directed_percentiles`, read at every target's); per
-    partner of `dice_with`, per code, the voxels where both maps have it. Cached (metadata
-    only) as ``label_distances``.
+    partner of `dice_with`, per code, the voxels where both maps have it.
     """
-    cache = ctx.cache()
-    g = ctx.grid
-    key = task_key(
-        "label_distances",
-        g,
-        crisp_keys[subject],
-        [crisp_keys[j] for j in targets],
-        [crisp_keys[j] for j in dice_with],
-    )
-    found = cache.get("label_distances", key)
-    if found is not None:
-        return dict(found.meta)
-    own = cache.open("crisp_labels", crisp_keys[subject])
-    ptr, idx = own.array("b_ptr"), own.array("b_idx", mmap=True)
-    others = []
-    for j in targets:
-        e = cache.open("crisp_labels", crisp_keys[j])
-        others.append((e.array("b_ptr"), e.array("b_idx", mmap=True)))
-    d95 = np.full((len(targets), n_codes), np.nan)
-    for code in range(1, n_codes):
-        mine = np.asarray(idx[ptr[code] : ptr[code + 1]], np.int64)
-        if mine.size:
-            d95[:, code] = directed_percentiles(
-                mine,
-                [np.asarray(t[p[code] : p[code + 1]], np.int64) for p, t in others],
-                shape=g.shape,
-                spacing=g.spacing,
-            )
-    del others
-    inter = np.zeros((len(dice_with), n_codes), np.int64)
-    if dice_with:
-        labels = own.array("labels")
-        for row, j in enumerate(dice_with):  # one other map in memory at a time
-            other = cache.open("crisp_labels", crisp_keys[j]).array("labels", mmap=True)
-            both = labels[labels == np.asarray(other)]
-            inter[row] = np.bincount(both, minlength=n_codes)[:n_codes]
-    meta = {
-        "d95": [[json_number(v) for v in row] for row in d95],
-        "inter": inter.tolist(),
-    }
-    cache.put("label_distances", key, {}, meta)
-    return meta
+
+    kind: ClassVar[str] = "label_distances"
+    grid: Geometry
+    subject: str
+    targets: tuple[str, ...]
+    dice_with: tuple[str, ...]
+    n_codes: int = field(metadata=NOT_KEYED)  # the crisp entries' (in their keys)
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        g, n_codes = self.grid, self.n_codes
+        own = cache.open("crisp_labels", self.subject)
+        ptr, idx = own.array("b_ptr"), own.array("b_idx", mmap=True)
+        others = []
+        for key in self.targets:
+            e = cache.open("crisp_labels", key)
+            others.append((e.array("b_ptr"), e.array("b_idx", mmap=True)))
+        d95 = np.full((len(self.targets), n_codes), np.nan)
+        for code in range(1, n_codes):
+            mine = np.asarray(idx[ptr[code] : ptr[code + 1]], np.int64)
+            if mine.size:
+                d95[:, code] = directed_percentiles(
+                    mine,
+                    [np.asarray(t[p[code] : p[code + 1]], np.int64) for p, t in others],
+                    shape=g.shape,
+                    spacing=g.spacing,
+                )
+        del others
+        inter = np.zeros((len(self.dice_with), n_codes), np.int64)
+        if self.dice_with:
+            labels = own.array("labels")
+            for row, key in enumerate(self.dice_with):  # one other map in memory at a time
+                other = cache.open("crisp_labels", key).array("labels", mmap=True)
+                both = labels[labels == np.asarray(other)]
+                inter[row] = np.bincount(both, minlength=n_codes)[:n_codes]
+        meta = {
+            "d95": [[json_number(v) for v in row] for row in d95],
+            "inter": inter.tolist(),
+        }
+        return {}, meta
