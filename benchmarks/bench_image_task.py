@@ -5,7 +5,7 @@ registrations of it: ``field`` (its true template-to-subject transform, an affin
 1 mm displacement field) and ``affine`` (the affine part alone); and ``field, no labels``,
 the field registration of the image alone, as a cohort without label maps runs it. For
 each, the task the pipeline runs per image and registration
-(:func:`itk_nrreval._pipeline._image_tasks.resample_task`) runs on a cold cache, in a fresh
+(:class:`itk_nrreval._pipeline._image_tasks.ResampleImage`) runs on a cold cache, in a fresh
 process on one thread (SimpleITK and numba), with its parts timed by wrapping the functions
 it calls:
 
@@ -23,7 +23,7 @@ it calls:
   plausibility's own sampling of the transform, and timed apart from it);
 - ``coverage``: which common-grid voxels the transform brings the image's field of view to
   (since issue 30, measured with the plausibility in a task of its own before any image is
-  resampled, :func:`~itk_nrreval._pipeline._image_tasks.measures_task`; the two tasks are
+  resampled, :class:`~itk_nrreval._pipeline._image_tasks.MeasureTransform`; the two tasks are
   timed together);
 - ``cache write``: the entries written (hashed and renamed into place);
 - ``other``: the rest of the task.

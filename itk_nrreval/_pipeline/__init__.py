@@ -1,8 +1,8 @@
 """The evaluate dataflow, written once: per-image tasks, per-voxel-block sums, the driver.
 
 :func:`itk_nrreval.evaluate` runs here, in this process by default or on a Dask cluster
-(:mod:`itk_nrreval._scaleout`); both run the same task functions, the executor only maps
-them. The work is cut so that no process holds the N x n data (N images, n voxels):
+(:mod:`itk_nrreval._scaleout`); both run the same tasks, the executor only maps them. The
+work is cut so that no process holds the N x n data (N images, n voxels):
 
 1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
    other than the common one); the transform's measures (which voxels of the common grid
@@ -11,8 +11,11 @@ them. The work is cut so that no process holds the N x n data (N images, n voxel
    every transform is measured and the region every image covers under every
    registration is known, registration by registration: the image resampled into the
    common frame, its fuzzy label memberships (sparse: the voxels where each label is
-   nonzero) and the per-image sums the overlap needs (label gradients, presence). Each
-   result is written to a disk cache under a digest of everything it depends on (input
+   nonzero), the per-image sums the overlap needs (label gradients, presence) and the
+   image divided by its local mean (the subjects' bias-corrected distances). Each is a
+   small frozen task object whose fields are its inputs (:mod:`._tasks`); one wrapper,
+   :func:`~._tasks.cached`, writes its result to a disk cache under a digest of everything
+   it depends on (input
    file contents, transforms, the frame, grid, mask, settings, and the code version: the
    package's and the task's, ``_task_keys._TASK_VERSIONS``; :mod:`itk_nrreval._cache`), so a rerun
    -- after an interruption, or with more images or registrations -- finds it there
@@ -36,9 +39,11 @@ Its modules, in the order of the dataflow:
 
 - :mod:`._task_keys`: the cache keys and code versions of the tasks, and what every task
   of a run shares (:class:`~._task_keys.TaskContext`);
+- :mod:`._tasks`: the task objects' base and the content-keyed cache around running one;
 - :mod:`._common_frame`: each registration's common frame F, estimated and cached;
 - :mod:`._image_tasks`: the per-image tasks (the transform's measures, the resampled image
-  and memberships, the label sums, the brain mask) and their mapping over a registration;
+  and memberships, the label sums, the bias-corrected image, the brain mask) and their
+  plan over a registration;
 - :mod:`._coverage`: the images' coverage of the common grid and the evaluated region;
 - :mod:`._reduction`: the per-voxel-block reductions to a registration's scores;
 - :mod:`._label_metrics`: Dice and HD95 per label, as tasks;

@@ -31,13 +31,15 @@ _TASK_VERSIONS = {
     "frame_spread": 3,  # the spread of the estimates of F (issue 30); 2: per image (issue 27)
     # 3: from estimates in 16-bit steps (issue 30)
     "reg_mask": 1,
-    "resampled": 5,  # 2: inverse consistency no longer read from freed memory (issue 25)
+    "resampled": 7,  # 2: inverse consistency no longer read from freed memory (issue 25)
     # 3: the transform's closest affine map (issue 27)
     # 4: inverse consistency from a coarse, refined inverse on every second voxel; float32
     # image, uint32 label indices (issue 30)
     # 5: inverse consistency refined at the round trip's points; the image from the
     # memberships' sampling of the transform (issue 30)
-    # 6: the transform's measures in their own entry, "measures" (issue 30)
+    # 6: the transform's measures in their own entry, "measures" (issue 30; the number
+    # stayed 5 then, which the entry's new kind made harmless)
+    # 7: a task object's key (issue 43): the label option a tuple
     "measures": 2,  # coverage and plausibility, before any image is resampled (issue 30)
     # 2: the non-diffeomorphic fraction and volume (issue 42)
     "label_sums": 1,
