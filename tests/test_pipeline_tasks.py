@@ -16,7 +16,7 @@ import SimpleITK as sitk
 
 from itk_nrreval._cache import DiskCache
 from itk_nrreval._images import Geometry
-from itk_nrreval._pipeline import _image_tasks, _label_metrics, _tasks
+from itk_nrreval._pipeline import _common_frame, _image_tasks, _label_metrics, _tasks
 
 TASKS = [
     _image_tasks.MeasureTransform,
@@ -26,6 +26,7 @@ TASKS = [
     _image_tasks.ResampleBrainMask,
     _label_metrics.CrispLabels,
     _label_metrics.LabelDistances,
+    _common_frame.RegistrationMask,
 ]
 
 

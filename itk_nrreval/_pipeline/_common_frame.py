@@ -14,6 +14,8 @@ from __future__ import annotations
 import collections
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 import SimpleITK as sitk
@@ -33,6 +35,7 @@ from ..frame import (
 from ..manifest import Manifest
 from ..transforms import chain_transform, field_transform, invert
 from ._task_keys import TaskContext, task_key
+from ._tasks import NOT_KEYED, Task, cached
 
 #: How the frame estimates ``F_i(p) - p`` (mm) are cached for their spread, until it is
 #: kept: ``np.uint16``, each vector component in 65535 equal steps between its least and
@@ -141,25 +144,49 @@ def registration_mask(
     frame_digest: str,
     reg_grid: Geometry,
 ) -> str | None:
-    """Cache the mask carried into the registration's reference frame; return its key.
-
-    The mask lives on the common grid; a registration's transforms are defined on its own
-    reference grid, where the plausibility measures are taken. A reference voxel q is inside
-    when ``F^-1(q)`` falls in the mask (nearest neighbour). None without a mask.
-    """
+    """Cache the mask carried into the registration's reference frame
+    (:class:`RegistrationMask`); return its key. None without a mask."""
     if mask is None:
         return None
-    key = task_key("reg_mask", ctx.mask_key, frame_digest, ctx.grid, reg_grid)
-    if disk.get("reg_mask", key) is not None:
-        return key
-    img = sitk.GetImageFromArray(mask.astype(np.uint8))
-    ctx.grid.apply_to(img)
-    back = sitk.TranslationTransform(ctx.grid.dimension)
-    if frame.method != "common":
-        back = invert(frame.transform, grid=ctx.grid)
-    res = resample_onto(img, back, reg_grid, sitk.sitkNearestNeighbor)
-    disk.put("reg_mask", key, {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)})
+    task = RegistrationMask(
+        mask_key=ctx.mask_key,
+        frame_digest=frame_digest,
+        grid=ctx.grid,
+        reg_grid=reg_grid,
+        mask=mask,
+        frame=frame,
+    )
+    key, _meta, _reused = cached(task, disk)
     return key
+
+
+@dataclass(frozen=True)
+class RegistrationMask(Task):
+    """The mask carried into a registration's reference frame: ``mask``, bool over
+    `reg_grid` (flattened, numpy order).
+
+    The mask lives on the common grid `grid` (stored under `mask_key`, the array `mask`); a
+    registration's transforms are defined on its own reference grid, where the plausibility
+    measures are taken. A reference voxel q is inside when ``F^-1(q)`` falls in the mask
+    (nearest neighbour), F the registration's frame (`frame`; its content `frame_digest`).
+    """
+
+    kind: ClassVar[str] = "reg_mask"
+    mask_key: str | None
+    frame_digest: str
+    grid: Geometry
+    reg_grid: Geometry
+    mask: np.ndarray = field(metadata=NOT_KEYED, compare=False, repr=False)
+    frame: FrameMapping = field(metadata=NOT_KEYED, compare=False, repr=False)
+
+    def compute(self, cache: DiskCache) -> tuple[dict, dict]:
+        img = sitk.GetImageFromArray(self.mask.astype(np.uint8))
+        self.grid.apply_to(img)
+        back = sitk.TranslationTransform(self.grid.dimension)
+        if self.frame.method != "common":
+            back = invert(self.frame.transform, grid=self.grid)
+        res = resample_onto(img, back, self.reg_grid, sitk.sitkNearestNeighbor)
+        return {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)}, {}
 
 
 def _estimate_key(ctx: TaskContext, common_item, item, reg_grid: Geometry) -> str:
