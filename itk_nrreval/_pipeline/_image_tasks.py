@@ -56,7 +56,7 @@ from ..transforms import (
 )
 from ._common_frame import frame_transform, registration_frame, registration_mask
 from ._task_keys import TaskContext
-from ._tasks import NOT_KEYED, Task, mask_flat, run_cached
+from ._tasks import NOT_KEYED, Task, mask_flat, run_plan
 
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
@@ -121,9 +121,8 @@ def measure_registration(
     ]
     keys: list[str] = [""] * m.n_images
     metas: list[dict] = [{}] * m.n_images
-    calls = [(ctx.root, task) for task in plan]
-    for i, (key, meta, reused) in executor.map(
-        run_cached, calls, desc=f"{name}: measures", progress=progress
+    for i, key, meta, reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: measures", progress=progress
     ):
         keys[i], metas[i] = key, meta
         counts.add(reused)
@@ -233,9 +232,8 @@ def resample_registration(
     ]
     keys: list[str] = [""] * m.n_images
     metas: list[dict] = [{}] * m.n_images
-    calls = [(ctx.root, task) for task in plan]
-    for i, (key, meta, reused) in executor.map(
-        run_cached, calls, desc=f"{name}: resampling", progress=progress
+    for i, key, meta, reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: resampling", progress=progress
     ):
         keys[i], metas[i] = key, {**reg.metas[i], **meta}
         counts.add(reused)
@@ -450,9 +448,8 @@ def label_sums(executor, ctx: TaskContext, name: str, keys: Sequence[str], progr
     """Every resampled image's :class:`LabelSums` (metadata, in the order of `keys`)."""
     plan = [LabelSums(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
     out: list[dict] = [{}] * len(plan)
-    calls = [(ctx.root, task) for task in plan]
-    for i, (_key, meta, _reused) in executor.map(
-        run_cached, calls, desc=f"{name}: label sums", progress=progress
+    for i, _key, meta, _reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: label sums", progress=progress
     ):
         out[i] = meta
     return out
@@ -465,9 +462,8 @@ def bias_corrected_images(
     (:class:`BiasCorrect`), for the subjects' bias-corrected distances; their keys."""
     plan = [BiasCorrect(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
     out = [""] * len(plan)
-    calls = [(ctx.root, task) for task in plan]
-    for i, (key, _meta, _reused) in executor.map(
-        run_cached, calls, desc=f"{name}: bias correction", progress=progress
+    for i, key, _meta, _reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: bias correction", progress=progress
     ):
         out[i] = key
     return out
@@ -498,9 +494,8 @@ def brain_mask_dice(
         for i in range(m.n_images)
     ]
     keys: list[str] = [""] * m.n_images
-    calls = [(ctx.root, task) for task in plan]
-    for i, (key, _meta, reused) in executor.map(
-        run_cached, calls, desc=f"{name}: brain masks", progress=progress
+    for i, key, _meta, reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: brain masks", progress=progress
     ):
         keys[i] = key
         counts.add(reused)

@@ -22,7 +22,7 @@ from .._resampled_images import stored_memberships
 from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
 from ..subject_qc import reference_subject
 from ._image_tasks import Resampled
-from ._tasks import NOT_KEYED, Task, mask_flat, run_cached
+from ._tasks import NOT_KEYED, Task, mask_flat, run_plan
 
 
 def registration_label_metrics(
@@ -53,9 +53,8 @@ def registration_label_metrics(
         )
         for i in scored
     ]
-    calls = [(ctx.root, task) for task in plan]
-    for k, (crisp_key, meta, _reused) in executor.map(
-        run_cached, calls, desc=f"{name}: label maps", progress=progress
+    for k, crisp_key, meta, _reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: label maps", progress=progress
     ):
         crisp_keys[scored[k]] = crisp_key
         counts[scored[k]] = np.asarray(meta["counts"], np.int64)
@@ -90,10 +89,9 @@ def registration_label_metrics(
         )
         for i in scored
     ]
-    calls = [(ctx.root, task) for task in plan]
     sides: dict[int, dict] = {}
-    for k, (_key, side, _reused) in executor.map(
-        run_cached, calls, desc=f"{name}: Dice and HD95", progress=progress
+    for k, _key, side, _reused in run_plan(
+        executor, ctx.root, plan, desc=f"{name}: Dice and HD95", progress=progress
     ):
         sides[scored[k]] = side
     if not keep:

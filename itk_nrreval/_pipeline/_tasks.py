@@ -9,13 +9,14 @@ says *how* to compute what another field already determines (the frame's descrip
 beside its digest, the grid beside a key that holds it) is marked :data:`NOT_KEYED`.
 
 The driver makes a plan of tasks per registration and runs them through
-:func:`run_cached` on its executor (in this process, on threads, or on a Dask cluster:
+:func:`run_plan` on its executor (in this process, on threads, or on a Dask cluster:
 tasks are small and pickle), then reduces their entries.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -65,6 +66,17 @@ def run_cached(root: str, task: Task) -> tuple[str, dict[str, Any], bool]:
     """:func:`cached` on the cache folder `root`: what an executor runs (a worker opens the
     folder itself)."""
     return cached(task, DiskCache(root))
+
+
+def run_plan(
+    executor, root: str, plan: Sequence[Task], *, desc: str, progress: bool
+) -> Iterator[tuple[int, str, dict[str, Any], bool]]:
+    """Run every task of `plan` through the cache folder `root` on `executor` (its ``map``:
+    in process, threads or Dask); yield ``(index into plan, key, metadata, reused)`` as
+    each ends, in any order."""
+    calls = [(root, task) for task in plan]
+    for i, (key, meta, reused) in executor.map(run_cached, calls, desc=desc, progress=progress):
+        yield i, key, meta, reused
 
 
 def mask_flat(cache: DiskCache, mask_key: str | None) -> np.ndarray | None:
