@@ -189,7 +189,7 @@ def concern(q: dict, *, labels: bool, image_term: str = "corrected_z") -> float:
     """A saved subject's concern recomputed from its z-scores
     (:func:`~itk_nrreval.subject_qc.concern_scores`), with or without the overlap term; NaN
     for the reference or when no term was measured. ``image_term="z"`` puts the model
-    distance's z where the appearance's is: the concern before the bias-corrected distance."""
+    distance's z where the bias-corrected distance's is: the concern before it."""
     if q["reference"]:
         return math.nan
     z_scores = {

@@ -130,11 +130,8 @@ def cohort_statistics(
     z = np.full(n_all, np.nan)
     if len(scored) >= 4:
         dist = leave_one_out_distances(gram)
-        # a duplicate is at distance 0 from the others' span: log of a tiny floor, not -inf
-        tiny = max(float(np.max(dist)), 1.0) * 1e-12
         score[scored] = dist
-        least = _LEAST_SPREAD_OF_SCORE * float(np.median(dist[rows]))
-        z[scored] = robust_z(dist, log=True, floor=tiny, least_spread=least, among=rows)
+        z[scored] = _log_distance_z(dist, rows)
     nearest = {}
     if len(scored) >= 3:
         pairs = pair_distances(gram)
@@ -356,7 +353,14 @@ def _corrected_distances(squares, n_all: int, scored, rows) -> tuple[np.ndarray,
     z = np.full(n_all, np.nan)
     values[scored] = distance
     if len(scored) >= 4:
-        tiny = max(float(np.max(distance)), 1.0) * 1e-12
-        least = _LEAST_SPREAD_OF_SCORE * float(np.median(distance[rows]))
-        z[scored] = robust_z(distance, log=True, floor=tiny, least_spread=least, among=rows)
+        z[scored] = _log_distance_z(distance, rows)
     return values, z
+
+
+def _log_distance_z(distance: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The robust z-scores of the log of the scored subjects' `distance` (shape (n,)),
+    over the judged `rows`, with a least spread of 1% of their median distance. A duplicate
+    is at distance 0 from the others: the log of a tiny floor, not -inf."""
+    tiny = max(float(np.max(distance)), 1.0) * 1e-12
+    least = _LEAST_SPREAD_OF_SCORE * float(np.median(distance[rows]))
+    return robust_z(distance, log=True, floor=tiny, least_spread=least, among=rows)

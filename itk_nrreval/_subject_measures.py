@@ -363,7 +363,7 @@ class ConcernTerm(NamedTuple):
 #: 0.80 (second scan 0.82) Spearman with the true error, mean over the deformable
 #: registrations, without 0.63 (0.65). Then (issue 42, fifth session, again on tuning
 #: alone, declared before the other splits were measured) the model distance gave its
-#: place to the bias-corrected distance of bias-corrected images (:func:`bias_corrected`),
+#: place to the distance between bias-corrected images (:func:`bias_corrected`),
 #: weights unchanged: with labels 0.84, without 0.83.
 CONCERN_TERMS = (
     ConcernTerm("overlap", "overlap_z", -1.0, 3.0, False),

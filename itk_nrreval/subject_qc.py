@@ -10,9 +10,9 @@ nothing is resampled again for them:
   region) to the texture model of the other N - 1 subjects with all their modes, i.e. to the
   affine span of the others (:func:`itk_nrreval.specificity.loo_generalization`, from the
   N x N Gram matrix alone);
-* **bias-corrected distance** (``appearance``): the distance of its image, divided by its own
-  10 mm local mean (which takes away a scanner gain and a smooth bias field), to the mean
-  of the others' so divided (:func:`~itk_nrreval._subject_measures.bias_corrected`);
+* **bias-corrected distance** (``corrected_distance``): the distance of its image, divided
+  by its own 10 mm local mean (which takes away a scanner gain and a smooth bias field), to
+  the mean of the others' so divided (:func:`~itk_nrreval._subject_measures.bias_corrected`);
 * **deformation**: its transform's folded fraction, SDlogJ, det J range and inverse
   consistency (:class:`itk_nrreval.plausibility.Plausibility`), and the affine map closest
   to it (:class:`itk_nrreval.plausibility.AffineFit`: the determinant of the linear part,

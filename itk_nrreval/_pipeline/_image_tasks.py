@@ -55,8 +55,8 @@ from ..transforms import (
     transform_pieces,
 )
 from ._common_frame import frame_transform, registration_frame, registration_mask
-from ._task_keys import TaskContext
-from ._tasks import NOT_KEYED, Task, mask_flat, run_plan
+from ._task_keys import TaskContext, mask_flat
+from ._tasks import NOT_KEYED, Task, run_plan
 
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
@@ -273,7 +273,8 @@ class ResampleImage(Task):
     reg_grid: Geometry
     interpolation: str
     label_resampling: tuple
-    stored: str = np.dtype(_STORED_IMAGE).str
+    # read when the task is made, so that its key and what it stores name one dtype
+    stored: str = field(default_factory=lambda: np.dtype(_STORED_IMAGE).str)
     own_values: tuple | None = field(default=None, metadata=NOT_KEYED)
 
     def compute(self, cache: DiskCache) -> tuple[dict, dict]:
@@ -302,7 +303,7 @@ class ResampleImage(Task):
         del full, sampled
         covered = ~np.isnan(values)  # inputs are checked finite, so NaN marks outside only
         values[~covered] = 0.0
-        arrays = {"image": values.astype(_STORED_IMAGE), "covered": np.packbits(covered)}
+        arrays = {"image": values.astype(self.stored), "covered": np.packbits(covered)}
         meta: dict = {"label_like": label_like_values(raw)}
         if memb is not None:
             # flat voxel indices fit 32 bits below 4 G voxels (half the bytes of int64)

@@ -22,7 +22,8 @@ from .._resampled_images import stored_memberships
 from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
 from ..subject_qc import reference_subject
 from ._image_tasks import Resampled
-from ._tasks import NOT_KEYED, Task, mask_flat, run_plan
+from ._task_keys import mask_flat
+from ._tasks import NOT_KEYED, Task, run_plan
 
 
 def registration_label_metrics(

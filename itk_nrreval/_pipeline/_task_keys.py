@@ -72,6 +72,12 @@ class TaskContext:
 
     def mask_flat(self) -> np.ndarray | None:
         """The mask over the flattened grid (numpy order), or None."""
-        if self.mask_key is None:
-            return None
-        return self.cache().open("mask", self.mask_key).array("mask")
+        return mask_flat(self.cache(), self.mask_key)
+
+
+def mask_flat(cache: DiskCache, mask_key: str | None) -> np.ndarray | None:
+    """The mask stored under `mask_key` in `cache`, over the flattened grid (numpy order),
+    or None without one."""
+    if mask_key is None:
+        return None
+    return cache.open("mask", mask_key).array("mask")

@@ -77,10 +77,3 @@ def run_plan(
     calls = [(root, task) for task in plan]
     for i, (key, meta, reused) in executor.map(run_cached, calls, desc=desc, progress=progress):
         yield i, key, meta, reused
-
-
-def mask_flat(cache: DiskCache, mask_key: str | None) -> np.ndarray | None:
-    """The mask stored under `mask_key`, over the flattened grid (numpy order), or None."""
-    if mask_key is None:
-        return None
-    return cache.open("mask", mask_key).array("mask")
