@@ -3,10 +3,11 @@
 A registration that is not the common one is brought into the common frame by ``F``:
 a transform of the manifest (``frame_transform`` or a reference image's transform), or the
 mean over the images of ``F_i = (T_i^R)^-1 o T_i^C`` (:func:`itk_nrreval.frame.frame_estimate`),
-one task per image (:func:`_estimate_task`), added up as the tasks finish
-(:class:`_MeanOfEstimates`); and how far each estimate lies from F (its spread, reported).
+one task per image (:class:`EstimateFrame`), added up as the tasks finish
+(:class:`_MeanOfEstimates`, under :class:`FrameMean`'s key); and how far each estimate lies
+from F (its spread, reported; :class:`FrameSpread`, from F(p) - p, :class:`FrameDisplacement`).
 Here too: F read back from its description (:func:`frame_transform`) and the mask carried
-into a registration's reference frame (:func:`registration_mask`).
+into a registration's reference frame (:class:`RegistrationMask`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import collections
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import SimpleITK as sitk
@@ -34,8 +35,8 @@ from ..frame import (
 )
 from ..manifest import Manifest
 from ..transforms import chain_transform, field_transform, invert
-from ._task_keys import TaskContext, task_key
-from ._tasks import NOT_KEYED, Task, cached
+from ._task_keys import TaskContext
+from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached, key_of, plan_keys, run_plan
 
 #: How the frame estimates ``F_i(p) - p`` (mm) are cached for their spread, until it is
 #: kept: ``np.uint16``, each vector component in 65535 equal steps between its least and
@@ -66,7 +67,13 @@ def frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Trans
 
 
 def registration_frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
-    """F for registration `name`: its task description, the digest of that, its FrameMapping."""
+    """F for registration `name`: its task description, the digest of that, its FrameMapping.
+
+    Unless F is given (the common frame itself, a manifest's transform), it is the mean of
+    the images' estimates (:class:`EstimateFrame`, one task per image, added up as they
+    finish: :class:`_MeanOfEstimates`), cached under :class:`FrameMean`'s key; and every
+    registration's spread of the estimates about F, under :class:`FrameSpread`'s. Both
+    outlive the estimates: a rerun finds them and runs no estimate."""
     reg = m.registrations[name]
     common_items = m.registrations[m.common_frame].transforms
     if name == m.common_frame:
@@ -80,35 +87,37 @@ def registration_frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts,
         spec = ("chain", common_items[reg.reference_index])
     else:
         spec = None
-    calls = [(ctx, common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)]
-    keys = [""] * m.n_images
-    # on the workers: a key digests its transform files' content (kept per process)
-    for i, key in executor.map(_estimate_key, calls, desc=f"{name}: frame", progress=False):
-        keys[i] = key
-    frame_key = task_key("frame", keys) if spec is None else None
-    spread_key = task_key("frame_spread", keys, spec, ctx.mask_key)
+    plan = [
+        EstimateFrame(
+            grid=ctx.grid,
+            common_item=common_items[i],
+            item=reg.transforms[i],
+            reg_grid=reg_grid,
+            stored=np.dtype(_STORED_ESTIMATE).str,
+            for_mean=spec is None,
+        )
+        for i in range(m.n_images)
+    ]
+    keys = plan_keys(executor, plan, desc=f"{name}: frame")
+    mean_key = key_of(FrameMean(estimates=tuple(keys))) if spec is None else None
+    spread_key = key_of(FrameSpread(estimates=tuple(keys), frame=spec, mask_key=ctx.mask_key))
     kept = disk.get("frame_spread", spread_key)
-    reused = kept is not None and (frame_key is None or disk.get("frame", frame_key) is not None)
+    reused = kept is not None and (mean_key is None or disk.get("frame", mean_key) is not None)
     if reused:  # F and its spread outlive the per-image estimates they were made from
         for _ in keys:
             counts.add(True)
     else:
-        for_mean = frame_key is not None
-        tasks = [
-            (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid, for_mean)
-            for i in range(m.n_images)
-        ]
-        mean = _MeanOfEstimates(disk, keys) if for_mean else None
-        for i, was_cached in executor.map(
-            _estimate_task, tasks, desc=f"{name}: frame", progress=progress
+        mean = _MeanOfEstimates(disk, keys) if mean_key is not None else None
+        for i, _key, _meta, was_cached in run_plan(
+            executor, ctx.root, plan, desc=f"{name}: frame", progress=progress
         ):
             counts.add(was_cached)
             if mean is not None:
                 mean.arrived(i)
-        if mean is not None and disk.get("frame", frame_key) is None:
-            disk.put("frame", frame_key, {"disp": mean.result().astype(_STORED_FRAME)})
-    if frame_key is not None:
-        spec = ("field", frame_key)
+        if mean is not None and disk.get("frame", mean_key) is None:
+            disk.put("frame", mean_key, {"disp": mean.result().astype(_STORED_FRAME)})
+    if mean_key is not None:
+        spec = ("field", mean_key)
     digest = digest_of([spec[0], spec[1:]])
     f = frame_transform(spec, ctx.grid, disk)
     if reused:
@@ -189,40 +198,87 @@ class RegistrationMask(Task):
         return {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)}, {}
 
 
-def _estimate_key(ctx: TaskContext, common_item, item, reg_grid: Geometry) -> str:
-    return task_key(
-        "estimate", ctx.grid, common_item, item, reg_grid, np.dtype(_STORED_ESTIMATE).str
-    )
+@dataclass(frozen=True)
+class EstimateFrame(Task):
+    """One image's estimate of the frame F, ``F_i(p) - p = (T_i^R)^-1 o T_i^C (p) - p``
+    (:func:`~itk_nrreval.frame.frame_estimate`), (*grid.shape, dim) in mm over the common
+    grid `grid`: `common_item` is the image's transform in the common registration,
+    `item` in this one (defined on its reference grid `reg_grid`).
+
+    Stored as `stored` (the dtype of :func:`_stored_estimate`: 16-bit steps) for the
+    spread, an entry of kind ``"estimate_steps"``, and, `for_mean`, as F is stored
+    (``_STORED_FRAME``, float32) for the mean, kind ``"estimate"``: the driver adds those up
+    and removes them as the tasks finish (:class:`_MeanOfEstimates`). Both under the one
+    key of kind ``"estimate"``; `for_mean` only says which entries to keep (not keyed).
+    """
+
+    kind: ClassVar[str] = "estimate"
+    grid: Geometry
+    common_item: Any
+    item: Any
+    reg_grid: Geometry
+    stored: str
+    for_mean: bool = field(default=False, metadata=NOT_KEYED)
+
+    def entry_kinds(self) -> tuple[str, ...]:
+        return ("estimate_steps", "estimate") if self.for_mean else ("estimate_steps",)
+
+    def compute_entries(self, cache: DiskCache) -> dict[str, Entry]:
+        # the chains read where they are used: a composite held here too would keep a
+        # second copy of its fields (0.2 GB at 1 mm) while the inverse and the sampling
+        # hold its pieces
+        disp = frame_estimate(self.common_item, self.item, self.grid, other_grid=self.reg_grid)
+        out = {"estimate_steps": (_stored_estimate(disp, self.stored), {})}
+        if self.for_mean:
+            out["estimate"] = ({"disp": disp.astype(_STORED_FRAME)}, {})
+        return out
 
 
-def _estimate_task(
-    ctx: TaskContext, key: str, common_item, item, reg_grid: Geometry, for_mean: bool
-) -> bool:
-    """Cache ``F_i(p) - p`` on the common grid (mm) under `key` (:func:`_estimate_key`):
-    in 16-bit steps for the spread (kind ``"estimate_steps"``, :func:`_stored_estimate`)
-    and, `for_mean`, as F is stored (kind ``"estimate"``, ``_STORED_FRAME``) for the mean,
-    which the driver adds up and removes as the tasks finish (:class:`_MeanOfEstimates`).
-    Return whether it was cached already."""
-    cache = ctx.cache()
-    if cache.get("estimate_steps", key) is not None and (
-        not for_mean or cache.get("estimate", key) is not None
-    ):
-        return True
-    # the chains read where they are used: a composite held here too would keep a second
-    # copy of its fields (0.2 GB at 1 mm) while the inverse and the sampling hold its pieces
-    disp = frame_estimate(common_item, item, ctx.grid, other_grid=reg_grid)
-    cache.put("estimate_steps", key, _stored_estimate(disp))
-    if for_mean:
-        cache.put("estimate", key, {"disp": disp.astype(_STORED_FRAME)})
-    return False
+@dataclass(frozen=True)
+class FrameMean(Keyed):
+    """The key of the mean frame F (kind ``"frame"``: ``disp``, F(p) - p in mm,
+    (*grid.shape, dim), ``_STORED_FRAME``): the mean of the estimates `estimates` (their
+    keys, in image order), which the driver adds up as they arrive
+    (:class:`_MeanOfEstimates`)."""
+
+    kind: ClassVar[str] = "frame"
+    estimates: tuple[str, ...]
 
 
-def _stored_estimate(disp: np.ndarray) -> dict[str, np.ndarray]:
-    """The arrays of a frame estimate's entry for the spread (``_STORED_ESTIMATE``):
-    ``disp``, and when in steps, ``low`` and ``step`` (dim,)
+@dataclass(frozen=True)
+class FrameSpread(Keyed):
+    """The key of how far each estimate `estimates` lies from F (kind ``"frame_spread"``,
+    metadata ``{"mean_mm", "max_mm", "per_image_mm"}``), inside the mask `mask_key`: F is
+    the mean of the estimates when `frame` is None, else the transform `frame` describes
+    (:func:`frame_transform`)."""
+
+    kind: ClassVar[str] = "frame_spread"
+    estimates: tuple[str, ...]
+    frame: tuple | None
+    mask_key: str | None
+
+
+@dataclass(frozen=True)
+class FrameDisplacement(Task):
+    """F(p) - p (mm, (*grid.shape, dim), float64) on the common grid `grid`, for every
+    image's spread (kind ``"frame_disp"``: ``disp``); F's content is `frame_digest`, its
+    transform `transform` (not keyed)."""
+
+    kind: ClassVar[str] = "frame_disp"
+    grid: Geometry
+    frame_digest: str
+    transform: sitk.Transform = field(metadata=NOT_KEYED, compare=False, repr=False)
+
+    def compute(self, cache: DiskCache) -> Entry:
+        return {"disp": points_minus_grid(self.transform, self.grid)}, {}
+
+
+def _stored_estimate(disp: np.ndarray, stored: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of a frame estimate's entry for the spread, as `stored` (a dtype; default
+    ``_STORED_ESTIMATE``): ``disp``, and when in steps, ``low`` and ``step`` (dim,)
     (:func:`~itk_nrreval.frame.in_steps`; :func:`_estimate_values`). A field that is not
     finite everywhere is stored as float32."""
-    stored = np.dtype(_STORED_ESTIMATE)
+    stored = np.dtype(_STORED_ESTIMATE if stored is None else stored)
     steps = in_steps(disp, levels=int(np.iinfo(stored).max)) if stored.kind == "u" else None
     if steps is None:
         return {"disp": disp.astype(np.float32 if stored.kind == "u" else stored)}
@@ -278,9 +334,9 @@ def _frame_spread(executor, ctx, disk, keys, f, digest, progress, name) -> dict:
     """How far each image's estimate `keys` lies from F (`f`): ``{"mean_mm", "max_mm",
     "per_image_mm"}`` over the mask (mm)."""
     # F(p) - p on the common grid, once, for every image's spread task; dropped after
-    disp_key = task_key("frame_disp", ctx.grid, digest)
-    if disk.get("frame_disp", disp_key) is None:
-        disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
+    disp_key, _meta, _reused = cached(
+        FrameDisplacement(grid=ctx.grid, frame_digest=digest, transform=f), disk
+    )
     calls = [(ctx, k, disp_key) for k in keys]
     parts = [(0.0, 0.0, 0)] * len(keys)
     for i, part in executor.map(
