@@ -1,11 +1,13 @@
-"""The common frame F of each registration, as the pipeline estimates and caches it.
+"""The common frame F of each registration: its description, its tasks and their keys.
 
 A registration that is not the common one is brought into the common frame by ``F``:
-a transform of the manifest (``frame_transform`` or a reference image's transform), or the
-mean over the images of ``F_i = (T_i^R)^-1 o T_i^C`` (:func:`itk_nrreval.frame.frame_estimate`),
-one task per image (:class:`EstimateFrame`), added up as the tasks finish
-(:class:`_MeanOfEstimates`, under :class:`FrameMean`'s key); and how far each estimate lies
-from F (its spread, reported; :class:`FrameSpread`, from F(p) - p, :class:`FrameDisplacement`).
+a transform of the manifest (``frame_transform`` or a reference image's transform:
+:func:`given_frame`), or the mean over the images of ``F_i = (T_i^R)^-1 o T_i^C``
+(:func:`itk_nrreval.frame.frame_estimate`), one task per image (:class:`EstimateFrame`,
+listed by :func:`estimate_plan`), added up as the tasks finish (:class:`MeanOfEstimates`,
+its entry under :class:`FrameMean`'s key); and how far each estimate lies from F (its
+spread, reported: :func:`frame_spread`, from F(p) - p, :class:`FrameDisplacement`; its
+entry under :class:`FrameSpread`'s key). The driver runs the tasks and these reductions.
 Here too: F read back from its description (:func:`frame_transform`) and the mask carried
 into a registration's reference frame (:class:`RegistrationMask`).
 """
@@ -36,7 +38,7 @@ from ..frame import (
 from ..manifest import Manifest
 from ..transforms import chain_transform, field_transform, invert
 from ._task_keys import TaskContext
-from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached, key_of, plan_keys, run_plan
+from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached
 
 #: How the frame estimates ``F_i(p) - p`` (mm) are cached for their spread, until it is
 #: kept: ``np.uint16``, each vector component in 65535 equal steps between its least and
@@ -45,13 +47,17 @@ from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached, key_of, plan_keys, ru
 #: (8e-4 mm over a 100 mm range; the coarse inverse's own error is about 1e-2 mm,
 #: ``frame.ESTIMATE_FIELD_STEP``); or a float dtype, stored as that
 #: (:func:`_stored_estimate`). The mean F is added up from the estimates as F is stored
-#: (``_STORED_FRAME``), each removed once added (:class:`_MeanOfEstimates`).
+#: (``_STORED_FRAME``), each removed once added (:class:`MeanOfEstimates`).
 _STORED_ESTIMATE = np.uint16
 
 #: The dtype of the frame F (mean of the estimates, ``F(p) - p``, mm) in the cache, and of
 #: the estimates it is added up from: float32 halves the entries (216 -> 108 MB at 1 mm)
 #: and rounds a displacement of up to 100 mm by less than 1e-5 mm.
 _STORED_FRAME = np.float32
+
+#: The kinds of entry of a frame estimate (:class:`EstimateFrame`): for the spread, and for
+#: the mean.
+ESTIMATE_ENTRIES = ("estimate_steps", "estimate")
 
 
 def frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Transform:
@@ -66,107 +72,46 @@ def frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Trans
     return field_transform(img)
 
 
-def registration_frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
-    """F for registration `name`: its task description, the digest of that, its FrameMapping.
-
-    Unless F is given (the common frame itself, a manifest's transform), it is the mean of
-    the images' estimates (:class:`EstimateFrame`, one task per image, added up as they
-    finish: :class:`_MeanOfEstimates`), cached under :class:`FrameMean`'s key; and every
-    registration's spread of the estimates about F, under :class:`FrameSpread`'s. Both
-    outlive the estimates: a rerun finds them and runs no estimate."""
-    reg = m.registrations[name]
-    common_items = m.registrations[m.common_frame].transforms
+def given_frame(m: Manifest, name: str) -> tuple | None:
+    """F of registration `name` where the manifest gives it, as :func:`frame_transform`
+    reads it: ``("identity",)`` for the common frame, ``("chain", item)`` for a
+    ``frame_transform`` or a reference image's transform; None when F is the mean of the
+    images' estimates (:class:`EstimateFrame`)."""
     if name == m.common_frame:
-        spec = ("identity",)
-        f = frame_transform(spec, ctx.grid, disk)
-        return spec, digest_of([spec[0], spec[1:]]), FrameMapping(name, "common", f, 0.0, 0.0)
+        return ("identity",)
+    reg = m.registrations[name]
     method = frame_method(reg)
     if method == "frame_transform":
-        spec = ("chain", reg.frame_transform)
-    elif method == "reference_index":
-        spec = ("chain", common_items[reg.reference_index])
-    else:
-        spec = None
-    plan = [
+        return ("chain", reg.frame_transform)
+    if method == "reference_index":
+        return ("chain", m.registrations[m.common_frame].transforms[reg.reference_index])
+    return None
+
+
+def digest_of_frame(spec: tuple) -> str:
+    """The digest of F's description `spec` (an estimated F's holds its entry's key, a
+    digest of its inputs): what the tasks that read F are keyed by."""
+    return digest_of([spec[0], spec[1:]])
+
+
+def estimate_plan(
+    ctx: TaskContext, m: Manifest, name: str, reg_grid: Geometry, *, for_mean: bool
+) -> list[EstimateFrame]:
+    """Every image's estimate of registration `name`'s frame (:class:`EstimateFrame`), in
+    image order: for its spread, and `for_mean`, for F itself."""
+    reg = m.registrations[name]
+    common_items = m.registrations[m.common_frame].transforms
+    return [
         EstimateFrame(
             grid=ctx.grid,
             common_item=common_items[i],
             item=reg.transforms[i],
             reg_grid=reg_grid,
             stored=np.dtype(_STORED_ESTIMATE).str,
-            for_mean=spec is None,
+            for_mean=for_mean,
         )
         for i in range(m.n_images)
     ]
-    keys = plan_keys(executor, plan, desc=f"{name}: frame")
-    mean_key = key_of(FrameMean(estimates=tuple(keys))) if spec is None else None
-    spread_key = key_of(FrameSpread(estimates=tuple(keys), frame=spec, mask_key=ctx.mask_key))
-    kept = disk.get("frame_spread", spread_key)
-    reused = kept is not None and (mean_key is None or disk.get("frame", mean_key) is not None)
-    if reused:  # F and its spread outlive the per-image estimates they were made from
-        for _ in keys:
-            counts.add(True)
-    else:
-        mean = _MeanOfEstimates(disk, keys) if mean_key is not None else None
-        for i, _key, _meta, was_cached in run_plan(
-            executor, ctx.root, plan, desc=f"{name}: frame", progress=progress
-        ):
-            counts.add(was_cached)
-            if mean is not None:
-                mean.arrived(i)
-        if mean is not None and disk.get("frame", mean_key) is None:
-            disk.put("frame", mean_key, {"disp": mean.result().astype(_STORED_FRAME)})
-    if mean_key is not None:
-        spec = ("field", mean_key)
-    digest = digest_of([spec[0], spec[1:]])
-    f = frame_transform(spec, ctx.grid, disk)
-    if reused:
-        spread = kept.meta
-    else:
-        spread = _frame_spread(executor, ctx, disk, keys, f, digest, progress, name)
-        disk.put("frame_spread", spread_key, {}, spread)
-        # The estimates are full-grid fields, a registration's N of them the largest thing
-        # in the cache, and nothing else reads them: a rerun takes F and its spread from
-        # their own entries.
-        for k in keys:
-            disk.remove("estimate_steps", k)
-            disk.remove("estimate", k)
-    return (
-        spec,
-        digest,
-        FrameMapping(
-            name,
-            method,
-            f,
-            spread["mean_mm"],
-            spread["max_mm"],
-            tuple(spread["per_image_mm"]),
-        ),
-    )
-
-
-def registration_mask(
-    disk: DiskCache,
-    ctx: TaskContext,
-    mask: np.ndarray | None,
-    frame: FrameMapping,
-    frame_digest: str,
-    reg_grid: Geometry,
-) -> str | None:
-    """Cache the mask carried into the registration's reference frame
-    (:class:`RegistrationMask`); return its key. None without a mask."""
-    if mask is None:
-        return None
-    task = RegistrationMask(
-        mask_key=ctx.mask_key,
-        frame_digest=frame_digest,
-        grid=ctx.grid,
-        reg_grid=reg_grid,
-        mask=mask,
-        frame=frame,
-    )
-    key, _meta, _reused = cached(task, disk)
-    return key
 
 
 @dataclass(frozen=True)
@@ -208,7 +153,7 @@ class EstimateFrame(Task):
     Stored as `stored` (the dtype of :func:`_stored_estimate`: 16-bit steps) for the
     spread, an entry of kind ``"estimate_steps"``, and, `for_mean`, as F is stored
     (``_STORED_FRAME``, float32) for the mean, kind ``"estimate"``: the driver adds those up
-    and removes them as the tasks finish (:class:`_MeanOfEstimates`). Both under the one
+    and removes them as the tasks finish (:class:`MeanOfEstimates`). Both under the one
     key of kind ``"estimate"``; `for_mean` only says which entries to keep (not keyed).
     """
 
@@ -221,7 +166,7 @@ class EstimateFrame(Task):
     for_mean: bool = field(default=False, metadata=NOT_KEYED)
 
     def entry_kinds(self) -> tuple[str, ...]:
-        return ("estimate_steps", "estimate") if self.for_mean else ("estimate_steps",)
+        return ESTIMATE_ENTRIES if self.for_mean else ESTIMATE_ENTRIES[:1]
 
     def compute_entries(self, cache: DiskCache) -> dict[str, Entry]:
         # the chains read where they are used: a composite held here too would keep a
@@ -239,7 +184,7 @@ class FrameMean(Keyed):
     """The key of the mean frame F (kind ``"frame"``: ``disp``, F(p) - p in mm,
     (*grid.shape, dim), ``_STORED_FRAME``): the mean of the estimates `estimates` (their
     keys, in image order), which the driver adds up as they arrive
-    (:class:`_MeanOfEstimates`)."""
+    (:class:`MeanOfEstimates`)."""
 
     kind: ClassVar[str] = "frame"
     estimates: tuple[str, ...]
@@ -294,7 +239,7 @@ def _estimate_values(entry) -> np.ndarray:
     return np.asarray(disp, np.float64)
 
 
-class _MeanOfEstimates:
+class MeanOfEstimates:
     """The mean of a registration's frame estimates ``F_i(p) - p``, added up in float64 in
     image order (whatever order the tasks finish in: the same bits as adding them up after
     the last) as they arrive; each estimate's ``"estimate"`` entry goes once added, so that
@@ -329,19 +274,27 @@ class _MeanOfEstimates:
             raise RuntimeError(f"frame: {self._next} of {len(self._keys)} estimates arrived")
         return self._total / len(self._keys)
 
+    def stored(self) -> dict[str, np.ndarray]:
+        """The frame's entry (:class:`FrameMean`): ``disp``, :meth:`result` as the cache
+        holds F (``_STORED_FRAME``)."""
+        return {"disp": self.result().astype(_STORED_FRAME)}
 
-def _frame_spread(executor, ctx, disk, keys, f, digest, progress, name) -> dict:
-    """How far each image's estimate `keys` lies from F (`f`): ``{"mean_mm", "max_mm",
-    "per_image_mm"}`` over the mask (mm)."""
+
+def frame_spread(
+    executor, ctx: TaskContext, disk: DiskCache, keys: Sequence[str], f: sitk.Transform,
+    digest: str, *, desc: str, progress: bool,
+) -> dict:  # fmt: skip
+    """How far each image's estimate (the ``estimate_steps`` entries `keys`) lies from F
+    (`f`, its content `digest`): ``{"mean_mm", "max_mm", "per_image_mm"}`` over the mask
+    (mm; :class:`FrameSpread`'s metadata). A reduction: F(p) - p once
+    (:class:`FrameDisplacement`, dropped after), then each image's sums on `executor`."""
     # F(p) - p on the common grid, once, for every image's spread task; dropped after
     disp_key, _meta, _reused = cached(
         FrameDisplacement(grid=ctx.grid, frame_digest=digest, transform=f), disk
     )
     calls = [(ctx, k, disp_key) for k in keys]
     parts = [(0.0, 0.0, 0)] * len(keys)
-    for i, part in executor.map(
-        _spread_task, calls, desc=f"{name}: frame spread", progress=progress
-    ):
+    for i, part in executor.map(_spread_task, calls, desc=desc, progress=progress):
         parts[i] = part
     disk.remove("frame_disp", disp_key)
     count = sum(part[2] for part in parts)
