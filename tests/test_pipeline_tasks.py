@@ -124,6 +124,17 @@ def test_only_the_wrapper_keys_an_entry():
     assert calling == {"key_of"}
 
 
+def test_only_the_driver_runs_plans():
+    """The task modules list tasks (plans) and compute nothing; the driver runs every plan
+    through the cache wrapper (issue 43: a plan of tasks, then reductions, then a driver)."""
+    folder = Path(_tasks.__file__).resolve().parent
+    runners = {p.name for p in folder.glob("*.py") if "run_plan(" in p.read_text()}
+    assert runners == {"_driver.py", "_tasks.py"}
+    for module in (_image_tasks, _label_metrics):
+        text = Path(module.__file__).read_text()
+        assert "executor" not in text and "cached(" not in text, module.__name__
+
+
 def test_a_task_stored_as_two_entries_runs_again_until_both_are_there(tmp_path, case):
     """The frame estimate is kept in 16-bit steps for the spread and, for the mean, as F is
     stored: two entries under one key. Found only when every entry it needs is there."""

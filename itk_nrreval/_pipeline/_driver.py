@@ -387,8 +387,10 @@ def _label_metrics(
     if not keep:
         for key in set(crisp_keys):
             disk.remove("crisp_labels", key)
-    by_subject = functools.partial(zip, cases.codes, strict=True)
-    return label_metrics(cases, dict(by_subject(voxels)), dict(by_subject(sides)))
+    subjects = list(cases.codes)  # the plans' order
+    return label_metrics(
+        cases, dict(zip(subjects, voxels, strict=True)), dict(zip(subjects, sides, strict=True))
+    )
 
 
 def _score_registration(

@@ -386,8 +386,13 @@ def _shares_sampling(
 class LabelSums(Task):
     """Per label of one resampled image (the ``resampled`` entry `resampled`): its gradient
     sum and its presence in the region (`mask_key`: the voxels every image covers, inside
-    the mask). Metadata only: ``{"gsum": [...], "present": [...]}``, one entry per label of
-    the image."""
+    the mask).
+
+    Metadata only, whether computed or found (:func:`~._tasks.cached`):
+    ``{"gsum": list of float, "present": list of bool}``, each of length K, the image's own
+    labels in the order of its entry's ``labels``: ``sum_v |grad A_k|`` over the region
+    (mm^-1 x voxels, :func:`~itk_nrreval._overlap_kernels.membership_gradient_sum`), and
+    whether A_k is nonzero anywhere in it."""
 
     kind: ClassVar[str] = "label_sums"
     resampled: str
