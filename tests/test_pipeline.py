@@ -549,7 +549,7 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
     ):
         for k, e in zip(keys, ests, strict=True):
             disk.put("estimate", k, {"disp": e})
-        mean = _common_frame._MeanOfEstimates(disk, keys)
+        mean = _common_frame.MeanOfEstimates(disk, keys)
         on_disk = []
         for i in order:
             mean.arrived(i)
@@ -558,14 +558,14 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
         np.testing.assert_array_equal(mean.result(), expected)
     # two images with the same inputs share one entry: it stays until both are added
     disk.put("estimate", "k0", {"disp": ests[0]})
-    twice = _common_frame._MeanOfEstimates(disk, ["k0", "k0"])
+    twice = _common_frame.MeanOfEstimates(disk, ["k0", "k0"])
     twice.arrived(1)
     twice.arrived(0)
     np.testing.assert_array_equal(twice.result(), ests[0].astype(np.float64))
     assert disk.get("estimate", "k0") is None
     with pytest.raises(RuntimeError, match="1 of 6 estimates arrived"):
         disk.put("estimate", keys[0], {"disp": ests[0]})
-        early = _common_frame._MeanOfEstimates(disk, keys)
+        early = _common_frame.MeanOfEstimates(disk, keys)
         early.arrived(0)
         early.result()
 

@@ -9,6 +9,7 @@ import ast
 import dataclasses
 import inspect
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -27,6 +28,8 @@ TASKS = [
     _label_metrics.CrispLabels,
     _label_metrics.LabelDistances,
     _common_frame.RegistrationMask,
+    _common_frame.EstimateFrame,
+    _common_frame.FrameDisplacement,
 ]
 
 
@@ -97,9 +100,87 @@ def test_every_task_is_a_frozen_object_that_does_not_key_or_store_itself(task_cl
     assert not called & {"task_key", "put", "get", "cached", "run_cached"}, called
 
 
-def test_no_task_outside_the_task_objects_keys_itself():
-    """Every ``task_key`` call of the per-image tasks is in the wrapper (the frame's tasks,
-    which estimate F from every image, are the driver's)."""
+def test_only_the_wrapper_keys_an_entry():
+    """``task_key`` is called in one place, :func:`_tasks.key_of`: every task, and every
+    entry a reduction adds up on the driver (the mean frame, its spread), is keyed by a
+    frozen description of its inputs."""
+    package = Path(_tasks.__file__).resolve().parents[1]
+    callers = {
+        str(path.relative_to(package))
+        for path in package.rglob("*.py")
+        if "task_key(" in path.read_text()
+    }
+    assert callers == {"_pipeline/_tasks.py", "_pipeline/_task_keys.py"}
+    tree = ast.parse(Path(_tasks.__file__).read_text())
+    calling = {
+        node.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef)
+        and any(
+            isinstance(c, ast.Call) and getattr(c.func, "id", "") == "task_key"
+            for c in ast.walk(node)
+        )
+    }
+    assert calling == {"key_of"}
+
+
+def test_only_the_driver_runs_plans():
+    """The task modules list tasks (plans) and compute nothing; the driver runs every plan
+    through the cache wrapper (issue 43: a plan of tasks, then reductions, then a driver)."""
+    folder = Path(_tasks.__file__).resolve().parent
+    runners = {p.name for p in folder.glob("*.py") if "run_plan(" in p.read_text()}
+    assert runners == {"_driver.py", "_tasks.py"}
     for module in (_image_tasks, _label_metrics):
         text = Path(module.__file__).read_text()
-        assert "task_key(" not in text, module.__name__
+        assert "executor" not in text and "cached(" not in text, module.__name__
+
+
+def test_a_task_stored_as_two_entries_runs_again_until_both_are_there(tmp_path, case):
+    """The frame estimate is kept in 16-bit steps for the spread and, for the mean, as F is
+    stored: two entries under one key. Found only when every entry it needs is there."""
+    grid, _image, transform = case
+    root = str(tmp_path / "cache")
+    fields = {
+        "grid": grid,
+        "common_item": [transform],
+        "item": [transform],
+        "reg_grid": grid,
+        "stored": np.dtype(np.uint16).str,
+    }
+    spread_only = _common_frame.EstimateFrame(**fields)
+    for_mean = _common_frame.EstimateFrame(**fields, for_mean=True)
+    assert _tasks.key_of(spread_only) == _tasks.key_of(for_mean)
+    key, _, reused = _tasks.run_cached(root, spread_only)
+    assert not reused
+    disk = DiskCache(root)
+    assert disk.get("estimate_steps", key) is not None and disk.get("estimate", key) is None
+    assert _tasks.run_cached(root, spread_only)[2]
+    assert not _tasks.run_cached(root, for_mean)[2]  # its second entry was missing
+    assert _tasks.run_cached(root, for_mean)[2]
+    disp = disk.get("estimate", key).array("disp")
+    # T^-1 o T: the identity, within the coarse inverse's error
+    assert disp.dtype == np.float32 and np.abs(disp).max() < 1e-2
+    # another stored dtype: another key
+    other = _common_frame.EstimateFrame(**{**fields, "stored": np.dtype(np.float32).str})
+    assert _tasks.key_of(other) != key
+
+
+@dataclasses.dataclass(frozen=True)
+class _TupleMeta(_tasks.Task):
+    """A task whose metadata holds a tuple and a numpy scalar."""
+
+    kind: ClassVar[str] = "label_sums"
+    x: int
+
+    def compute(self, cache):
+        return {}, {"pair": (self.x, 2.5), "half": np.float64(0.5)}
+
+
+def test_a_found_result_looks_like_a_computed_one(tmp_path, case):
+    """The wrapper returns the metadata as the entry holds it (JSON), computed or found."""
+    disk = DiskCache(tmp_path / "cache")
+    _, computed, reused = _tasks.cached(_TupleMeta(x=1), disk)
+    _, found, reused_again = _tasks.cached(_TupleMeta(x=1), disk)
+    assert (reused, reused_again) == (False, True)
+    assert computed == found == {"pair": [1, 2.5], "half": 0.5}
+    assert type(computed["half"]) is type(found["half"]) is float

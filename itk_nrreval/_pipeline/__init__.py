@@ -39,15 +39,18 @@ Its modules, in the order of the dataflow:
 
 - :mod:`._task_keys`: the cache keys and code versions of the tasks, and what every task
   of a run shares (:class:`~._task_keys.TaskContext`);
-- :mod:`._tasks`: the task objects' base and the content-keyed cache around running one;
-- :mod:`._common_frame`: each registration's common frame F, estimated and cached;
+- :mod:`._tasks`: the task objects' base and the content-keyed cache around running one
+  (:func:`~._tasks.cached`; :func:`~._tasks.key_of`, the only caller of ``task_key``);
+- :mod:`._common_frame`: each registration's common frame F: its estimate tasks, the keys
+  of the mean and spread added up from them;
 - :mod:`._image_tasks`: the per-image tasks (the transform's measures, the resampled image
   and memberships, the label sums, the bias-corrected image, the brain mask) and their
-  plan over a registration;
+  plans over a registration;
 - :mod:`._coverage`: the images' coverage of the common grid and the evaluated region;
 - :mod:`._reduction`: the per-voxel-block reductions to a registration's scores;
-- :mod:`._label_metrics`: Dice and HD95 per label, as tasks;
-- :mod:`._driver`: :func:`run_pipeline`, which runs them in that order.
+- :mod:`._label_metrics`: Dice and HD95 per label: their tasks, plans and assembly;
+- :mod:`._driver`: :func:`run_pipeline`, which runs the plans through the cache, then the
+  reductions, in that order.
 """
 
 from ._coverage import COVERAGE_WARNING, Coverage

@@ -1,12 +1,15 @@
-"""The common frame F of each registration, as the pipeline estimates and caches it.
+"""The common frame F of each registration: its description, its tasks and their keys.
 
 A registration that is not the common one is brought into the common frame by ``F``:
-a transform of the manifest (``frame_transform`` or a reference image's transform), or the
-mean over the images of ``F_i = (T_i^R)^-1 o T_i^C`` (:func:`itk_nrreval.frame.frame_estimate`),
-one task per image (:func:`_estimate_task`), added up as the tasks finish
-(:class:`_MeanOfEstimates`); and how far each estimate lies from F (its spread, reported).
+a transform of the manifest (``frame_transform`` or a reference image's transform:
+:func:`given_frame`), or the mean over the images of ``F_i = (T_i^R)^-1 o T_i^C``
+(:func:`itk_nrreval.frame.frame_estimate`), one task per image (:class:`EstimateFrame`,
+listed by :func:`estimate_plan`), added up as the tasks finish (:class:`MeanOfEstimates`,
+its entry under :class:`FrameMean`'s key); and how far each estimate lies from F (its
+spread, reported: :func:`frame_spread`, from F(p) - p, :class:`FrameDisplacement`; its
+entry under :class:`FrameSpread`'s key). The driver runs the tasks and these reductions.
 Here too: F read back from its description (:func:`frame_transform`) and the mask carried
-into a registration's reference frame (:func:`registration_mask`).
+into a registration's reference frame (:class:`RegistrationMask`).
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import collections
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import SimpleITK as sitk
@@ -34,8 +37,8 @@ from ..frame import (
 )
 from ..manifest import Manifest
 from ..transforms import chain_transform, field_transform, invert
-from ._task_keys import TaskContext, task_key
-from ._tasks import NOT_KEYED, Task, cached
+from ._task_keys import TaskContext
+from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached
 
 #: How the frame estimates ``F_i(p) - p`` (mm) are cached for their spread, until it is
 #: kept: ``np.uint16``, each vector component in 65535 equal steps between its least and
@@ -44,13 +47,17 @@ from ._tasks import NOT_KEYED, Task, cached
 #: (8e-4 mm over a 100 mm range; the coarse inverse's own error is about 1e-2 mm,
 #: ``frame.ESTIMATE_FIELD_STEP``); or a float dtype, stored as that
 #: (:func:`_stored_estimate`). The mean F is added up from the estimates as F is stored
-#: (``_STORED_FRAME``), each removed once added (:class:`_MeanOfEstimates`).
+#: (``_STORED_FRAME``), each removed once added (:class:`MeanOfEstimates`).
 _STORED_ESTIMATE = np.uint16
 
 #: The dtype of the frame F (mean of the estimates, ``F(p) - p``, mm) in the cache, and of
 #: the estimates it is added up from: float32 halves the entries (216 -> 108 MB at 1 mm)
 #: and rounds a displacement of up to 100 mm by less than 1e-5 mm.
 _STORED_FRAME = np.float32
+
+#: The kinds of entry of a frame estimate (:class:`EstimateFrame`): for the spread, and for
+#: the mean.
+ESTIMATE_ENTRIES = ("estimate_steps", "estimate")
 
 
 def frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Transform:
@@ -65,99 +72,46 @@ def frame_transform(spec: tuple, grid: Geometry, cache: DiskCache) -> sitk.Trans
     return field_transform(img)
 
 
-def registration_frame(executor, ctx, disk, m: Manifest, name, reg_grid, counts, progress):
-    """F for registration `name`: its task description, the digest of that, its FrameMapping."""
-    reg = m.registrations[name]
-    common_items = m.registrations[m.common_frame].transforms
+def given_frame(m: Manifest, name: str) -> tuple | None:
+    """F of registration `name` where the manifest gives it, as :func:`frame_transform`
+    reads it: ``("identity",)`` for the common frame, ``("chain", item)`` for a
+    ``frame_transform`` or a reference image's transform; None when F is the mean of the
+    images' estimates (:class:`EstimateFrame`)."""
     if name == m.common_frame:
-        spec = ("identity",)
-        f = frame_transform(spec, ctx.grid, disk)
-        return spec, digest_of([spec[0], spec[1:]]), FrameMapping(name, "common", f, 0.0, 0.0)
+        return ("identity",)
+    reg = m.registrations[name]
     method = frame_method(reg)
     if method == "frame_transform":
-        spec = ("chain", reg.frame_transform)
-    elif method == "reference_index":
-        spec = ("chain", common_items[reg.reference_index])
-    else:
-        spec = None
-    calls = [(ctx, common_items[i], reg.transforms[i], reg_grid) for i in range(m.n_images)]
-    keys = [""] * m.n_images
-    # on the workers: a key digests its transform files' content (kept per process)
-    for i, key in executor.map(_estimate_key, calls, desc=f"{name}: frame", progress=False):
-        keys[i] = key
-    frame_key = task_key("frame", keys) if spec is None else None
-    spread_key = task_key("frame_spread", keys, spec, ctx.mask_key)
-    kept = disk.get("frame_spread", spread_key)
-    reused = kept is not None and (frame_key is None or disk.get("frame", frame_key) is not None)
-    if reused:  # F and its spread outlive the per-image estimates they were made from
-        for _ in keys:
-            counts.add(True)
-    else:
-        for_mean = frame_key is not None
-        tasks = [
-            (ctx, keys[i], common_items[i], reg.transforms[i], reg_grid, for_mean)
-            for i in range(m.n_images)
-        ]
-        mean = _MeanOfEstimates(disk, keys) if for_mean else None
-        for i, was_cached in executor.map(
-            _estimate_task, tasks, desc=f"{name}: frame", progress=progress
-        ):
-            counts.add(was_cached)
-            if mean is not None:
-                mean.arrived(i)
-        if mean is not None and disk.get("frame", frame_key) is None:
-            disk.put("frame", frame_key, {"disp": mean.result().astype(_STORED_FRAME)})
-    if frame_key is not None:
-        spec = ("field", frame_key)
-    digest = digest_of([spec[0], spec[1:]])
-    f = frame_transform(spec, ctx.grid, disk)
-    if reused:
-        spread = kept.meta
-    else:
-        spread = _frame_spread(executor, ctx, disk, keys, f, digest, progress, name)
-        disk.put("frame_spread", spread_key, {}, spread)
-        # The estimates are full-grid fields, a registration's N of them the largest thing
-        # in the cache, and nothing else reads them: a rerun takes F and its spread from
-        # their own entries.
-        for k in keys:
-            disk.remove("estimate_steps", k)
-            disk.remove("estimate", k)
-    return (
-        spec,
-        digest,
-        FrameMapping(
-            name,
-            method,
-            f,
-            spread["mean_mm"],
-            spread["max_mm"],
-            tuple(spread["per_image_mm"]),
-        ),
-    )
+        return ("chain", reg.frame_transform)
+    if method == "reference_index":
+        return ("chain", m.registrations[m.common_frame].transforms[reg.reference_index])
+    return None
 
 
-def registration_mask(
-    disk: DiskCache,
-    ctx: TaskContext,
-    mask: np.ndarray | None,
-    frame: FrameMapping,
-    frame_digest: str,
-    reg_grid: Geometry,
-) -> str | None:
-    """Cache the mask carried into the registration's reference frame
-    (:class:`RegistrationMask`); return its key. None without a mask."""
-    if mask is None:
-        return None
-    task = RegistrationMask(
-        mask_key=ctx.mask_key,
-        frame_digest=frame_digest,
-        grid=ctx.grid,
-        reg_grid=reg_grid,
-        mask=mask,
-        frame=frame,
-    )
-    key, _meta, _reused = cached(task, disk)
-    return key
+def digest_of_frame(spec: tuple) -> str:
+    """The digest of F's description `spec` (an estimated F's holds its entry's key, a
+    digest of its inputs): what the tasks that read F are keyed by."""
+    return digest_of([spec[0], spec[1:]])
+
+
+def estimate_plan(
+    ctx: TaskContext, m: Manifest, name: str, reg_grid: Geometry, *, for_mean: bool
+) -> list[EstimateFrame]:
+    """Every image's estimate of registration `name`'s frame (:class:`EstimateFrame`), in
+    image order: for its spread, and `for_mean`, for F itself."""
+    reg = m.registrations[name]
+    common_items = m.registrations[m.common_frame].transforms
+    return [
+        EstimateFrame(
+            grid=ctx.grid,
+            common_item=common_items[i],
+            item=reg.transforms[i],
+            reg_grid=reg_grid,
+            stored=np.dtype(_STORED_ESTIMATE).str,
+            for_mean=for_mean,
+        )
+        for i in range(m.n_images)
+    ]
 
 
 @dataclass(frozen=True)
@@ -189,40 +143,87 @@ class RegistrationMask(Task):
         return {"mask": sitk.GetArrayFromImage(res).reshape(-1).astype(bool)}, {}
 
 
-def _estimate_key(ctx: TaskContext, common_item, item, reg_grid: Geometry) -> str:
-    return task_key(
-        "estimate", ctx.grid, common_item, item, reg_grid, np.dtype(_STORED_ESTIMATE).str
-    )
+@dataclass(frozen=True)
+class EstimateFrame(Task):
+    """One image's estimate of the frame F, ``F_i(p) - p = (T_i^R)^-1 o T_i^C (p) - p``
+    (:func:`~itk_nrreval.frame.frame_estimate`), (*grid.shape, dim) in mm over the common
+    grid `grid`: `common_item` is the image's transform in the common registration,
+    `item` in this one (defined on its reference grid `reg_grid`).
+
+    Stored as `stored` (the dtype of :func:`_stored_estimate`: 16-bit steps) for the
+    spread, an entry of kind ``"estimate_steps"``, and, `for_mean`, as F is stored
+    (``_STORED_FRAME``, float32) for the mean, kind ``"estimate"``: the driver adds those up
+    and removes them as the tasks finish (:class:`MeanOfEstimates`). Both under the one
+    key of kind ``"estimate"``; `for_mean` only says which entries to keep (not keyed).
+    """
+
+    kind: ClassVar[str] = "estimate"
+    grid: Geometry
+    common_item: Any
+    item: Any
+    reg_grid: Geometry
+    stored: str
+    for_mean: bool = field(default=False, metadata=NOT_KEYED)
+
+    def entry_kinds(self) -> tuple[str, ...]:
+        return ESTIMATE_ENTRIES if self.for_mean else ESTIMATE_ENTRIES[:1]
+
+    def compute_entries(self, cache: DiskCache) -> dict[str, Entry]:
+        # the chains read where they are used: a composite held here too would keep a
+        # second copy of its fields (0.2 GB at 1 mm) while the inverse and the sampling
+        # hold its pieces
+        disp = frame_estimate(self.common_item, self.item, self.grid, other_grid=self.reg_grid)
+        out = {"estimate_steps": (_stored_estimate(disp, self.stored), {})}
+        if self.for_mean:
+            out["estimate"] = ({"disp": disp.astype(_STORED_FRAME)}, {})
+        return out
 
 
-def _estimate_task(
-    ctx: TaskContext, key: str, common_item, item, reg_grid: Geometry, for_mean: bool
-) -> bool:
-    """Cache ``F_i(p) - p`` on the common grid (mm) under `key` (:func:`_estimate_key`):
-    in 16-bit steps for the spread (kind ``"estimate_steps"``, :func:`_stored_estimate`)
-    and, `for_mean`, as F is stored (kind ``"estimate"``, ``_STORED_FRAME``) for the mean,
-    which the driver adds up and removes as the tasks finish (:class:`_MeanOfEstimates`).
-    Return whether it was cached already."""
-    cache = ctx.cache()
-    if cache.get("estimate_steps", key) is not None and (
-        not for_mean or cache.get("estimate", key) is not None
-    ):
-        return True
-    # the chains read where they are used: a composite held here too would keep a second
-    # copy of its fields (0.2 GB at 1 mm) while the inverse and the sampling hold its pieces
-    disp = frame_estimate(common_item, item, ctx.grid, other_grid=reg_grid)
-    cache.put("estimate_steps", key, _stored_estimate(disp))
-    if for_mean:
-        cache.put("estimate", key, {"disp": disp.astype(_STORED_FRAME)})
-    return False
+@dataclass(frozen=True)
+class FrameMean(Keyed):
+    """The key of the mean frame F (kind ``"frame"``: ``disp``, F(p) - p in mm,
+    (*grid.shape, dim), ``_STORED_FRAME``): the mean of the estimates `estimates` (their
+    keys, in image order), which the driver adds up as they arrive
+    (:class:`MeanOfEstimates`)."""
+
+    kind: ClassVar[str] = "frame"
+    estimates: tuple[str, ...]
 
 
-def _stored_estimate(disp: np.ndarray) -> dict[str, np.ndarray]:
-    """The arrays of a frame estimate's entry for the spread (``_STORED_ESTIMATE``):
-    ``disp``, and when in steps, ``low`` and ``step`` (dim,)
+@dataclass(frozen=True)
+class FrameSpread(Keyed):
+    """The key of how far each estimate `estimates` lies from F (kind ``"frame_spread"``,
+    metadata ``{"mean_mm", "max_mm", "per_image_mm"}``), inside the mask `mask_key`: F is
+    the mean of the estimates when `frame` is None, else the transform `frame` describes
+    (:func:`frame_transform`)."""
+
+    kind: ClassVar[str] = "frame_spread"
+    estimates: tuple[str, ...]
+    frame: tuple | None
+    mask_key: str | None
+
+
+@dataclass(frozen=True)
+class FrameDisplacement(Task):
+    """F(p) - p (mm, (*grid.shape, dim), float64) on the common grid `grid`, for every
+    image's spread (kind ``"frame_disp"``: ``disp``); F's content is `frame_digest`, its
+    transform `transform` (not keyed)."""
+
+    kind: ClassVar[str] = "frame_disp"
+    grid: Geometry
+    frame_digest: str
+    transform: sitk.Transform = field(metadata=NOT_KEYED, compare=False, repr=False)
+
+    def compute(self, cache: DiskCache) -> Entry:
+        return {"disp": points_minus_grid(self.transform, self.grid)}, {}
+
+
+def _stored_estimate(disp: np.ndarray, stored: str | None = None) -> dict[str, np.ndarray]:
+    """The arrays of a frame estimate's entry for the spread, as `stored` (a dtype; default
+    ``_STORED_ESTIMATE``): ``disp``, and when in steps, ``low`` and ``step`` (dim,)
     (:func:`~itk_nrreval.frame.in_steps`; :func:`_estimate_values`). A field that is not
     finite everywhere is stored as float32."""
-    stored = np.dtype(_STORED_ESTIMATE)
+    stored = np.dtype(_STORED_ESTIMATE if stored is None else stored)
     steps = in_steps(disp, levels=int(np.iinfo(stored).max)) if stored.kind == "u" else None
     if steps is None:
         return {"disp": disp.astype(np.float32 if stored.kind == "u" else stored)}
@@ -238,7 +239,7 @@ def _estimate_values(entry) -> np.ndarray:
     return np.asarray(disp, np.float64)
 
 
-class _MeanOfEstimates:
+class MeanOfEstimates:
     """The mean of a registration's frame estimates ``F_i(p) - p``, added up in float64 in
     image order (whatever order the tasks finish in: the same bits as adding them up after
     the last) as they arrive; each estimate's ``"estimate"`` entry goes once added, so that
@@ -273,19 +274,27 @@ class _MeanOfEstimates:
             raise RuntimeError(f"frame: {self._next} of {len(self._keys)} estimates arrived")
         return self._total / len(self._keys)
 
+    def stored(self) -> dict[str, np.ndarray]:
+        """The frame's entry (:class:`FrameMean`): ``disp``, :meth:`result` as the cache
+        holds F (``_STORED_FRAME``)."""
+        return {"disp": self.result().astype(_STORED_FRAME)}
 
-def _frame_spread(executor, ctx, disk, keys, f, digest, progress, name) -> dict:
-    """How far each image's estimate `keys` lies from F (`f`): ``{"mean_mm", "max_mm",
-    "per_image_mm"}`` over the mask (mm)."""
+
+def frame_spread(
+    executor, ctx: TaskContext, disk: DiskCache, keys: Sequence[str], f: sitk.Transform,
+    digest: str, *, desc: str, progress: bool,
+) -> dict:  # fmt: skip
+    """How far each image's estimate (the ``estimate_steps`` entries `keys`) lies from F
+    (`f`, its content `digest`): ``{"mean_mm", "max_mm", "per_image_mm"}`` over the mask
+    (mm; :class:`FrameSpread`'s metadata). A reduction: F(p) - p once
+    (:class:`FrameDisplacement`, dropped after), then each image's sums on `executor`."""
     # F(p) - p on the common grid, once, for every image's spread task; dropped after
-    disp_key = task_key("frame_disp", ctx.grid, digest)
-    if disk.get("frame_disp", disp_key) is None:
-        disk.put("frame_disp", disp_key, {"disp": points_minus_grid(f, ctx.grid)})
+    disp_key, _meta, _reused = cached(
+        FrameDisplacement(grid=ctx.grid, frame_digest=digest, transform=f), disk
+    )
     calls = [(ctx, k, disp_key) for k in keys]
     parts = [(0.0, 0.0, 0)] * len(keys)
-    for i, part in executor.map(
-        _spread_task, calls, desc=f"{name}: frame spread", progress=progress
-    ):
+    for i, part in executor.map(_spread_task, calls, desc=desc, progress=progress):
         parts[i] = part
     disk.remove("frame_disp", disp_key)
     count = sum(part[2] for part in parts)

@@ -1,9 +1,13 @@
 """The driver of the evaluate pipeline: :func:`run_pipeline`.
 
-It measures every registration's transforms first (frames, coverage, plausibility), finds
-the region the scores are taken on, then, one registration at a time (so that the cache
-holds one registration's resampled images at a time), resamples its images, reduces them
-to its scores, its subjects' quality control and its label metrics, and returns a
+It is the one place that runs tasks. For each step it lists the step's tasks (a plan:
+frozen task objects, from :mod:`._common_frame`, :mod:`._image_tasks`,
+:mod:`._label_metrics`), runs the plan through the content-keyed cache on its executor
+(:func:`_run`: in this process, on threads or on Dask), then the step's reductions. It
+measures every registration's transforms first (frames, coverage, plausibility), finds the
+region the scores are taken on, then, one registration at a time (so that the cache holds
+one registration's resampled images at a time), resamples its images, reduces them to its
+scores, its subjects' quality control and its label metrics, and returns a
 :class:`PipelineRun`.
 """
 
@@ -19,29 +23,44 @@ from pathlib import Path
 
 import numpy as np
 
+from .._brain_masks import BrainMaskDice, subject_mask_dice
 from .._cache import DiskCache, digest_of
 from .._evaluation_options import Execution, Resampling
 from .._executors import Executor
-from .._images import Geometry, mask_array
-from .._resampled_images import ResampledImages, image_slice
-from ..frame import common_reference, label_values
+from .._images import Geometry, mask_array, read_image, warn_label_like
+from .._resampled_images import ResampledImages, image_slice, thumbnails
+from ..frame import FrameMapping, common_reference, frame_method, label_values
+from ..label_metrics import LabelMetrics
 from ..manifest import Manifest
 from ..plausibility import AffineFit, Plausibility, SubjectThresholds
 from ..subject_qc import SubjectQC, ranked
-from ._common_frame import frame_transform
+from ._common_frame import (
+    ESTIMATE_ENTRIES,
+    FrameMean,
+    FrameSpread,
+    MeanOfEstimates,
+    RegistrationMask,
+    digest_of_frame,
+    estimate_plan,
+    frame_spread,
+    frame_transform,
+    given_frame,
+)
 from ._coverage import check_region_covered, evaluated_region, left_out_of_scores
 from ._image_tasks import (
+    CachedMasks,
     Measured,
     Resampled,
-    bias_corrected_images,
-    brain_mask_dice,
-    label_sums,
-    measure_registration,
-    resample_registration,
+    bias_plan,
+    brain_mask_plan,
+    label_sums_plan,
+    measure_plan,
+    resample_plan,
 )
-from ._label_metrics import registration_label_metrics
+from ._label_metrics import crisp_plan, distances_plan, label_cases, label_metrics
 from ._reduction import ReducedRegistration, alternative_products, reduce_to_scores
 from ._task_keys import TaskContext
+from ._tasks import Task, cached, key_of, plan_keys, run_plan
 
 
 @dataclass(frozen=True)
@@ -147,7 +166,7 @@ def run_pipeline(
         # Every transform measured first (frames, coverage, plausibility): the region the
         # scores are taken on is known before any image is resampled.
         measured = {
-            name: measure_registration(
+            name: _measure(
                 executor, ctx, disk, m, name, mask=mask, counts=counts, progress=progress
             )
             for name in m.registrations
@@ -198,6 +217,182 @@ class _Counts:
             self.computed += 1
 
 
+def _run(
+    executor: Executor,
+    ctx: TaskContext,
+    plan: Sequence[Task],
+    *,
+    desc: str,
+    progress: bool,
+    counts: _Counts | None = None,
+) -> tuple[list[str], list[dict]]:
+    """Run `plan` through the cache on `executor` (:func:`~._tasks.run_plan`): every task's
+    key and metadata, in plan order; each task counted as found or computed in `counts`
+    (None: not counted, for work derived cheaply from other entries)."""
+    keys: list[str] = [""] * len(plan)
+    metas: list[dict] = [{}] * len(plan)
+    for i, key, meta, reused in run_plan(executor, ctx.root, plan, desc=desc, progress=progress):
+        keys[i], metas[i] = key, meta
+        if counts is not None:
+            counts.add(reused)
+    return keys, metas
+
+
+def _frame(
+    executor, ctx, disk, m, name, reg_grid, *, counts, progress
+) -> tuple[tuple, str, FrameMapping]:  # fmt: skip
+    """F for registration `name`: its description (:func:`frame_transform`), the digest of
+    that, its FrameMapping with the spread of the images' estimates about it.
+
+    Unless the manifest gives F (:func:`given_frame`), it is the mean of the estimates
+    (:func:`estimate_plan`), added up as their tasks finish (:class:`MeanOfEstimates`) and
+    cached under :class:`FrameMean`'s key; the spread under :class:`FrameSpread`'s. Both
+    outlive the estimates: a rerun finds them and runs no estimate."""
+    given = given_frame(m, name)
+    if name == m.common_frame:
+        f = frame_transform(given, ctx.grid, disk)
+        return given, digest_of_frame(given), FrameMapping(name, "common", f, 0.0, 0.0)
+    plan = estimate_plan(ctx, m, name, reg_grid, for_mean=given is None)
+    keys = plan_keys(executor, plan, desc=f"{name}: frame")
+    mean_key = None if given is not None else key_of(FrameMean(estimates=tuple(keys)))
+    spread_key = key_of(FrameSpread(estimates=tuple(keys), frame=given, mask_key=ctx.mask_key))
+    kept = disk.get("frame_spread", spread_key)
+    reused = kept is not None and (mean_key is None or disk.get("frame", mean_key) is not None)
+    if reused:  # F and its spread outlive the per-image estimates they were made from
+        for _ in keys:
+            counts.add(True)
+    else:
+        mean = None if mean_key is None else MeanOfEstimates(disk, keys)
+        for i, _key, _meta, was_cached in run_plan(
+            executor, ctx.root, plan, desc=f"{name}: frame", progress=progress
+        ):
+            counts.add(was_cached)
+            if mean is not None:
+                mean.arrived(i)
+        if mean is not None and disk.get("frame", mean_key) is None:
+            disk.put("frame", mean_key, mean.stored())
+    spec = given if mean_key is None else ("field", mean_key)
+    digest = digest_of_frame(spec)
+    f = frame_transform(spec, ctx.grid, disk)
+    if reused:
+        spread = kept.meta
+    else:
+        spread = frame_spread(
+            executor, ctx, disk, keys, f, digest, desc=f"{name}: frame spread", progress=progress
+        )
+        disk.put("frame_spread", spread_key, {}, spread)
+        # The estimates are full-grid fields, a registration's N of them the largest thing
+        # in the cache, and nothing else reads them: a rerun takes F and its spread from
+        # their own entries.
+        for k in keys:
+            for kind in ESTIMATE_ENTRIES:
+                disk.remove(kind, k)
+    method = frame_method(m.registrations[name])
+    per_image = tuple(spread["per_image_mm"])
+    return (
+        spec,
+        digest,
+        FrameMapping(name, method, f, spread["mean_mm"], spread["max_mm"], per_image),
+    )
+
+
+def _measure(executor, ctx, disk, m, name, *, mask, counts, progress) -> Measured:
+    """Registration `name`'s frame F (:func:`_frame`) and every image's transform measured
+    (:func:`measure_plan`: coverage of the common grid, plausibility), cached."""
+    reg_grid = Geometry.from_image(
+        read_image(m.registrations[name].reference, what="reference image")
+    )
+    spec, digest, frame = _frame(
+        executor, ctx, disk, m, name, reg_grid, counts=counts, progress=progress
+    )
+    reg_mask_key = None
+    if mask is not None:  # the mask in the registration's reference frame
+        task = RegistrationMask(
+            mask_key=ctx.mask_key, frame_digest=digest, grid=ctx.grid, reg_grid=reg_grid,
+            mask=mask, frame=frame,
+        )  # fmt: skip
+        reg_mask_key, _meta, _reused = cached(task, disk)
+    if spec[0] == "field":
+        # The tasks read F from the cache; the driver holds its transform (a full-size
+        # field, 0.2 GB at 1 mm per registration) only once the reductions are done
+        # (:func:`_with_held_arrays`).
+        frame = dataclasses.replace(frame, transform=None)
+    plan = measure_plan(
+        ctx, m, name, frame_spec=spec, frame_digest=digest, reg_grid=reg_grid,
+        reg_mask_key=reg_mask_key,
+    )  # fmt: skip
+    keys, metas = _run(
+        executor, ctx, plan, desc=f"{name}: measures", progress=progress, counts=counts
+    )
+    return Measured(keys, metas, frame, spec, digest, reg_grid)
+
+
+def _resample(
+    executor, ctx, disk, m, name, reg: Measured, *, counts, warned, own_values, resampling,
+    progress,
+) -> Resampled:  # fmt: skip
+    """Every image of registration `name` resampled into the common frame
+    (:func:`resample_plan`), cached, with its labels' memberships; label-like images warned
+    once (`warned`: those warned already); the thumbnails."""
+    plan = resample_plan(
+        ctx, m, name, reg, own_values=own_values, interpolation=resampling.interpolation,
+        labels=(resampling.label_interpolation, resampling.label_sigma_mm),
+    )  # fmt: skip
+    keys, found = _run(
+        executor, ctx, plan, desc=f"{name}: resampling", progress=progress, counts=counts
+    )
+    metas = [{**measured, **meta} for measured, meta in zip(reg.metas, found, strict=True)]
+    for i, meta in enumerate(found):
+        if meta.get("label_like") and i not in warned:
+            warned.add(i)
+            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=5)
+    pictures = thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
+    return Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, pictures)
+
+
+def _brain_masks(
+    executor, ctx, disk, m, name, reg: Measured, *, mask, counts, label_interpolation,
+    progress,
+) -> BrainMaskDice | None:  # fmt: skip
+    """Every subject's brain mask (the manifest's ``masks``) in the common frame under
+    registration `name` (:func:`brain_mask_plan`), and its Dice against the common mask:
+    the manifest's `mask` (on the common grid) where given, else the majority vote of the
+    resampled masks (:func:`~itk_nrreval._brain_masks.subject_mask_dice`). None without
+    ``masks``."""
+    if m.masks is None:
+        return None
+    plan = brain_mask_plan(ctx, m, name, reg, label_interpolation=label_interpolation)
+    keys, _ = _run(
+        executor, ctx, plan, desc=f"{name}: brain masks", progress=progress, counts=counts
+    )
+    return subject_mask_dice(CachedMasks(disk, keys, ctx.grid.shape), common=mask)
+
+
+def _label_metrics(
+    executor, ctx, disk, m, name, r: Resampled, *, scored, values, keep, progress
+) -> LabelMetrics | None:  # fmt: skip
+    """Registration `name`'s Dice and HD95 (mm) per label and case in the common frame
+    (:mod:`itk_nrreval.label_metrics`), from its resampled entries (`r`): each scored
+    subject's crisp map (:func:`crisp_plan`), then its side of its cases
+    (:func:`distances_plan`; the cases: :func:`label_cases`). The crisp maps leave the
+    cache afterwards unless `keep`. None without labels."""
+    if values is None:
+        return None
+    cases = label_cases(m, name, r, scored=scored, values=values)
+    plan = crisp_plan(ctx, r, cases)
+    crisp_keys, voxels = _run(executor, ctx, plan, desc=f"{name}: label maps", progress=progress)
+    crisp = dict(zip(cases.codes, crisp_keys, strict=True))
+    plan = distances_plan(ctx, crisp, cases)
+    _, sides = _run(executor, ctx, plan, desc=f"{name}: Dice and HD95", progress=progress)
+    if not keep:
+        for key in set(crisp_keys):
+            disk.remove("crisp_labels", key)
+    subjects = list(cases.codes)  # the plans' order
+    return label_metrics(
+        cases, dict(zip(subjects, voxels, strict=True)), dict(zip(subjects, sides, strict=True))
+    )
+
+
 def _score_registration(
     executor, ctx, region_ctx, disk, m, name, reg: Measured, *, coverage, counts, warned,
     own_values, mask, scored, values, region, n_samples, seed, distance, resampling,
@@ -206,26 +401,15 @@ def _score_registration(
     """Registration `name` resampled, reduced to its scores, and its label metrics; its
     resampled images leave the cache unless `keep_resampled`, its mean image goes to the
     cache until the end (:func:`_with_held_arrays`)."""
-    method = resampling.label_interpolation
-    r = resample_registration(
-        executor,
-        ctx,
-        disk,
-        m,
-        name,
-        reg,
-        counts=counts,
-        warned=warned,
-        own_values=own_values,
-        interpolation=resampling.interpolation,
-        labels=(method, resampling.label_sigma_mm),
-        progress=progress,
-    )
+    r = _resample(
+        executor, ctx, disk, m, name, reg, counts=counts, warned=warned,
+        own_values=own_values, resampling=resampling, progress=progress,
+    )  # fmt: skip
     check_region_covered(disk, name, r.keys, scored, region, ctx.grid)
     # before the reduction: the subjects' assessment (assess_subjects) reads them
-    brain_masks = brain_mask_dice(
+    brain_masks = _brain_masks(
         executor, ctx, disk, m, name, reg, mask=mask, counts=counts,
-        method=method, progress=progress,
+        label_interpolation=resampling.label_interpolation, progress=progress,
     )  # fmt: skip
     run = _reduce_registration(
         executor,
@@ -247,11 +431,11 @@ def _score_registration(
         assess_subjects=assess_subjects,
         flagged_pictured=flagged_pictured,
     )
-    label_metrics = registration_label_metrics(
+    metrics = _label_metrics(
         executor, region_ctx, disk, m, name, r, scored=scored, values=values,
         keep=keep_resampled, progress=progress,
     )  # fmt: skip
-    run = dataclasses.replace(run, label_metrics=label_metrics)
+    run = dataclasses.replace(run, label_metrics=metrics)
     if not keep_resampled:
         for key in set(r.keys):
             disk.remove("resampled", key)
@@ -271,10 +455,13 @@ def _reduce_registration(
     metas = r.metas
     if values is not None:
         # cheap and derived from the resampled entries: not in the counts
-        sums = label_sums(executor, region_ctx, name, r.keys, progress)
+        plan = label_sums_plan(region_ctx, r.keys)
+        _, sums = _run(executor, region_ctx, plan, desc=f"{name}: label sums", progress=progress)
         metas = [{**meta, **s} for meta, s in zip(metas, sums, strict=True)]
-    scored_keys = [r.keys[i] for i in scored]
-    bias_keys = bias_corrected_images(executor, region_ctx, name, scored_keys, progress)
+    plan = bias_plan(region_ctx, [r.keys[i] for i in scored])
+    bias_keys, _ = _run(
+        executor, region_ctx, plan, desc=f"{name}: bias correction", progress=progress
+    )
     run = reduce_to_scores(
         executor,
         region_ctx,

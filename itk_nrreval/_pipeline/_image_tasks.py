@@ -1,20 +1,19 @@
-"""The per-image tasks of the evaluate pipeline, and their plan over one registration.
+"""The per-image tasks of the evaluate pipeline, and their plans over one registration.
 
-Per image and registration, each a frozen task object run through the content-keyed cache
-(:func:`~itk_nrreval._pipeline._tasks.cached`): the transform's measures
-(:class:`MeasureTransform`: the common-grid voxels it brings the image's field of view to,
-and the deformation's plausibility) before any image is resampled; then the image resampled
-into the common frame with its label memberships (:class:`ResampleImage`); the per-label
-sums the overlap needs (:class:`LabelSums`); the image divided by its local mean
-(:class:`BiasCorrect`); the subject's brain mask in the common frame
-(:class:`ResampleBrainMask`). :func:`measure_registration`, :func:`resample_registration`,
-:func:`bias_corrected_images` and :func:`brain_mask_dice` plan them over a registration's
-images and run the plan through the executor.
+Per image and registration, each a frozen task object whose fields are its inputs, run
+through the content-keyed cache (:func:`~itk_nrreval._pipeline._tasks.cached`): the
+transform's measures (:class:`MeasureTransform`: the common-grid voxels it brings the
+image's field of view to, and the deformation's plausibility) before any image is
+resampled; then the image resampled into the common frame with its label memberships
+(:class:`ResampleImage`); the per-label sums the overlap needs (:class:`LabelSums`); the
+image divided by its local mean (:class:`BiasCorrect`); the subject's brain mask in the
+common frame (:class:`ResampleBrainMask`). :func:`measure_plan`, :func:`resample_plan`,
+:func:`label_sums_plan`, :func:`bias_plan` and :func:`brain_mask_plan` list them over a
+registration's images (computing nothing); the driver runs the plans.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -23,7 +22,7 @@ from typing import Any, ClassVar
 import numpy as np
 import SimpleITK as sitk
 
-from .._brain_masks import BrainMaskDice, resample_mask, subject_mask_dice
+from .._brain_masks import resample_mask
 from .._cache import DiskCache
 from .._images import (
     Geometry,
@@ -31,7 +30,6 @@ from .._images import (
     label_like_values,
     read_header,
     read_image,
-    warn_label_like,
 )
 from .._memberships import (
     SparseMemberships,
@@ -41,9 +39,10 @@ from .._memberships import (
     shares_grid,
 )
 from .._overlap_kernels import membership_gradient_sum
-from .._resampled_images import stored_memberships, thumbnails
+from .._resampled_images import stored_memberships
 from .._subject_measures import BIAS_SCALE_MM, bias_corrected
 from ..frame import resample_images, resampling_transform
+from ..manifest import Manifest
 from ..plausibility import deformation_measures
 from ..transforms import (
     PointMap,
@@ -54,9 +53,9 @@ from ..transforms import (
     has_only_fields,
     transform_pieces,
 )
-from ._common_frame import frame_transform, registration_frame, registration_mask
+from ._common_frame import frame_transform
 from ._task_keys import TaskContext, mask_flat
-from ._tasks import NOT_KEYED, Task, run_plan
+from ._tasks import NOT_KEYED, Task
 
 #: The dtype of the resampled images in the cache: float32 halves the entries (68 -> 34 MB at
 #: 1 mm) and changes the scores by parts in 1e7 (the reductions add up in float64;
@@ -89,23 +88,22 @@ class Resampled:
     thumbnails: dict[str, np.ndarray]
 
 
-def measure_registration(
-    executor, ctx, disk, m, name, *, mask, counts, progress
-) -> Measured:  # fmt: skip
-    """Registration `name`'s frame F and every image's transform measured
-    (:class:`MeasureTransform`: coverage of the common grid, plausibility), cached."""
+def measure_plan(
+    ctx: TaskContext,
+    m: Manifest,
+    name: str,
+    *,
+    frame_spec: tuple,
+    frame_digest: str,
+    reg_grid: Geometry,
+    reg_mask_key: str | None,
+) -> list[MeasureTransform]:
+    """Every image's transform of registration `name` to measure (:class:`MeasureTransform`),
+    in image order: F described by `frame_spec` (its content `frame_digest`), the
+    registration's reference grid `reg_grid` and the mask there (`reg_mask_key`, from
+    :class:`~._common_frame.RegistrationMask`)."""
     reg = m.registrations[name]
-    reg_grid = Geometry.from_image(read_image(reg.reference, what="reference image"))
-    frame_spec, frame_digest, frame = registration_frame(
-        executor, ctx, disk, m, name, reg_grid, counts, progress
-    )
-    reg_mask_key = registration_mask(disk, ctx, mask, frame, frame_digest, reg_grid)
-    if frame_spec[0] == "field":
-        # The tasks read F from the cache; the driver holds its transform (a full-size
-        # field, 0.2 GB at 1 mm per registration) only once the reductions are done
-        # (the driver's ``_with_held_arrays``).
-        frame = dataclasses.replace(frame, transform=None)
-    plan = [
+    return [
         MeasureTransform(
             grid=ctx.grid,
             mask_key=ctx.mask_key,
@@ -119,14 +117,6 @@ def measure_registration(
         )
         for i in range(m.n_images)
     ]
-    keys: list[str] = [""] * m.n_images
-    metas: list[dict] = [{}] * m.n_images
-    for i, key, meta, reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: measures", progress=progress
-    ):
-        keys[i], metas[i] = key, meta
-        counts.add(reused)
-    return Measured(keys, metas, frame, frame_spec, frame_digest, reg_grid)
 
 
 @dataclass(frozen=True)
@@ -208,14 +198,22 @@ def _image_grid(image) -> Geometry:
     return Geometry.from_image(read_header(image))
 
 
-def resample_registration(
-    executor, ctx, disk, m, name, reg: Measured, *, counts, warned, own_values,
-    interpolation, labels, progress,
-) -> Resampled:  # fmt: skip
-    """Every image of registration `name` resampled into the common frame (cached), with
-    its labels' memberships; label-like images warned once."""
+def resample_plan(
+    ctx: TaskContext,
+    m: Manifest,
+    name: str,
+    reg: Measured,
+    *,
+    own_values: Sequence[Sequence[int] | None],
+    interpolation: str,
+    labels: tuple[str, float | None],
+) -> list[ResampleImage]:
+    """Every image of registration `name` to resample into the common frame, with its
+    labels' memberships (:class:`ResampleImage`), in image order: through the frame `reg`
+    measured; `own_values`, each label map's nonzero values (None without labels);
+    `labels`, ``(method, sigma_mm)`` of the label resampling."""
     items = m.registrations[name].transforms
-    plan = [
+    return [
         ResampleImage(
             grid=ctx.grid,
             image=m.scored_images[i],
@@ -226,22 +224,12 @@ def resample_registration(
             reg_grid=reg.reference_grid,
             interpolation=interpolation,
             label_resampling=tuple(labels),
+            # the dtype as it is now (a test stores float64), in the key and the entry
+            stored=np.dtype(_STORED_IMAGE).str,
             own_values=None if own_values[i] is None else tuple(own_values[i]),
         )
         for i in range(m.n_images)
     ]
-    keys: list[str] = [""] * m.n_images
-    metas: list[dict] = [{}] * m.n_images
-    for i, key, meta, reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: resampling", progress=progress
-    ):
-        keys[i], metas[i] = key, {**reg.metas[i], **meta}
-        counts.add(reused)
-        if meta.get("label_like") and i not in warned:
-            warned.add(i)
-            warn_label_like(str(m.scored_images[i]), meta["label_like"], stacklevel=5)
-    pictures = thumbnails(disk, ctx.grid, reg.reference_grid, keys, reg.keys[0], metas)
-    return Resampled(keys, metas, reg.frame, reg.frame_spec, reg.reference_grid, pictures)
 
 
 @dataclass(frozen=True)
@@ -399,8 +387,13 @@ def _shares_sampling(
 class LabelSums(Task):
     """Per label of one resampled image (the ``resampled`` entry `resampled`): its gradient
     sum and its presence in the region (`mask_key`: the voxels every image covers, inside
-    the mask). Metadata only: ``{"gsum": [...], "present": [...]}``, one entry per label of
-    the image."""
+    the mask).
+
+    Metadata only, whether computed or found (:func:`~._tasks.cached`):
+    ``{"gsum": list of float, "present": list of bool}``, each of length K, the image's own
+    labels in the order of its entry's ``labels``: ``sum_v |grad A_k|`` over the region
+    (mm^-1 x voxels, :func:`~itk_nrreval._overlap_kernels.membership_gradient_sum`), and
+    whether A_k is nonzero anywhere in it."""
 
     kind: ClassVar[str] = "label_sums"
     resampled: str
@@ -445,45 +438,30 @@ class BiasCorrect(Task):
         return {"image": corrected.reshape(-1).astype(np.float32)}, {}
 
 
-def label_sums(executor, ctx: TaskContext, name: str, keys: Sequence[str], progress) -> list:
-    """Every resampled image's :class:`LabelSums` (metadata, in the order of `keys`)."""
-    plan = [LabelSums(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
-    out: list[dict] = [{}] * len(plan)
-    for i, _key, meta, _reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: label sums", progress=progress
-    ):
-        out[i] = meta
-    return out
+def label_sums_plan(ctx: TaskContext, keys: Sequence[str]) -> list[LabelSums]:
+    """The per-label sums (:class:`LabelSums`) of each resampled image of `keys`, in the
+    region (``ctx.mask_key``)."""
+    return [LabelSums(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
 
 
-def bias_corrected_images(
-    executor, ctx: TaskContext, name: str, keys: Sequence[str], progress
-) -> list[str]:
-    """Each of `keys`' resampled images divided by its local mean in the region
-    (:class:`BiasCorrect`), for the subjects' bias-corrected distances; their keys."""
-    plan = [BiasCorrect(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
-    out = [""] * len(plan)
-    for i, key, _meta, _reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: bias correction", progress=progress
-    ):
-        out[i] = key
-    return out
+def bias_plan(ctx: TaskContext, keys: Sequence[str]) -> list[BiasCorrect]:
+    """Each resampled image of `keys` divided by its local mean in the region
+    (:class:`BiasCorrect`), for the subjects' bias-corrected distances."""
+    return [BiasCorrect(resampled=k, mask_key=ctx.mask_key, grid=ctx.grid) for k in keys]
 
 
-def brain_mask_dice(
-    executor, ctx, disk, m, name, reg: Measured, *, mask, counts, method, progress
-) -> BrainMaskDice | None:  # fmt: skip
-    """Every subject's brain mask (the manifest's ``masks``) in the common frame under
-    registration `name`, and its Dice against the common mask: the manifest's `mask` (on
-    the common grid) where given, else the majority vote of the resampled masks
-    (:func:`~itk_nrreval._brain_masks.subject_mask_dice`). Resampled as the label maps are:
-    nearest neighbour for ``label_interpolation="nearest"``, else linear and inside at 0.5
-    (`method`). None without ``masks``."""
+def brain_mask_plan(
+    ctx: TaskContext, m: Manifest, name: str, reg: Measured, *, label_interpolation: str
+) -> list[ResampleBrainMask]:
+    """Every subject's brain mask (the manifest's ``masks``) to bring into the common frame
+    under registration `name` (:class:`ResampleBrainMask`), resampled as the label maps are:
+    nearest neighbour for ``label_interpolation="nearest"``, else linear and inside at 0.5.
+    Empty without ``masks``."""
     if m.masks is None:
-        return None
+        return []
     items = m.registrations[name].transforms
-    method = "nearest" if method == "nearest" else "linear"
-    plan = [
+    method = "nearest" if label_interpolation == "nearest" else "linear"
+    return [
         ResampleBrainMask(
             grid=ctx.grid,
             mask=m.masks[i],
@@ -494,13 +472,6 @@ def brain_mask_dice(
         )
         for i in range(m.n_images)
     ]
-    keys: list[str] = [""] * m.n_images
-    for i, key, _meta, reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: brain masks", progress=progress
-    ):
-        keys[i] = key
-        counts.add(reused)
-    return subject_mask_dice(_CachedMasks(disk, keys, ctx.grid.shape), common=mask)
 
 
 @dataclass(frozen=True)
@@ -527,7 +498,7 @@ class ResampleBrainMask(Task):
         return {"mask": np.packbits(inside.reshape(-1))}, {}
 
 
-class _CachedMasks(Sequence):
+class CachedMasks(Sequence):
     """The subjects' resampled brain masks read from the cache one at a time (bool, the
     common grid's numpy shape): N masks are never held at once."""
 

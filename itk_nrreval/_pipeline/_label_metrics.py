@@ -1,15 +1,18 @@
 """Dice and HD95 per label in the common frame, as tasks of the evaluate pipeline.
 
-Two small tasks per scored subject, each run through the content-keyed cache
-(:func:`~itk_nrreval._pipeline._tasks.cached`): its crisp label map and label boundaries in
-the evaluated region (:class:`CrispLabels`), then its side of its cases: the directed HD95
-distances and the Dice counts against the subjects it is compared with
-(:class:`LabelDistances`); :func:`registration_label_metrics` plans and runs them and
-assembles the registration's :class:`~itk_nrreval.label_metrics.LabelMetrics`.
+Two small tasks per scored subject, each a frozen task object run through the
+content-keyed cache (:func:`~itk_nrreval._pipeline._tasks.cached`): its crisp label map and
+label boundaries in the evaluated region (:class:`CrispLabels`), then its side of its
+cases: the directed HD95 distances and the Dice counts against the subjects it is compared
+with (:class:`LabelDistances`). :func:`label_cases` says which subjects are compared,
+:func:`crisp_plan` and :func:`distances_plan` list the tasks, and :func:`label_metrics`
+assembles the registration's :class:`~itk_nrreval.label_metrics.LabelMetrics` from their
+metadata; the driver runs the plans.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -20,45 +23,50 @@ from .._images import Geometry
 from .._output import json_number
 from .._resampled_images import stored_memberships
 from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
+from ..manifest import Manifest
 from ..subject_qc import reference_subject
 from ._image_tasks import Resampled
-from ._task_keys import mask_flat
-from ._tasks import NOT_KEYED, Task, run_plan
+from ._task_keys import TaskContext, mask_flat
+from ._tasks import NOT_KEYED, Task
 
 
-def registration_label_metrics(
-    executor, ctx, disk, m, name, r: Resampled, *, scored, values, keep, progress
-) -> LabelMetrics | None:  # fmt: skip
-    """Registration `name`'s Dice and HD95 (mm) per label and case in the common frame
-    (:mod:`itk_nrreval.label_metrics`), from its resampled entries (`r`): two small tasks
-    per scored subject, its crisp map (:class:`CrispLabels`) then its side of its cases
-    (:class:`LabelDistances`). The cases: each scored subject against the registration's
-    reference subject where it has one among the scored
-    (:func:`~itk_nrreval.subject_qc.reference_subject`), else every pair of scored
-    subjects. The crisp maps leave the cache afterwards unless `keep`. None without
-    labels."""
-    if values is None:
-        return None
-    n_codes = len(values)
+@dataclass(frozen=True)
+class LabelCases:
+    """The cases a registration's Dice and HD95 are taken on, and what each scored
+    subject's tasks compare.
+
+    Attributes
+    ----------
+    values : list of int
+        The run's label values, ``[0, *labels]``; a code is an index into it.
+    codes : dict of int to list of int
+        Each scored subject's own label codes.
+    reference : int or None
+        The registration's reference subject among the scored
+        (:func:`~itk_nrreval.subject_qc.reference_subject`), or None.
+    cases : list of (int, int)
+        Each scored subject against the reference where there is one, else every pair of
+        scored subjects (subject indices).
+    targets, dice_with : dict of int to list of int
+        Per scored subject, the subjects whose boundaries its distance map is read at, and
+        those it counts shared voxels with (each pair once).
+    """
+
+    values: list[int]
+    codes: dict[int, list[int]]
+    reference: int | None
+    cases: list[tuple[int, int]]
+    targets: dict[int, list[int]]
+    dice_with: dict[int, list[int]]
+
+
+def label_cases(
+    m: Manifest, name: str, r: Resampled, *, scored: Sequence[int], values: Sequence[int]
+) -> LabelCases:
+    """The :class:`LabelCases` of registration `name` from its resampled entries' metadata
+    (`r`) and its scored subjects (`scored`, indices)."""
     code_of = {int(v): c for c, v in enumerate(values)}
-    own = {i: [code_of[int(v)] for v in r.metas[i]["labels"]] for i in scored}
-    crisp_keys = [""] * m.n_images
-    counts: dict[int, np.ndarray] = {}
-    plan = [
-        CrispLabels(
-            resampled=r.keys[i],
-            mask_key=ctx.mask_key,
-            codes=tuple(own[i]),
-            n_codes=n_codes,
-            grid=ctx.grid,
-        )
-        for i in scored
-    ]
-    for k, crisp_key, meta, _reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: label maps", progress=progress
-    ):
-        crisp_keys[scored[k]] = crisp_key
-        counts[scored[k]] = np.asarray(meta["counts"], np.int64)
+    codes = {i: [code_of[int(v)] for v in r.metas[i]["labels"]] for i in scored}
     reg = m.registrations[name]
     ref = reference_subject(
         reg.reference,
@@ -80,36 +88,61 @@ def registration_label_metrics(
         targets[ref] = [i for i in scored if i != ref]
         dice_with = {i: [ref] for i in scored if i != ref}
         dice_with[ref] = []
-    plan = [
+    return LabelCases(list(values), codes, ref, cases, targets, dice_with)
+
+
+def crisp_plan(ctx: TaskContext, r: Resampled, cases: LabelCases) -> list[CrispLabels]:
+    """Each scored subject's crisp label map (:class:`CrispLabels`) from its resampled
+    entry (`r`), in the order of ``cases.codes``."""
+    return [
+        CrispLabels(
+            resampled=r.keys[i],
+            mask_key=ctx.mask_key,
+            codes=tuple(codes),
+            n_codes=len(cases.values),
+            grid=ctx.grid,
+        )
+        for i, codes in cases.codes.items()
+    ]
+
+
+def distances_plan(
+    ctx: TaskContext, crisp: Mapping[int, str], cases: LabelCases
+) -> list[LabelDistances]:
+    """Each scored subject's side of its cases (:class:`LabelDistances`), from the keys of
+    the crisp label maps (`crisp`, by subject), in the order of ``cases.codes``."""
+    return [
         LabelDistances(
             grid=ctx.grid,
-            subject=crisp_keys[i],
-            targets=tuple(crisp_keys[j] for j in targets[i]),
-            dice_with=tuple(crisp_keys[j] for j in dice_with[i]),
-            n_codes=n_codes,
+            subject=crisp[i],
+            targets=tuple(crisp[j] for j in cases.targets[i]),
+            dice_with=tuple(crisp[j] for j in cases.dice_with[i]),
+            n_codes=len(cases.values),
         )
-        for i in scored
+        for i in cases.codes
     ]
-    sides: dict[int, dict] = {}
-    for k, _key, side, _reused in run_plan(
-        executor, ctx.root, plan, desc=f"{name}: Dice and HD95", progress=progress
-    ):
-        sides[scored[k]] = side
-    if not keep:
-        for key in set(crisp_keys) - {""}:
-            disk.remove("crisp_labels", key)
-    at = {i: {j: row for row, j in enumerate(targets[i])} for i in scored}
-    shared = {i: {j: row for row, j in enumerate(dice_with[i])} for i in scored}
-    dice = np.full((len(cases), n_codes), np.nan)
-    hd95 = np.full((len(cases), n_codes), np.nan)
-    for row, (a, b) in enumerate(cases):
+
+
+def label_metrics(
+    cases: LabelCases, counts: Mapping[int, dict], sides: Mapping[int, dict]
+) -> LabelMetrics:
+    """Dice and HD95 (mm) per label and case from each scored subject's :class:`CrispLabels`
+    metadata (`counts`) and :class:`LabelDistances` metadata (`sides`), by subject."""
+    values, own = cases.values, cases.codes
+    n_codes = len(values)
+    voxels = {i: np.asarray(meta["counts"], np.int64) for i, meta in counts.items()}
+    at = {i: {j: row for row, j in enumerate(cases.targets[i])} for i in own}
+    shared = {i: {j: row for row, j in enumerate(cases.dice_with[i])} for i in own}
+    dice = np.full((len(cases.cases), n_codes), np.nan)
+    hd95 = np.full((len(cases.cases), n_codes), np.nan)
+    for row, (a, b) in enumerate(cases.cases):
         # a's boundary read in b's distance map, and b's in a's
         to_b = np.array(sides[b]["d95"][at[b][a]], np.float64)
         to_a = np.array(sides[a]["d95"][at[a][b]], np.float64)
         first, second = (a, b) if b in shared[a] else (b, a)
         inter = np.asarray(sides[first]["inter"][shared[first][second]], np.float64)
         for c in set(own[a]) & set(own[b]):  # a label both label maps have
-            total = counts[a][c] + counts[b][c]
+            total = voxels[a][c] + voxels[b][c]
             if total:
                 dice[row, c] = 2.0 * inter[c] / total
             if np.isfinite(to_a[c]) and np.isfinite(to_b[c]):
@@ -117,8 +150,8 @@ def registration_label_metrics(
     compared = [c for c in range(1, n_codes) if np.isfinite(dice[:, c]).any()]
     return LabelMetrics(
         labels=tuple(int(values[c]) for c in compared),
-        cases=tuple((int(a), int(b)) for a, b in cases),
-        reference=None if ref is None else int(ref),
+        cases=tuple((int(a), int(b)) for a, b in cases.cases),
+        reference=None if cases.reference is None else int(cases.reference),
         dice=dice[:, compared],
         hd95_mm=hd95[:, compared],
     )

@@ -93,10 +93,13 @@ class ReducedRegistration:
         the common grid, :func:`off_grid_subjects`): the rows of `gram` and `overlap_sums`.
     brain_masks : BrainMaskDice or None
         Every subject's brain-mask Dice in the common frame against the common mask
-        (:func:`brain_mask_dice`); None when the manifest has no ``masks``.
+        (:class:`~._image_tasks.ResampleBrainMask`,
+        :func:`~itk_nrreval._brain_masks.subject_mask_dice`); None when the manifest has no
+        ``masks``.
     label_metrics : LabelMetrics or None
         Dice and HD95 (mm) per label and case in the common frame
-        (:mod:`itk_nrreval.label_metrics`, :func:`registration_label_metrics`); None without labels.
+        (:mod:`itk_nrreval.label_metrics`, :func:`~._label_metrics.label_metrics`); None
+        without labels.
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, by `assess_subjects` of
         :func:`run_pipeline` (empty without it).

@@ -37,9 +37,11 @@ _TASK_VERSIONS = {
     # image, uint32 label indices (issue 30)
     # 5: inverse consistency refined at the round trip's points; the image from the
     # memberships' sampling of the transform (issue 30)
-    # 6: the transform's measures in their own entry, "measures" (issue 30; the number
-    # stayed 5 then, which the entry's new kind made harmless)
-    # 7: a task object's key (issue 43): the label option a tuple
+    # 6: the transform's measures in their own entry, "measures" (issue 30). The number
+    # stayed 5 then; harmless, as the key lost the mask, the registration's mask and the
+    # inverse-consistency option in that change, so no entry of before was found again
+    # 7: the number caught up (issue 43): the key's parts are 6's (digest_of reads a tuple
+    # as a list), so entries written under 5 since issue 30 are misses, never wrong hits
     "measures": 2,  # coverage and plausibility, before any image is resampled (issue 30)
     # 2: the non-diffeomorphic fraction and volume (issue 42)
     "label_sums": 1,
