@@ -42,8 +42,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
-each mode (:data:`MODES`: with labels, without labels, on the second scan). Seven fresh
-splits (:data:`FRESH` to :data:`FRESH7`) were each declared before their cases
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Eight fresh
+splits (:data:`FRESH` to :data:`FRESH8`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -201,6 +201,18 @@ FRESH7 = (
     "families_phantom2d_n24_s31",  # phantom 2D, N = 24, seed 31, the seven
     "families_mni2d_mix_s32",  # MNI-based 2D, N = 12, seed 32, FAMILIES_MIX
 )
+# Declared on 2026-11-28 (sixth session of issue 41), BEFORE these cases ran, with no rule
+# changed: on every families case so far, every roughness measure followed the true error
+# among the deformable registrations and specificity ran against it (docs/verdict.md, "The
+# shape model's generalization"): their demons and B-splines all over-fit, so "smoother is
+# better" was nearly always right there. FRESH8 spans both sides (FAMILIES_SPAN: demons up
+# to 16 mm field smoothing, a B-spline on a 60 mm grid) and checks today's verdict, which
+# credits the smoother registration in some pairs, where smoother may be worse.
+FRESH8 = (
+    "families_mni2d_span_s33",  # MNI-based 2D, N = 12, seed 33, FAMILIES_SPAN
+    "families_phantom2d_span_s34",  # phantom 2D, N = 12, seed 34, FAMILIES_SPAN
+    "families_mni2d_span_n16_s35",  # MNI-based 2D, N = 16, seed 35, FAMILIES_SPAN
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -220,7 +232,8 @@ FRESH7 = (
 # of FRESH2 and FRESH3..FRESH7 were judged with specificity at a common smoothness; they
 # check it.
 SPLITS = (
-    "tuning", "held-out", "fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7"
+    "tuning", "held-out", "fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7",
+    "fresh8",
 )  # fmt: skip
 #: A case -> the case of the same registrations scored on a second scan (the T2 images).
 SECOND_SCAN = {
@@ -236,7 +249,16 @@ SECOND_SCAN = {
     },
     **{
         c: f"unseen_{c}"
-        for c in TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4 + FRESH5 + FRESH6 + FRESH7
+        for c in TUNING
+        + HELD_OUT
+        + FRESH
+        + FRESH2
+        + FRESH3
+        + FRESH4
+        + FRESH5
+        + FRESH6
+        + FRESH7
+        + FRESH8
         if c.startswith("families_")
     },
 }
@@ -536,6 +558,17 @@ FAMILIES_MIX = {
 }
 
 
+#: Both sides of the smoothness that corresponds best (FRESH8): demons from rough (1 mm) to
+#: over-smooth (16 mm field smoothing), B-splines from a fine (10 mm) to a coarse (60 mm) grid.
+FAMILIES_SPAN = {
+    "affine": FAMILIES["affine"],
+    **{f"demons_{s:g}mm": ("fluid", "simpleitk", {"smoothing_mm": s}) for s in (1, 4, 8, 16)},
+    **{
+        f"bspline_{g:g}mm": ("pairwise", "elastix", {"grid_spacing": g}) for g in (10.0, 25.0, 60.0)
+    },
+}
+
+
 def _families(
     folder: Path,
     *,
@@ -772,6 +805,18 @@ def _cases() -> dict:
         "families_mni3d_n12_s30": {"kind": "mni", "seed": 30, "dim": 3, "n": 12, "spacing": 3.0},
         "families_phantom2d_n24_s31": {"kind": "phantom", "seed": 31, "n": 24},
         "families_mni2d_mix_s32": {"kind": "mni", "seed": 32, "registrations": FAMILIES_MIX},
+        "families_mni2d_span_s33": {"kind": "mni", "seed": 33, "registrations": FAMILIES_SPAN},
+        "families_phantom2d_span_s34": {
+            "kind": "phantom",
+            "seed": 34,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_span_n16_s35": {
+            "kind": "mni",
+            "seed": 35,
+            "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
@@ -938,6 +983,8 @@ def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
 def split_of(case: str) -> str:
     """The declared split of a case or of its second scan: one of :data:`SPLITS`."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
+    if base in FRESH8:
+        return "fresh8"
     if base in FRESH7:
         return "fresh7"
     if base in FRESH6:
@@ -972,7 +1019,9 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
-    declared = TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4 + FRESH5 + FRESH6 + FRESH7
+    declared = (
+        TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4 + FRESH5 + FRESH6 + FRESH7 + FRESH8
+    )
     bases = [c for c in cases if c in declared]
     table = {}
     for case in bases:
