@@ -49,7 +49,9 @@ test: install $(TORCH_STAMP) $(ANTS_STAMP)
 	          || (apt-get update && DEBIAN_FRONTEND=noninteractive \
 	              apt-get install -y --no-install-recommends slurm-wlm munge))) \
 	  || echo "slurm-wlm not installed: the real-SLURM tests will be skipped"
-	$(PY) -m pytest -q
+	# two test processes, one per core (pytest-xdist); a test file stays in one process, so its
+	# module fixtures are made once
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 demo: install
 	$(VENV)/bin/nrreval demo
