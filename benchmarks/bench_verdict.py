@@ -2,8 +2,8 @@
 
 Each case is one generated population (known true transforms) registered several ways; every
 registration's true mean correspondence error (mm,
-:func:`itk_nrreval.correspondence.correspondence_error`) is computed beside the evaluation,
-and the verdict's decided pairs
+:func:`itk_nrreval.experiments.correspondence.correspondence_error`) is computed beside the
+evaluation, and the verdict's decided pairs
 (:attr:`itk_nrreval.evaluation.Verdict.decisions`) are judged against it. For every pair of
 registrations whose true errors differ by more than ``MARGIN`` (10% of the smaller), the
 verdict is *right* (it decides the lower-error one better), *wrong* (the other way) or
@@ -12,7 +12,7 @@ open.
 
 Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
-* ``demo``: the demo's five registrations (:func:`itk_nrreval.demo.run_demo`, phantom);
+* ``demo``: the demo's five registrations (:func:`itk_nrreval.experiments.demo.run_demo`, phantom);
 * ``cheat``: the demo's registrations plus Rohlfing's class-matching cheat
   (:func:`bench_cheat.add_cheat`);
 * ``sweep_<case>``: the 2D sweeps of ``bench_sweeps.CASES`` (demons field / update smoothing,
@@ -274,9 +274,9 @@ def _quiet(function, *args, **kwargs):
 
 def _true_errors(evaluation, manifest: Path, data_manifest: Path) -> dict[str, float]:
     """True correspondence error (mm) of every registration, inside the manifest's mask."""
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.sweep import _truth_error
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.experiments.sweep import _truth_error
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform
 
     truth = load_manifest(data_manifest).registrations["truth"]
     chains = [chain_transform(t) for t in truth.transforms]
@@ -287,7 +287,7 @@ def _true_errors(evaluation, manifest: Path, data_manifest: Path) -> dict[str, f
 
 
 def _demo(folder: Path):
-    from itk_nrreval.demo import run_demo
+    from itk_nrreval.experiments.demo import run_demo
 
     demo = _quiet(
         run_demo, out=folder, n=N, n_samples=N_SAMPLES, seed=SEED, progress=False, log=print
@@ -309,9 +309,9 @@ def _cheat(folder: Path):
 def _sweep(
     folder: Path, *, kind: str, method: str, parameters: dict, engine=None, dim=2, n=N, spacing=None
 ):
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.sweep import sweep
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.experiments.sweep import sweep
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform
 
     data = _population(kind, dim=dim, n=n, spacing=spacing)
     m = load_manifest(data)
@@ -351,7 +351,7 @@ def _second_scan(folder: Path, *, case: str, registered: Path, data: Path):
     import dataclasses
 
     import itk_nrreval as nr
-    from itk_nrreval.manifest import load_manifest, write_manifest
+    from itk_nrreval.io.manifest import load_manifest, write_manifest
 
     both = load_manifest(data)
     t1 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t1"]
@@ -372,13 +372,13 @@ def _second_scan(folder: Path, *, case: str, registered: Path, data: Path):
 
 def _multimodal(folder: Path):
     """The phantom imaged in T1 and T2 (one group each), registered by
-    :func:`itk_nrreval.registration.register_multimodal` (joint, per-group, and their affine
-    stages) and scored with the mixture specificity (:mod:`bench_multimodal`'s runs)."""
+    :func:`itk_nrreval.experiments.registration.register_multimodal` (joint, per-group, and their
+    affine stages) and scored with the mixture specificity (:mod:`bench_multimodal`'s runs)."""
     import itk_nrreval as nr
     from data_synth import make_population, write_population
-    from itk_nrreval.correspondence import correspondence_error
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.registration import ElastixWorker, register_multimodal
+    from itk_nrreval.experiments.correspondence import correspondence_error
+    from itk_nrreval.experiments.registration import ElastixWorker, register_multimodal
+    from itk_nrreval.io.manifest import load_manifest
 
     runs = _bench("multimodal").RUNS
     contrasts = ("t1", "t2")
@@ -437,7 +437,7 @@ def _perturbed(folder: Path, perturbations: dict[str, list[np.ndarray]]):
     """
     import itk_nrreval as nr
     from data_synth.population import _field_image
-    from itk_nrreval.manifest import add_registration, load_manifest
+    from itk_nrreval.io.manifest import add_registration, load_manifest
 
     data = _population("phantom")
     truth = load_manifest(data).registrations["truth"]
@@ -503,15 +503,16 @@ def _fold_fields(seed: int, *, n_bumps: int = 8, sigma_mm: float = 4.0, amplitud
 
 
 def _truth_reference() -> Path:
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     return Path(load_manifest(_population("phantom")).registrations["truth"].reference)
 
 
 #: The registrations of a cross-family case, all to the cohort's own image 0 (its transform
-#: the identity): name -> (method, engine, options of :func:`itk_nrreval.registration.register`).
-#: The seven of the issue's held-out case: affine, diffeomorphic demons (SimpleITK) with
-#: field smoothing of 0.5-4 mm, B-spline (elastix) on a fine and a coarse grid.
+#: the identity): name -> (method, engine, options of
+#: :func:`itk_nrreval.experiments.registration.register`). The seven of the issue's held-out case:
+#: affine, diffeomorphic demons (SimpleITK) with field smoothing of 0.5-4 mm, B-spline (elastix) on
+#: a fine and a coarse grid.
 FAMILIES = {
     "affine": ("affine", "simpleitk", {}),
     **{f"demons_{s:g}mm": ("fluid", "simpleitk", {"smoothing_mm": s}) for s in (0.5, 1, 2, 4)},
@@ -554,8 +555,8 @@ def _families(
     import dataclasses
 
     import itk_nrreval as nr
-    from itk_nrreval.manifest import load_manifest, write_manifest
-    from itk_nrreval.registration import ElastixWorker, register
+    from itk_nrreval.experiments.registration import ElastixWorker, register
+    from itk_nrreval.io.manifest import load_manifest, write_manifest
 
     data = _population(kind, dim=dim, n=n, spacing=spacing, seed=seed, contrasts=("t1", "t2"))
     both = load_manifest(data)
@@ -618,14 +619,15 @@ def _families(
 def _subject_true_errors(evaluation, manifest: Path, data_manifest: Path, rows: list[int]):
     """True correspondence error (mm) of every registration, and of every subject in it,
     inside the manifest's mask: subject i's error is the mean over the common frame's points
-    p of ``|y_i - mean_j y_j|`` (:func:`itk_nrreval.correspondence.correspondence_error`,
-    whose mean over i it is; checked against it). `rows`: the registered images' entries
+    p of ``|y_i - mean_j y_j|``
+    (:func:`itk_nrreval.experiments.correspondence.correspondence_error`, whose mean over i it is;
+    checked against it). `rows`: the registered images' entries
     of the population manifest `data_manifest` (its truth)."""
-    from itk_nrreval._images import Geometry, mask_array, read_image
-    from itk_nrreval.correspondence import correspondence_error
-    from itk_nrreval.frame import read_chains, resampling_transform
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.transforms import chain_transform, displacement_field, invert
+    from itk_nrreval.experiments.correspondence import correspondence_error
+    from itk_nrreval.io._images import Geometry, mask_array, read_image
+    from itk_nrreval.io.frame import read_chains, resampling_transform
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform, displacement_field, invert
 
     truth = load_manifest(data_manifest).registrations["truth"]
     truth_grid = Geometry.from_image(read_image(truth.reference, what="truth reference"))
