@@ -240,21 +240,76 @@ SECOND_SCAN = {
         if c.startswith("families_")
     },
 }
-#: Package modules renamed since evaluations were saved (issue 28 underscored the
-#: implementation modules; Coverage, in every EvaluationResult, lived in the pipeline one):
-#: old name -> new name, so that a saved evaluation.pkl still loads.
-RENAMED_MODULES = {
+#: Package modules moved into rooms by issue 43 (io/, measures/, experiments/), by room.
+_ROOMS = {
+    "io": (
+        "_affine_fit _brain_masks _cache _displacements _elastix_files _field_kernels "
+        "_field_orientation _foreign_transforms _grid_slabs _images _in_memory_images _itk_hdf5 "
+        "_jacobian_kernels _label_channels _manifest_entries _manifest_files _membership_files "
+        "_membership_kernels _memberships _plausibility_thresholds _resampled_images "
+        "_transform_inversion _transform_io _transform_patterns frame label_names manifest "
+        "plausibility transforms"
+    ),
+    "measures": (
+        "_overlap_kernels _overlap_sums _ranks _reference_subject _subject_flags "
+        "_subject_measures _transform_mixups confidence label_metrics model overlap specificity "
+        "subject_qc verdict"
+    ),
+    "experiments": (
+        "_clamped_plate_spline _fold_check _perturbed_sets correspondence demo sweep warps"
+    ),
+}
+#: ... and those it renamed on the way: old name -> new dotted name under itk_nrreval.
+_RENAMED_INTO_ROOMS = {
+    "derivatives": "io.pipeline_outputs",
+    "validation": "experiments.perturbation",
+    "_validation_inputs": "experiments._perturbation_inputs",
+    "appearance": "experiments.appearance.model",
+    "diagnostics": "experiments.appearance.diagnose",
+}
+_ISSUE_43 = {
+    **{
+        f"itk_nrreval.{name}": f"itk_nrreval.{room}.{name}"
+        for room, names in _ROOMS.items()
+        for name in names.split()
+    },
+    **{f"itk_nrreval.{old}": f"itk_nrreval.{new}" for old, new in _RENAMED_INTO_ROOMS.items()},
+}
+#: Issue 28 underscored the implementation modules (Coverage, in every EvaluationResult,
+#: lived in the pipeline one).
+_ISSUE_28 = {
     f"itk_nrreval.{name}": f"itk_nrreval._{name}"
     for name in ("cache", "pipeline", "scaleout", "memberships", "elastix_files")
 }
+#: Package modules renamed since evaluations were saved: old name -> today's name, so that a
+#: saved evaluation.pkl still loads. Subpackages moved whole are in :data:`MOVED_PACKAGES`.
+RENAMED_MODULES = {
+    **_ISSUE_43,
+    **{old: _ISSUE_43.get(new, new) for old, new in _ISSUE_28.items()},
+}
+#: Subpackages issue 43 moved into rooms, every module in them with them.
+MOVED_PACKAGES = {
+    "itk_nrreval.registration": "itk_nrreval.experiments.registration",
+    "itk_nrreval._search": "itk_nrreval.measures._search",
+}
+
+
+def _renamed(module: str) -> str:
+    """Where the classes of a module that a saved evaluation names live today."""
+    if module in RENAMED_MODULES:
+        return RENAMED_MODULES[module]
+    for old, new in MOVED_PACKAGES.items():
+        if module == old or module.startswith(old + "."):
+            return new + module[len(old) :]
+    return module
 
 
 class _RenamingUnpickler(pickle.Unpickler):
-    """An unpickler that finds a class of a renamed module (:data:`RENAMED_MODULES`) under
-    its new module name."""
+    """An unpickler that finds a class of a renamed module (:data:`RENAMED_MODULES`,
+    :data:`MOVED_PACKAGES`) under its new module name."""
 
     def find_class(self, module: str, name: str):
-        return super().find_class(RENAMED_MODULES.get(module, module), name)
+        return super().find_class(_renamed(module), name)
 
 
 def _bench(name: str):
