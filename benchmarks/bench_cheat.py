@@ -1,7 +1,7 @@
 """Can the verdict be gamed? Rohlfing's class-matching cheat against the demo's registrations.
 
 The demo population (2D phantom, N = 36) is registered by the five genuine algorithms
-(:func:`itk_nrreval.demo.run_demo`). A sixth "registration" then maps every voxel of the
+(:func:`itk_nrreval.experiments.demo.run_demo`). A sixth "registration" then maps every voxel of the
 fluid reference to the nearest voxel of the same intensity class in each affinely aligned
 image (:func:`data_synth.cheat.class_matching_cheat`; classes: the reference's intensity
 quartiles inside the brain, background apart). The images it produces look like the
@@ -39,8 +39,8 @@ def add_cheat(demo_out: Path) -> Path:
     Returns ``demo_out / "manifest_cheat.yaml"``: the demo's manifest plus ``cheat``.
     """
     from data_synth.cheat import class_matching_cheat
-    from itk_nrreval.frame import read_chains
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.frame import read_chains
+    from itk_nrreval.io.manifest import load_manifest
 
     manifest_path = demo_out / "manifest.yaml"
     m = load_manifest(manifest_path)
@@ -73,7 +73,7 @@ def add_cheat(demo_out: Path) -> Path:
 
 def main() -> dict:
     import itk_nrreval as nr
-    from itk_nrreval.demo import run_demo
+    from itk_nrreval.experiments.demo import run_demo
 
     t0 = time.perf_counter()
     demo = run_demo(out=OUT, n=36, n_samples=SAMPLES, progress=False, log=lambda _: None)

@@ -168,8 +168,8 @@ def _floor_cpu_s(manifest: str, res, per_registration: int = FLOOR_IMAGES) -> di
     import SimpleITK as sitk
     import yaml
 
-    from itk_nrreval.frame import resampling_transform
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.io.frame import resampling_transform
+    from itk_nrreval.io.transforms import chain_transform
 
     data = yaml.safe_load(Path(manifest).read_text())
     reference = sitk.ReadImage(data["registrations"]["field_a"]["reference"])

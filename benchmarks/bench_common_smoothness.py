@@ -47,9 +47,9 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from itk_nrreval._images import Geometry, read_image
-from itk_nrreval.manifest import Manifest
-from itk_nrreval.transforms import (
+from itk_nrreval.io._images import Geometry, read_image
+from itk_nrreval.io.manifest import Manifest
+from itk_nrreval.io.transforms import (
     InMemoryTransform,
     chain_transform,
     displacement_field,
@@ -119,7 +119,7 @@ def smoothed_manifest(
         image; the folder is created).
     frames : dict of str to sitk.Transform, optional
         Each registration's F, common-frame points -> its reference-frame points
-        (:attr:`itk_nrreval.frame.FrameMapping.transform`), as the unsmoothed registrations
+        (:attr:`itk_nrreval.io.frame.FrameMapping.transform`), as the unsmoothed registrations
         were brought into the common frame; given, they are kept as the registrations'
         frame transforms (the common registration's is not needed), so that the smoothed
         fields are scored in the same frame rather than one estimated from smoothed fields.
@@ -214,7 +214,7 @@ def add_smoothed(bv, case: str) -> None:
     import time
 
     import itk_nrreval as nr
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     evaluation = bv._load(case)
     m = bv._quiet(load_manifest, _manifest_of(bv, case))
@@ -258,7 +258,7 @@ def _smoothed_preference(rule, a, b, smoothed, rough, folded, deforms):
 def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
     """The package's verdict with the rule's evidence added to every pair that has
     subject-level confidence (its smoother-fields step wrapped); None: as it is."""
-    from itk_nrreval import verdict as v
+    from itk_nrreval.measures import verdict as v
 
     if rule is None or smoothed is None:
         yield

@@ -32,8 +32,8 @@ import time
 import numpy as np
 import SimpleITK as sitk
 
-from itk_nrreval._images import Geometry
-from itk_nrreval.correspondence import spread_of_correspondence
+from itk_nrreval.experiments.correspondence import spread_of_correspondence
+from itk_nrreval.io._images import Geometry
 
 SEED = 0
 #: ("before-fix", None), ("same", s): s mm at every level, ("scaled", s): ``smoothing_mm = s``
@@ -107,13 +107,13 @@ def _error(transforms, reference: sitk.Image, to_template, mask: np.ndarray) -> 
 
 
 def _run(name: str, images, labels, to_template, settings) -> dict:
-    from itk_nrreval.registration import register
-    from itk_nrreval.registration.fluid import (
+    from itk_nrreval.experiments.registration import register
+    from itk_nrreval.experiments.registration.fluid import (
         FluidOptions,
         _match_histogram,
         demons_register,
     )
-    from itk_nrreval.transforms import field_transform
+    from itk_nrreval.io.transforms import field_transform
 
     t0 = time.perf_counter()
     aff = register(images, method="affine", seed=SEED, progress=False)

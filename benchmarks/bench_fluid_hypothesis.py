@@ -4,7 +4,7 @@ The demo and the sweeps show specificity choosing less smoothing of the demons f
 the true correspondence error does. The hypothesis was that weakly regularised fields
 "follow noise and bias in homogeneous tissue". Two measurements test it on a 2D phantom
 population of ``N`` subjects, registered with demons at each field smoothing of
-``SMOOTHING`` (:func:`itk_nrreval.sweep.sweep`, with the true transforms):
+``SMOOTHING`` (:func:`itk_nrreval.experiments.sweep.sweep`, with the true transforms):
 
 1. The population as generated (global intensity scale, smooth bias field, Rician noise)
    and the same subjects (same anatomy, same true transforms, same seed) with *clean*
@@ -26,9 +26,9 @@ from pathlib import Path
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval.manifest import add_registration, load_manifest
-from itk_nrreval.sweep import sweep
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.experiments.sweep import sweep
+from itk_nrreval.io.manifest import add_registration, load_manifest
+from itk_nrreval.io.transforms import chain_transform
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out" / "fluid_hypothesis"

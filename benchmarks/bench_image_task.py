@@ -48,7 +48,7 @@ plausibility timed again without inverse consistency, subtracted.
 
 A fourth run times reading the ``field`` registration's ``.h5`` as its pieces: ITK's reader
 with the composite taken apart (what the tasks did before) against h5py
-(:func:`itk_nrreval.transforms.transform_pieces`, since issue 30), as a ratio.
+(:func:`itk_nrreval.io.transforms.transform_pieces`, since issue 30), as a ratio.
 
 ``python benchmarks/run_all.py image_task`` runs it (about 5 minutes; the subject is
 generated once into ``benchmarks/out/image_task_1mm`` and reused).
@@ -156,11 +156,11 @@ def _measure(info: dict, name: str) -> dict:
     import numpy as np
     import SimpleITK as sitk
 
-    from itk_nrreval import plausibility
-    from itk_nrreval._cache import DiskCache
-    from itk_nrreval._images import Geometry, read_image
-    from itk_nrreval.frame import label_values, resampling_transform
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.io import plausibility
+    from itk_nrreval.io._cache import DiskCache
+    from itk_nrreval.io._images import Geometry, read_image
+    from itk_nrreval.io.frame import label_values, resampling_transform
+    from itk_nrreval.io.transforms import chain_transform
 
     tasks, _frames, Context = _task_modules()
     spent = dict.fromkeys(PARTS, 0.0)
@@ -182,7 +182,7 @@ def _measure(info: dict, name: str) -> dict:
     # since issue 30 the image is resampled inside the memberships' pass, from their sampling
     shared_sampling = hasattr(tasks, "resample_image_and_memberships")
     if shared_sampling:
-        from itk_nrreval import _memberships
+        from itk_nrreval.io import _memberships
 
         tasks.resample_image_and_memberships = timed(
             "memberships", tasks.resample_image_and_memberships
@@ -321,9 +321,9 @@ def _measure_estimate(info: dict) -> dict:
     frame: ``F_i = T_field^-1 o T_affine`` sampled on the common grid, on a cold cache."""
     import tempfile
 
-    from itk_nrreval import frame
-    from itk_nrreval._cache import DiskCache
-    from itk_nrreval._images import Geometry, read_image
+    from itk_nrreval.io import frame
+    from itk_nrreval.io._cache import DiskCache
+    from itk_nrreval.io._images import Geometry, read_image
 
     _tasks, frames, Context = _task_modules()
     spent = {"invert": 0.0}
@@ -370,11 +370,11 @@ def _measure_read(info: dict, repeats: int = 5) -> dict:
     """Reading the field registration's ``.h5`` (an affine map and a 1 mm displacement
     field) as its pieces: ``leaves(sitk.ReadTransform(path))`` (ITK's reader, then the
     composite taken apart: what the tasks did before) against
-    :func:`~itk_nrreval.transforms.transform_pieces` (h5py, since issue 30), the least CPU
+    :func:`~itk_nrreval.io.transforms.transform_pieces` (h5py, since issue 30), the least CPU
     seconds of `repeats` reads each, alternated, in this process."""
     import SimpleITK as sitk
 
-    from itk_nrreval.transforms import leaves, transform_pieces
+    from itk_nrreval.io.transforms import leaves, transform_pieces
 
     path = Path(info["transforms"]["field"])
     spent = {"itk": [], "pieces": []}

@@ -5,9 +5,9 @@ onto a grid of its own size through a composite transform like a registration's:
 displacement field (plane waves, up to 4 mm) followed by an affine (rotation, scaling, shear,
 translation). Side by side in one run, on the same inputs:
 
-* dense: ``itk_nrreval.frame.resample_memberships`` for one image -- the float32 one-hot
+* dense: ``itk_nrreval.io.frame.resample_memberships`` for one image -- the float32 one-hot
   vector image (27 channels) through one linear ``sitk.Resample``, (1, 27, *shape) float32;
-* sparse: ``itk_nrreval._memberships.resample_label_memberships``.
+* sparse: ``itk_nrreval.io._memberships.resample_label_memberships``.
 
 Wall and CPU (process) time are the medians of a few repeats; the results are checked to
 agree to 1e-6 at every voxel. Peak memory is the largest resident-set growth seen while one
@@ -32,9 +32,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from data_synth.phantom import make_phantom
-from itk_nrreval._images import Geometry
-from itk_nrreval._memberships import resample_label_memberships
-from itk_nrreval.frame import resample_memberships
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io._memberships import resample_label_memberships
+from itk_nrreval.io.frame import resample_memberships
 
 SEED = 20261123
 REPEATS_DENSE = 3

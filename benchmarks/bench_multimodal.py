@@ -3,7 +3,7 @@
 For a phantom and an MNI-based 2D population of ``N_SUBJECTS`` subjects, each imaged in a
 T1-like and a T2-like contrast (:mod:`data_synth`, known true correspondence), the group of
 2 x N_SUBJECTS images is registered with
-:func:`itk_nrreval.registration.register_multimodal`:
+:func:`itk_nrreval.experiments.registration.register_multimodal`:
 
 * ``joint``: every image to one T1 reference, mutual information (affine, B-spline);
 * ``per-group``: each modality to its own reference with normalised correlation, and one
@@ -18,8 +18,8 @@ the template. Reported per registration: the specificity of the Gaussian mixture
 Gaussian per modality; value, Monte-Carlo standard error, the T1 and T2 parts, and how many
 of the samples of each modality land nearest an image of the other), the specificity of one
 Gaussian over all images (groups ignored), and the true mean correspondence error over the
-head (:func:`itk_nrreval.correspondence.correspondence_error`) split into the spread within each
-modality and the distance between the two modalities' mean correspondences (the part a
+head (:func:`itk_nrreval.experiments.correspondence.correspondence_error`) split into the spread
+within each modality and the distance between the two modalities' mean correspondences (the part a
 shared link error makes, and which the mixture -- one Gaussian per modality, each around its
 own mean -- cannot see; the ``per-group-link-2mm`` row measures how little it sees).
 
@@ -43,11 +43,11 @@ import SimpleITK as sitk
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval.correspondence import correspondence_error
-from itk_nrreval.frame import read_chains, resampling_transform
-from itk_nrreval.manifest import load_manifest
-from itk_nrreval.registration import ElastixWorker, register_multimodal
-from itk_nrreval.transforms import displacement_field, flatten
+from itk_nrreval.experiments.correspondence import correspondence_error
+from itk_nrreval.experiments.registration import ElastixWorker, register_multimodal
+from itk_nrreval.io.frame import read_chains, resampling_transform
+from itk_nrreval.io.manifest import load_manifest
+from itk_nrreval.io.transforms import displacement_field, flatten
 
 QUICK = os.environ.get("MULTIMODAL_QUICK") == "1"
 N_SUBJECTS = 4 if QUICK else 12

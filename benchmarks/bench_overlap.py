@@ -26,7 +26,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from itk_nrreval.overlap import WEIGHTINGS, generalized_overlap, overlap_table
+from itk_nrreval.measures.overlap import WEIGHTINGS, generalized_overlap, overlap_table
 
 N_IMAGES = 36
 N_LABELS = 18

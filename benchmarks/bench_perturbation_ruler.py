@@ -12,7 +12,7 @@ specificity is fine-scale fit that half a pixel undoes.
 Measured on the verdict benchmark's two TUNING cases of registration families
 (``families_mni2d``, ``families_phantom2d``: affine, demons at 0.5-4 mm, B-splines on 10 and
 25 mm grids, each to subject 0): ``d`` = 0, 0.5, 1, 2, 3 pixels, 3 repeats, M = 5,000, seed 0
-(:func:`itk_nrreval.validation.validate_manifest` with each registration as the common
+(:func:`itk_nrreval.experiments.perturbation.validate_manifest` with each registration as the common
 frame; all seven share subject 0's grid). Spearman of each candidate against the true
 error, over the seven registrations and over the six deformable ones, is in
 ``docs/verdict.md`` ("A registration's own perturbations as a ruler"). No candidate orders
@@ -36,7 +36,7 @@ import numpy as np
 import yaml
 from scipy.stats import spearmanr
 
-from itk_nrreval.validation import validate_manifest
+from itk_nrreval.experiments.perturbation import validate_manifest
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out" / "verdict"

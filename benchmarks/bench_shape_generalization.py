@@ -35,9 +35,9 @@ import SimpleITK as sitk
 import yaml
 from scipy.stats import spearmanr
 
-from itk_nrreval._images import Geometry, read_image
-from itk_nrreval._transform_io import read_transform
-from itk_nrreval.frame import points_minus_grid
+from itk_nrreval.io._images import Geometry, read_image
+from itk_nrreval.io._transform_io import read_transform
+from itk_nrreval.io.frame import points_minus_grid
 
 HERE = Path(__file__).resolve().parent
 SHAPE_JSON = "shape.json"

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _search
+from itk_nrreval.measures import _search
 
 N, M, SHAPE = 36, 500_000, (64, 64)
 CHUNK = 8192

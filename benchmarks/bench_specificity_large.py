@@ -68,7 +68,9 @@ def case(n_images: int, distance: str, n_samples: int, path: str) -> dict:
     """One timed texture_measures call in this process; path "blocked", "old" or "both"."""
     import itk_nrreval as nr
 
-    spec_mod = importlib.import_module("itk_nrreval.specificity")  # the module, not the function
+    spec_mod = importlib.import_module(
+        "itk_nrreval.measures.specificity"
+    )  # the module, not the function
     model = build_model(n_images)
     rss_model = _peak_mb()
     forced = {"blocked": 0, "old": 1 << 60}

@@ -11,10 +11,10 @@ a swap are damaged), the right diagnoses (flagged with the right cause named), a
 diagnosis accuracy where one is named; the false positives among the undamaged subjects of
 the damaged cohorts (the subject a duplicate copies is flagged with it, and is counted
 apart: either of the two may be the copy) and of the clean cohorts; how many times better
-the alternatives of :func:`itk_nrreval.subject_qc.transform_mixups` fit (``better_fit``),
+the alternatives of :func:`itk_nrreval.measures.subject_qc.transform_mixups` fit (``better_fit``),
 which ``SubjectThresholds.better_fit_ratio`` was set from; and on the clean 2D cohorts the
 spread of each robust z-score (quantiles and the share beyond the default thresholds),
-which the other thresholds of :class:`itk_nrreval.plausibility.SubjectThresholds` were set
+which the other thresholds of :class:`itk_nrreval.io.plausibility.SubjectThresholds` were set
 from.
 
 Run with ``nice -n 5`` on a shared machine; ``SETTINGS`` sets the cost (about 4 minutes).

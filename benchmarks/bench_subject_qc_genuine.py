@@ -26,7 +26,7 @@ deformation z-scores, frame deviation, and the raw measures without a z), to lea
 terms track the true error.
 
 *The concern* is recomputed from each saved subject's z-scores by
-:func:`itk_nrreval.subject_qc.concern_scores` (the definition of issue 42: a weighted mean,
+:func:`itk_nrreval.measures.subject_qc.concern_scores` (the definition of issue 42: a weighted mean,
 chosen on the tuning split from this benchmark's terms), so cases saved before it are
 measured with it too; the largest of the five signed z-scores, the concern before issue 42,
 is reported beside it as a term (``largest z (before)``). The saved concern is checked to
@@ -34,12 +34,12 @@ be one of the two recomputed (the new one for cases saved since, the old one bef
 
 *Without labels.* The saved results were evaluated with labels, and the pickled evaluation
 does not keep the Gram matrix, deformation lists and overlap sums that
-:func:`itk_nrreval.subject_qc.assess_subjects` needs, so the quality control cannot be
+:func:`itk_nrreval.measures.subject_qc.assess_subjects` needs, so the quality control cannot be
 recomputed without labels from ``evaluation.pkl`` through the public API. It does not need
 to be: without labels, :func:`assess_subjects` differs only in having no overlap, so every
 other z-score, every other flag and the registration flags (the overlap flag is a z-score
 flag, never shared) are the same, and ``concern`` is the weighted mean of the other terms of
-:data:`~itk_nrreval.subject_qc.CONCERN_TERMS`. The without-labels mode is derived so
+:data:`~itk_nrreval.measures.subject_qc.CONCERN_TERMS`. The without-labels mode is derived so
 (overlap flags dropped, concern recomputed without the overlap term), and the derivation is
 checked on each run: on a generated cohort through :func:`assess_subjects` with and without
 overlap sums (:func:`check_unlabelled_derivation`), and by recomputing every saved subject's
@@ -82,7 +82,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 import itk_nrreval as nr
-from itk_nrreval.subject_qc import CONCERN_TERMS, assess_subjects, concern_scores
+from itk_nrreval.measures.subject_qc import CONCERN_TERMS, assess_subjects, concern_scores
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out" / "subject_qc_genuine"
@@ -102,7 +102,7 @@ MODES = (
     ("second scan, without labels", True, False),
 )
 #: A subject flag's kind, from the first words the package writes it with
-#: (:data:`itk_nrreval.subject_qc.FLAG_KINDS`); checked in order.
+#: (:data:`itk_nrreval.measures.subject_qc.FLAG_KINDS`); checked in order.
 FLAG_WORDS = (
     ("covers ", "off_grid"),
     ("left out of the scores", "left_out"),
@@ -187,7 +187,7 @@ _LARGEST_Z_TERMS = (
 
 def concern(q: dict, *, labels: bool, image_term: str = "corrected_z") -> float:
     """A saved subject's concern recomputed from its z-scores
-    (:func:`~itk_nrreval.subject_qc.concern_scores`), with or without the overlap term; NaN
+    (:func:`~itk_nrreval.measures.subject_qc.concern_scores`), with or without the overlap term; NaN
     for the reference or when no term was measured. ``image_term="z"`` puts the model
     distance's z where the bias-corrected distance's is: the concern before it."""
     if q["reference"]:
@@ -350,7 +350,7 @@ def rescore(folder: Path) -> float:
     confidence (neither changes a subject's numbers); returns the seconds it took."""
     import time
 
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     t0 = time.perf_counter()
     with warnings.catch_warnings():

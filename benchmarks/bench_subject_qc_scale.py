@@ -273,7 +273,7 @@ def alone(path: str) -> None:
     """:func:`time_alone`'s process: time the algebra on the saved inputs `path`."""
     import numpy as np
 
-    from itk_nrreval.subject_qc import SubjectQC, leave_one_out_distances, transform_mixups
+    from itk_nrreval.measures.subject_qc import SubjectQC, leave_one_out_distances, transform_mixups
 
     saved = np.load(path)
     subjects = [

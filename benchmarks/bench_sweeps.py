@@ -2,7 +2,7 @@
 
 For each generated population (phantom and MNI-based 2D, one 3D phantom) and each sweep
 (demons smoothing of the field and of the update, B-spline grid spacing and bending weight),
-:func:`itk_nrreval.sweep.sweep` registers the population once per setting and evaluates
+:func:`itk_nrreval.experiments.sweep.sweep` registers the population once per setting and evaluates
 every setting; the population's true transforms give each setting's true mean
 correspondence error. Reported per sweep: the setting chosen
 by specificity (the verdict's best: lowest specificity among unflagged settings), the
@@ -22,9 +22,9 @@ import time
 from pathlib import Path
 
 from itk_nrreval.cli import main as cli
-from itk_nrreval.manifest import load_manifest
-from itk_nrreval.sweep import sweep
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.experiments.sweep import sweep
+from itk_nrreval.io.manifest import load_manifest
+from itk_nrreval.io.transforms import chain_transform
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "out" / "sweeps"

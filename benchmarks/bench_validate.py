@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parent.parent
 def main() -> dict:
     from data_synth import perfectly_registered_arrays
     from itk_nrreval.cli.validate import plot_fig2, plot_vs_d
-    from itk_nrreval.specificity import specificity
-    from itk_nrreval.validation import DEFAULT_DISPLACEMENTS, validate
-    from itk_nrreval.warps import random_cps
+    from itk_nrreval.experiments.perturbation import DEFAULT_DISPLACEMENTS, validate
+    from itk_nrreval.experiments.warps import random_cps
+    from itk_nrreval.measures.specificity import specificity
 
     t0 = time.perf_counter()
     images, labels = perfectly_registered_arrays("phantom", n=10, seed=0)

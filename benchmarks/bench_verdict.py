@@ -2,8 +2,8 @@
 
 Each case is one generated population (known true transforms) registered several ways; every
 registration's true mean correspondence error (mm,
-:func:`itk_nrreval.correspondence.correspondence_error`) is computed beside the evaluation,
-and the verdict's decided pairs
+:func:`itk_nrreval.experiments.correspondence.correspondence_error`) is computed beside the
+evaluation, and the verdict's decided pairs
 (:attr:`itk_nrreval.evaluation.Verdict.decisions`) are judged against it. For every pair of
 registrations whose true errors differ by more than ``MARGIN`` (10% of the smaller), the
 verdict is *right* (it decides the lower-error one better), *wrong* (the other way) or
@@ -12,7 +12,7 @@ open.
 
 Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
-* ``demo``: the demo's five registrations (:func:`itk_nrreval.demo.run_demo`, phantom);
+* ``demo``: the demo's five registrations (:func:`itk_nrreval.experiments.demo.run_demo`, phantom);
 * ``cheat``: the demo's registrations plus Rohlfing's class-matching cheat
   (:func:`bench_cheat.add_cheat`);
 * ``sweep_<case>``: the 2D sweeps of ``bench_sweeps.CASES`` (demons field / update smoothing,
@@ -262,21 +262,76 @@ SECOND_SCAN = {
         if c.startswith("families_")
     },
 }
-#: Package modules renamed since evaluations were saved (issue 28 underscored the
-#: implementation modules; Coverage, in every EvaluationResult, lived in the pipeline one):
-#: old name -> new name, so that a saved evaluation.pkl still loads.
-RENAMED_MODULES = {
+#: Package modules moved into rooms by issue 43 (io/, measures/, experiments/), by room.
+_ROOMS = {
+    "io": (
+        "_affine_fit _brain_masks _cache _displacements _elastix_files _field_kernels "
+        "_field_orientation _foreign_transforms _grid_slabs _images _in_memory_images _itk_hdf5 "
+        "_jacobian_kernels _label_channels _manifest_entries _manifest_files _membership_files "
+        "_membership_kernels _memberships _plausibility_thresholds _resampled_images "
+        "_transform_inversion _transform_io _transform_patterns frame label_names manifest "
+        "plausibility transforms"
+    ),
+    "measures": (
+        "_overlap_kernels _overlap_sums _ranks _reference_subject _subject_flags "
+        "_subject_measures _transform_mixups confidence label_metrics model overlap specificity "
+        "subject_qc verdict"
+    ),
+    "experiments": (
+        "_clamped_plate_spline _fold_check _perturbed_sets correspondence demo sweep warps"
+    ),
+}
+#: ... and those it renamed on the way: old name -> new dotted name under itk_nrreval.
+_RENAMED_INTO_ROOMS = {
+    "derivatives": "io.pipeline_outputs",
+    "validation": "experiments.perturbation",
+    "_validation_inputs": "experiments._perturbation_inputs",
+    "appearance": "experiments.appearance.model",
+    "diagnostics": "experiments.appearance.diagnose",
+}
+_ISSUE_43 = {
+    **{
+        f"itk_nrreval.{name}": f"itk_nrreval.{room}.{name}"
+        for room, names in _ROOMS.items()
+        for name in names.split()
+    },
+    **{f"itk_nrreval.{old}": f"itk_nrreval.{new}" for old, new in _RENAMED_INTO_ROOMS.items()},
+}
+#: Issue 28 underscored the implementation modules (Coverage, in every EvaluationResult,
+#: lived in the pipeline one).
+_ISSUE_28 = {
     f"itk_nrreval.{name}": f"itk_nrreval._{name}"
     for name in ("cache", "pipeline", "scaleout", "memberships", "elastix_files")
 }
+#: Package modules renamed since evaluations were saved: old name -> today's name, so that a
+#: saved evaluation.pkl still loads. Subpackages moved whole are in :data:`MOVED_PACKAGES`.
+RENAMED_MODULES = {
+    **_ISSUE_43,
+    **{old: _ISSUE_43.get(new, new) for old, new in _ISSUE_28.items()},
+}
+#: Subpackages issue 43 moved into rooms, every module in them with them.
+MOVED_PACKAGES = {
+    "itk_nrreval.registration": "itk_nrreval.experiments.registration",
+    "itk_nrreval._search": "itk_nrreval.measures._search",
+}
+
+
+def _renamed(module: str) -> str:
+    """Where the classes of a module that a saved evaluation names live today."""
+    if module in RENAMED_MODULES:
+        return RENAMED_MODULES[module]
+    for old, new in MOVED_PACKAGES.items():
+        if module == old or module.startswith(old + "."):
+            return new + module[len(old) :]
+    return module
 
 
 class _RenamingUnpickler(pickle.Unpickler):
-    """An unpickler that finds a class of a renamed module (:data:`RENAMED_MODULES`) under
-    its new module name."""
+    """An unpickler that finds a class of a renamed module (:data:`RENAMED_MODULES`,
+    :data:`MOVED_PACKAGES`) under its new module name."""
 
     def find_class(self, module: str, name: str):
-        return super().find_class(RENAMED_MODULES.get(module, module), name)
+        return super().find_class(_renamed(module), name)
 
 
 def _bench(name: str):
@@ -296,9 +351,9 @@ def _quiet(function, *args, **kwargs):
 
 def _true_errors(evaluation, manifest: Path, data_manifest: Path) -> dict[str, float]:
     """True correspondence error (mm) of every registration, inside the manifest's mask."""
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.sweep import _truth_error
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.experiments.sweep import _truth_error
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform
 
     truth = load_manifest(data_manifest).registrations["truth"]
     chains = [chain_transform(t) for t in truth.transforms]
@@ -309,7 +364,7 @@ def _true_errors(evaluation, manifest: Path, data_manifest: Path) -> dict[str, f
 
 
 def _demo(folder: Path):
-    from itk_nrreval.demo import run_demo
+    from itk_nrreval.experiments.demo import run_demo
 
     demo = _quiet(
         run_demo, out=folder, n=N, n_samples=N_SAMPLES, seed=SEED, progress=False, log=print
@@ -331,9 +386,9 @@ def _cheat(folder: Path):
 def _sweep(
     folder: Path, *, kind: str, method: str, parameters: dict, engine=None, dim=2, n=N, spacing=None
 ):
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.sweep import sweep
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.experiments.sweep import sweep
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform
 
     data = _population(kind, dim=dim, n=n, spacing=spacing)
     m = load_manifest(data)
@@ -373,7 +428,7 @@ def _second_scan(folder: Path, *, case: str, registered: Path, data: Path):
     import dataclasses
 
     import itk_nrreval as nr
-    from itk_nrreval.manifest import load_manifest, write_manifest
+    from itk_nrreval.io.manifest import load_manifest, write_manifest
 
     both = load_manifest(data)
     t1 = [p for p, g in zip(both.images, both.groups, strict=True) if g == "t1"]
@@ -394,13 +449,13 @@ def _second_scan(folder: Path, *, case: str, registered: Path, data: Path):
 
 def _multimodal(folder: Path):
     """The phantom imaged in T1 and T2 (one group each), registered by
-    :func:`itk_nrreval.registration.register_multimodal` (joint, per-group, and their affine
-    stages) and scored with the mixture specificity (:mod:`bench_multimodal`'s runs)."""
+    :func:`itk_nrreval.experiments.registration.register_multimodal` (joint, per-group, and their
+    affine stages) and scored with the mixture specificity (:mod:`bench_multimodal`'s runs)."""
     import itk_nrreval as nr
     from data_synth import make_population, write_population
-    from itk_nrreval.correspondence import correspondence_error
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.registration import ElastixWorker, register_multimodal
+    from itk_nrreval.experiments.correspondence import correspondence_error
+    from itk_nrreval.experiments.registration import ElastixWorker, register_multimodal
+    from itk_nrreval.io.manifest import load_manifest
 
     runs = _bench("multimodal").RUNS
     contrasts = ("t1", "t2")
@@ -459,7 +514,7 @@ def _perturbed(folder: Path, perturbations: dict[str, list[np.ndarray]]):
     """
     import itk_nrreval as nr
     from data_synth.population import _field_image
-    from itk_nrreval.manifest import add_registration, load_manifest
+    from itk_nrreval.io.manifest import add_registration, load_manifest
 
     data = _population("phantom")
     truth = load_manifest(data).registrations["truth"]
@@ -525,15 +580,16 @@ def _fold_fields(seed: int, *, n_bumps: int = 8, sigma_mm: float = 4.0, amplitud
 
 
 def _truth_reference() -> Path:
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     return Path(load_manifest(_population("phantom")).registrations["truth"].reference)
 
 
 #: The registrations of a cross-family case, all to the cohort's own image 0 (its transform
-#: the identity): name -> (method, engine, options of :func:`itk_nrreval.registration.register`).
-#: The seven of the issue's held-out case: affine, diffeomorphic demons (SimpleITK) with
-#: field smoothing of 0.5-4 mm, B-spline (elastix) on a fine and a coarse grid.
+#: the identity): name -> (method, engine, options of
+#: :func:`itk_nrreval.experiments.registration.register`). The seven of the issue's held-out case:
+#: affine, diffeomorphic demons (SimpleITK) with field smoothing of 0.5-4 mm, B-spline (elastix) on
+#: a fine and a coarse grid.
 FAMILIES = {
     "affine": ("affine", "simpleitk", {}),
     **{f"demons_{s:g}mm": ("fluid", "simpleitk", {"smoothing_mm": s}) for s in (0.5, 1, 2, 4)},
@@ -587,8 +643,8 @@ def _families(
     import dataclasses
 
     import itk_nrreval as nr
-    from itk_nrreval.manifest import load_manifest, write_manifest
-    from itk_nrreval.registration import ElastixWorker, register
+    from itk_nrreval.experiments.registration import ElastixWorker, register
+    from itk_nrreval.io.manifest import load_manifest, write_manifest
 
     data = _population(kind, dim=dim, n=n, spacing=spacing, seed=seed, contrasts=("t1", "t2"))
     both = load_manifest(data)
@@ -651,14 +707,15 @@ def _families(
 def _subject_true_errors(evaluation, manifest: Path, data_manifest: Path, rows: list[int]):
     """True correspondence error (mm) of every registration, and of every subject in it,
     inside the manifest's mask: subject i's error is the mean over the common frame's points
-    p of ``|y_i - mean_j y_j|`` (:func:`itk_nrreval.correspondence.correspondence_error`,
-    whose mean over i it is; checked against it). `rows`: the registered images' entries
+    p of ``|y_i - mean_j y_j|``
+    (:func:`itk_nrreval.experiments.correspondence.correspondence_error`, whose mean over i it is;
+    checked against it). `rows`: the registered images' entries
     of the population manifest `data_manifest` (its truth)."""
-    from itk_nrreval._images import Geometry, mask_array, read_image
-    from itk_nrreval.correspondence import correspondence_error
-    from itk_nrreval.frame import read_chains, resampling_transform
-    from itk_nrreval.manifest import load_manifest
-    from itk_nrreval.transforms import chain_transform, displacement_field, invert
+    from itk_nrreval.experiments.correspondence import correspondence_error
+    from itk_nrreval.io._images import Geometry, mask_array, read_image
+    from itk_nrreval.io.frame import read_chains, resampling_transform
+    from itk_nrreval.io.manifest import load_manifest
+    from itk_nrreval.io.transforms import chain_transform, displacement_field, invert
 
     truth = load_manifest(data_manifest).registrations["truth"]
     truth_grid = Geometry.from_image(read_image(truth.reference, what="truth reference"))

@@ -12,7 +12,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy.ndimage import distance_transform_edt
 
-from itk_nrreval.transforms import chain_transform, field_transform
+from itk_nrreval.io.transforms import chain_transform, field_transform
 
 
 def class_matching_cheat(

@@ -1,6 +1,6 @@
 """Registrations of a population with some subjects' registrations broken in known ways.
 
-For per-subject quality control (:mod:`itk_nrreval.subject_qc`): a cohort whose true
+For per-subject quality control (:mod:`itk_nrreval.measures.subject_qc`): a cohort whose true
 registration is known (:func:`data_synth.make_population`), with chosen subjects damaged
 the way registration pipelines fail. Each damage acts on the subject's true transform
 ``T = A o phi`` (template points to subject points; ``A`` the pose, ``phi`` the warp):
@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from itk_nrreval.manifest import write_manifest
-from itk_nrreval.transforms import write_transform
+from itk_nrreval.io.manifest import write_manifest
+from itk_nrreval.io.transforms import write_transform
 
 from .population import Population
 from .writing import write_population
@@ -42,8 +42,9 @@ DAMAGES = ("mirrored", "affine_only", "scaled", "duplicated", "off_grid", "inver
 #: The damages that need a subject before the damaged one (its copy, its swap partner).
 _PAIRED = ("duplicated", "swapped")
 
-#: The words each damage's diagnosis holds (:func:`itk_nrreval.subject_qc.assess_subjects`):
-#: what the tests and the benchmark count as a right diagnosis.
+#: The words each damage's diagnosis holds
+#: (:func:`itk_nrreval.measures.subject_qc.assess_subjects`): what the tests and the benchmark count
+#: as a right diagnosis.
 DIAGNOSES = {
     "mirrored": "mirrored",
     "affine_only": "affine only",

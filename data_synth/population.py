@@ -320,8 +320,8 @@ def perfectly_registered_arrays(
     """A generated population's :func:`perfect_registration` as numpy arrays.
 
     The registered, labelled set the paper perturbs in Section IV
-    (:func:`itk_nrreval.validation.validate`): :func:`make_population` (2D 141 x 141, or 3D
-    at 2 mm), every subject resampled into the template frame through its true transform.
+    (:func:`itk_nrreval.experiments.perturbation.validate`): :func:`make_population` (2D 141 x 141,
+    or 3D at 2 mm), every subject resampled into the template frame through its true transform.
 
     Parameters
     ----------

@@ -36,8 +36,8 @@ import SimpleITK as sitk
 
 from itk_nrreval._output import atomic_path, write_json
 from itk_nrreval._progress import progress_bar
-from itk_nrreval.manifest import write_manifest
-from itk_nrreval.transforms import write_transform
+from itk_nrreval.io.manifest import write_manifest
+from itk_nrreval.io.transforms import write_transform
 
 from .population import Population
 

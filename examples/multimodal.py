@@ -6,7 +6,7 @@ its manifest and the three registrations are kept there, ready for ``nrreval eva
 
 A small two-modality population is generated with known true correspondence (every subject
 imaged in a T1-like and a T2-like contrast of the same anatomy, :mod:`data_synth`), and
-registered two ways with :func:`itk_nrreval.registration.register_multimodal`:
+registered two ways with :func:`itk_nrreval.experiments.registration.register_multimodal`:
 
 * ``joint``: every image, T1 and T2, to one T1 reference with mutual information (affine,
   then B-spline);
@@ -19,10 +19,10 @@ Each is one registration of all N images in one frame, added to the population's
 (which lists each image's modality under ``groups`` and the true transforms as ``truth``).
 :func:`itk_nrreval.evaluate` scores them in one common frame with the specificity of a
 Gaussian mixture (one Gaussian per modality), and
-:func:`itk_nrreval.correspondence.correspondence_error` gives the true mean correspondence
-error. The last column is the part of that error the mixture cannot see: the distance between the T1
-images' and the T2 images' mean correspondence (each Gaussian of the mixture sits around its
-own modality's mean, so moving all T2 images together changes nothing in it).
+:func:`itk_nrreval.experiments.correspondence.correspondence_error` gives the true mean
+correspondence error. The last column is the part of that error the mixture cannot see: the distance
+between the T1 images' and the T2 images' mean correspondence (each Gaussian of the mixture sits
+around its own modality's mean, so moving all T2 images together changes nothing in it).
 """
 
 from __future__ import annotations
@@ -37,11 +37,11 @@ from _output import add_out_option, output_folder
 
 import itk_nrreval as nr
 from data_synth import make_population, write_population
-from itk_nrreval.correspondence import correspondence_error
-from itk_nrreval.frame import read_chains, resampling_transform
-from itk_nrreval.manifest import load_manifest
-from itk_nrreval.registration import ElastixWorker, register_multimodal
-from itk_nrreval.transforms import displacement_field
+from itk_nrreval.experiments.correspondence import correspondence_error
+from itk_nrreval.experiments.registration import ElastixWorker, register_multimodal
+from itk_nrreval.io.frame import read_chains, resampling_transform
+from itk_nrreval.io.manifest import load_manifest
+from itk_nrreval.io.transforms import displacement_field
 
 N_SUBJECTS = 5
 CONTRASTS = ("t1", "t2")
@@ -98,7 +98,7 @@ def _modality_gap(evaluation, manifest, truth, grid: sitk.Image, mask) -> dict[s
     """Per registration: mean over the head of ``|mean_T1 y_i - mean_T2 y_i|`` (mm).
 
     ``y_i(p)`` is the template point that image i's correspondence of common point p truly
-    is (as in :func:`~itk_nrreval.correspondence.correspondence_error`).
+    is (as in :func:`~itk_nrreval.experiments.correspondence.correspondence_error`).
     """
     m = load_manifest(manifest)
     groups = np.asarray(m.groups)

@@ -17,8 +17,8 @@ import SimpleITK as sitk
 from _output import add_out_option, output_folder
 
 from itk_nrreval import register
-from itk_nrreval.manifest import add_registration
-from itk_nrreval.registration._elastix_worker import ElastixWorker
+from itk_nrreval.experiments.registration._elastix_worker import ElastixWorker
+from itk_nrreval.io.manifest import add_registration
 
 
 def blobs(n_images: int = 8, size: int = 96, seed: int = 0) -> list[sitk.Image]:

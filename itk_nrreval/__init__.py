@@ -6,13 +6,8 @@ images of a group give a shape-free texture model; its specificity scores the re
 """
 
 from ._errors import EngineError, InputError
-from ._images import Geometry
 from ._pipeline import Coverage
 from ._version import __version__
-from .appearance import AppearanceDiagnostics, CellPopulations, appearance_diagnostics
-from .confidence import Comparison, Interval, RankStability
-from .derivatives import manifest_from_derivatives, manifest_from_transforms
-from .diagnostics import DiagnosticsResult, diagnose
 from .evaluation import (
     Confidence,
     Decision,
@@ -28,20 +23,38 @@ from .evaluation import (
     ranks,
     relative_ranks,
 )
-from .frame import FrameMapping
-from .label_metrics import LabelMetrics, MetricSummary
-from .manifest import (
+from .experiments.appearance.diagnose import DiagnosticsResult, diagnose
+from .experiments.appearance.model import (
+    AppearanceDiagnostics,
+    CellPopulations,
+    appearance_diagnostics,
+)
+from .experiments.perturbation import ValidationResult, ValidationRow, ValidationSummary, validate
+from .experiments.registration import RegistrationResult, register
+from .experiments.warps import (
+    ClampedPlateSpline,
+    CPSWarp,
+    cps_warp,
+    max_safe_displacement,
+    random_cps,
+    warp_stack,
+)
+from .io._images import Geometry
+from .io.frame import FrameMapping
+from .io.manifest import (
     Manifest,
     ManifestRegistration,
     add_registration,
     load_manifest,
     write_manifest,
 )
-from .model import MixtureModel, TextureModel
-from .overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
-from .plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
-from .registration import RegistrationResult, register
-from .specificity import (
+from .io.pipeline_outputs import manifest_from_derivatives, manifest_from_transforms
+from .io.plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
+from .measures.confidence import Comparison, Interval, RankStability
+from .measures.label_metrics import LabelMetrics, MetricSummary
+from .measures.model import MixtureModel, TextureModel
+from .measures.overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
+from .measures.specificity import (
     GeneralizationResult,
     MixtureSummary,
     SpecificityComparison,
@@ -52,16 +65,7 @@ from .specificity import (
     specificity,
     texture_measures,
 )
-from .subject_qc import SubjectQC
-from .validation import ValidationResult, ValidationRow, ValidationSummary, validate
-from .warps import (
-    ClampedPlateSpline,
-    CPSWarp,
-    cps_warp,
-    max_safe_displacement,
-    random_cps,
-    warp_stack,
-)
+from .measures.subject_qc import SubjectQC
 
 __all__ = [
     "appearance_diagnostics",

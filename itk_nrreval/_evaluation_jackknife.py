@@ -5,7 +5,7 @@ the images the manifest gives one subject's name), every registration's replicat
 measure (each specificity replicate's model from the Gram matrix, the overlap's exact from
 its per-image sums), and from them the 95% intervals, the paired comparisons, the
 probability of being best and the rank stability (:func:`subject_level`); the statistics
-themselves are :mod:`itk_nrreval.confidence`'s.
+themselves are :mod:`itk_nrreval.measures.confidence`'s.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._progress import progress_bar
-from ._ranks import higher_is_better
-from .confidence import (
+from .io.manifest import Manifest
+from .measures._ranks import higher_is_better
+from .measures.confidence import (
     Comparison,
     RankStability,
     bootstrap_ranks,
@@ -31,7 +32,6 @@ from .confidence import (
     probability_best,
     specificity_replicates,
 )
-from .manifest import Manifest
 
 __all__ = ["JackknifePlan", "jackknife_plan", "SubjectLevel", "subject_level"]
 

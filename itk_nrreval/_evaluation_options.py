@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._errors import readable
-from ._memberships import LABEL_INTERPOLATIONS
-from .overlap import WEIGHTINGS
+from .io._memberships import LABEL_INTERPOLATIONS
+from .measures.overlap import WEIGHTINGS
 
 __all__ = [
     "Resampling",
@@ -42,7 +42,7 @@ class Resampling:
         Intensity interpolation (default ``"linear"``).
     label_interpolation : {"linear", "nearest", "gaussian"}
         How label maps become the overlap's fuzzy memberships in the common frame
-        (:func:`itk_nrreval._memberships.resample_label_memberships`): one-hot memberships
+        (:func:`itk_nrreval.io._memberships.resample_label_memberships`): one-hot memberships
         resampled linearly (partial memberships within a voxel of every boundary; the
         default), crisp nearest-neighbour labels, or one-hot memberships smoothed by a
         Gaussian of `label_sigma_mm` mm and then resampled linearly. Recorded in the
@@ -91,7 +91,7 @@ class Confidence:
     """The settings of :func:`evaluate`'s subject-level confidence.
 
     Subject-level 95% intervals of every score and every pairwise difference, and the
-    probability that each registration is best (:mod:`itk_nrreval.confidence`): a grouped
+    probability that each registration is best (:mod:`itk_nrreval.measures.confidence`): a grouped
     jackknife over the subjects, each replicate's model from the Gram matrix. Giving
     ``evaluate(confidence=Confidence(...))`` turns it on with these settings;
     ``confidence=True`` is ``Confidence()``.
@@ -237,7 +237,7 @@ class Execution:
 
 def check_options(n_samples, distance, weightings) -> tuple[str, ...]:
     """Refuse a `distance` or `n_samples` outside its accepted values; the `weightings`
-    asked for, as a tuple (default: all of :data:`itk_nrreval.overlap.WEIGHTINGS`)."""
+    asked for, as a tuple (default: all of :data:`itk_nrreval.measures.overlap.WEIGHTINGS`)."""
     if distance not in _DISTANCES:
         raise ValueError(f"distance: {distance!r} is not one of {_DISTANCES}")
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 2:

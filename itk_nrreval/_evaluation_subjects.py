@@ -1,17 +1,17 @@
 """Evaluate's per-subject quality control step, taken while the pipeline still has the cache.
 
 For every registration, :func:`registration_subjects` assesses each subject against its
-cohort (:func:`itk_nrreval.subject_qc.assess_subjects`: distance to the model of the others,
-deformation, overlap, coverage, brain mask), and :func:`subject_assessor` makes the
+cohort (:func:`itk_nrreval.measures.subject_qc.assess_subjects`: distance to the model of the
+others, deformation, overlap, coverage, brain mask), and :func:`subject_assessor` makes the
 pipeline's ``assess_subjects``, which does so once per registration and looks for inverted
 or swapped transforms among the flagged subjects (which takes resampling them again).
 """
 
 from __future__ import annotations
 
-from .manifest import Manifest
-from .plausibility import SubjectThresholds
-from .subject_qc import (
+from .io.manifest import Manifest
+from .io.plausibility import SubjectThresholds
+from .measures.subject_qc import (
     SubjectQC,
     assess_subjects,
     reference_subject,
@@ -50,7 +50,7 @@ def registration_subjects(
 ) -> tuple[SubjectQC, ...]:
     """Every subject's quality control under registration run `r` (`mixups`: flagged
     subjects resampled through changed transforms,
-    :func:`itk_nrreval.subject_qc.transform_mixups`)."""
+    :func:`itk_nrreval.measures.subject_qc.transform_mixups`)."""
     fits = [f.to_dict() for f in r.affine_fits]
     plaus = [p.to_dict() for p in r.plausibility]
     deformation = {

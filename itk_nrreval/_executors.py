@@ -43,7 +43,7 @@ ITK_READ_LOCK = threading.Lock()
 #: ``np.load`` parses a ``.npy`` header with ``ast.literal_eval``, and CPython 3.11's AST
 #: conversion is not thread-safe (tasks loading cached arrays on threads once failed with
 #: "SystemError: AST constructor recursion depth mismatch"): every header read of the cache
-#: (:meth:`itk_nrreval._cache.CacheEntry.array`) takes this lock; the data is read outside it.
+#: (:meth:`itk_nrreval.io._cache.CacheEntry.array`) takes this lock; the data is read outside it.
 NPY_HEADER_LOCK = threading.Lock()
 
 

@@ -1,7 +1,7 @@
 """Score several registrations of the same images side by side in one common frame.
 
-For every registration of a manifest (:mod:`itk_nrreval.manifest`), the N images are
-resampled into the common frame (:mod:`itk_nrreval.frame`), and scored by the specificity
+For every registration of a manifest (:mod:`itk_nrreval.io.manifest`), the N images are
+resampled into the common frame (:mod:`itk_nrreval.io.frame`), and scored by the specificity
 and generalization of their shape-free texture model (paper, Sections III and V-D; lower is
 better) and, when label maps exist, by the generalized Tanimoto overlap of their resampled
 fuzzy memberships for each label weighting (higher is better). The same seed -- the same
@@ -46,14 +46,10 @@ from ._evaluation_subjects import subject_assessor
 from ._executors import default_threads, local_executor
 from ._output import json_number
 from ._pipeline import Coverage, run_pipeline
-from ._ranks import higher_is_better, ranks, relative_ranks
-from ._resampled_images import ResampledImages, export_resampled
-from .confidence import TIE_Z as TIE_Z  # read from here before tie_groups moved there
-from .confidence import Comparison, Interval, RankStability, significance_map, tie_groups
-from .frame import FrameMapping
-from .label_metrics import LabelMetrics
-from .manifest import Manifest, load_manifest
-from .plausibility import (
+from .io._resampled_images import ResampledImages, export_resampled
+from .io.frame import FrameMapping
+from .io.manifest import Manifest, load_manifest
+from .io.plausibility import (
     Plausibility,
     SubjectThresholds,
     Thresholds,
@@ -61,10 +57,14 @@ from .plausibility import (
     flags,
     smallest_extent_mm,
 )
+from .measures._ranks import higher_is_better, ranks, relative_ranks
+from .measures.confidence import TIE_Z as TIE_Z  # read from here before tie_groups moved there
+from .measures.confidence import Comparison, Interval, RankStability, significance_map, tie_groups
+from .measures.label_metrics import LabelMetrics
+from .measures.specificity import GeneralizationResult, SpecificityResult
+from .measures.subject_qc import SubjectQC, across_registrations
+from .measures.verdict import Decision, OpenPair, Verdict, verdict
 from .report import FLAGGED_SUBJECTS_SHOWN, write_evaluation
-from .specificity import GeneralizationResult, SpecificityResult
-from .subject_qc import SubjectQC, across_registrations
-from .verdict import Decision, OpenPair, Verdict, verdict
 
 __all__ = [
     "Resampling",
@@ -104,7 +104,7 @@ class RegistrationScores:
         How the registration's frame was reached, and the spread (mm) of its estimates.
     plausibility : Plausibility
         Its transforms' deformation plausibility, combined over the images
-        (:func:`itk_nrreval.plausibility.combine`), on its own reference grid.
+        (:func:`itk_nrreval.io.plausibility.combine`), on its own reference grid.
     flags : tuple of str
         Why the registration is implausible, in words; empty when it is plausible.
     intervals : dict of str to Interval
@@ -112,17 +112,17 @@ class RegistrationScores:
         ``overlap.<weighting>``); empty when confidence was not computed.
     probability_best : dict of str to float
         Per measure, the probability that this registration is the best of those compared
-        (:func:`itk_nrreval.confidence.probability_best`).
+        (:func:`itk_nrreval.measures.confidence.probability_best`).
     coverage : Coverage or None
         How much of the common grid its images cover; the scores are taken where every
         image covers it under every registration (:class:`itk_nrreval.Coverage`).
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, in manifest order
-        (:mod:`itk_nrreval.subject_qc`): which subjects stand out from the cohort, and why.
+        (:mod:`itk_nrreval.measures.subject_qc`): which subjects stand out from the cohort, and why.
     label_metrics : LabelMetrics or None
         The numbers registration papers report from labels: Dice and HD95 (mm) per label
         and case in the common frame, against the registration's reference subject or
-        over every pair (:mod:`itk_nrreval.label_metrics`); None without labels.
+        over every pair (:mod:`itk_nrreval.measures.label_metrics`); None without labels.
     """
 
     name: str
@@ -214,7 +214,7 @@ class EvaluationResult:
         In the manifest's order.
     ranks : dict of str to dict of str to int
         ``ranks[measure][registration]``: 1 is best; scores tied within noise
-        (:func:`~itk_nrreval.confidence.tie_groups`) share the best rank (:meth:`tied_with`
+        (:func:`~itk_nrreval.measures.confidence.tie_groups`) share the best rank (:meth:`tied_with`
         names them).
     relative_ranks : dict of str to dict of str to float
         ``relative_ranks[measure][registration]`` in percent: best 100, worst 0, linear
@@ -244,7 +244,7 @@ class EvaluationResult:
         ``results.json``.
     rank_stability : dict of str to RankStability
         Per measure, how often each registration takes each rank over bootstraps of the
-        subjects' jackknife contributions (:func:`itk_nrreval.confidence.bootstrap_ranks`);
+        subjects' jackknife contributions (:func:`itk_nrreval.measures.confidence.bootstrap_ranks`);
         empty when confidence was not computed. In ``results.json`` beside
         ``significance``: per measure (and ``verdict``), which registration is told apart
         from which (:meth:`significance`).
@@ -342,7 +342,7 @@ class EvaluationResult:
 
     def significance(self) -> dict[str, dict[str, dict[str, str]]]:
         """Which registration is told apart from which: per measure with paired comparisons
-        (:func:`itk_nrreval.confidence.significance_map`: ``"better"``, ``"worse"``, ``"not
+        (:func:`itk_nrreval.measures.confidence.significance_map`: ``"better"``, ``"worse"``, ``"not
         separable"``), and under ``"verdict"`` what the verdict decides (``"decided better"``,
         ``"decided worse"``, ``"open"``). ``out[key][a][b]`` says it of `a` against `b`."""
         names = list(self.names)
@@ -381,7 +381,7 @@ def evaluate(
     Parameters
     ----------
     manifest : Manifest, dict or path
-        See :mod:`itk_nrreval.manifest`; checked in full before any heavy work. In a dict,
+        See :mod:`itk_nrreval.io.manifest`; checked in full before any heavy work. In a dict,
         every image and transform may be an object in memory (``sitk.Image``, ITK Python
         images and transforms, ``sitk.Transform``, an array with its grid), mixed with paths.
     n_samples : int
@@ -402,13 +402,13 @@ def evaluate(
         True (the default) with the settings of ``Confidence()``, a :class:`Confidence`
         with its settings, or False (off).
     thresholds : Thresholds, optional
-        Deformation-plausibility flag thresholds (:class:`itk_nrreval.plausibility.Thresholds`,
+        Deformation-plausibility flag thresholds (:class:`itk_nrreval.io.plausibility.Thresholds`,
         whose docstring gives the defaults and their rationale). A flagged registration keeps
         its scores; the flag is a warning in the verdict, not a decision
-        (:mod:`itk_nrreval.verdict`: only severe folding decides against it).
+        (:mod:`itk_nrreval.measures.verdict`: only severe folding decides against it).
     subject_thresholds : SubjectThresholds, optional
         When a subject of a registration is flagged as failed
-        (:class:`itk_nrreval.plausibility.SubjectThresholds`; results in
+        (:class:`itk_nrreval.io.plausibility.SubjectThresholds`; results in
         ``RegistrationScores.subjects``). A subject whose field of view covers less of the
         common grid than ``off_grid_coverage`` times the median subject's is also left out
         of every registration's scores (a warning names it).

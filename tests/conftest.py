@@ -32,7 +32,7 @@ def elastix_worker():
     as the demo's ~60 are. It is stopped after the last test that uses it (see
     pytest_runtest_teardown), not held until the end of the session.
     """
-    from itk_nrreval.registration import ElastixWorker
+    from itk_nrreval.experiments.registration import ElastixWorker
 
     with ElastixWorker() as worker:
         _ELASTIX["worker"] = worker

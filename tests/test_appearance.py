@@ -11,15 +11,15 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval._images import Geometry
-from itk_nrreval.appearance import (
+from itk_nrreval.cli import main
+from itk_nrreval.experiments.appearance.model import (
     AppearanceModel,
     affine_part,
     appearance_diagnostics,
     fit_appearance,
     nearest_images,
 )
-from itk_nrreval.cli import main
+from itk_nrreval.io._images import Geometry
 
 N_IMAGES = 7
 SIZE = 48
@@ -55,7 +55,7 @@ def _field_from(u: np.ndarray) -> sitk.DisplacementFieldTransform:
     img = sitk.GetImageFromArray(u, isVector=True)
     img.SetSpacing(SPACING)
     img.SetOrigin(ORIGIN)
-    return nr.transforms.field_transform(img)
+    return nr.io.transforms.field_transform(img)
 
 
 def _write_case(folder, *, warped: bool, seed: int):
@@ -164,7 +164,7 @@ def test_affine_part_kept_or_fitted(rng):
     # a chain with a warp: the affine is kept exactly, the warp left out
     chained = sitk.CompositeTransform([a, _field_from(np.ones((16, 20, 2)) * 3.0)])
     # a dense field with the affine folded in: the least-squares fit recovers it
-    dense = nr.transforms.field_transform(nr.transforms.displacement_field(a, grid))
+    dense = nr.io.transforms.field_transform(nr.io.transforms.displacement_field(a, grid))
     for t in (a, chained, dense):
         got = affine_part(t, grid)
         for p in points:

@@ -1,5 +1,7 @@
 """The package's structure: no reaching into another module's private names, no import
-cycle, no Dask unless a scheduler is asked for, and matplotlib only in the report package."""
+cycle, no Dask unless a scheduler is asked for, matplotlib only in the report package, the
+measures free of ITK, and rooms (io, measures, report, pipeline, evaluate, experiments,
+command line) that import only the rooms below them."""
 
 from __future__ import annotations
 
@@ -162,6 +164,124 @@ def test_only_the_report_package_imports_matplotlib():
     assert _imports_matplotlib(modules["itk_nrreval.report._plot"])
 
 
+# Issue 43: pure numerics apart from ITK I/O. The measures work on numpy arrays; images and
+# transforms reach them through itk_nrreval.io, and figures are drawn in the report.
+ITK_AND_PLOTS = ("SimpleITK", "itk", "nibabel", "matplotlib")
+
+
+def _imports_of(source: str, packages: tuple[str, ...]) -> list[tuple[int, str]]:
+    """(line, module) of every absolute import in `source` of one of `packages` or a
+    submodule of one, at any depth: inside functions and ``if TYPE_CHECKING:`` blocks too."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            names = [node.module or ""]
+        else:
+            continue
+        found += [
+            (node.lineno, n)
+            for n in names
+            if any(n == p or n.startswith(p + ".") for p in packages)
+        ]
+    return sorted(found)
+
+
+def test_the_measures_import_no_itk_nibabel_or_matplotlib():
+    """Every module under itk_nrreval.measures is numerics on numpy arrays: none imports
+    SimpleITK, ITK, nibabel or matplotlib, at any depth."""
+    modules = _modules()
+    measures = [n for n in modules if n.startswith("itk_nrreval.measures")]
+    offences = [
+        f"{name}:{line} imports {target}"
+        for name in measures
+        for line, target in _imports_of(modules[name].read_text(), ITK_AND_PLOTS)
+    ]
+    assert offences == []
+    # the walk sees the room, its modules and its subpackage
+    assert {
+        "itk_nrreval.measures",
+        "itk_nrreval.measures.specificity",
+        "itk_nrreval.measures._overlap_kernels",
+        "itk_nrreval.measures._search.sampling",
+    } <= set(measures)
+    # the check sees each package, its submodules, imports inside functions and under
+    # TYPE_CHECKING, and leaves relative imports and look-alike names alone
+    source = (
+        "import numpy as np\n"
+        "import SimpleITK as sitk\n"
+        "from itk import imread\n"
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n"
+        "    import nibabel.nifti1\n"
+        "def draw():\n"
+        "    from matplotlib import pyplot\n"
+        "from .itk import helper\n"
+        "import itkwidgets\n"
+    )
+    assert _imports_of(source, ITK_AND_PLOTS) == [
+        (2, "SimpleITK"),
+        (3, "itk"),
+        (6, "nibabel.nifti1"),
+        (8, "matplotlib"),
+    ]
+    # and a module of the package that does import them is found
+    assert _imports_of(modules["itk_nrreval.io._images"].read_text(), ITK_AND_PLOTS)
+
+
+# Issue 43, folders that show the architecture: the rooms stack. io reads and samples ITK
+# objects; the measures compute on what it hands them; the report draws results; the
+# pipeline and evaluate run the measures over a manifest; the experiments and the command
+# line sit on top. No room imports a room above it. (Top-level private modules that none
+# of these names -- _errors, _output, _progress, _version, _executors, _scaleout -- are
+# shared by all.)
+ROOM_ABOVE = {
+    "io": {"measures", "report", "_pipeline", "evaluation", "experiments", "cli"},
+    "measures": {"report", "_pipeline", "evaluation", "experiments", "cli"},
+    "report": {"_pipeline", "evaluation", "experiments", "cli"},
+    "_pipeline": {"experiments", "cli"},
+    "evaluation": {"experiments", "cli"},
+    "experiments": {"cli"},
+}
+
+
+def _room(name: str) -> str:
+    """The room of module `name`: its top-level module or folder under itk_nrreval, with
+    evaluate's own modules (evaluation, _evaluation_*) as one room."""
+    top = name.split(".")[1] if name.count(".") else ""
+    return "evaluation" if top.startswith(("evaluation", "_evaluation_")) else top
+
+
+def _upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Every import in `graph` (module -> the package modules it imports) from a room to a
+    room above it (:data:`ROOM_ABOVE`)."""
+    return sorted(
+        f"{name} imports {target}"
+        for name, targets in graph.items()
+        for target in targets
+        if _room(target) in ROOM_ABOVE.get(_room(name), ())
+    )
+
+
+def test_no_room_imports_a_room_above_it():
+    modules = _modules()
+    graph = {name: {target for _, target, _ in _imports(name, modules)} for name in modules}
+    assert _upward_imports(graph) == []
+    # the rooms are where the test expects them, and an upward import is seen
+    assert {_room(n) for n in modules} >= set(ROOM_ABOVE)
+    fake = {
+        "itk_nrreval.io.frame": {"itk_nrreval.measures.model", "itk_nrreval._errors"},
+        "itk_nrreval.measures.overlap": {"itk_nrreval.io._images"},
+        "itk_nrreval._pipeline._driver": {"itk_nrreval._evaluation_options"},
+        "itk_nrreval.measures.verdict": {"itk_nrreval.evaluation"},
+    }
+    assert _upward_imports(fake) == [
+        "itk_nrreval.io.frame imports itk_nrreval.measures.model",
+        "itk_nrreval.measures.verdict imports itk_nrreval.evaluation",
+    ]
+
+
 def test_parallel_work_has_one_mechanism():
     """Every command that works in parallel maps its tasks through an executor of
     itk_nrreval._executors (in this process, or threads) or a Dask one (_scaleout): no module
@@ -196,12 +316,12 @@ def _imported_names(name: str, modules: dict[str, Path]):
 # data_synth (and the demo command runs the demo). The library itself measures registrations
 # of the user's images and must work without either.
 EDGE_MODULES = {
-    "itk_nrreval.demo",
+    "itk_nrreval.experiments.demo",
     "itk_nrreval.cli.demo",
     "itk_nrreval.cli.synth",
     "itk_nrreval.cli.validate",
 }
-_DEMO_AND_DATA = ("itk_nrreval.demo", "data_synth")
+_DEMO_AND_DATA = ("itk_nrreval.experiments.demo", "data_synth")
 
 
 def _is_demo_or_data_synth(target: str) -> bool:
@@ -219,7 +339,7 @@ def test_the_library_needs_neither_the_demo_nor_data_synth():
     assert [f"{name}:{line} imports {target}" for (name, line), target in offences.items()] == []
     # the check sees the edge's imports, inside functions and relative ones
     seen = {t for _, t in _imported_names("itk_nrreval.cli.demo", modules)}
-    assert "itk_nrreval.demo" in seen
+    assert "itk_nrreval.experiments.demo" in seen
     seen = {t for _, t in _imported_names("itk_nrreval.cli.synth", modules)}
     assert "data_synth.population" in seen
 
@@ -313,7 +433,7 @@ def test_the_progress_flag_has_one_name():
     assert {
         "itk_nrreval.evaluation.evaluate",
         "itk_nrreval._executors.InProcessExecutor.map",
-        "itk_nrreval.registration.register",
+        "itk_nrreval.experiments.registration.register",
         "data_synth.writing.write_population",
     } <= set(callables)
 
@@ -375,7 +495,7 @@ def test_public_functions_document_every_parameter():
         params = [p for p in inspect.signature(fn).parameters if p not in ("self", "cls")]
         documented = _documented_parameters(fn.__doc__)
         if documented is None:
-            if name.startswith("itk_nrreval.registration") and "progress" in params:
+            if name.startswith("itk_nrreval.experiments.registration") and "progress" in params:
                 no_section.append(name)
             continue
         undocumented += [f"{name}({p})" for p in params if p not in documented]
@@ -384,10 +504,10 @@ def test_public_functions_document_every_parameter():
     # the walk sees the package's functions, the registration engines, and methods
     assert {
         "itk_nrreval.evaluation.evaluate",
-        "itk_nrreval.registration.register",
-        "itk_nrreval.registration.multimodal.register_multimodal",
-        "itk_nrreval.registration.fluid.fluid_to_reference",
-        "itk_nrreval.registration.groupwise.groupwise_register_elastix",
+        "itk_nrreval.experiments.registration.register",
+        "itk_nrreval.experiments.registration.multimodal.register_multimodal",
+        "itk_nrreval.experiments.registration.fluid.fluid_to_reference",
+        "itk_nrreval.experiments.registration.groupwise.groupwise_register_elastix",
         "itk_nrreval.evaluation.EvaluationResult.write",
     } <= set(callables)
 
@@ -521,51 +641,79 @@ def test_every_type_in_a_public_signature_is_exported():
     assert {itk_nrreval.EvaluationResult, itk_nrreval.RegistrationScores} <= set(reached)
     by_name = _package_classes()
     assert itk_nrreval.SubjectThresholds in _classes_in_signature(
-        importlib.import_module("itk_nrreval.subject_qc").assess_subjects, by_name
+        importlib.import_module("itk_nrreval.measures.subject_qc").assess_subjects, by_name
     )
 
 
 # Issue 28, a small public surface: each module a user may import names a concept of the
 # paper or an entry point; everything else is implementation, its name underscored. A new
-# module is added here on purpose, with its reason, or underscored.
+# module is added here on purpose, with its reason, or underscored. Issue 43: the package's
+# rooms (ROOMS) are folders whose modules are listed one by one; any other subpackage (the
+# command line, the report, the registration engines) is one name.
+ROOMS = {"measures", "io", "experiments", "experiments.appearance"}
 PUBLIC_MODULES = {
-    "appearance",  # the paper's Table 1: full appearance-model diagnostics
-    "cli",  # entry point: the nrreval command line
-    "confidence",  # subject-level confidence intervals of the scores (jackknife)
-    "correspondence",  # the true correspondence error, the benchmarks' ground truth
-    "demo",  # entry point: the paper's Section V comparison on generated data
-    "derivatives",  # entry point: manifests from BIDS, ANTs and elastix outputs
-    "diagnostics",  # entry point: appearance diagnostics of a manifest's registrations
+    # measures/: the paper's measures, pure numerics on numpy arrays
+    "measures",  # the room of the measures (no SimpleITK, ITK, nibabel or matplotlib)
+    "measures.model",  # the shape-free texture model (Section III-B)
+    "measures.specificity",  # specificity and generalization of the texture model (III)
+    "measures.overlap",  # the generalized Tanimoto overlap, the ground-truth reference (II-B)
+    "measures.confidence",  # subject-level confidence intervals of the scores (jackknife)
+    "measures.verdict",  # which registrations the evidence decides are better, and why
+    "measures.label_metrics",  # the numbers registration papers report: Dice, HD95 per label
+    "measures.subject_qc",  # per-subject quality control of a registered cohort
+    # io/: where ITK lives
+    "io",  # the room of ITK: images, transforms, manifests, frames, pipelines' folders
+    "io.manifest",  # the manifest: the images and the registrations of them to evaluate
+    "io.transforms",  # reading and chaining the users' registration transforms
+    "io.frame",  # the common frame every registration is resampled into (Section V-D)
+    "io.label_names",  # what each label value stands for: dseg.tsv, FreeSurfer lookup tables
+    "io.pipeline_outputs",  # entry point: manifests from BIDS, ANTs and elastix outputs
+    "io.plausibility",  # deformation plausibility of a transform: folding, roughness, inverse
+    # experiments/: the paper's experiments built on the measures
+    "experiments",  # the room of the paper's experiments
+    "experiments.perturbation",  # the paper's perturbation (validation) experiment (IV)
+    "experiments.warps",  # clamped-plate-spline warps, the paper's perturbations (IV-B)
+    "experiments.sweep",  # entry point: tune a registration's parameters without ground truth
+    "experiments.appearance",  # the room of the appearance-model diagnostics (Table 1)
+    "experiments.appearance.model",  # the full appearance model and its Voronoi cells
+    "experiments.appearance.diagnose",  # entry point: appearance diagnostics of a manifest
+    "experiments.registration",  # entry point: the paper's five registration algorithms (V-B)
+    "experiments.demo",  # entry point: the paper's Section V comparison on generated data
+    "experiments.correspondence",  # the true correspondence error, the benchmarks' truth
+    # the main entry, the pages and the command line
     "evaluation",  # entry point: evaluate, the side-by-side scores and the verdict
-    "frame",  # the common frame every registration is resampled into (Section V-D)
-    "label_metrics",  # the numbers registration papers report: Dice and HD95 per label
-    "label_names",  # what each label value stands for: dseg.tsv, FreeSurfer lookup tables
-    "manifest",  # the manifest: the images and the registrations of them to evaluate
-    "model",  # the shape-free texture model (Section III-B)
-    "overlap",  # the generalized Tanimoto overlap, the ground-truth reference (II-B)
-    "plausibility",  # deformation plausibility: folding, roughness, inverse consistency
-    "registration",  # entry point: the paper's five registration algorithms (Section V-B)
     "report",  # the figures, pages and tables a person reads
-    "specificity",  # specificity and generalization of the texture model (Section III)
-    "subject_qc",  # per-subject quality control of a registered cohort
-    "sweep",  # entry point: tune a registration's parameters without ground truth
-    "transforms",  # reading and chaining the users' registration transforms
-    "validation",  # the paper's validation experiment (Section IV)
-    "verdict",  # which registrations the evidence decides are better, and why
-    "warps",  # clamped-plate-spline warps, the paper's perturbations (Section IV-B)
+    "cli",  # entry point: the nrreval command line
 }
 
 
+def _public_name(dotted: str) -> str | None:
+    """The name `dotted` (a module under itk_nrreval, without the prefix) is listed under
+    in :data:`PUBLIC_MODULES`: inside a room, the room's module or subpackage it is or sits
+    in; elsewhere, its top-level module or subpackage. None when that name has an
+    underscored part (private)."""
+    parts = dotted.split(".")
+    depth = max((len(r.split(".")) for r in ROOMS if dotted.startswith(r + ".")), default=0)
+    name = ".".join(parts[: depth + 1])
+    return None if any(p.startswith("_") for p in name.split(".")) else name
+
+
 def test_the_public_modules_are_exactly_the_listed_ones():
-    """Every module of itk_nrreval whose name has no leading underscore (a subpackage as
-    one name) is in :data:`PUBLIC_MODULES`, and every name listed there exists."""
-    top_level = {name.split(".")[1] for name in _modules() if name.count(".") >= 1}
-    public = {name for name in top_level if not name.startswith("_")}
+    """Every module of itk_nrreval whose name has no leading underscore (inside a room,
+    each module; elsewhere a subpackage as one name) is in :data:`PUBLIC_MODULES`, and every
+    name listed there exists."""
+    names = [name.partition(".")[2] for name in _modules() if name.count(".") >= 1]
+    public = {p for p in map(_public_name, names) if p is not None}
     assert sorted(public - PUBLIC_MODULES) == []  # public, but not listed: underscore it
     assert sorted(PUBLIC_MODULES - public) == []  # listed, but gone or underscored
-    # the check sees subpackages, and leaves out the private modules and __main__
-    assert {"cli", "registration", "report"} <= public
-    assert {"_errors", "__main__"} <= top_level
+    # the check sees the rooms' modules, subpackages as one name, and leaves out the
+    # private modules (in a room or not) and __main__
+    assert {"cli", "report", "experiments.registration", "measures.specificity"} <= public
+    assert _public_name("experiments.registration.affine") == "experiments.registration"
+    assert _public_name("experiments.appearance.model") == "experiments.appearance.model"
+    assert _public_name("measures._search.sampling") is None
+    assert _public_name("_errors") is None and _public_name("__main__") is None
+    assert "cli.evaluate" not in public
 
 
 def _surface_offences(name: str, source: str, namespace: dict) -> list[str]:
@@ -617,7 +765,11 @@ def test_every_public_module_lists_its_public_names_in_all():
     assert offences == []
     # the walk sees the package, its subpackages and their modules, and leaves out the
     # command line and the private modules
-    assert {"itk_nrreval", "itk_nrreval.registration", "itk_nrreval.report.sweep"} <= set(checked)
+    assert {
+        "itk_nrreval",
+        "itk_nrreval.experiments.registration",
+        "itk_nrreval.report.sweep",
+    } <= set(checked)
     assert not [n for n in checked if ".cli" in n or "._" in n]
     # the check sees a public function, class and constant left out of __all__, and a
     # listed name that is gone

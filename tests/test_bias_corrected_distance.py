@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from test_orientation import ROTATION_3D, SHIFT_3D, make_case_3d, moved_copy
 
 import itk_nrreval as nr
-from itk_nrreval._subject_measures import (
+from itk_nrreval.measures._subject_measures import (
     CONCERN_TERMS,
     bias_corrected,
     concern_scores,

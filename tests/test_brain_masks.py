@@ -24,17 +24,17 @@ from test_derivatives import SPACE, anat, write, write_tree
 import itk_nrreval as nr
 from data_synth import make_population
 from itk_nrreval import InputError
-from itk_nrreval._brain_masks import (
+from itk_nrreval._executors import InProcessExecutor
+from itk_nrreval._pipeline import run_pipeline
+from itk_nrreval.io._brain_masks import (
     BRAIN_MASK_DICE_MIN,
     majority_mask,
     resample_mask,
     subject_mask_dice,
 )
-from itk_nrreval._executors import InProcessExecutor
-from itk_nrreval._images import Geometry
-from itk_nrreval._pipeline import run_pipeline
-from itk_nrreval.manifest import load_manifest, write_manifest
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io.manifest import load_manifest, write_manifest
+from itk_nrreval.io.transforms import chain_transform
 
 # ----------------------------------------------------------------------------- geometry
 

@@ -317,7 +317,7 @@ def folders_of_each_command(tmp_path_factory) -> tuple[Path, dict[str, Path]]:
     """A folder made by a real run of each command but ``demo`` (a minute even when quick);
     the demo's folder is claimed as ``run_demo`` claims it before its first registration."""
     from itk_nrreval._output import claim_output_folder
-    from itk_nrreval.demo import DEMO_OUTPUTS
+    from itk_nrreval.experiments.demo import DEMO_OUTPUTS
 
     root = tmp_path_factory.mktemp("made")
     data = root / "data"

@@ -21,9 +21,9 @@ import yaml
 
 from itk_nrreval import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.derivatives import manifest_from_transforms
-from itk_nrreval.manifest import IDENTITY_FRAME, load_manifest, write_manifest
-from itk_nrreval.transforms import read_transform, transform_pieces
+from itk_nrreval.io.manifest import IDENTITY_FRAME, load_manifest, write_manifest
+from itk_nrreval.io.pipeline_outputs import manifest_from_transforms
+from itk_nrreval.io.transforms import read_transform, transform_pieces
 
 ORIGIN = (-31.5, 12.25)  # mm, ITK (x, y)
 SPACING = (1.25, 0.8)

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import itk_nrreval as nr
-from itk_nrreval._overlap_kernels import membership_gradient_sum, membership_pair_sums
-from itk_nrreval.confidence import (
+from itk_nrreval.measures._overlap_kernels import membership_gradient_sum, membership_pair_sums
+from itk_nrreval.measures.confidence import (
     compare,
     jackknife_groups,
     jackknife_interval,
@@ -21,7 +21,7 @@ from itk_nrreval.confidence import (
     probability_best,
     specificity_replicates,
 )
-from itk_nrreval.model import TextureModel
+from itk_nrreval.measures.model import TextureModel
 
 
 def gram_of(images: np.ndarray) -> np.ndarray:
@@ -315,7 +315,7 @@ def test_ties_do_not_chain_across_a_separable_pair():
     )
     ranks = nr.ranks(spec, higher_is_better=False, comparisons=comparisons)
     assert ranks["groupwise"] < ranks["pairwise_near"]
-    from itk_nrreval.confidence import tie_groups
+    from itk_nrreval.measures.confidence import tie_groups
 
     groups = tie_groups(spec, higher_is_better=False, comparisons=comparisons)
     assert groups == [("groupwise", "fluid"), ("pairwise_near",), ("affine",)]

@@ -16,7 +16,7 @@ import yaml
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.io.transforms import chain_transform
 
 KW = dict(n_samples=2000, seed=5, progress=False, confidence=False)
 CROPPED = (3, 4, 5)

@@ -22,12 +22,12 @@ import itk_nrreval as nr
 from data_synth import make_population, write_population
 from itk_nrreval import _version
 from itk_nrreval._pipeline import _task_keys
-from itk_nrreval.plausibility import (
+from itk_nrreval.io.plausibility import (
     INVERSE_CONSISTENCY_STEP,
     INVERSE_FIELD_STEP,
     INVERSE_REFINE_STEPS,
 )
-from itk_nrreval.transforms import PointwiseInverse
+from itk_nrreval.io.transforms import PointwiseInverse
 
 pytest.importorskip("dask.distributed")
 
@@ -97,7 +97,7 @@ def test_dask_results_json_equals_in_process(tmp_path):
 _MEASURE_IN_SUBPROCESS = """
 import sys
 import SimpleITK as sitk
-from itk_nrreval.plausibility import deformation_measures
+from itk_nrreval.io.plausibility import deformation_measures
 t = sitk.ReadTransform(sys.argv[1])
 reference = sitk.ReadImage(sys.argv[2])
 print(repr(deformation_measures(t, reference).plausibility.inverse_consistency_mm))

@@ -6,9 +6,9 @@ import numpy as np
 import SimpleITK as sitk
 
 from data_synth import make_population, write_population
-from itk_nrreval.correspondence import correspondence_error
 from itk_nrreval.evaluation import evaluate
-from itk_nrreval.manifest import add_registration
+from itk_nrreval.experiments.correspondence import correspondence_error
+from itk_nrreval.io.manifest import add_registration
 
 
 def test_truth_has_no_correspondence_error_and_identity_has_the_true_spread(tmp_path):
@@ -49,7 +49,7 @@ def test_truth_has_no_correspondence_error_and_identity_has_the_true_spread(tmp_
 
 
 def test_demo_genuine_registrations_are_not_flagged(tmp_path):
-    from itk_nrreval.demo import run_demo
+    from itk_nrreval.experiments.demo import run_demo
 
     # N = 8 rather than the quick demo's 12: subject i of the population does not depend on
     # N, so these are the quick demo's first 8 subjects, registered the same five ways. The

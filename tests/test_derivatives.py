@@ -21,7 +21,7 @@ import yaml
 import itk_nrreval as nr
 from data_synth import make_population
 from itk_nrreval.cli import main
-from itk_nrreval.transforms import chain_transform, read_transform, write_transform
+from itk_nrreval.io.transforms import chain_transform, read_transform, write_transform
 
 SPACE = "SynthTemplate"
 EVALUATE = ["--samples", "2000", "--no-figures", "--no-confidence", "--quiet"]
@@ -446,7 +446,7 @@ for label in sys.argv[1:]:
 
 def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys, monkeypatch):
     pytest.importorskip("itk")
-    from itk_nrreval.registration._elastix_worker import elastix_available
+    from itk_nrreval.experiments.registration._elastix_worker import elastix_available
 
     if not elastix_available():
         pytest.skip("itk-elastix is not installed")
@@ -494,7 +494,7 @@ def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys
 
 def test_elastix_chain_by_hand(tmp_path):
     """Parameter files written as elastix writes them, their mapping worked out by hand."""
-    from itk_nrreval._cache import content_digest
+    from itk_nrreval.io._cache import content_digest
 
     folder = tmp_path / "moved"
     folder.mkdir()

@@ -13,7 +13,7 @@ import itk_nrreval as nr
 from data_synth import make_population, write_population
 from itk_nrreval._errors import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.manifest import load_manifest, write_manifest
+from itk_nrreval.io.manifest import load_manifest, write_manifest
 
 KW = dict(n_samples=2000, seed=3, progress=False)
 N = 6

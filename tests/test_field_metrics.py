@@ -18,15 +18,15 @@ from scipy import ndimage
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval._memberships import resample_label_memberships
-from itk_nrreval.label_metrics import (
+from itk_nrreval.io._memberships import resample_label_memberships
+from itk_nrreval.io.plausibility import deformation_plausibility
+from itk_nrreval.measures.label_metrics import (
     LabelMetrics,
     crisp_labels,
     hausdorff95,
     label_surfaces,
     worst_tail_mean,
 )
-from itk_nrreval.plausibility import deformation_plausibility
 
 N = 5
 

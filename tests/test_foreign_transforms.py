@@ -30,10 +30,10 @@ import yaml
 
 import itk_nrreval as nr
 from itk_nrreval import InputError
-from itk_nrreval._foreign_transforms import ForeignTransform
 from itk_nrreval.cli import main
-from itk_nrreval.manifest import load_manifest, write_manifest
-from itk_nrreval.transforms import read_transform
+from itk_nrreval.io._foreign_transforms import ForeignTransform
+from itk_nrreval.io.manifest import load_manifest, write_manifest
+from itk_nrreval.io.transforms import read_transform
 
 nitransforms = pytest.importorskip("nitransforms")
 pytest.importorskip("fsl.transform.fnirt")

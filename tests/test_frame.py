@@ -7,15 +7,15 @@ import pytest
 import SimpleITK as sitk
 from test_plausibility import OBLIQUE_GRID, full_grid_inverse, smooth_random_field, voxel_points
 
-from itk_nrreval.frame import (
+from itk_nrreval.io.frame import (
     frame_estimates,
     frame_mapping,
     resample_images,
     resample_memberships,
     resampling_transform,
 )
-from itk_nrreval.manifest import load_manifest
-from itk_nrreval.transforms import field_transform
+from itk_nrreval.io.manifest import load_manifest
+from itk_nrreval.io.transforms import field_transform
 
 
 def grid(dim: int, n: int) -> sitk.Image:
@@ -257,7 +257,7 @@ def test_frame_estimates_invert_the_registration_to_a_hundredth_of_a_mm():
 def test_distance_sums_equal_numpys_norm(masked):
     # The frame spread's per-estimate sums (issue 30: one compiled pass instead of two
     # full-size temporaries) against np.linalg.norm over the same voxels.
-    from itk_nrreval.frame import distance_sums
+    from itk_nrreval.io.frame import distance_sums
 
     rng = np.random.default_rng(7)
     a = rng.normal(0.0, 2.0, (9, 11, 13, 3)).astype(np.float32)

@@ -18,17 +18,17 @@ import yaml
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval._images import Geometry
-from itk_nrreval.plausibility import (
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io.plausibility import (
     LOG_JACOBIAN_BINS,
     LOG_JACOBIAN_RANGE,
     deformation_measures,
     deformation_plausibility,
 )
+from itk_nrreval.io.transforms import field_transform
 from itk_nrreval.report import FLAGGED_SUBJECTS_SHOWN, format_number
 from itk_nrreval.report._plot import thumbnail
 from itk_nrreval.report.evaluation_figures import figure_pngs
-from itk_nrreval.transforms import field_transform
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -25,12 +25,12 @@ import yaml
 
 import itk_nrreval as nr
 from itk_nrreval import InputError
-from itk_nrreval._cache import content_digest, digest_of
-from itk_nrreval._images import InMemoryImage, to_sitk_image
 from itk_nrreval._output import MARKER
 from itk_nrreval.cli import main
-from itk_nrreval.transforms import InMemoryTransform, to_sitk_transform
-from itk_nrreval.validation import manifest_set
+from itk_nrreval.experiments.perturbation import manifest_set
+from itk_nrreval.io._cache import content_digest, digest_of
+from itk_nrreval.io._images import InMemoryImage, to_sitk_image
+from itk_nrreval.io.transforms import InMemoryTransform, to_sitk_transform
 
 N_IMAGES = 5
 SHAPE = (36, 40)  # numpy (y, x)
@@ -358,8 +358,8 @@ def test_cache_keys_are_the_same_in_a_new_process(case):
     }
     code = (
         "import sys, json, SimpleITK as sitk\n"
-        "from itk_nrreval._images import InMemoryImage\n"
-        "from itk_nrreval.transforms import InMemoryTransform\n"
+        "from itk_nrreval.io._images import InMemoryImage\n"
+        "from itk_nrreval.io.transforms import InMemoryTransform\n"
         "out = {}\n"
         f"for key, (p, kind) in {items!r}.items():\n"
         f"    path = {str(folder)!r} + '/' + p\n"
@@ -785,7 +785,7 @@ def itk_parameters(itk, values):
 
 
 def nr_leaves(t):
-    from itk_nrreval.transforms import leaves
+    from itk_nrreval.io.transforms import leaves
 
     return leaves(t)
 

@@ -22,7 +22,7 @@ from test_bad_inputs import assert_one_line, run_cli
 from data_synth import make_population, write_population
 from itk_nrreval import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.manifest import load_manifest
+from itk_nrreval.io.manifest import load_manifest
 
 # evaluate's warning, as tests/test_bad_inputs.py pins it (one line, after the CLI's prefix)
 LABEL_LIKE = (
@@ -237,7 +237,7 @@ def test_hdf5_transform_dimension_from_the_layout_is_itks(tmp_path, dim):
     """The manifest check reads an HDF5 transform's dimension from its layout (the fields'
     values are not read); it must be what ITK reads whole, and a file whose layout is not
     one it knows, or whose counts are off, must be left to ITK (None)."""
-    from itk_nrreval._itk_hdf5 import transform_dimension as _hdf5_transform_dimension
+    from itk_nrreval.io._itk_hdf5 import transform_dimension as _hdf5_transform_dimension
 
     size = (7, 5, 4)[:dim]
     affine = sitk.AffineTransform(dim)

@@ -13,9 +13,9 @@ import pytest
 import SimpleITK as sitk
 
 from itk_nrreval import InputError
-from itk_nrreval._images import Geometry
-from itk_nrreval._itk_hdf5 import read_pieces, transform_dimension
-from itk_nrreval.transforms import (
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io._itk_hdf5 import read_pieces, transform_dimension
+from itk_nrreval.io.transforms import (
     PointwiseInverse,
     TransformPieces,
     chain_transform,
@@ -201,9 +201,9 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     transform, sampled by ITK (the pieces in another order are another map). F is the
     identity, or a zero field from the cache (the path of a registration not in the common
     frame); the grid is oblique, anisotropic, and the image covers only part of it."""
-    from itk_nrreval._cache import DiskCache
     from itk_nrreval._pipeline import _image_tasks, _tasks
-    from itk_nrreval.plausibility import affine_fit
+    from itk_nrreval.io._cache import DiskCache
+    from itk_nrreval.io.plausibility import affine_fit
 
     rng = np.random.default_rng(3)
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
@@ -250,13 +250,13 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
     for name, value in fit.items():
         np.testing.assert_allclose(meta["affine_fit"][name], value, rtol=1e-9, atol=1e-9)
     u = sitk.GetArrayFromImage(displacement_field(reference, grid))
-    from itk_nrreval.transforms import jacobian_determinant
+    from itk_nrreval.io.transforms import jacobian_determinant
 
     det = jacobian_determinant(u, spacing=grid.spacing, direction=grid.direction)
     assert meta["plausibility"]["jacobian_min"] == pytest.approx(det.min(), rel=1e-9)
     assert meta["plausibility"]["jacobian_max"] == pytest.approx(det.max(), rel=1e-9)
     # the round trip through the numerical inverse, of the composite ITK built
-    from itk_nrreval.plausibility import deformation_measures
+    from itk_nrreval.io.plausibility import deformation_measures
 
     own = deformation_measures(reference, grid).plausibility.inverse_consistency_mm
     assert meta["plausibility"]["inverse_consistency_mm"] == pytest.approx(own, rel=1e-9)
@@ -266,7 +266,7 @@ def test_a_chain_of_files_is_measured_as_its_transform(tmp_path, frame_kind):
 def test_the_transform_from_the_common_frame_as_pieces(dim):
     """resampling_transform given T's pieces: the same map as given T, as pieces (F last),
     and the same rule: F the identity is left out only when T is not linear."""
-    from itk_nrreval.frame import resampling_transform
+    from itk_nrreval.io.frame import resampling_transform
 
     points = _random_points(dim)
     identity = sitk.TranslationTransform(dim)

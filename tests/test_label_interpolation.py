@@ -1,6 +1,6 @@
 """The label-interpolation option of the overlap (issue 17): linear, nearest, gaussian.
 
-The reference is independent of the pipeline and of :mod:`itk_nrreval._memberships`: each
+The reference is independent of the pipeline and of :mod:`itk_nrreval.io._memberships`: each
 label map's one-hot channels (background included) resampled by SimpleITK itself into the
 common frame -- nearest neighbour on the label map, or each whole channel smoothed by
 ``sitk.SmoothingRecursiveGaussian`` and then resampled linearly -- and
@@ -19,7 +19,7 @@ from test_coverage import cropped_case, reference_resampled
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.io.transforms import chain_transform
 
 KW = dict(n_samples=500, seed=1, progress=False, confidence=False)
 VALUES = (0, 1, 2, 3)

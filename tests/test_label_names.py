@@ -15,8 +15,8 @@ from test_evaluate import make_case
 import itk_nrreval as nr
 from itk_nrreval import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.label_names import label_names_from, label_text, read_label_names
-from itk_nrreval.manifest import load_manifest
+from itk_nrreval.io.label_names import label_names_from, label_text, read_label_names
+from itk_nrreval.io.manifest import load_manifest
 
 DSEG = "index\tname\tabbreviation\n1\tgrey matter\tGM\n2\twhite matter\tWM\n3\tCSF\tCSF\n"
 LUT = """\

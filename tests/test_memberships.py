@@ -7,10 +7,10 @@ import pytest
 import SimpleITK as sitk
 from scipy import ndimage
 
-from itk_nrreval import _memberships
 from itk_nrreval._errors import InputError
-from itk_nrreval._images import Geometry
-from itk_nrreval._memberships import SparseMemberships, resample_label_memberships
+from itk_nrreval.io import _memberships
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io._memberships import SparseMemberships, resample_label_memberships
 
 LARGE_VALUES = (0, 3, 1000, 14175)  # non-contiguous, FreeSurfer-sized
 
@@ -427,7 +427,7 @@ def test_itk_asked_point_by_point_through_the_pieces(dim, monkeypatch):
     with no composite built and the whole grid never resampled: the same coverage as ITK's
     resampling through the composite, and the same image and memberships as from the
     composite's own sampling."""
-    from itk_nrreval.transforms import TransformPieces, transform_pieces
+    from itk_nrreval.io.transforms import TransformPieces, transform_pieces
 
     label_map, image, grid, transform = resampling_case(dim, 43 + dim)
     sampled = itk_sampling(transform, grid)
@@ -693,7 +693,7 @@ def test_image_memberships_and_coverage_from_a_point_map(dim, frame, monkeypatch
     compiled kernels a slab at a time; several slabs here): the image, memberships and
     coverage of ITK's resampling through the composite ``T o (p + d(p))``, F given to ITK as
     a displacement-field transform. Oblique grids, an image not co-located with the grid."""
-    from itk_nrreval.transforms import PointMap, transform_pieces
+    from itk_nrreval.io.transforms import PointMap, transform_pieces
 
     monkeypatch.setattr(_memberships, "_SLAB_VOXELS", 200)
     label_map, image, grid, t = resampling_case(dim, 47 + dim)
@@ -776,7 +776,7 @@ def test_covered_voxels_on_the_buffer_border(dim, flip, decided_by, linear, give
     by point for a transform that is not linear, here a translation composed with a zero
     field, else by resampling the whole grid) or by the kernel's own test in exact
     arithmetic, as ITK decides them."""
-    from itk_nrreval.transforms import PointMap, transform_pieces
+    from itk_nrreval.io.transforms import PointMap, transform_pieces
 
     if decided_by == "here":
         monkeypatch.setattr(_memberships, "_BORDER_EPS", -1.0)

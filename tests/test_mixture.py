@@ -25,11 +25,11 @@ from hypothesis import strategies as st
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _search
 from itk_nrreval.cli import main
-from itk_nrreval.model import MixtureModel
+from itk_nrreval.measures import _search
+from itk_nrreval.measures.model import MixtureModel
 
-spec_mod = importlib.import_module("itk_nrreval.specificity")
+spec_mod = importlib.import_module("itk_nrreval.measures.specificity")
 
 # Interleaved groups, of unequal sizes, so that image order and group order differ.
 GROUPS = ["t1", "t2", "t1", "t1", "t2", "t1", "t2", "t1", "t2", "t1", "t1", "t2"]

@@ -10,8 +10,8 @@ from test_bad_inputs import assert_one_line
 
 import itk_nrreval as nr
 from itk_nrreval.cli import main
-from itk_nrreval.manifest import load_manifest, write_manifest
-from itk_nrreval.transforms import chain_transform
+from itk_nrreval.io.manifest import load_manifest, write_manifest
+from itk_nrreval.io.transforms import chain_transform
 
 
 @pytest.fixture(scope="module")

@@ -246,7 +246,7 @@ def test_images_stored_with_finer_anisotropic_voxels_score_the_same(tmp_path):
 
 def test_validate_does_not_depend_on_the_physical_frame(tmp_path):
     """The validation experiment on a manifest, before and after the rigid motion."""
-    from itk_nrreval.validation import validate_manifest
+    from itk_nrreval.experiments.perturbation import validate_manifest
 
     (tmp_path / "plain").mkdir()
     make_case(tmp_path / "plain")
@@ -272,7 +272,7 @@ def test_images_of_a_mean_frame_registration_equal_itk_resampling_through_the_co
     ``CompositeTransform([T_i^R, F])`` gives: oblique, anisotropic 3D, float32 as cached;
     with label maps (one sampling for both) and without (the image alone, by the same
     kernels)."""
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.io.transforms import chain_transform
 
     (tmp_path / "plain").mkdir()
     make_case_3d(tmp_path / "plain")

@@ -202,7 +202,7 @@ def test_register_cli_replaces_its_own_files_only(tmp_path, capsys):
     )
     assert [p for p in out.iterdir() if p.name.startswith(".nrreval-stage")] == []
     # the manifest points at the final folder, not the temporary one it was written in
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     m = load_manifest(tmp_path / "m2.yaml")
     assert all(str(t[0]).startswith(str(out)) for t in m.registrations["affine"].transforms)
@@ -228,7 +228,7 @@ def test_register_refuses_to_rewrite_a_manifest_it_did_not_write(tmp_path, capsy
     ours = tmp_path / "ours.yaml"
     assert main([*args, "--manifest", str(ours), "--out", str(tmp_path / "a1")]) == 0
     assert main([*args, "--manifest", str(ours), "--out", str(tmp_path / "a2"), "--name", "b"]) == 0
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     assert set(load_manifest(ours).registrations) == {"affine", "b"}
 
@@ -237,7 +237,7 @@ def _write_registration(out, **kwargs):
     """register(out=) of three small blobs (affine: seconds)."""
     import SimpleITK as sitk
 
-    from itk_nrreval.registration import register
+    from itk_nrreval.experiments.registration import register
 
     images = [sitk.ReadImage(p) for p in _blob_images(out.parent, out.name + "_img")]
     return register(images, method="affine", progress=False, out=out, **kwargs)
@@ -307,7 +307,7 @@ def test_add_to_manifest_refuses_a_hand_written_manifest(tmp_path):
     ours = tmp_path / "ours.yaml"
     result.add_to_manifest(ours, "a", out=tmp_path / "a", images=images)
     result.add_to_manifest(ours, "b", out=tmp_path / "b")
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     assert set(load_manifest(ours).registrations) == {"a", "b"}
 

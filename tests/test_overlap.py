@@ -170,7 +170,7 @@ def test_fuzzy_matches_all_pairs(seed, n, shape, n_comp, dtype, ties):
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8, 13, 36, 37, 64])
 def test_sorting_network_sorts(rng, n):
-    from itk_nrreval._overlap_kernels import _sorting_network
+    from itk_nrreval.measures._overlap_kernels import _sorting_network
 
     lo, hi = _sorting_network(n)
     assert np.all(lo < hi) and (hi.max(initial=0) < n)
@@ -191,7 +191,7 @@ def test_many_images_and_long_runs_of_voxels(rng):
 
 @pytest.mark.parametrize("share", [0.0, 1.0])  # force the sorting network / the sparse sort
 def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
-    from itk_nrreval import _overlap_kernels
+    from itk_nrreval.measures import _overlap_kernels
 
     monkeypatch.setattr(_overlap_kernels, "_NETWORK_FRACTION", share)
     a = rng.choice([0.0, 0.0, 0.0, 1.0, 1.0, 0.3, 0.7], size=(9, 3, 6, 7))
@@ -203,7 +203,7 @@ def test_both_fuzzy_kernels_on_zeros_ones_and_ties(rng, monkeypatch, share):
 def test_packed_float32_network_on_ties_and_many_blocks(rng, monkeypatch, n):
     # float32 input sorts keys carrying the image index in their low bits; force that kernel
     # on every block, with exact zeros and ones, ties, tiny values and a partial last block
-    from itk_nrreval import _overlap_kernels
+    from itk_nrreval.measures import _overlap_kernels
 
     monkeypatch.setattr(_overlap_kernels, "_NETWORK_FRACTION", 0.0)
     a = rng.choice([0.0, 1.0, 0.25, 0.5, 1e-30, 0.7], size=(n, 2, 3, 7, 31)).astype(np.float32)
@@ -613,7 +613,7 @@ def _brute_pairs(a: np.ndarray, mask=None):
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("use_mask", [False, True])
 def test_membership_pair_sums_against_all_pairs(rng, dtype, use_mask):
-    from itk_nrreval._overlap_kernels import membership_pair_sums
+    from itk_nrreval.measures._overlap_kernels import membership_pair_sums
 
     for n in (2, 5, 37):
         a = rng.choice([0.0, 0.0, 1.0, 0.5, 0.25], size=(n, 900))
@@ -630,7 +630,10 @@ def test_membership_pair_sums_against_all_pairs(rng, dtype, use_mask):
 
 
 def test_membership_gradient_sum_against_numpy_gradient(rng):
-    from itk_nrreval._overlap_kernels import membership_gradient_sum, membership_gradient_sums
+    from itk_nrreval.measures._overlap_kernels import (
+        membership_gradient_sum,
+        membership_gradient_sums,
+    )
 
     for shape, spacing_itk in (((7, 5, 6), (0.5, 1.5, 2.5)), ((1, 9), (1.2, 3.0)), ((11,), (0.7,))):
         a = rng.random((3, *shape)) * (rng.random((3, *shape)) < 0.5)
@@ -667,7 +670,7 @@ def test_membership_gradient_sum_against_numpy_gradient(rng):
 
 
 def test_label_map_sums_counts_pairs_exactly(rng):
-    from itk_nrreval._overlap_kernels import label_map_sums
+    from itk_nrreval.measures._overlap_kernels import label_map_sums
 
     crisp = rng.integers(0, 5, size=(6, 700))
     mask = rng.random(700) < 0.6
@@ -693,7 +696,7 @@ def test_label_map_sums_counts_pairs_exactly(rng):
 
 @pytest.mark.parametrize("fuzzy", [False, True])
 def test_from_sums_round_trip_equals_overlap_table(rng, fuzzy):
-    from itk_nrreval._overlap_kernels import (
+    from itk_nrreval.measures._overlap_kernels import (
         label_map_gradient_sums,
         label_map_sums,
         membership_gradient_sums,

@@ -20,8 +20,8 @@ from hypothesis import strategies as st
 from test_evaluate import image, make_case
 
 import itk_nrreval as nr
-from itk_nrreval._cache import DiskCache, digest_of
 from itk_nrreval.cli import main
+from itk_nrreval.io._cache import DiskCache, digest_of
 
 pytest.importorskip("dask.distributed")
 
@@ -472,7 +472,7 @@ def test_cache_checksum_from_memory_is_the_files(tmp_path_factory, dtype, shape,
     """An entry's CRC-32 is taken from the header read back and the array in memory; it
     must be the CRC-32 of the file's bytes (what reading the entry checks), for any dtype
     and memory layout, and the array must read back as written."""
-    from itk_nrreval._cache import _file_crc32, _save_array
+    from itk_nrreval.io._cache import _file_crc32, _save_array
 
     rng = np.random.default_rng(seed)
     a = (rng.random((*shape, 2)) * 300).astype(dtype)[..., 0]
@@ -529,8 +529,8 @@ def test_mean_frame_is_added_up_in_image_order_whatever_order_the_estimates_arri
     """Issue 30: F is added up from the estimates as their tasks finish, each removed once
     added, so that a registration's N float32 estimates (3.9 GB at 1 mm, N = 36) are not
     all on disk at once; in image order, so that the bits do not depend on the timing."""
-    from itk_nrreval._cache import DiskCache
     from itk_nrreval._pipeline import _common_frame
+    from itk_nrreval.io._cache import DiskCache
 
     rng = np.random.default_rng(8)
     ests = [
@@ -577,9 +577,9 @@ def test_frame_estimates_are_stored_within_half_a_16_bit_step(tmp_path, shape, s
     once; stored in 65535 steps per component, each value comes back within half a step,
     (max - min) / 131070, the extremes exactly or within rounding, a constant component
     exactly; a field that is not finite everywhere is stored as float32."""
-    from itk_nrreval._cache import DiskCache
     from itk_nrreval._pipeline import _common_frame
-    from itk_nrreval.frame import from_steps, in_steps
+    from itk_nrreval.io._cache import DiskCache
+    from itk_nrreval.io.frame import from_steps, in_steps
 
     rng = np.random.default_rng(3)
     disp = rng.normal(scale=scale, size=shape) + rng.normal(scale=10 * scale, size=shape[-1])

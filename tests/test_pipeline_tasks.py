@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from itk_nrreval._cache import DiskCache
-from itk_nrreval._images import Geometry
 from itk_nrreval._pipeline import _common_frame, _image_tasks, _label_metrics, _tasks
+from itk_nrreval.io._cache import DiskCache
+from itk_nrreval.io._images import Geometry
 
 TASKS = [
     _image_tasks.MeasureTransform,

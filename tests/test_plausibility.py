@@ -13,8 +13,8 @@ import SimpleITK as sitk
 from data_synth.cheat import class_matching_cheat
 from data_synth.population import make_population
 from itk_nrreval import InputError
-from itk_nrreval._images import Geometry
-from itk_nrreval.plausibility import (
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io.plausibility import (
     Plausibility,
     Thresholds,
     combine,
@@ -22,7 +22,7 @@ from itk_nrreval.plausibility import (
     flags,
     smallest_extent_mm,
 )
-from itk_nrreval.transforms import field_transform
+from itk_nrreval.io.transforms import field_transform
 
 
 def _rotation(dim: int, angles_deg) -> np.ndarray:
@@ -405,7 +405,7 @@ def test_refined_inverse_does_not_depend_on_the_number_of_threads():
     # every thread give the same bits.
     import numba
 
-    from itk_nrreval.transforms import invert
+    from itk_nrreval.io.transforms import invert
 
     t = smooth_random_field(OBLIQUE_GRID, max_mm=3.0)
     threads = numba.get_num_threads()
@@ -426,7 +426,7 @@ def test_affine_fit_from_the_measures_sampling_equals_affine_fit(masked):
     # deformation measures sample anyway, instead of sampling the transform once more; on a
     # field behind an affine map on an oblique, anisotropic grid, in slabs and inside a
     # mask, it is affine_fit's fit to rounding, and the measures are unchanged.
-    from itk_nrreval.plausibility import affine_fit, deformation_measures
+    from itk_nrreval.io.plausibility import affine_fit, deformation_measures
 
     g = OBLIQUE_GRID
     pose = sitk.AffineTransform(3)
@@ -474,7 +474,7 @@ def assert_least_squares_fit(fit, t: sitk.Transform, g: Geometry, mask=None) -> 
 def test_affine_fit_of_a_bspline_is_numpys_least_squares():
     # A B-spline is sampled by ITK (linear maps and fields by the compiled kernels, above),
     # slab by slab: numpy's least squares on ITK's sampling of the whole grid.
-    from itk_nrreval.plausibility import affine_fit
+    from itk_nrreval.io.plausibility import affine_fit
 
     g = OBLIQUE_GRID
     image = sitk.Image(list(g.size), sitk.sitkFloat32)
@@ -511,7 +511,7 @@ def test_pointwise_inverse_at_the_nodes_is_the_refined_inverse(dim, step):
     """At the field's own nodes, where invert()'s refined inverse field holds the values it
     computed (no interpolation), the pointwise inverse gives the same points to rounding;
     beyond the field's grid grown by its largest displacement it is the identity, exactly."""
-    from itk_nrreval.transforms import PointwiseInverse, invert
+    from itk_nrreval.io.transforms import PointwiseInverse, invert
 
     g3 = OBLIQUE_GRID
     if dim == 3:
@@ -540,7 +540,7 @@ def test_pointwise_inverse_of_a_chain_round_trips():
     one thread and on all."""
     import numba
 
-    from itk_nrreval.transforms import PointwiseInverse
+    from itk_nrreval.io.transforms import PointwiseInverse
 
     g = OBLIQUE_GRID
     affine = sitk.AffineTransform(3)
@@ -574,7 +574,7 @@ def test_pointwise_inverse_of_a_chain_round_trips():
 def test_voxel_points_are_itks(dim):
     """composed_displacement's voxel points (_field_kernels.add_voxel_points): ITK's own index
     -> physical point, C order (x fastest)."""
-    from itk_nrreval._field_kernels import add_voxel_points
+    from itk_nrreval.io._field_kernels import add_voxel_points
 
     g = OBLIQUE_GRID if dim == 3 else _grid((7, 5), (1.2, 0.9), (-10.0, 4.0), _rotation(2, [30]))
     origin, matrix, size = np.zeros(3), np.zeros((3, 3)), np.ones(3, np.int64)
@@ -590,8 +590,8 @@ def test_measures_from_the_callers_sampling_equal_their_own():
     """deformation_measures(displacement=) -- the transform already sampled on the grid, as
     evaluate shares it with the memberships -- gives what its own slab-by-slab sampling
     gives, slabs and mask included."""
-    from itk_nrreval.plausibility import deformation_measures
-    from itk_nrreval.transforms import displacement_field
+    from itk_nrreval.io.plausibility import deformation_measures
+    from itk_nrreval.io.transforms import displacement_field
 
     g = OBLIQUE_GRID
     t, _ = _sine(g, k=1.1, period=14.0, axis=(0.3, 0.5, 1.0))
@@ -757,8 +757,8 @@ def test_stencils_leave_the_central_jacobian_as_it_was_and_the_threads_do_not_ma
     # the same numbers.
     import numba
 
-    from itk_nrreval.plausibility import deformation_measures
-    from itk_nrreval.transforms import jacobian_determinant
+    from itk_nrreval.io.plausibility import deformation_measures
+    from itk_nrreval.io.transforms import jacobian_determinant
 
     g = NONDIFF_GRIDS[3]
     u = _rough_field(g, sigma=1.0, max_mm=4.0, seed=3)

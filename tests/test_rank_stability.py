@@ -13,7 +13,7 @@ import pytest
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval.confidence import bootstrap_ranks, significance_map
+from itk_nrreval.measures.confidence import bootstrap_ranks, significance_map
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,8 @@ from hypothesis.extra import numpy as hnp
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval.confidence import jackknife_interval, measure_bounds
 from itk_nrreval.evaluation import TIE_Z, tie_groups
+from itk_nrreval.measures.confidence import jackknife_interval, measure_bounds
 from itk_nrreval.report.evaluation_page import report_html
 from itk_nrreval.report.evaluation_text import results_csv, summary_table
 

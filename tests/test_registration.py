@@ -20,12 +20,16 @@ from scipy.ndimage import gaussian_filter
 
 from itk_nrreval import InputError, RegistrationResult, register
 from itk_nrreval.cli import main
-from itk_nrreval.manifest import load_manifest
-from itk_nrreval.registration import AffineOptions, EngineError, FluidOptions
-from itk_nrreval.registration._elastix_worker import ElastixWorker, elastix_worker_for
-from itk_nrreval.registration.bspline import sitk_bspline
-from itk_nrreval.registration.fluid import ants_syn, demons_register, seeded_ants_registration
-from itk_nrreval.transforms import chain_transform, read_transform
+from itk_nrreval.experiments.registration import AffineOptions, EngineError, FluidOptions
+from itk_nrreval.experiments.registration._elastix_worker import ElastixWorker, elastix_worker_for
+from itk_nrreval.experiments.registration.bspline import sitk_bspline
+from itk_nrreval.experiments.registration.fluid import (
+    ants_syn,
+    demons_register,
+    seeded_ants_registration,
+)
+from itk_nrreval.io.manifest import load_manifest
+from itk_nrreval.io.transforms import chain_transform, read_transform
 
 try:
     import ants
@@ -898,7 +902,7 @@ def test_demons_step_limit_is_max_step_voxels_of_the_finest_axis(spacing, max_st
 def test_elastix_inputs_are_written_without_nifti_header_noise(tmp_path, capfd):
     # A NIfTI header's fields (descrip, qto_xyz, ...) cannot go into a MetaImage: ITK printed
     # one warning per field and per image on every elastix call.
-    from itk_nrreval.registration._elastix_worker import _write_bare
+    from itk_nrreval.experiments.registration._elastix_worker import _write_bare
 
     img = sitk.GetImageFromArray(np.arange(30, dtype=np.float32).reshape(5, 6))
     img.SetSpacing((0.9, 1.3))
@@ -937,7 +941,7 @@ def _sd_log_jacobian(transform: sitk.Transform, reference: sitk.Image, margin: i
 def test_elastix_bending_weight_regularises_the_bspline(population, affine_result, worker):
     """The bending-energy penalty (elastix's regularisation weight) makes fields smoother;
     weight 0 leaves elastix's map with the similarity metric alone."""
-    from itk_nrreval.registration.bspline import BSplineOptions, elastix_parameters
+    from itk_nrreval.experiments.registration.bspline import BSplineOptions, elastix_parameters
 
     plain = elastix_parameters(BSplineOptions(), seed=1)
     assert plain["Metric"] == ["AdvancedMeanSquares"]

@@ -26,8 +26,8 @@ import SimpleITK as sitk
 
 from data_synth import make_population
 from itk_nrreval import register
-from itk_nrreval.registration import FluidOptions
-from itk_nrreval.registration.fluid import demons_register
+from itk_nrreval.experiments.registration import FluidOptions
+from itk_nrreval.experiments.registration.fluid import demons_register
 
 
 def _rotation(dim: int, degrees: float, axis=(1.0, 2.0, 3.0)) -> np.ndarray:

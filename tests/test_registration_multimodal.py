@@ -23,16 +23,16 @@ from data_synth import make_population, write_population
 from itk_nrreval import InputError
 from itk_nrreval._output import MARKER
 from itk_nrreval.cli import main
-from itk_nrreval.correspondence import correspondence_error
-from itk_nrreval.manifest import load_manifest, write_manifest
-from itk_nrreval.registration import (
+from itk_nrreval.experiments.correspondence import correspondence_error
+from itk_nrreval.experiments.registration import (
     MultimodalResult,
     RegistrationResult,
     register_multimodal,
 )
-from itk_nrreval.registration.affine import AffineOptions, affine_register
-from itk_nrreval.registration.bspline import BSplineOptions, sitk_bspline
-from itk_nrreval.transforms import displacement_field
+from itk_nrreval.experiments.registration.affine import AffineOptions, affine_register
+from itk_nrreval.experiments.registration.bspline import BSplineOptions, sitk_bspline
+from itk_nrreval.io.manifest import load_manifest, write_manifest
+from itk_nrreval.io.transforms import displacement_field
 
 N_SUBJECTS = 3
 CONTRASTS = ("t1", "t2")
@@ -142,7 +142,7 @@ def _true(truth, inverse_truth, reference: int, image: int) -> sitk.Transform:
 
 @pytest.fixture(scope="module")
 def oracle_result(images, truth, inverse_truth):
-    import itk_nrreval.registration.multimodal as mm
+    import itk_nrreval.experiments.registration.multimodal as mm
 
     chosen = {"t1": T1_REF, "t2": T2_REF}
     arrays = [sitk.GetArrayFromImage(im) for im in images]
@@ -439,7 +439,7 @@ def written(population, tmp_path_factory):
 def test_cli_registers_with_the_manifest_groups(
     written, results, population, truth, worker, capsys, monkeypatch
 ):
-    import itk_nrreval.registration.multimodal as mm
+    import itk_nrreval.experiments.registration.multimodal as mm
 
     # The command's elastix jobs go to the running worker rather than to one it starts:
     # loading itk-elastix in a new worker is about 10 s of CPU, and starting and stopping

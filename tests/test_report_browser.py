@@ -19,7 +19,7 @@ import yaml
 from test_evaluate import make_case
 
 import itk_nrreval as nr
-from itk_nrreval.plausibility import Thresholds
+from itk_nrreval.io.plausibility import Thresholds
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
 WINDOW = (1280, 900)  # CSS pixels, a laptop's browser window

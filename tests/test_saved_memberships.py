@@ -17,10 +17,10 @@ import yaml
 from test_bad_inputs import assert_one_line
 from test_evaluate import SIZE, make_case
 
-from itk_nrreval._images import Geometry
-from itk_nrreval._membership_files import membership_file_labels, write_membership_image
 from itk_nrreval.cli import main
-from itk_nrreval.overlap import WEIGHTINGS
+from itk_nrreval.io._images import Geometry
+from itk_nrreval.io._membership_files import membership_file_labels, write_membership_image
+from itk_nrreval.measures.overlap import WEIGHTINGS
 
 # non-consecutive values, so that a component index read as a label value shows
 RELABEL = {1: 2, 2: 5, 3: 9}

@@ -15,8 +15,8 @@ import pytest
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _search
-from itk_nrreval.model import MixtureModel
+from itk_nrreval.measures import _search
+from itk_nrreval.measures.model import MixtureModel
 
 HAS_TORCH = importlib.util.find_spec("torch") is not None
 NEVER, ALWAYS = 1 << 60, 0

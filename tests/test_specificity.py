@@ -13,8 +13,8 @@ from scipy import stats
 from scipy.spatial.distance import cdist, pdist
 
 import itk_nrreval as nr
-from itk_nrreval import _search
 from itk_nrreval.cli import main
+from itk_nrreval.measures import _search
 
 
 def _image_space_samples(images: np.ndarray, model: nr.TextureModel, z: np.ndarray) -> np.ndarray:
@@ -293,7 +293,7 @@ def test_cli_unreadable_file(tmp_path, small_images, capsys):
 
 
 def test_non_finite_check_is_not_fooled_by_overflowing_sums():
-    from itk_nrreval._images import image_stack
+    from itk_nrreval.io._images import image_stack
 
     big = np.full((4, 8, 8), 1e307)  # finite, but each image's sum overflows to inf
     big[1:] *= np.linspace(0.1, 0.9, 64).reshape(8, 8)

@@ -12,9 +12,11 @@ import pytest
 from scipy.spatial.distance import cdist
 
 import itk_nrreval as nr
-from itk_nrreval import _search
+from itk_nrreval.measures import _search
 
-spec_mod = importlib.import_module("itk_nrreval.specificity")  # the module, not the function
+spec_mod = importlib.import_module(
+    "itk_nrreval.measures.specificity"
+)  # the module, not the function
 
 ALWAYS, NEVER = 0, 1 << 60
 

@@ -26,9 +26,9 @@ from hypothesis import strategies as st
 import itk_nrreval as nr
 from data_synth import make_population
 from data_synth.damage import DIAGNOSES, write_damaged
-from itk_nrreval._images import InMemoryImage
-from itk_nrreval.plausibility import affine_fit
-from itk_nrreval.subject_qc import robust_z, subject_overlaps
+from itk_nrreval.io._images import InMemoryImage
+from itk_nrreval.io.plausibility import affine_fit
+from itk_nrreval.measures.subject_qc import robust_z, subject_overlaps
 
 #: The cohort size the flag thresholds were set for (benchmarks/bench_subject_qc.py); at
 #: N = 14 one clean subject of the seed below is twice as far from the others' model as the
@@ -362,7 +362,7 @@ def test_subject_overlaps_match_pairwise_minima_and_maxima():
 
 
 def test_affine_fit_recovers_a_mirroring_affine_map_and_a_field():
-    grid = nr._images.Geometry((20, 16), (1.5, 1.0), (3.0, -2.0), (0.0, 1.0, -1.0, 0.0))
+    grid = nr.io._images.Geometry((20, 16), (1.5, 1.0), (3.0, -2.0), (0.0, 1.0, -1.0, 0.0))
     t = sitk.AffineTransform(2)
     t.SetMatrix((-1.1, 0.2, 0.1, 0.9))
     t.SetTranslation((4.0, -3.0))
@@ -403,8 +403,8 @@ def test_the_jackknife_runs_over_the_subjects_in_the_scores(cohort, tmp_path):
 def test_leave_one_out_distances_equal_refitting_each_model(seed, n, extra):
     """The closed form (one eigendecomposition) against refitting the model of the others
     for every subject (loo_generalization, an SVD each), on random images."""
-    from itk_nrreval.specificity import loo_generalization
-    from itk_nrreval.subject_qc import leave_one_out_distances
+    from itk_nrreval.measures.specificity import loo_generalization
+    from itk_nrreval.measures.subject_qc import leave_one_out_distances
 
     rng = np.random.default_rng(seed)
     images = rng.normal(size=(n, n + extra)) * rng.uniform(0.1, 10)
@@ -415,7 +415,7 @@ def test_leave_one_out_distances_equal_refitting_each_model(seed, n, extra):
 
 
 def test_leave_one_out_distance_of_a_duplicated_image_is_zero():
-    from itk_nrreval.subject_qc import leave_one_out_distances
+    from itk_nrreval.measures.subject_qc import leave_one_out_distances
 
     rng = np.random.default_rng(1)
     images = rng.normal(size=(8, 30))
@@ -569,7 +569,7 @@ def test_inverse_consistency_errors_far_below_a_voxel_are_no_flag_and_no_infinit
     hundredth of a mm, the others a few hundredths (16 of 36); the MAD was 0 and those 16
     scored z = +inf and were flagged. Every z is finite now and none of them is flagged;
     a subject off by 3 mm among them still is."""
-    from itk_nrreval.subject_qc import assess_subjects
+    from itk_nrreval.measures.subject_qc import assess_subjects
 
     rng = np.random.default_rng(1)
     ic = np.concatenate([rng.uniform(0.001, 0.009, 20), rng.uniform(0.02, 0.09, 16)])
@@ -706,7 +706,7 @@ def test_the_same_reference_file_with_a_transform_that_moves_is_no_reference(own
     """Under ``folding`` the reference is subject 0's file too, but subject 0's transform
     folds: it is a subject like the others. And the reference found by its file is the one
     reference_index names."""
-    from itk_nrreval.subject_qc import reference_subject
+    from itk_nrreval.measures.subject_qc import reference_subject
 
     assert not any(q.reference for q in own_subject_0.scores["folding"].subjects)
     folder = Path(own_subject_0.inputs["images"][0]).parent
@@ -737,7 +737,7 @@ def test_a_registration_folding_in_every_subject_is_one_registration_flag(own_su
     folded = np.array([q.deformation["folded_fraction"] for q in subjects])
     assert folded.min() > 0.01  # the premise: every subject beyond the subject threshold
     assert not [f for q in subjects for f in q.flags if "fold" in f]
-    from itk_nrreval.subject_qc import registration_flags
+    from itk_nrreval.measures.subject_qc import registration_flags
 
     (flag,) = registration_flags(subjects)
     n = OWN_N
@@ -826,10 +826,10 @@ def test_with_no_subject_flagged_the_summary_names_the_worst_by_concern(clean):
 def test_the_reports_say_which_flags_are_the_registrations_and_name_the_reference(own_subject_0):
     """summary.md, subjects.csv and report.html say the folding once, as the registration's,
     and name subject 0 as the reference where it is."""
+    from itk_nrreval.measures.subject_qc import registration_flags
     from itk_nrreval.report._html import escape
     from itk_nrreval.report.evaluation_page import report_html
     from itk_nrreval.report.evaluation_text import subjects_csv, summary_table
-    from itk_nrreval.subject_qc import registration_flags
 
     result = own_subject_0
     (flag,) = registration_flags(result.scores["folding"].subjects)
@@ -859,7 +859,7 @@ def test_a_subject_folding_only_between_grid_points_is_flagged_for_folding():
     but a one-sided or tetrahedral stencil sees (3% non-diffeomorphic) is flagged for
     folding, saying so; the same fraction by central differences is flagged as before, and
     a subject measured before the stencils existed (NaN) is not."""
-    from itk_nrreval.subject_qc import assess_subjects
+    from itk_nrreval.measures.subject_qc import assess_subjects
 
     numbers = _cohort_numbers([0.05] * 12)
     n = 12
@@ -880,7 +880,7 @@ def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first(
     from are the ones written out by hand from its own z-scores, with and without labels;
     the subjects are ranked by it, worst first; the reference has none, is never flagged and
     is listed last."""
-    from itk_nrreval.subject_qc import assess_subjects, ranked
+    from itk_nrreval.measures.subject_qc import assess_subjects, ranked
 
     n, n_labels = 12, 4
     numbers = _cohort_numbers([0.3] * n, seed=3)
@@ -948,7 +948,7 @@ def test_concern_scores_are_the_weighted_means_written_out_by_hand(values, missi
     """concern_scores on arrays (NaN: not measured; a key left out: no such term, e.g. no
     labels) against the concern written out term by term, subject by subject; a subject
     with nothing measured has NaN and no term."""
-    from itk_nrreval.subject_qc import CONCERN_TERMS, concern_scores
+    from itk_nrreval.measures.subject_qc import CONCERN_TERMS, concern_scores
 
     keys = list(CONCERN_BY_HAND)
     columns = {k: np.array([v[j] for v in values]) for j, k in enumerate(keys)}
@@ -967,7 +967,7 @@ def test_concern_scores_are_the_weighted_means_written_out_by_hand(values, missi
 def test_a_reference_whose_content_cannot_be_read_names_no_subject(tmp_path):
     """Two digests that could not be taken are not two equal images: an identity-transform
     subject is not named the reference because neither file could be read."""
-    from itk_nrreval.subject_qc import reference_subject
+    from itk_nrreval.measures.subject_qc import reference_subject
 
     missing = [tmp_path / "gone_reference.nii.gz", tmp_path / "gone_subject.nii.gz"]
     assert reference_subject(missing[0], [missing[1]], displacement_rms_mm=[0.0]) is None

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from itk_nrreval.subject_qc import (
+from itk_nrreval.measures.subject_qc import (
     SubjectQC,
     leave_one_out_distances,
     transform_mixups,
@@ -68,7 +68,7 @@ def _run(images: np.ndarray, scored: list[int], flagged: list[int]):
 def _brute_force(images, scored, flagged, mean):
     """Per checked subject: the best ratio own / changed distance, each to the affine span
     of the scored images but the subject and the image resampled through its transform."""
-    from itk_nrreval.subject_qc import Alternative
+    from itk_nrreval.measures.subject_qc import Alternative
 
     best: dict[int, float] = {}
     for i in flagged:

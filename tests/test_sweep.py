@@ -10,7 +10,7 @@ from test_bad_inputs import assert_one_line
 
 import itk_nrreval as nr
 from itk_nrreval.cli import main
-from itk_nrreval.sweep import parse_parameter
+from itk_nrreval.experiments.sweep import parse_parameter
 
 
 @pytest.fixture(scope="module")
@@ -200,7 +200,7 @@ def test_a_flagged_setting_is_never_recommended_even_when_decided_best(tmp_path)
     from test_evaluate import make_case
 
     from itk_nrreval.evaluation import verdict
-    from itk_nrreval.sweep import _recommendation
+    from itk_nrreval.experiments.sweep import _recommendation
 
     make_case(tmp_path)
     result = nr.evaluate(tmp_path / "manifest.yaml", n_samples=3000, seed=2, progress=False)

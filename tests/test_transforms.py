@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from itk_nrreval import InputError, frame
-from itk_nrreval.frame import resample_images
-from itk_nrreval.transforms import (
+from itk_nrreval import InputError
+from itk_nrreval.io import frame
+from itk_nrreval.io.frame import resample_images
+from itk_nrreval.io.transforms import (
     chain_transform,
     field_transform,
     folded_fraction,
@@ -340,8 +341,8 @@ _READ_FROM_THREADS = textwrap.dedent(
     """
     import sys, threading
     import SimpleITK as sitk
-    from itk_nrreval._cache import content_digest
-    from itk_nrreval.transforms import chain_transform
+    from itk_nrreval.io._cache import content_digest
+    from itk_nrreval.io.transforms import chain_transform
 
     path = sys.argv[1]
     field = sitk.DisplacementFieldTransform(sitk.Image([20, 20, 20], sitk.sitkVectorFloat64, 3))
@@ -383,7 +384,7 @@ def test_hdf5_transforms_read_from_threads(tmp_path):
 def test_a_transform_file_changed_to_nan_after_a_first_read_is_refused(tmp_path):
     # A file once found finite is not taken apart again to check it (issue 30: that copies
     # every field), but only while it is unchanged: rewritten with a NaN, it is refused.
-    from itk_nrreval.transforms import read_transform
+    from itk_nrreval.io.transforms import read_transform
 
     field = sitk.Image([6, 5, 4], sitk.sitkVectorFloat64, 3)
     values = sitk.GetArrayFromImage(field)  # the transform takes the image's buffer
@@ -407,7 +408,7 @@ def test_a_transform_file_changed_to_nan_after_a_first_read_is_refused(tmp_path)
 def test_a_chain_is_built_in_place_without_touching_the_callers_transforms(tmp_path):
     # chain_transform grows the composite it read from the last file in place (issue 30);
     # a composite the caller passed is copied, never changed, and the map is the chain's.
-    from itk_nrreval.transforms import chain_transform, leaves
+    from itk_nrreval.io.transforms import chain_transform, leaves
 
     first = sitk.Euler3DTransform((1.0, 2.0, 0.0), 0.1, -0.2, 0.3, (2.0, -1.0, 0.5))
     field = sitk.Image([8, 7, 6], sitk.sitkVectorFloat64, 3)
@@ -456,8 +457,8 @@ def test_displacement_after_equals_itk_sampling_the_composite(dim):
     is an affine after a field after an affine (fields on oblique, anisotropic grids that do
     not cover the whole common grid, so points fall in their half-voxel borders and beyond)
     and D a rough field on the common grid."""
-    from itk_nrreval._images import Geometry
-    from itk_nrreval.transforms import displacement_after, leaves
+    from itk_nrreval.io._images import Geometry
+    from itk_nrreval.io.transforms import displacement_after, leaves
 
     rng = np.random.default_rng(dim)
     n = (23, 19, 11)[:dim]
@@ -506,9 +507,9 @@ def test_composed_displacement_from_pieces_equals_itks_sampling(dim):
     frame estimates are) or as a transform (sampled by ITK): the same to 1e-11 mm, for C an
     affine after a field on an oblique, anisotropic grid that does not cover the common
     one, and R a field after an affine (inverted numerically)."""
-    from itk_nrreval._images import Geometry
-    from itk_nrreval.frame import frame_estimate
-    from itk_nrreval.transforms import PointwiseInverse, composed_displacement, leaves
+    from itk_nrreval.io._images import Geometry
+    from itk_nrreval.io.frame import frame_estimate
+    from itk_nrreval.io.transforms import PointwiseInverse, composed_displacement, leaves
 
     rng = np.random.default_rng(10 + dim)
     n = (21, 17, 9)[:dim]
@@ -546,8 +547,8 @@ def _voxel_points(img: sitk.Image) -> list:
 
 
 def test_displacement_after_refuses_what_it_cannot_apply():
-    from itk_nrreval._images import Geometry
-    from itk_nrreval.transforms import displacement_after
+    from itk_nrreval.io._images import Geometry
+    from itk_nrreval.io.transforms import displacement_after
 
     img = grid(2)
     g = Geometry.from_image(img)

@@ -13,8 +13,7 @@ import yaml
 
 from itk_nrreval._errors import InputError
 from itk_nrreval.cli import main
-from itk_nrreval.overlap import overlap_table
-from itk_nrreval.validation import (
+from itk_nrreval.experiments.perturbation import (
     OUTPUT_FILES,
     ValidationRow,
     manifest_set,
@@ -22,6 +21,7 @@ from itk_nrreval.validation import (
     validate,
     validate_manifest,
 )
+from itk_nrreval.measures.overlap import overlap_table
 
 SIZE = (20, 18, 16)  # ITK (x, y, z)
 SPACING = (2.0, 2.0, 2.0)
@@ -113,7 +113,7 @@ def test_validate_a_3d_manifest_where_one_image_lacks_a_label(case):
     assert res.parameters["registration"] == "truth"
     # a loaded Manifest is used as it is (nrreval validate loads it once, not twice): the
     # same numbers, and its file as the source
-    from itk_nrreval.manifest import load_manifest
+    from itk_nrreval.io.manifest import load_manifest
 
     loaded = load_manifest(case / "manifest.yaml")
     again = validate_manifest(loaded, displacements=(0.0, 0.05, 0.1), **KW)

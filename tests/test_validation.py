@@ -13,7 +13,7 @@ import pytest
 
 from data_synth import perfectly_registered_arrays
 from itk_nrreval.cli import main
-from itk_nrreval.validation import summarize, validate
+from itk_nrreval.experiments.perturbation import summarize, validate
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +79,7 @@ def test_validation_is_reproducible(brain):
 
 
 def test_summary_of_a_handmade_table():
-    from itk_nrreval.validation import ValidationRow
+    from itk_nrreval.experiments.perturbation import ValidationRow
 
     rows = [
         ValidationRow(d, 0, s, 0.5, {"volume": o}, 1.0)
@@ -137,7 +137,7 @@ def test_report_reads_the_run(reduced, tmp_path):
 
     from test_html_report import check_self_contained, decode_png, parse
 
-    from itk_nrreval.validation import OUTPUT_FILES
+    from itk_nrreval.experiments.perturbation import OUTPUT_FILES
 
     written = reduced.write(tmp_path / "v")
     assert [p.name for p in written] == list(OUTPUT_FILES) and "report.html" in OUTPUT_FILES

@@ -18,8 +18,8 @@ from test_evaluate import N_IMAGES, make_case
 import itk_nrreval as nr
 from data_synth.cheat import class_matching_cheat
 from itk_nrreval.cli import main
-from itk_nrreval.confidence import compare
 from itk_nrreval.evaluation import verdict
+from itk_nrreval.measures.confidence import compare
 
 KW = dict(n_samples=3000, seed=2, progress=False)
 
@@ -145,9 +145,9 @@ def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):
 
 
 def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
-    """The rules of the verdict (module docstring of itk_nrreval.verdict), restated: which of
-    them let `w` be decided better than `l`."""
-    from itk_nrreval.verdict import (
+    """The rules of the verdict (module docstring of itk_nrreval.measures.verdict), restated:
+    which of them let `w` be decided better than `l`."""
+    from itk_nrreval.measures.verdict import (
         EXCHANGE_RATE,
         MIN_ROUGHNESS_DIFFERENCE,
         MIN_SPECIFICITY_RATIO,
@@ -381,7 +381,7 @@ def test_a_preference_that_roughness_buys_is_no_evidence_against_the_other_measu
     is what roughness alone can buy (the demons sweeps of the known-truth benchmark): it does
     not count, so the overlap decides for `smooth`. An advantage beyond that counts, and the
     two measures disagree: the pair stays open."""
-    from itk_nrreval.verdict import EXCHANGE_RATE
+    from itk_nrreval.measures.verdict import EXCHANGE_RATE
 
     _, result = cheat_case
     base = result.scores["truth"]
@@ -467,7 +467,7 @@ def test_too_few_samples_decide_nothing_and_the_text_says_so(cheat_case, tmp_pat
         result = nr.evaluate(manifest, n_samples=2, seed=2, progress=False)
     v = result.verdict
     assert v.decisions == () and not v.decided
-    from itk_nrreval.verdict import MIN_SAMPLES
+    from itk_nrreval.measures.verdict import MIN_SAMPLES
 
     names = list(result.scores)
     reason = (
@@ -601,7 +601,7 @@ def test_an_order_of_levels_is_not_the_verdicts_order(cheat_case):
 def test_the_demo_table_and_the_summary_list_the_verdicts_order(cheat_case):
     """One order everywhere: the demo's table (its stdout) and summary.md list the
     registrations as verdict.ranking does, whatever the order of the manifest."""
-    from itk_nrreval.demo import _table
+    from itk_nrreval.experiments.demo import _table
     from itk_nrreval.report import summary_table
 
     _, result = cheat_case
@@ -628,7 +628,7 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
     specificity. Below it the smoother registration is decided better; between that and
     exp(EXCHANGE_RATE * 0.4) the pair is the trade-off's knee and stays open; beyond that the
     rougher one is; and nearly equal roughness never decides for the smoother."""
-    from itk_nrreval.verdict import EXCHANGE_RATE, SMOOTHNESS_RATE
+    from itk_nrreval.measures.verdict import EXCHANGE_RATE, SMOOTHNESS_RATE
 
     _, result = cheat_case
     base = result.scores["truth"]
@@ -702,7 +702,7 @@ def test_specificity_is_no_evidence_against_folds_or_by_a_small_ratio(cheat_case
       ratio below MIN_SPECIFICITY_RATIO decides nothing unless the preferred fields are
       clearly smoother.
     """
-    from itk_nrreval.verdict import EXCHANGE_RATE, MIN_SPECIFICITY_RATIO
+    from itk_nrreval.measures.verdict import EXCHANGE_RATE, MIN_SPECIFICITY_RATIO
 
     _, result = cheat_case
     base = result.scores["truth"]
@@ -746,7 +746,7 @@ def test_the_overlap_is_no_evidence_against_folds_either(cheat_case):
     was decided better than a 10 mm B-spline that folds 1.7% (SDlogJ 0.64) and corresponds
     better, by the overlap's separable 1.61x odds. Against a registration that folds, the
     overlap too is evidence only beyond exp(OVERLAP_EXCHANGE_RATE * 0.47) = 6.9x."""
-    from itk_nrreval.verdict import OVERLAP_EXCHANGE_RATE
+    from itk_nrreval.measures.verdict import OVERLAP_EXCHANGE_RATE
 
     _, result = cheat_case
     base = result.scores["truth"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from itk_nrreval import warps as W
+from itk_nrreval.experiments import warps as W
 
 
 def green_reference(x, y):

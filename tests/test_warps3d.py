@@ -15,8 +15,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy import integrate, ndimage, optimize
 
-from itk_nrreval import warps as W
-from itk_nrreval._fold_check import safe_scale
+from itk_nrreval.experiments import warps as W
+from itk_nrreval.experiments._fold_check import safe_scale
 
 
 def random_inside(rng, n, dim, rmax=0.9):

@@ -7,7 +7,7 @@ work is cut so that no process holds the N x n data (N images, n voxels):
 1. **per image** (N tasks per registration): the frame estimate ``F_i`` (registrations
    other than the common one); the transform's measures (which voxels of the common grid
    it brings the image's field of view to, and the deformation's plausibility,
-   :mod:`itk_nrreval.plausibility`, on the registration's own reference grid); then, once
+   :mod:`itk_nrreval.io.plausibility`, on the registration's own reference grid); then, once
    every transform is measured and the region every image covers under every
    registration is known, registration by registration: the image resampled into the
    common frame, its fuzzy label memberships (sparse: the voxels where each label is
@@ -17,8 +17,8 @@ work is cut so that no process holds the N x n data (N images, n voxels):
    :func:`~._tasks.cached`, writes its result to a disk cache under a digest of everything
    it depends on (input
    file contents, transforms, the frame, grid, mask, settings, and the code version: the
-   package's and the task's, ``_task_keys._TASK_VERSIONS``; :mod:`itk_nrreval._cache`), so a rerun
-   -- after an interruption, or with more images or registrations -- finds it there
+   package's and the task's, ``_task_keys._TASK_VERSIONS``; :mod:`itk_nrreval.io._cache`), so a
+   rerun -- after an interruption, or with more images or registrations -- finds it there
    instead of recomputing it. A registration's resampled images leave the cache once its
    scores are taken (unless kept: ``keep_resampled``), so that the cache holds one
    registration's images at a time;

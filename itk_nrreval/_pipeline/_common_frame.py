@@ -3,7 +3,7 @@
 A registration that is not the common one is brought into the common frame by ``F``:
 a transform of the manifest (``frame_transform`` or a reference image's transform:
 :func:`given_frame`), or the mean over the images of ``F_i = (T_i^R)^-1 o T_i^C``
-(:func:`itk_nrreval.frame.frame_estimate`), one task per image (:class:`EstimateFrame`,
+(:func:`itk_nrreval.io.frame.frame_estimate`), one task per image (:class:`EstimateFrame`,
 listed by :func:`estimate_plan`), added up as the tasks finish (:class:`MeanOfEstimates`,
 its entry under :class:`FrameMean`'s key); and how far each estimate lies from F (its
 spread, reported: :func:`frame_spread`, from F(p) - p, :class:`FrameDisplacement`; its
@@ -23,9 +23,9 @@ from typing import Any, ClassVar
 import numpy as np
 import SimpleITK as sitk
 
-from .._cache import DiskCache, digest_of
-from .._images import Geometry
-from ..frame import (
+from ..io._cache import DiskCache, digest_of
+from ..io._images import Geometry
+from ..io.frame import (
     FrameMapping,
     distance_sums,
     frame_estimate,
@@ -35,8 +35,8 @@ from ..frame import (
     points_minus_grid,
     resample_onto,
 )
-from ..manifest import Manifest
-from ..transforms import chain_transform, field_transform, invert
+from ..io.manifest import Manifest
+from ..io.transforms import chain_transform, field_transform, invert
 from ._task_keys import TaskContext
 from ._tasks import NOT_KEYED, Entry, Keyed, Task, cached
 
@@ -146,7 +146,7 @@ class RegistrationMask(Task):
 @dataclass(frozen=True)
 class EstimateFrame(Task):
     """One image's estimate of the frame F, ``F_i(p) - p = (T_i^R)^-1 o T_i^C (p) - p``
-    (:func:`~itk_nrreval.frame.frame_estimate`), (*grid.shape, dim) in mm over the common
+    (:func:`~itk_nrreval.io.frame.frame_estimate`), (*grid.shape, dim) in mm over the common
     grid `grid`: `common_item` is the image's transform in the common registration,
     `item` in this one (defined on its reference grid `reg_grid`).
 
@@ -221,7 +221,7 @@ class FrameDisplacement(Task):
 def _stored_estimate(disp: np.ndarray, stored: str | None = None) -> dict[str, np.ndarray]:
     """The arrays of a frame estimate's entry for the spread, as `stored` (a dtype; default
     ``_STORED_ESTIMATE``): ``disp``, and when in steps, ``low`` and ``step`` (dim,)
-    (:func:`~itk_nrreval.frame.in_steps`; :func:`_estimate_values`). A field that is not
+    (:func:`~itk_nrreval.io.frame.in_steps`; :func:`_estimate_values`). A field that is not
     finite everywhere is stored as float32."""
     stored = np.dtype(_STORED_ESTIMATE if stored is None else stored)
     steps = in_steps(disp, levels=int(np.iinfo(stored).max)) if stored.kind == "u" else None

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._cache import DiskCache
 from .._errors import InputError, readable
-from .._images import Geometry
-from ..manifest import Manifest
+from ..io._cache import DiskCache
+from ..io._images import Geometry
+from ..io.manifest import Manifest
 
 
 @dataclass(frozen=True)

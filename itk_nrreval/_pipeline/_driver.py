@@ -23,17 +23,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .._brain_masks import BrainMaskDice, subject_mask_dice
-from .._cache import DiskCache, digest_of
 from .._evaluation_options import Execution, Resampling
 from .._executors import Executor
-from .._images import Geometry, mask_array, read_image, warn_label_like
-from .._resampled_images import ResampledImages, image_slice, thumbnails
-from ..frame import FrameMapping, common_reference, frame_method, label_values
-from ..label_metrics import LabelMetrics
-from ..manifest import Manifest
-from ..plausibility import AffineFit, Plausibility, SubjectThresholds
-from ..subject_qc import SubjectQC, ranked
+from ..io._brain_masks import BrainMaskDice, subject_mask_dice
+from ..io._cache import DiskCache, digest_of
+from ..io._images import Geometry, mask_array, read_image, warn_label_like
+from ..io._resampled_images import ResampledImages, image_slice, thumbnails
+from ..io.frame import FrameMapping, common_reference, frame_method, label_values
+from ..io.manifest import Manifest
+from ..io.plausibility import AffineFit, Plausibility, SubjectThresholds
+from ..measures.label_metrics import LabelMetrics
+from ..measures.subject_qc import SubjectQC, ranked
 from ._common_frame import (
     ESTIMATE_ENTRIES,
     FrameMean,
@@ -124,7 +124,7 @@ def run_pipeline(
         Its `cache` (default: a temporary folder, removed afterwards) and `keep_resampled`:
         keep every registration's resampled images and memberships in the cache (about
         50 MB per image and registration at 1 mm), so that a rerun does not resample them
-        again, and :func:`itk_nrreval._resampled_images.export_resampled` can write them. By
+        again, and :func:`itk_nrreval.io._resampled_images.export_resampled` can write them. By
         default each registration's go once its scores are taken: the cache then holds one
         registration's at a time, and keeps the frames and every transform's measures.
     subject_thresholds : SubjectThresholds, optional
@@ -137,8 +137,8 @@ def run_pipeline(
         Given a registration's finished :class:`ReducedRegistration` and a function that
         resamples images through changed transforms and returns their inner products with
         the scored images (:func:`alternative_products`, its first arguments bound; for
-        :func:`itk_nrreval.subject_qc.transform_mixups`), every subject's quality control
-        (:class:`~itk_nrreval.subject_qc.SubjectQC`): run while the cache still holds the
+        :func:`itk_nrreval.measures.subject_qc.transform_mixups`), every subject's quality control
+        (:class:`~itk_nrreval.measures.subject_qc.SubjectQC`): run while the cache still holds the
         registration's images, kept in its ``subjects``.
     flagged_pictured : int
         How many of the flagged subjects, worst first, the thumbnails also picture
@@ -357,7 +357,7 @@ def _brain_masks(
     """Every subject's brain mask (the manifest's ``masks``) in the common frame under
     registration `name` (:func:`brain_mask_plan`), and its Dice against the common mask:
     the manifest's `mask` (on the common grid) where given, else the majority vote of the
-    resampled masks (:func:`~itk_nrreval._brain_masks.subject_mask_dice`). None without
+    resampled masks (:func:`~itk_nrreval.io._brain_masks.subject_mask_dice`). None without
     ``masks``."""
     if m.masks is None:
         return None
@@ -372,7 +372,7 @@ def _label_metrics(
     executor, ctx, disk, m, name, r: Resampled, *, scored, values, keep, progress
 ) -> LabelMetrics | None:  # fmt: skip
     """Registration `name`'s Dice and HD95 (mm) per label and case in the common frame
-    (:mod:`itk_nrreval.label_metrics`), from its resampled entries (`r`): each scored
+    (:mod:`itk_nrreval.measures.label_metrics`), from its resampled entries (`r`): each scored
     subject's crisp map (:func:`crisp_plan`), then its side of its cases
     (:func:`distances_plan`; the cases: :func:`label_cases`). The crisp maps leave the
     cache afterwards unless `keep`. None without labels."""

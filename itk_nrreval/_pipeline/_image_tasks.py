@@ -22,29 +22,27 @@ from typing import Any, ClassVar
 import numpy as np
 import SimpleITK as sitk
 
-from .._brain_masks import resample_mask
-from .._cache import DiskCache
-from .._images import (
+from ..io._brain_masks import resample_mask
+from ..io._cache import DiskCache
+from ..io._images import (
     Geometry,
     InMemoryImage,
     label_like_values,
     read_header,
     read_image,
 )
-from .._memberships import (
+from ..io._memberships import (
     SparseMemberships,
     covered_voxels,
     resample_image_and_memberships,
     resample_label_memberships,
     shares_grid,
 )
-from .._overlap_kernels import membership_gradient_sum
-from .._resampled_images import stored_memberships
-from .._subject_measures import BIAS_SCALE_MM, bias_corrected
-from ..frame import resample_images, resampling_transform
-from ..manifest import Manifest
-from ..plausibility import deformation_measures
-from ..transforms import (
+from ..io._resampled_images import stored_memberships
+from ..io.frame import resample_images, resampling_transform
+from ..io.manifest import Manifest
+from ..io.plausibility import deformation_measures
+from ..io.transforms import (
     PointMap,
     TransformPieces,
     displacement_array,
@@ -53,6 +51,8 @@ from ..transforms import (
     has_only_fields,
     transform_pieces,
 )
+from ..measures._overlap_kernels import membership_gradient_sum
+from ..measures._subject_measures import BIAS_SCALE_MM, bias_corrected
 from ._common_frame import frame_transform
 from ._task_keys import TaskContext, mask_flat
 from ._tasks import NOT_KEYED, Task
@@ -125,11 +125,11 @@ class MeasureTransform(Task):
 
     The entry holds ``covered``: the common-grid voxels that ``T_i^R o F`` maps into the
     image's field of view (``np.packbits`` of a bool (n,); ITK's decisions,
-    :func:`~itk_nrreval._memberships.covered_voxels`, where the resampled image has a
+    :func:`~itk_nrreval.io._memberships.covered_voxels`, where the resampled image has a
     value), and ``detj_middle`` (float32: det J on the middle slice of `reg_grid`, NaN
     outside its mask, for the report). Its metadata holds the fraction of the mask (or grid)
     covered, the deformation's plausibility measures and the transform's closest affine map
-    (:func:`~itk_nrreval.plausibility.affine_fit`, from the same sampling of the transform:
+    (:func:`~itk_nrreval.io.plausibility.affine_fit`, from the same sampling of the transform:
     ``deformation_measures(..., affine=True)``) on the registration's reference grid
     `reg_grid` (inside the mask mapped there, `reg_mask_key`), and the fixed-bin counts of
     log det J over the same voxels (``log_jacobian_histogram``).
@@ -242,10 +242,10 @@ class ResampleImage(Task):
     own nonzero label values, in compressed form: ``lab_ptr`` (K + 1,), ``lab_idx`` (flat
     voxel indices, ascending per label; uint32 below 2**32 voxels, else int64), ``lab_val``
     (float32). Its metadata holds the label values and the image's label-like values
-    (:func:`~itk_nrreval._images.label_like_values`). `own_values` are the label map's own
+    (:func:`~itk_nrreval.io._images.label_like_values`). `own_values` are the label map's own
     nonzero values (found once by the driver from `labels`, so not keyed);
     `label_resampling` is ``(method, sigma_mm)`` of
-    :func:`~itk_nrreval._memberships.resample_label_memberships`. `reg_grid`, the
+    :func:`~itk_nrreval.io._memberships.resample_label_memberships`. `reg_grid`, the
     registration's reference grid, only says whether T's displacement on the common grid
     can be sampled whole (:func:`_sampling`). The transform's measures are
     :class:`MeasureTransform`'s.
@@ -306,14 +306,14 @@ def _sampling(
     cache: DiskCache, *, one_sampling: bool, whole: bool = False,
 ) -> tuple:  # fmt: skip
     """Image i's transform from the common frame, ``T_i^R o F`` (:func:`resampling_transform`),
-    T given as its pieces (:func:`~itk_nrreval.transforms.transform_pieces`), and, where one
+    T given as its pieces (:func:`~itk_nrreval.io.transforms.transform_pieces`), and, where one
     sampling of it on the common grid `g` serves more than one use (`one_sampling`), that
     sampling: ``(transform, sampling or None)``; otherwise the memberships sample the
     transform slab by slab.
 
     When T is linear maps and displacement fields, the compiled kernels sample it (to about
     1e-13 mm of ITK's): a slab of `g` at a time, as a
-    :class:`~itk_nrreval.transforms.PointMap` of T after F's displacement (F a field the
+    :class:`~itk_nrreval.io.transforms.PointMap` of T after F's displacement (F a field the
     pipeline estimated, frame ``("field", key)``, read from its cache entry) or after none
     (F the identity); with `whole`, F the identity and T on the common grid, as T's
     displacement on the whole grid, which also serves the plausibility. The transform
@@ -392,7 +392,7 @@ class LabelSums(Task):
     Metadata only, whether computed or found (:func:`~._tasks.cached`):
     ``{"gsum": list of float, "present": list of bool}``, each of length K, the image's own
     labels in the order of its entry's ``labels``: ``sum_v |grad A_k|`` over the region
-    (mm^-1 x voxels, :func:`~itk_nrreval._overlap_kernels.membership_gradient_sum`), and
+    (mm^-1 x voxels, :func:`~itk_nrreval.measures._overlap_kernels.membership_gradient_sum`), and
     whether A_k is nonzero anywhere in it."""
 
     kind: ClassVar[str] = "label_sums"
@@ -420,7 +420,7 @@ class LabelSums(Task):
 class BiasCorrect(Task):
     """One resampled image (the ``resampled`` entry `resampled`) divided by its local mean
     in the region (`mask_key`), where
-    :func:`~itk_nrreval._subject_measures.bias_corrected` takes it: the entry holds
+    :func:`~itk_nrreval.measures._subject_measures.bias_corrected` takes it: the entry holds
     ``image`` (float32, over the whole grid, 0 outside the region)."""
 
     kind: ClassVar[str] = "bias_corrected"
@@ -478,7 +478,7 @@ def brain_mask_plan(
 class ResampleBrainMask(Task):
     """One subject's brain mask brought into the common frame through ``T_i^R o F`` (as its
     image is): the entry holds ``mask``, ``np.packbits`` of a bool (n,) over the common grid
-    (numpy order). `method` is :func:`~itk_nrreval._brain_masks.resample_mask`'s."""
+    (numpy order). `method` is :func:`~itk_nrreval.io._brain_masks.resample_mask`'s."""
 
     kind: ClassVar[str] = "brain_mask"
     grid: Geometry

@@ -6,7 +6,7 @@ label boundaries in the evaluated region (:class:`CrispLabels`), then its side o
 cases: the directed HD95 distances and the Dice counts against the subjects it is compared
 with (:class:`LabelDistances`). :func:`label_cases` says which subjects are compared,
 :func:`crisp_plan` and :func:`distances_plan` list the tasks, and :func:`label_metrics`
-assembles the registration's :class:`~itk_nrreval.label_metrics.LabelMetrics` from their
+assembles the registration's :class:`~itk_nrreval.measures.label_metrics.LabelMetrics` from their
 metadata; the driver runs the plans.
 """
 
@@ -18,13 +18,18 @@ from typing import ClassVar
 
 import numpy as np
 
-from .._cache import DiskCache
-from .._images import Geometry
 from .._output import json_number
-from .._resampled_images import stored_memberships
-from ..label_metrics import LabelMetrics, crisp_labels, directed_percentiles, label_surfaces
-from ..manifest import Manifest
-from ..subject_qc import reference_subject
+from ..io._cache import DiskCache
+from ..io._images import Geometry
+from ..io._resampled_images import stored_memberships
+from ..io.manifest import Manifest
+from ..measures.label_metrics import (
+    LabelMetrics,
+    crisp_labels,
+    directed_percentiles,
+    label_surfaces,
+)
+from ..measures.subject_qc import reference_subject
 from ._image_tasks import Resampled
 from ._task_keys import TaskContext, mask_flat
 from ._tasks import NOT_KEYED, Task
@@ -43,7 +48,7 @@ class LabelCases:
         Each scored subject's own label codes.
     reference : int or None
         The registration's reference subject among the scored
-        (:func:`~itk_nrreval.subject_qc.reference_subject`), or None.
+        (:func:`~itk_nrreval.measures.subject_qc.reference_subject`), or None.
     cases : list of (int, int)
         Each scored subject against the reference where there is one, else every pair of
         scored subjects (subject indices).
@@ -161,11 +166,11 @@ def label_metrics(
 class CrispLabels(Task):
     """One subject's crisp label map in the evaluated region, and its label boundaries.
 
-    From the resampled entry `resampled`'s memberships (:func:`~itk_nrreval.label_metrics.
+    From the resampled entry `resampled`'s memberships (:func:`~itk_nrreval.measures.label_metrics.
     crisp_labels`, channel k written as ``codes[k]``, an index into the run's label values;
     background outside `mask_key`'s region) and
-    :func:`~itk_nrreval.label_metrics.label_surfaces`. The entry holds ``labels`` (n,) in the
-    smallest unsigned dtype for `n_codes`, ``b_ptr`` (n_codes + 1,) and ``b_idx`` (flat
+    :func:`~itk_nrreval.measures.label_metrics.label_surfaces`. The entry holds ``labels`` (n,) in
+    the smallest unsigned dtype for `n_codes`, ``b_ptr`` (n_codes + 1,) and ``b_idx`` (flat
     voxel indices of every code's boundary; uint32 below 2**32 voxels); its metadata
     ``counts``, each code's voxels in the region.
 
@@ -205,7 +210,7 @@ class LabelDistances(Task):
     as lists: per target, per code, the 95th percentile of the distances (mm) from the
     target's boundary to the subject's nearest boundary voxel (None: no boundary in one of
     them; one distance transform of the subject's boundary per code,
-    :func:`~itk_nrreval.label_metrics.directed_percentiles`, read at every target's); per
+    :func:`~itk_nrreval.measures.label_metrics.directed_percentiles`, read at every target's); per
     partner of `dice_with`, per code, the voxels where both maps have it.
     """
 

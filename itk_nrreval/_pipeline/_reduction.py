@@ -18,19 +18,19 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from .._brain_masks import BrainMaskDice
 from .._errors import InputError, readable
-from .._images import Geometry, read_image
-from .._overlap_kernels import membership_pair_sums
-from ..frame import FrameMapping, resample_images, resampling_transform
-from ..label_metrics import LabelMetrics
-from ..manifest import Manifest
-from ..model import TextureModel
-from ..overlap import OverlapTable
-from ..plausibility import AffineFit, Plausibility
-from ..specificity import GeneralizationResult, SpecificityResult, texture_measures
-from ..subject_qc import SubjectQC
-from ..transforms import chain_transform, invert
+from ..io._brain_masks import BrainMaskDice
+from ..io._images import Geometry, read_image
+from ..io.frame import FrameMapping, resample_images, resampling_transform
+from ..io.manifest import Manifest
+from ..io.plausibility import AffineFit, Plausibility
+from ..io.transforms import chain_transform, invert
+from ..measures._overlap_kernels import membership_pair_sums
+from ..measures.label_metrics import LabelMetrics
+from ..measures.model import TextureModel
+from ..measures.overlap import OverlapTable
+from ..measures.specificity import GeneralizationResult, SpecificityResult, texture_measures
+from ..measures.subject_qc import SubjectQC
 from ._common_frame import frame_transform
 from ._coverage import Coverage
 from ._task_keys import TaskContext
@@ -72,41 +72,42 @@ class ReducedRegistration:
     gram : ndarray of shape (n_scored, n_scored)
         Gram matrix of the centred resampled images in the scores (`scored`; inside the
         region): the model of any subset of them follows from it
-        (:mod:`itk_nrreval.confidence`).
+        (:mod:`itk_nrreval.measures.confidence`).
     overlap_sums : dict of str to ndarray, or None
         The per-image sums the overlap table was built from (``labels``, ``volume``,
         ``target_sums``, ``gradient_sums``, ``pair_min``, ``pair_max``; see
         :meth:`OverlapTable.from_sums`), rows in `scored` order, and the sums of minima of
         each two images of one subject (``subject_pairs``, ``subject_pair_min``; see
-        :func:`~itk_nrreval.confidence.overlap_replicates`); None without labels.
+        :func:`~itk_nrreval.measures.confidence.overlap_replicates`); None without labels.
     thumbnails : dict of str to ndarray
         Small arrays for the HTML report, whatever N
-        (:func:`~itk_nrreval._resampled_images.thumbnails`): middle slices of two subjects'
+        (:func:`~itk_nrreval.io._resampled_images.thumbnails`): middle slices of two subjects'
         resampled images (and of the flagged subjects :func:`run_pipeline` pictures,
         ``image_<i>``), of the first subject's labels and of its
         det J, and the log det J histogram over all subjects.
     affine_fits : list of AffineFit, length n_images
         Each transform's closest affine map on the reference grid
-        (:func:`itk_nrreval.plausibility.affine_fit`).
+        (:func:`itk_nrreval.io.plausibility.affine_fit`).
     scored : tuple of int
         The images in the scores (manifest indices, ascending; every image but those off
         the common grid, :func:`off_grid_subjects`): the rows of `gram` and `overlap_sums`.
     brain_masks : BrainMaskDice or None
         Every subject's brain-mask Dice in the common frame against the common mask
         (:class:`~._image_tasks.ResampleBrainMask`,
-        :func:`~itk_nrreval._brain_masks.subject_mask_dice`); None when the manifest has no
+        :func:`~itk_nrreval.io._brain_masks.subject_mask_dice`); None when the manifest has no
         ``masks``.
     label_metrics : LabelMetrics or None
         Dice and HD95 (mm) per label and case in the common frame
-        (:mod:`itk_nrreval.label_metrics`, :func:`~._label_metrics.label_metrics`); None
+        (:mod:`itk_nrreval.measures.label_metrics`, :func:`~._label_metrics.label_metrics`); None
         without labels.
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, by `assess_subjects` of
         :func:`run_pipeline` (empty without it).
     corrected_squares : ndarray of shape (n_scored,) or None
         Per scored image, the sum over the region of its bias-corrected image's squared
-        difference from their mean (:func:`~itk_nrreval._subject_measures.others_mean_distances`);
-        None when not computed.
+        difference from their mean
+        (:func:`~itk_nrreval.measures._subject_measures.others_mean_distances`); None when not
+        computed.
     """
 
     name: str
@@ -355,7 +356,7 @@ def alternative_products(
     """Resample images through changed transforms; their inner products with the scores'.
 
     On the driver, after the per-image tasks, for the few subjects the quality control asks
-    about (:func:`itk_nrreval.subject_qc.transform_mixups`).
+    about (:func:`itk_nrreval.measures.subject_qc.transform_mixups`).
 
     Parameters
     ----------
@@ -377,7 +378,7 @@ def alternative_products(
         As the resampled entries.
     alternatives : sequence of Alternative
         ``image`` resampled through subject ``transform``'s transform of registration
-        `name` (its inverse with ``inverse``: :func:`itk_nrreval.transforms.invert`, exact
+        `name` (its inverse with ``inverse``: :func:`itk_nrreval.io.transforms.invert`, exact
         for linear maps), as the per-image task resamples (0 outside the field of view).
 
     Returns

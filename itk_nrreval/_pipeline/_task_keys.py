@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import _version
-from .._cache import DiskCache, digest_of
-from .._images import Geometry
+from ..io._cache import DiskCache, digest_of
+from ..io._images import Geometry
 
 _FORMAT = 7  # bump when what a cache entry holds changes
 

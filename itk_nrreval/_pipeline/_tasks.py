@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from .._cache import DiskCache
+from ..io._cache import DiskCache
 from ._task_keys import task_key
 
 #: ``field(metadata=NOT_KEYED)``: a field the task's result does not depend on beyond the

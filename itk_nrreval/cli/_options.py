@@ -21,7 +21,7 @@ __all__ = [
     "MAX_SAMPLES",
 ]
 
-MAX_SAMPLES = 1 << 36  # the sample counter's range (itk_nrreval._search.sampling)
+MAX_SAMPLES = 1 << 36  # the sample counter's range (itk_nrreval.measures._search.sampling)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -39,7 +39,7 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
-    from ..demo import run_demo
+    from ..experiments.demo import run_demo
 
     n = args.n if args.n is not None else (12 if args.quick else 36)
     samples = args.samples if args.samples is not None else (50_000 if args.quick else 500_000)

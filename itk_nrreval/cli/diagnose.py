@@ -2,10 +2,10 @@
 
 For each named registration, sample its full appearance model and count the samples in the
 Voronoi cells of the raw affinely aligned training images and of their projections onto the
-model (:func:`itk_nrreval.diagnostics.diagnose`), and write the reports
-:meth:`~itk_nrreval.diagnostics.DiagnosticsResult.write` writes into ``DIR``
+model (:func:`itk_nrreval.experiments.appearance.diagnose.diagnose`), and write the reports
+:meth:`~itk_nrreval.experiments.appearance.diagnose.DiagnosticsResult.write` writes into ``DIR``
 (``appearance_table1.md`` / ``.csv``, ``appearance_diagnostics.json``,
-``appearance_cells.png``; see :mod:`itk_nrreval.diagnostics`).
+``appearance_cells.png``; see :mod:`itk_nrreval.experiments.appearance.diagnose`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .._errors import InputError
 from .._output import check_output_folder, staged_folder
-from ..diagnostics import DiagnosticsResult
+from ..experiments.appearance.diagnose import DiagnosticsResult
 from ..report.diagnostics import save_cell_figure, table1_csv, table1_markdown
 from ._options import add_quiet_option, samples, seed
 
@@ -61,8 +61,8 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..diagnostics import diagnose
-    from ..manifest import load_manifest
+    from ..experiments.appearance.diagnose import diagnose
+    from ..io.manifest import load_manifest
 
     manifest = load_manifest(args.manifest)  # every problem, before any work
     out = check_output_folder(args.out, inputs=manifest.files, command="diagnose")
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _warn_label_like_images(manifest) -> None:
     """Warn about each image that looks like a label map, as ``evaluate`` does."""
-    from .._images import label_like_values, read_image, warn_label_like
+    from ..io._images import label_like_values, read_image, warn_label_like
 
     for item in manifest.scored_images:
         if (n_values := label_like_values(read_image(item))) is not None:
@@ -99,7 +99,7 @@ def _warn_label_like_images(manifest) -> None:
 
 def write_reports(results: Sequence, out: str | Path, *, images: Sequence[str] = ()) -> list[Path]:
     """Write the reports of `results` (AppearanceDiagnostics) into `out`; see
-    :meth:`itk_nrreval.diagnostics.DiagnosticsResult.write`."""
+    :meth:`itk_nrreval.experiments.appearance.diagnose.DiagnosticsResult.write`."""
     from .._version import __version__
 
     inputs = {"images": [str(p) for p in images]}

@@ -273,7 +273,7 @@ def _add_flag_options(p) -> None:
     f = p.add_argument_group(
         "plausibility flags (a warning in the verdict, not a decision against the registration)"
     )
-    from ..plausibility import Thresholds
+    from ..io.plausibility import Thresholds
 
     d = Thresholds()
     f.add_argument(
@@ -321,7 +321,7 @@ def _add_flag_options(p) -> None:
 
 def _add_subject_options(p) -> None:
     """Subject flags: one option per field of SubjectThresholds."""
-    from ..plausibility import SubjectThresholds
+    from ..io.plausibility import SubjectThresholds
 
     q = p.add_argument_group(
         "subject flags (which subjects of a registration stand out from its cohort; robust "
@@ -485,7 +485,7 @@ def _evaluate_options(args: argparse.Namespace) -> dict:
     """:func:`~itk_nrreval.evaluation.evaluate`'s options from the command line's, but
     `execution`."""
     from ..evaluation import Confidence, Resampling
-    from ..plausibility import SubjectThresholds, Thresholds
+    from ..io.plausibility import SubjectThresholds, Thresholds
 
     return dict(
         n_samples=args.samples,
@@ -520,7 +520,7 @@ def _manifest(args: argparse.Namespace):
     """One manifest file, read as it always was; or derivatives folders, read as
     ``nrreval manifest DERIV ...`` reads them."""
     from .._errors import InputError
-    from ..manifest import load_manifest
+    from ..io.manifest import load_manifest
     from .manifest import manifest_of
 
     sources = [Path(s) for s in args.manifest]

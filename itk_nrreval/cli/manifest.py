@@ -2,7 +2,7 @@
 
 From BIDS derivatives folders (fMRIPrep, sMRIPrep: one registration each), or from ANTs
 output prefixes, elastix output folders, FSL and NiftyReg transform files with the images they
-belong to; the files found are described in :mod:`itk_nrreval.derivatives`.
+belong to; the files found are described in :mod:`itk_nrreval.io.pipeline_outputs`.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def _named(values: list[str]) -> list[tuple[str | None, str]]:
 def manifest_of(args: argparse.Namespace):
     """The manifest the arguments describe (shared with ``nrreval evaluate DERIV ...``)."""
     from .._errors import InputError
-    from ..derivatives import manifest_from_derivatives, manifest_from_transforms
+    from ..io.pipeline_outputs import manifest_from_derivatives, manifest_from_transforms
 
     kinds = ("ants", "elastix", "fsl", "niftyreg")
     layouts = "/".join(f"--{k}" for k in kinds)
@@ -202,7 +202,7 @@ def _as_pattern(paths: list[str]) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_file
-    from ..manifest import write_manifest, written_by_nrreval
+    from ..io.manifest import write_manifest, written_by_nrreval
 
     manifest = manifest_of(args)
     out = check_output_file(

@@ -15,7 +15,7 @@ _COLUMNS = ("label", "volume", "complexity", "jaccard", "dice", "target_overlap"
 
 
 def add_parser(sub) -> None:
-    from ..overlap import WEIGHTINGS
+    from ..measures.overlap import WEIGHTINGS
 
     p = sub.add_parser(
         "overlap",
@@ -55,8 +55,8 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
-    from ..label_names import read_label_names
-    from ..overlap import WEIGHTINGS, overlap_table
+    from ..io.label_names import read_label_names
+    from ..measures.overlap import WEIGHTINGS, overlap_table
 
     inputs = [*args.labels, *(p for p in (args.mask,) if p is not None)]
     if args.table:  # before the work, not after it

@@ -1,8 +1,8 @@
 """``nrreval register --images IMAGE... --method METHOD --out DIR``: register a group of images.
 
 ``--method multimodal`` registers a group mixing modalities
-(:func:`itk_nrreval.registration.register_multimodal`, ``--strategy joint|per-group``); each
-image's group comes from ``--groups`` or, when that is not given, from the manifest's
+(:func:`itk_nrreval.experiments.registration.register_multimodal`, ``--strategy joint|per-group``);
+each image's group comes from ``--groups`` or, when that is not given, from the manifest's
 ``groups``, and is recorded in the manifest.
 """
 
@@ -16,7 +16,7 @@ from ._options import add_quiet_option, seed
 
 
 def add_parser(sub) -> None:
-    from ..registration import ENGINES, STRATEGIES
+    from ..experiments.registration import ENGINES, STRATEGIES
 
     engines = sorted({e for es in ENGINES.values() for e in es})
     p = sub.add_parser(
@@ -95,10 +95,15 @@ def add_parser(sub) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
-    from ..manifest import add_registration, check_rewritable, load_manifest, order_as_in_manifest
-    from ..registration import register
-    from ..registration.multimodal import record_groups
-    from ..transforms import file_stem
+    from ..experiments.registration import register
+    from ..experiments.registration.multimodal import record_groups
+    from ..io.manifest import (
+        add_registration,
+        check_rewritable,
+        load_manifest,
+        order_as_in_manifest,
+    )
+    from ..io.transforms import file_stem
 
     inputs = [*args.images, *(p for p in (args.reference, args.manifest) if p is not None)]
     out = check_output_folder(
@@ -167,7 +172,7 @@ _MULTIMODAL_ONLY = ("strategy", "groups", "reference_group")
 
 def _strategy(args: argparse.Namespace) -> str:
     """``--strategy``, or the first of :data:`STRATEGIES` (the default)."""
-    from ..registration import STRATEGIES
+    from ..experiments.registration import STRATEGIES
 
     return args.strategy or STRATEGIES[0]
 
@@ -191,8 +196,8 @@ def _register_multimodal(
     groups are ``--groups`` (given in ``--images`` order), else the manifest's; both are
     checked before the registration, and ``--groups`` against the manifest's.
     """
-    from ..registration import register_multimodal
-    from ..registration.multimodal import check_groups
+    from ..experiments.registration import register_multimodal
+    from ..experiments.registration.multimodal import check_groups
 
     if args.reference is not None or args.reference_choice is not None:
         raise InputError(

@@ -65,8 +65,8 @@ def _group_list(text: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from .._output import TOOL, check_output_file, json_written_by_nrreval
     from .._version import __version__
-    from ..manifest import check_image_contents
-    from ..specificity import texture_measures
+    from ..io.manifest import check_image_contents
+    from ..measures.specificity import texture_measures
 
     if args.json:  # before the work, not after it
         inputs = [*args.images, *(p for p in (args.mask,) if p is not None)]

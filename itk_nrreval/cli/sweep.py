@@ -9,7 +9,7 @@ from ._options import add_quiet_option, samples, seed
 
 def _parameter(text: str):
     from .._errors import InputError
-    from ..sweep import parse_parameter
+    from ..experiments.sweep import parse_parameter
 
     try:
         return parse_parameter(text)
@@ -79,9 +79,9 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from .._errors import InputError
     from .._output import check_output_folder
-    from ..manifest import load_manifest
-    from ..sweep import sweep
-    from ..transforms import chain_transform
+    from ..experiments.sweep import sweep
+    from ..io.manifest import load_manifest
+    from ..io.transforms import chain_transform
 
     out = check_output_folder(args.out, command="sweep")
     truth = truth_reference = None

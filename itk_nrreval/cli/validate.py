@@ -22,8 +22,8 @@ def _floats(text: str) -> list[float]:
 
 
 def add_parser(sub) -> None:
-    from ..overlap import WEIGHTINGS
-    from ..validation import DEFAULT_DISPLACEMENTS
+    from ..experiments.perturbation import DEFAULT_DISPLACEMENTS
+    from ..measures.overlap import WEIGHTINGS
 
     p = sub.add_parser(
         "validate",
@@ -103,7 +103,7 @@ def add_parser(sub) -> None:
 
 def _section(text: str):
     from .._errors import InputError
-    from ..validation import parse_section
+    from ..experiments.perturbation import parse_section
 
     try:
         return parse_section(text)
@@ -113,8 +113,8 @@ def _section(text: str):
 
 def run(args: argparse.Namespace) -> int:
     from .._output import check_output_folder, staged_folder
-    from ..manifest import load_manifest
-    from ..validation import FIT_FROM, validate, validate_manifest
+    from ..experiments.perturbation import FIT_FROM, validate, validate_manifest
+    from ..io.manifest import load_manifest
 
     if args.n_images < 3:
         raise InputError(f"--n-images must be at least 3, got {args.n_images}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from ..label_names import label_text
+from ..io.label_names import label_text
 from ._format import format_number, format_percent
 from ._html import escape, legend_list, table_html, value_ci
 from .evaluation_text import (

@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..label_names import label_text
+from ..io.label_names import label_text
 
 __all__ = [
     "png_bytes",

@@ -1,9 +1,10 @@
 """What ``nrreval diagnose`` writes for a person: the paper's Table 1 as Markdown and CSV, and
 the cell-population bars (``appearance_cells.png``).
 
-The functions take :class:`~itk_nrreval.appearance.AppearanceDiagnostics` (one per
-registration) and a :class:`~itk_nrreval.diagnostics.DiagnosticsResult` without importing
-their classes (:mod:`itk_nrreval.diagnostics` calls this module to write).
+The functions take :class:`~itk_nrreval.experiments.appearance.model.AppearanceDiagnostics` (one per
+registration) and a :class:`~itk_nrreval.experiments.appearance.diagnose.DiagnosticsResult` without
+importing their classes (:mod:`itk_nrreval.experiments.appearance.diagnose` calls this module to
+write).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..subject_qc import ranked
+from ..measures.subject_qc import ranked
 from ._format import format_number
 from ._plot import (
     HIDDEN_BARS,
@@ -215,7 +215,7 @@ def _subjects_figure(result, names):
 
     One column per registration (`names`, in order), one point per subject in the scores at
     its robust z-score of the log distance to the texture model of the others
-    (:attr:`SubjectQC.z <itk_nrreval.subject_qc.SubjectQC.z>`), spread sideways so that
+    (:attr:`SubjectQC.z <itk_nrreval.measures.subject_qc.SubjectQC.z>`), spread sideways so that
     points do not hide one another; red: flagged for any reason, numbered by the subject's
     index for those the report shows; dashed: the threshold above which the distance alone
     flags a subject. The axis is linear within the threshold and logarithmic beyond

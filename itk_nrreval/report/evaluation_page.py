@@ -6,10 +6,10 @@ order: the verdict in words, with the subjects left off the common grid and how 
 each registration flags; the scores with their legend, units and intervals; the summary
 figures (the same PNG bytes as the files beside it, ``subjects.png`` among them: every
 subject's model-distance z-score); the numbers registration papers report (Dice and HD95 with
-their worst 30%, SDlogJ, folding: :mod:`itk_nrreval.label_metrics`); per registration first
+their worst 30%, SDlogJ, folding: :mod:`itk_nrreval.measures.label_metrics`); per registration first
 its subjects
-(:mod:`itk_nrreval.subject_qc`: its registration flags, said once; its reference when that is
-one of the subjects; its flagged subjects worst first, each with its name, concern, diagnosis
+(:mod:`itk_nrreval.measures.subject_qc`: its registration flags, said once; its reference when that
+is one of the subjects; its flagged subjects worst first, each with its name, concern, diagnosis
 and subject flags in words, the subject in the common frame beside the mean image and a
 checkerboard of the two; every subject ranked worst first by concern), then its mean image, a
 checkerboard of two subjects, the label contours of one subject with a colour legend, a
@@ -35,7 +35,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from ..subject_qc import ranked, registration_flags
+from ..measures.subject_qc import ranked, registration_flags
 from ._evaluation_tables import (
     FRAME_WORDS,
     frames_table,

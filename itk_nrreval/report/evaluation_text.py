@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..subject_qc import ranked, registration_flags
+from ..measures.subject_qc import ranked, registration_flags
 from ._format import format_number, format_percent
 
 __all__ = [
@@ -89,11 +89,11 @@ ORDER_WORDS = (
 def frame_spread_words(result) -> tuple[float | None, str]:
     """The mean frame spread (mm) that is flagged, and the reports' sentence saying so.
 
-    The limit is :func:`itk_nrreval.plausibility.frame_spread_limit_mm` of the run's
-    thresholds and field of view, the number :func:`~itk_nrreval.plausibility.flags` used;
+    The limit is :func:`itk_nrreval.io.plausibility.frame_spread_limit_mm` of the run's
+    thresholds and field of view, the number :func:`~itk_nrreval.io.plausibility.flags` used;
     None (and a sentence without a number) for a result that does not record them.
     """
-    from ..plausibility import Thresholds, frame_spread_limit_mm
+    from ..io.plausibility import Thresholds, frame_spread_limit_mm
 
     o = result.options
     fov = o.get("field_of_view_mm")
@@ -267,8 +267,8 @@ def subjects_summary(result) -> list[str]:
 
     Per registration (in the verdict's order): its registration flags, each once; its
     reference when that is one of the subjects; its flagged subjects worst first (by
-    :attr:`~itk_nrreval.subject_qc.SubjectQC.concern`), each with its manifest index, image,
-    concern, diagnosis and subject flags; or, when none is flagged, the
+    :attr:`~itk_nrreval.measures.subject_qc.SubjectQC.concern`), each with its manifest index,
+    image, concern, diagnosis and subject flags; or, when none is flagged, the
     :data:`WORST_NAMED` subjects of highest concern. Then the subjects left out of every
     score.
     """
@@ -353,7 +353,7 @@ def subjects_csv(result) -> str:
     """One row per registration and subject: the subject's quality control, worst first.
 
     Within each registration the subjects are ranked worst first by their concern
-    (:func:`itk_nrreval.subject_qc.ranked`; ``rank`` 1 is the worst; the reference last).
+    (:func:`itk_nrreval.measures.subject_qc.ranked`; ``rank`` 1 is the worst; the reference last).
     Columns: registration, rank, index (manifest), image, reference (the registration's
     reference: not judged), concern and concern_from (the term that contributes most to
     it), in_scores,
@@ -455,7 +455,7 @@ def results_csv(result) -> str:
 
 
 #: The deformation's numbers papers report beside Dice and HD95, from each registration's
-#: :class:`~itk_nrreval.plausibility.Plausibility` (means over its images).
+#: :class:`~itk_nrreval.io.plausibility.Plausibility` (means over its images).
 METRICS_DEFORMATION = ("sdlogj", "folded_fraction")
 
 

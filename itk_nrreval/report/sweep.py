@@ -2,9 +2,9 @@
 and ``report.html`` (the verdict in words, every setting, the figures, the agreement between
 measures, the options).
 
-The functions take a :class:`~itk_nrreval.sweep.SweepResult` without importing its class
-(:mod:`itk_nrreval.sweep` calls this module to write); the key of the true correspondence
-error in ``result.best_by`` and ``result.spearman`` is passed as `truth_measure`.
+The functions take a :class:`~itk_nrreval.experiments.sweep.SweepResult` without importing its class
+(:mod:`itk_nrreval.experiments.sweep` calls this module to write); the key of the true
+correspondence error in ``result.best_by`` and ``result.spearman`` is passed as `truth_measure`.
 """
 
 from __future__ import annotations
@@ -408,7 +408,7 @@ def sweep_report_html(
     truth_measure: str,
     specificity_figure: str = "sweep.png",
 ) -> str:
-    """The text of ``report.html`` for a :class:`~itk_nrreval.sweep.SweepResult`.
+    """The text of ``report.html`` for a :class:`~itk_nrreval.experiments.sweep.SweepResult`.
 
     The verdict in words first (the setting it recommends, or why none, and the settings it
     leaves open, the best by overlap and, when the true transforms were known, by the true

@@ -4,8 +4,9 @@ the displacement d, and ``report.html``.
 The page gives the verdict in words first (does specificity rise as the registration is made
 worse: Pearson r with its 95% interval, Spearman with d, the sensitivity), then the table by
 d, the figures (the same PNG bytes as the files beside it), every perturbed set and the
-parameters. The functions take a :class:`~itk_nrreval.validation.ValidationResult` without
-importing its class (:mod:`itk_nrreval.validation` calls this module to write).
+parameters. The functions take a :class:`~itk_nrreval.experiments.perturbation.ValidationResult`
+without importing its class (:mod:`itk_nrreval.experiments.perturbation` calls this module to
+write).
 """
 
 from __future__ import annotations
@@ -449,7 +450,8 @@ def _parameters(result, units: str, version: str | None) -> str:
 def validation_report_html(
     result, *, figures: Mapping[str, bytes], units: str, version: str | None = None
 ) -> str:
-    """The text of ``report.html`` for a :class:`~itk_nrreval.validation.ValidationResult`.
+    """The text of ``report.html`` for a
+    :class:`~itk_nrreval.experiments.perturbation.ValidationResult`.
 
     The verdict in words first (does specificity rise as overlap falls: Pearson r with its
     95% interval per label weighting, the Spearman correlation of the mean specificity with
