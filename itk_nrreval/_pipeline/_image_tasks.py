@@ -224,8 +224,6 @@ def resample_plan(
             reg_grid=reg.reference_grid,
             interpolation=interpolation,
             label_resampling=tuple(labels),
-            # the dtype as it is now (a test stores float64), in the key and the entry
-            stored=np.dtype(_STORED_IMAGE).str,
             own_values=None if own_values[i] is None else tuple(own_values[i]),
         )
         for i in range(m.n_images)
@@ -261,7 +259,8 @@ class ResampleImage(Task):
     reg_grid: Geometry
     interpolation: str
     label_resampling: tuple
-    # read when the task is made, so that its key and what it stores name one dtype
+    # read when the task is made (a test stores float64), so that its key and what it
+    # stores name one dtype
     stored: str = field(default_factory=lambda: np.dtype(_STORED_IMAGE).str)
     own_values: tuple | None = field(default=None, metadata=NOT_KEYED)
 
