@@ -98,13 +98,15 @@ def measure(case: Path) -> dict[str, float]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+def main(argv: list[str] | None = None) -> dict:
+    """The table (``rows``: its lines); `argv` ``["--compute"]`` measures the cases that lack
+    it first (``run_all.py`` passes nothing)."""
+    argv = [] if argv is None else argv
     bv = _verdict_bench()
     cases = sorted(p for p in bv.OUT.glob("families_*") if (p / "truth.json").exists())
     if not cases:
         print("no saved cases: run `python benchmarks/bench_verdict.py --new` first")
-        return 0
+        return {"rows": []}
     by_split = collections.defaultdict(list)
     for case in cases:
         path = case / SHAPE_JSON
@@ -132,13 +134,13 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for split, rows in sorted(by_split.items(), key=lambda item: bv.SPLITS.index(item[0])):
         a = np.asarray(rows, float)
-        cells = [f"{np.nanmean(a[:, k]):+.2f} ({np.nanmin(a[:, k]):+.2f})" for k in range(3)]
+        cells = [f"{np.nanmean(c):+.2f} ({np.nanmin(c):+.2f})" for c in a.T]
         lines.append(f"| {split} | {len(rows)} | " + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
     print(text)
     (bv.OUT / "shape.md").write_text(text)
-    return 0
+    return {"rows": lines[2:]}
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main(sys.argv[1:])

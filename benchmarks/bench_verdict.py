@@ -231,10 +231,14 @@ FRESH8 = (
 # two registrations that deform locally (the other branch, unchanged). Set before the rest
 # of FRESH2 and FRESH3..FRESH7 were judged with specificity at a common smoothness; they
 # check it.
-SPLITS = (
-    "tuning", "held-out", "fresh", "fresh2", "fresh3", "fresh4", "fresh5", "fresh6", "fresh7",
-    "fresh8",
-)  # fmt: skip
+#: Each split's cases, in the order the splits were declared.
+SPLIT_CASES = {
+    "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
+    "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
+}  # fmt: skip
+SPLITS = tuple(SPLIT_CASES)
+#: Every case of a declared split.
+DECLARED = tuple(case for cases in SPLIT_CASES.values() for case in cases)
 #: A case -> the case of the same registrations scored on a second scan (the T2 images).
 SECOND_SCAN = {
     **{
@@ -247,20 +251,7 @@ SECOND_SCAN = {
             "phantom2d_bending",
         )
     },
-    **{
-        c: f"unseen_{c}"
-        for c in TUNING
-        + HELD_OUT
-        + FRESH
-        + FRESH2
-        + FRESH3
-        + FRESH4
-        + FRESH5
-        + FRESH6
-        + FRESH7
-        + FRESH8
-        if c.startswith("families_")
-    },
+    **{c: f"unseen_{c}" for c in DECLARED if c.startswith("families_")},
 }
 #: Package modules moved into rooms by issue 43 (io/, measures/, experiments/), by room.
 _ROOMS = {
@@ -1040,26 +1031,10 @@ def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
 def split_of(case: str) -> str:
     """The declared split of a case or of its second scan: one of :data:`SPLITS`."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
-    if base in FRESH8:
-        return "fresh8"
-    if base in FRESH7:
-        return "fresh7"
-    if base in FRESH6:
-        return "fresh6"
-    if base in FRESH5:
-        return "fresh5"
-    if base in FRESH4:
-        return "fresh4"
-    if base in FRESH3:
-        return "fresh3"
-    if base in FRESH2:
-        return "fresh2"
-    if base in FRESH:
-        return "fresh"
-    if base in HELD_OUT:
-        return "held-out"
-    assert base in TUNING, f"{case} is in no split"
-    return "tuning"
+    for split, cases in SPLIT_CASES.items():
+        if base in cases:
+            return split
+    raise AssertionError(f"{case} is in no split")
 
 
 #: The three modes of issue 41, plus the second scan with labels: (title, second scan?,
@@ -1076,10 +1051,7 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
-    declared = (
-        TUNING + HELD_OUT + FRESH + FRESH2 + FRESH3 + FRESH4 + FRESH5 + FRESH6 + FRESH7 + FRESH8
-    )
-    bases = [c for c in cases if c in declared]
+    bases = [c for c in cases if c in DECLARED]
     table = {}
     for case in bases:
         table[case] = {}
