@@ -42,8 +42,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
-each mode (:data:`MODES`: with labels, without labels, on the second scan). Eight fresh
-splits (:data:`FRESH` to :data:`FRESH8`) were each declared before their cases
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Nine fresh
+splits (:data:`FRESH` to :data:`FRESH9`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -213,6 +213,16 @@ FRESH8 = (
     "families_phantom2d_span_s34",  # phantom 2D, N = 12, seed 34, FAMILIES_SPAN
     "families_mni2d_span_n16_s35",  # MNI-based 2D, N = 16, seed 35, FAMILIES_SPAN
 )
+# Declared on 2026-11-28 (seventh session of issue 41), BEFORE these cases ran and before any
+# description length (issue 41's idea (a), benchmarks/bench_description_length.py) was
+# measured on any case: more cases spanning both sides of the best smoothness, where the
+# roughness measures lost their hold in FRESH8. FRESH9 checks today's verdict (no rule
+# changed) and whatever is set on TUNING for the description length.
+FRESH9 = (
+    "families_mni2d_span_s36",  # MNI-based 2D, N = 12, seed 36, FAMILIES_SPAN
+    "families_phantom2d_span_n16_s37",  # phantom 2D, N = 16, seed 37, FAMILIES_SPAN
+    "families_mni2d_span_n24_s38",  # MNI-based 2D, N = 24, seed 38, FAMILIES_SPAN
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -235,6 +245,7 @@ FRESH8 = (
 SPLIT_CASES = {
     "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
+    "fresh9": FRESH9,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -863,6 +874,19 @@ def _cases() -> dict:
             "kind": "mni",
             "seed": 35,
             "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_span_s36": {"kind": "mni", "seed": 36, "registrations": FAMILIES_SPAN},
+        "families_phantom2d_span_n16_s37": {
+            "kind": "phantom",
+            "seed": 37,
+            "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_span_n24_s38": {
+            "kind": "mni",
+            "seed": 38,
+            "n": 24,
             "registrations": FAMILIES_SPAN,
         },
     }
