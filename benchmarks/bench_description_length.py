@@ -1,0 +1,379 @@
+"""A description length that prices shape and texture in one currency: issue 41's idea (a).
+
+Declared on 2026-11-28 (seventh session of issue 41), in full, BEFORE it was measured on any
+case; nothing below was fitted. If it is changed after a measurement, the change is set on
+``TUNING`` only and said here, with what it was checked on.
+
+**The measure.** A registration describes each subject's image as the group's template
+warped by the subject's deformation, plus a texture residual. Its description length is
+the bits that message takes, per subject, with both parts coded at precisions that cost
+the same in the image (Twining, Cootes et al.'s MDL for groupwise registration, in the
+simplest form that needs no model of any engine). On the registration's reference grid,
+inside the case's mask (``n`` voxels of the grid's ``n_grid``):
+
+- **texture**: each registered image's residual from the group's mean image, ``r_i = m (J_i
+  - mean J)``; its power spectrum averaged over the subjects, ``P_k = mean_i |FFT(r_i)_k|^2 /
+  n``, is a stationary Gaussian model. Coding ``N`` subjects to the noise level ``D_I =
+  sigma^2`` costs ``N (n / n_grid) sum_k max(0, log2(P_k / D_I) / 2)`` bits (the
+  rate-distortion function of a Gaussian source: reverse water-filling). Texture below the
+  noise level costs nothing, so a registration that fits noise gains nothing by it. The
+  template (the mean image minus its mean in the mask) is coded once, the same way.
+- **shape**: each subject's displacement field (mm), minus its least-squares affine part
+  inside the mask (an affine's 12 numbers are no cost worth pricing), residual from the
+  subjects' mean non-linear field, masked; per component, the same Gaussian code at the
+  distortion ``D_x = sigma^2 / g^2`` (mm^2), with ``g^2`` the images' mean squared
+  directional derivative (intensity per mm, noise's share removed): a displacement error
+  of ``sqrt(D_x)`` costs as much in the image as the noise. The mean field is coded once.
+- ``sigma`` (noise) and ``g`` come from the scored images in their own space, not from any
+  registration: per image, over its voxels above its Otsu threshold, ``sigma`` by the median
+  absolute value of the ``[1, -2, 1]`` second difference taken along every axis (Immerkaer's
+  estimator, made robust to edges), and ``g^2`` as the mean squared central difference per
+  axis, minus noise's ``sigma^2 / (2 h^2)``; the medians over the images.
+
+Lower is better. Its confidence is the jackknife over subjects (each subject left out in
+turn, the whole measure recomputed on the rest, bits per subject): a pair's difference is
+**separable** when its 95% interval (1.96 jackknife standard errors) excludes 0.
+
+**The rule declared with it.** The description length prefers ``a`` over ``b`` when ``a``'s
+is separably lower. Judged like the verdict (``bench_verdict``: pairs whose true errors differ
+by more than 10%): right, wrong or open, per split, on the images the registrations were
+made on and on the second scan. Beside it, the verdict without labels with the description
+length's preference added as evidence: it decides a pair the verdict leaves open, and a
+pair the two decide opposite ways becomes open.
+
+Cases: every saved case of ``bench_verdict`` whose registrations share the mask's grid and
+have no frame transform, and whose images form no groups (the multi-modal case is left
+out; so are cases whose manifest is gone).
+
+``python benchmarks/bench_description_length.py [--compute]``: ``--compute`` measures the
+cases that lack it first (``description_length.json`` in the case's folder; seconds a 2D
+case, minutes a 3D one); the tables go to ``benchmarks/out/verdict/description_length.md``.
+"""
+
+from __future__ import annotations
+
+import collections
+import importlib.util
+import itertools
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage
+from scipy.stats import spearmanr
+
+HERE = Path(__file__).resolve().parent
+RESULT_JSON = "description_length.json"
+Z = 1.96
+
+
+def _bench(name: str):
+    spec = importlib.util.spec_from_file_location(name, HERE / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# ------------------------------------------------------------------------ pure numerics
+
+
+def gaussian_rate(power: np.ndarray, distortion: float, fraction: float) -> float:
+    """Bits to code one sample of a stationary Gaussian source with power spectrum `power`
+    at mean squared error `distortion` per voxel (reverse water-filling, in the limit of
+    small distortion): ``fraction * sum_k max(0, log2(power_k / distortion) / 2)``;
+    `fraction` (mask voxels / grid voxels) counts the masked signal's degrees of freedom."""
+    ratio = np.maximum(power / distortion, 1.0)
+    return float(fraction * 0.5 * np.log2(ratio).sum())
+
+
+def _power(signals: np.ndarray, n: int) -> np.ndarray:
+    """Mean over the first axis of ``|FFT|^2 / n`` of each signal."""
+    return np.mean(np.abs(np.fft.fftn(signals, axes=tuple(range(1, signals.ndim)))) ** 2, 0) / n
+
+
+def _group_bits(samples: np.ndarray, mask: np.ndarray, distortion: float) -> float:
+    """Bits for the group `samples` (``(N, *grid)``): the residuals from their mean coded
+    by their mean power spectrum (N times), plus the mean (minus its mask mean) once."""
+    n = int(mask.sum())
+    fraction = n / mask.size
+    mean = samples.mean(axis=0)
+    residuals = (samples - mean) * mask
+    template = (mean - mean[mask].mean()) * mask
+    return len(samples) * gaussian_rate(_power(residuals, n), distortion, fraction) + gaussian_rate(
+        _power(template[None], n), distortion, fraction
+    )
+
+
+def non_linear_part(fields: np.ndarray, mask: np.ndarray, spacing) -> np.ndarray:
+    """Each field minus its least-squares affine fit over the mask's voxels.
+
+    Parameters
+    ----------
+    fields : ndarray of shape (N, *grid, dim)
+        Displacements (mm) on a grid in numpy axis order.
+    spacing : sequence of float
+        Voxel size (mm) per numpy axis.
+    """
+    coords = np.stack(
+        np.meshgrid(
+            *[np.arange(s) * h for s, h in zip(mask.shape, spacing, strict=True)], indexing="ij"
+        ),
+        axis=-1,
+    )
+    flat = np.concatenate([coords.reshape(-1, coords.shape[-1]), np.ones((mask.size, 1))], 1)
+    design = flat[mask.ravel()]
+    out = np.empty_like(fields)
+    for i, field in enumerate(fields):
+        coef, *_ = np.linalg.lstsq(design, field[mask], rcond=None)
+        out[i] = field - (flat @ coef).reshape(field.shape)
+    return out
+
+
+def description_length(
+    images: np.ndarray,
+    fields: np.ndarray,
+    mask: np.ndarray,
+    *,
+    noise_variance: float,
+    displacement_variance: float,
+) -> dict[str, float]:
+    """Bits per subject to code a registered group: texture and shape.
+
+    Parameters
+    ----------
+    images : ndarray of shape (N, *grid)
+        The registered images on the reference grid.
+    fields : ndarray of shape (N, *grid, dim)
+        Their non-linear displacements (mm).
+    mask : ndarray of bool, shape grid
+    noise_variance, displacement_variance : float
+        The distortions the texture (intensity^2) and shape (mm^2) are coded to.
+    """
+    n = len(images)
+    texture = _group_bits(images, mask, noise_variance)
+    shape = sum(
+        _group_bits(fields[..., c], mask, displacement_variance) for c in range(fields.shape[-1])
+    )
+    return {"bits": (texture + shape) / n, "texture": texture / n, "shape": shape / n}
+
+
+def noise_and_gradient(image: np.ndarray, spacing) -> tuple[float, float]:
+    """An image's noise standard deviation and mean squared directional derivative
+    (noise's share removed), over its voxels above its Otsu threshold."""
+    image = image.astype(float)
+    # Otsu: insideValue for voxels at or below the threshold, outsideValue above it
+    otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(image), 0, 1)
+    foreground = sitk.GetArrayFromImage(otsu).astype(bool)
+    second = image
+    for axis in range(image.ndim):
+        second = ndimage.correlate1d(second, [1.0, -2.0, 1.0], axis=axis, mode="nearest")
+    inner = ndimage.binary_erosion(foreground, iterations=1)
+    # a [1, -2, 1] difference along each of d axes multiplies white noise's variance by 6^d
+    sigma = 1.4826 * np.median(np.abs(second[inner])) / np.sqrt(6.0**image.ndim)
+    squares = [
+        np.mean(np.gradient(image, h, axis=axis)[inner] ** 2) - sigma**2 / (2 * h**2)
+        for axis, h in enumerate(spacing)
+    ]
+    return float(sigma), float(max(np.mean(squares), 1e-12))
+
+
+# ------------------------------------------------------------------------ the saved cases
+
+
+def _array(image: sitk.Image) -> np.ndarray:
+    return sitk.GetArrayFromImage(image).astype(np.float64)
+
+
+def measure(manifest) -> dict:
+    """Every registration's description length, with its jackknife, for one manifest."""
+    from itk_nrreval.io._images import Geometry, read_image
+    from itk_nrreval.io._transform_io import chain_transform
+    from itk_nrreval.io.frame import points_minus_grid
+
+    scored = manifest.evaluation_images or manifest.images
+    stats = []
+    for path in scored:
+        image = read_image(path)
+        stats.append(noise_and_gradient(_array(image), image.GetSpacing()[::-1]))
+    sigma = float(np.median([s for s, _ in stats]))
+    g2 = float(np.median([g for _, g in stats]))
+    mask_image = read_image(manifest.mask)
+    mask = _array(mask_image) > 0
+    out = {"sigma": sigma, "g2": g2, "registrations": {}}
+    for name, reg in manifest.registrations.items():
+        reference = read_image(reg.reference)
+        grid = Geometry.from_image(reference)
+        spacing = reference.GetSpacing()[::-1]
+        images, fields = [], []
+        for path, chain in zip(scored, reg.transforms, strict=True):
+            transform = chain_transform(list(chain))
+            moved = sitk.Resample(
+                sitk.Cast(read_image(path), sitk.sitkFloat32),
+                reference,
+                transform,
+                sitk.sitkLinear,
+                0.0,
+                sitk.sitkFloat32,
+            )
+            images.append(_array(moved))
+            # points_minus_grid: (x, y[, z]) components on the numpy grid
+            fields.append(points_minus_grid(transform, grid).reshape(*mask.shape, -1))
+        images = np.stack(images)
+        fields = non_linear_part(np.stack(fields), mask, spacing)
+        options = {"noise_variance": sigma**2, "displacement_variance": sigma**2 / g2}
+        whole = description_length(images, fields, mask, **options)
+        keep = np.ones(len(images), bool)
+        jackknife = []
+        for j in range(len(images)):
+            keep[:] = True
+            keep[j] = False
+            jackknife.append(
+                description_length(images[keep], fields[keep], mask, **options)["bits"]
+            )
+        out["registrations"][name] = {**whole, "jackknife": jackknife}
+    return out
+
+
+def usable(manifest) -> str | None:
+    """Why a saved case's manifest cannot be measured, or None."""
+    if manifest.groups is not None or manifest.subjects is not None:
+        return "its images form groups"
+    if manifest.mask is None:
+        return "no mask"
+    from itk_nrreval.io._images import Geometry, read_image
+
+    grid = Geometry.from_image(read_image(manifest.mask))
+    for name, reg in manifest.registrations.items():
+        if reg.frame_transform is not None:
+            return f"{name} has a frame transform"
+        if Geometry.from_image(read_image(reg.reference)) != grid:
+            return f"{name}'s reference grid is not the mask's"
+    return None
+
+
+# ------------------------------------------------------------------------ judged
+
+
+def preference(result: dict, a: str, b: str) -> str | None:
+    """The registration the description length separably prefers of `a`, `b`, or None."""
+    ja = np.asarray(result[a]["jackknife"])
+    jb = np.asarray(result[b]["jackknife"])
+    n = len(ja)
+    d = jb - ja  # > 0: a shorter
+    stderr = np.sqrt((n - 1) / n * np.sum((d - d.mean()) ** 2))
+    diff = result[b]["bits"] - result[a]["bits"]
+    if abs(diff) <= Z * stderr:
+        return None
+    return a if diff > 0 else b
+
+
+def judge(bv, case: str, result: dict, verdict_rows: list[dict]) -> list[dict]:
+    """Each judged pair (true errors 10% apart) of `case`: the description length's outcome,
+    and the verdict's (without labels) with it added."""
+    errors = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
+    verdict = {(r["a"], r["b"]): r["outcome"] for r in verdict_rows if r["case"] == case}
+    rows = []
+    for a, b in itertools.combinations(errors, 2):
+        if errors[b] < errors[a]:
+            a, b = b, a
+        if errors[b] - errors[a] <= bv.MARGIN * errors[a]:
+            continue
+        said = preference(result, a, b)
+        mdl = "open" if said is None else ("right" if said == a else "wrong")
+        before = verdict.get((a, b), "open")
+        if mdl == "open" or before == mdl:
+            combined = before
+        elif before == "open":
+            combined = mdl
+        else:
+            combined = "open"
+        rows.append({"case": case, "a": a, "b": b, "mdl": mdl, "verdict": before, "with": combined})
+    return rows
+
+
+def _cell(rows: list[dict], key: str) -> str:
+    c = collections.Counter(r[key] for r in rows)
+    return f"{c['right']} / {c['wrong']} / {c['open']}"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """The tables (``rows``); `argv` ``["--compute"]`` measures the cases lacking it first."""
+    argv = [] if argv is None else argv
+    bv = _bench("bench_verdict")
+    smooth = _bench("bench_common_smoothness")
+    from itk_nrreval.io.manifest import load_manifest
+
+    results, skipped = {}, {}
+    for case in [*bv.DECLARED, *bv.SECOND_SCAN.values()]:
+        path = bv.OUT / case / RESULT_JSON
+        if not (bv.OUT / case / "truth.json").exists():
+            continue
+        if path.exists():
+            results[case] = json.loads(path.read_text())["registrations"]
+            continue
+        if "--compute" not in argv:
+            continue
+        try:
+            manifest = bv._quiet(load_manifest, smooth._manifest_of(bv, case))
+        except FileNotFoundError as exc:
+            skipped[case] = str(exc)
+            continue
+        why = usable(manifest)
+        if why:
+            skipped[case] = why
+            continue
+        print(f"[description length] {case}", flush=True)
+        record = measure(manifest)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(record) + "\n")
+        tmp.replace(path)
+        results[case] = record["registrations"]
+    for case, why in skipped.items():
+        print(f"[description length] {case} left out: {why}")
+    verdict_rows = []
+    for case in results:
+        verdict_rows += [dict(r, case=case) for r in bv.judge(case, labels=False)]
+    by_split = collections.defaultdict(lambda: {"seen": [], "second": [], "rho": []})
+    second_of = {v: k for k, v in bv.SECOND_SCAN.items()}
+    for case, result in results.items():
+        base = second_of.get(case, case)
+        split = bv.split_of(base)
+        rows = judge(bv, case, result, verdict_rows)
+        by_split[split]["second" if case in second_of else "seen"] += rows
+        truth = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
+        names = [n for n in truth if n in result]
+        deformable = [n for n in names if n != "affine"]
+        if case not in second_of and len(deformable) > 2:
+            by_split[split]["rho"].append(
+                spearmanr([result[n]["bits"] for n in deformable], [truth[n] for n in deformable])[
+                    0
+                ]
+            )
+    lines = [
+        "| split | pairs | description length | verdict without labels | the verdict with it "
+        "| second scan: description length | verdict | with it | Spearman, deformable |",
+        "|---|--:|--:|--:|--:|--:|--:|--:|--:|",
+    ]
+    for split in bv.SPLITS:
+        if split not in by_split:
+            continue
+        s = by_split[split]
+        rho = np.asarray(s["rho"], float)
+        lines.append(
+            f"| {split} | {len(s['seen'])} | {_cell(s['seen'], 'mdl')} | "
+            f"{_cell(s['seen'], 'verdict')} | {_cell(s['seen'], 'with')} | "
+            f"{_cell(s['second'], 'mdl')} | {_cell(s['second'], 'verdict')} | "
+            f"{_cell(s['second'], 'with')} | "
+            + (f"{np.nanmean(rho):+.2f} ({np.nanmin(rho):+.2f})" if rho.size else "-")
+            + " |"
+        )
+    text = "Each cell: right / wrong / open.\n\n" + "\n".join(lines) + "\n"
+    print(text)
+    (bv.OUT / "description_length.md").write_text(text)
+    return {"rows": lines[2:]}
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
