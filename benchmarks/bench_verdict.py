@@ -42,8 +42,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
-each mode (:data:`MODES`: with labels, without labels, on the second scan). Nine fresh
-splits (:data:`FRESH` to :data:`FRESH9`) were each declared before their cases
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Ten fresh
+splits (:data:`FRESH` to :data:`FRESH10`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -223,6 +223,16 @@ FRESH9 = (
     "families_phantom2d_span_n16_s37",  # phantom 2D, N = 16, seed 37, FAMILIES_SPAN
     "families_mni2d_span_n24_s38",  # MNI-based 2D, N = 24, seed 38, FAMILIES_SPAN
 )
+# Declared on 2026-11-28 (seventh session of issue 41), BEFORE these cases ran: the description
+# length (benchmarks/bench_description_length.py), measured on every split, decided pairs
+# wrong outside TUNING, every one of them between registrations of different families
+# (engine and method); FRESH10 checks its preference between settings of one family only,
+# a restriction chosen after seeing those splits.
+FRESH10 = (
+    "families_mni2d_span_s39",  # MNI-based 2D, N = 12, seed 39, FAMILIES_SPAN
+    "families_phantom2d_span_s40",  # phantom 2D, N = 12, seed 40, FAMILIES_SPAN
+    "families_mni3d_s41",  # MNI-based 3D, N = 10, seed 41, the seven (3D grids)
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -245,7 +255,7 @@ FRESH9 = (
 SPLIT_CASES = {
     "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
-    "fresh9": FRESH9,
+    "fresh9": FRESH9, "fresh10": FRESH10,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -889,6 +899,13 @@ def _cases() -> dict:
             "n": 24,
             "registrations": FAMILIES_SPAN,
         },
+        "families_mni2d_span_s39": {"kind": "mni", "seed": 39, "registrations": FAMILIES_SPAN},
+        "families_phantom2d_span_s40": {
+            "kind": "phantom",
+            "seed": 40,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni3d_s41": {"kind": "mni", "seed": 41, "dim": 3, "n": 10, "spacing": 3.0},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
