@@ -281,11 +281,40 @@ def preference(result: dict, a: str, b: str) -> str | None:
     return a if diff > 0 else b
 
 
+def families(bv, case: str) -> dict[str, tuple | None]:
+    """Each registration's family, ``(method, engine)`` from its manifest's ``parameters``;
+    a sweep's registrations (its manifest under ``sweep/``) are one family; None: unknown."""
+    smooth = _bench("bench_common_smoothness")
+    path = smooth._manifest_of(bv, case)
+    from itk_nrreval.io.manifest import load_manifest
+
+    manifest = bv._quiet(load_manifest, path)
+    out = {}
+    for name, reg in manifest.registrations.items():
+        p = reg.parameters or {}
+        if path.parent.name == "sweep":
+            out[name] = ("sweep",)
+        elif "method" in p and "engine" in p:
+            out[name] = (p["method"], p["engine"])
+        else:
+            out[name] = None
+    return out
+
+
+def _combined(before: str, added: str) -> str:
+    """The verdict's outcome with another preference's outcome added as evidence."""
+    if added == "open" or before == added:
+        return before
+    return added if before == "open" else "open"
+
+
 def judge(bv, case: str, result: dict, verdict_rows: list[dict]) -> list[dict]:
-    """Each judged pair (true errors 10% apart) of `case`: the description length's outcome,
-    and the verdict's (without labels) with it added."""
+    """Each judged pair (true errors 10% apart) of `case`: the description length's outcome
+    (``mdl``; ``family``: counted only between two registrations of one known family), and
+    the verdict's (without labels) alone and with each added."""
     errors = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
     verdict = {(r["a"], r["b"]): r["outcome"] for r in verdict_rows if r["case"] == case}
+    family = families(bv, case)
     rows = []
     for a, b in itertools.combinations(errors, 2):
         if errors[b] < errors[a]:
@@ -294,14 +323,21 @@ def judge(bv, case: str, result: dict, verdict_rows: list[dict]) -> list[dict]:
             continue
         said = preference(result, a, b)
         mdl = "open" if said is None else ("right" if said == a else "wrong")
+        same = family.get(a) is not None and family.get(a) == family.get(b)
+        within = mdl if same else "open"
         before = verdict.get((a, b), "open")
-        if mdl == "open" or before == mdl:
-            combined = before
-        elif before == "open":
-            combined = mdl
-        else:
-            combined = "open"
-        rows.append({"case": case, "a": a, "b": b, "mdl": mdl, "verdict": before, "with": combined})
+        rows.append(
+            {
+                "case": case,
+                "a": a,
+                "b": b,
+                "mdl": mdl,
+                "family": within,
+                "verdict": before,
+                "with": _combined(before, mdl),
+                "with_family": _combined(before, within),
+            }
+        )
     return rows
 
 
@@ -366,28 +402,35 @@ def main(argv: list[str] | None = None) -> dict:
                     0
                 ]
             )
-    lines = [
+    header = (
         "| split | pairs | description length | verdict without labels | the verdict with it "
-        "| second scan: description length | verdict | with it | Spearman, deformable |",
-        "|---|--:|--:|--:|--:|--:|--:|--:|--:|",
-    ]
+        "| within a family | the verdict with that | Spearman, deformable |"
+    )
+    lines = {"seen": [header], "second": [header]}
     for split in bv.SPLITS:
         if split not in by_split:
             continue
         s = by_split[split]
         rho = np.asarray(s["rho"], float)
-        lines.append(
-            f"| {split} | {len(s['seen'])} | {_cell(s['seen'], 'mdl')} | "
-            f"{_cell(s['seen'], 'verdict')} | {_cell(s['seen'], 'with')} | "
-            f"{_cell(s['second'], 'mdl')} | {_cell(s['second'], 'verdict')} | "
-            f"{_cell(s['second'], 'with')} | "
-            + (f"{np.nanmean(rho):+.2f} ({np.nanmin(rho):+.2f})" if rho.size else "-")
-            + " |"
-        )
-    text = "Each cell: right / wrong / open.\n\n" + "\n".join(lines) + "\n"
+        spearman = f"{np.nanmean(rho):+.2f} ({np.nanmin(rho):+.2f})" if rho.size else "-"
+        for mode in ("seen", "second"):
+            rows = s[mode]
+            cells = [_cell(rows, k) for k in ("mdl", "verdict", "with", "family", "with_family")]
+            rho_cell = spearman if mode == "seen" else "-"
+            lines[mode].append(
+                f"| {split} | {len(rows)} | " + " | ".join(cells) + f" | {rho_cell} |"
+            )
+    rule = "|---|--:|--:|--:|--:|--:|--:|--:|"
+    text = (
+        "Each cell: right / wrong / open.\n\nOn the images the registrations were made on:\n\n"
+        + "\n".join([lines["seen"][0], rule, *lines["seen"][1:]])
+        + "\n\nOn the second scan:\n\n"
+        + "\n".join([lines["second"][0], rule, *lines["second"][1:]])
+        + "\n"
+    )
     print(text)
     (bv.OUT / "description_length.md").write_text(text)
-    return {"rows": lines[2:]}
+    return {"rows": lines["seen"][1:] + lines["second"][1:]}
 
 
 if __name__ == "__main__":
