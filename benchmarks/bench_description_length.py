@@ -30,6 +30,12 @@ inside the case's mask (``n`` voxels of the grid's ``n_grid``):
   estimator, made robust to edges), and ``g^2`` as the mean squared central difference per
   axis, minus noise's ``sigma^2 / (2 h^2)``; the medians over the images.
 
+Since it entered the package (``itk_nrreval.measures.description_length``, which
+``evaluate`` computes), ``sigma``, ``g`` and the affine part are the package's functions
+(Otsu's threshold there is numpy's, on ITK's 128 bins, where the first measurement used
+SimpleITK's); the rate here stays the direct computation on whole arrays, which the
+package's frequency-domain sums match (``tests/test_description_length.py``).
+
 Lower is better. Its confidence is the jackknife over subjects (each subject left out in
 turn, the whole measure recomputed on the rest, bits per subject): a pair's difference is
 **separable** when it exceeds :data:`Z` jackknife standard errors.
@@ -40,6 +46,15 @@ by more than 10%): right, wrong or open, per split, on the images the registrati
 made on and on the second scan. Beside it, the verdict without labels with the description
 length's preference added as evidence: it decides a pair the verdict leaves open, and a
 pair the two decide opposite ways becomes open.
+
+**After every split up to FRESH9 was measured** (``docs/verdict.md``): every pair it decided
+wrong outside TUNING was between registrations of different families, in both directions.
+So it counts only between two registrations of one family (the same ``method`` and
+``engine`` in the manifest's ``parameters``; the saved sweeps, whose manifests predate
+that record, are each one family), a restriction chosen after seeing those splits and
+checked on FRESH10, declared before its cases ran. The verdict columns are now today's
+``itk_nrreval.measures.verdict``, which reads the description length so
+(``decided_with``), and the same verdict as if every registration were of one family.
 
 Cases: every saved case of ``bench_verdict`` whose registrations share the mask's grid and
 have no frame transform, and whose images form no groups (the multi-modal case is left
@@ -65,8 +80,9 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
-from scipy import ndimage
 from scipy.stats import spearmanr
+
+from itk_nrreval.measures.description_length import noise_and_gradient, non_linear_part
 
 HERE = Path(__file__).resolve().parent
 RESULT_JSON = "description_length.json"
@@ -117,31 +133,6 @@ def _group_bits(samples: np.ndarray, mask: np.ndarray, distortion: float) -> flo
     )
 
 
-def non_linear_part(fields: np.ndarray, mask: np.ndarray, spacing) -> np.ndarray:
-    """Each field minus its least-squares affine fit over the mask's voxels.
-
-    Parameters
-    ----------
-    fields : ndarray of shape (N, *grid, dim)
-        Displacements (mm) on a grid in numpy axis order.
-    spacing : sequence of float
-        Voxel size (mm) per numpy axis.
-    """
-    coords = np.stack(
-        np.meshgrid(
-            *[np.arange(s) * h for s, h in zip(mask.shape, spacing, strict=True)], indexing="ij"
-        ),
-        axis=-1,
-    )
-    flat = np.concatenate([coords.reshape(-1, coords.shape[-1]), np.ones((mask.size, 1))], 1)
-    design = flat[mask.ravel()]
-    out = np.empty_like(fields)
-    for i, field in enumerate(fields):
-        coef, *_ = np.linalg.lstsq(design, field[mask], rcond=None)
-        out[i] = field - (flat @ coef).reshape(field.shape)
-    return out
-
-
 def description_length(
     images: np.ndarray,
     fields: np.ndarray,
@@ -168,26 +159,6 @@ def description_length(
         _group_bits(fields[..., c], mask, displacement_variance) for c in range(fields.shape[-1])
     )
     return {"bits": (texture + shape) / n, "texture": texture / n, "shape": shape / n}
-
-
-def noise_and_gradient(image: np.ndarray, spacing) -> tuple[float, float]:
-    """An image's noise standard deviation and mean squared directional derivative
-    (noise's share removed), over its voxels above its Otsu threshold."""
-    image = image.astype(float)
-    # Otsu: insideValue for voxels at or below the threshold, outsideValue above it
-    otsu = sitk.OtsuThreshold(sitk.GetImageFromArray(image), 0, 1)
-    foreground = sitk.GetArrayFromImage(otsu).astype(bool)
-    second = image
-    for axis in range(image.ndim):
-        second = ndimage.correlate1d(second, [1.0, -2.0, 1.0], axis=axis, mode="nearest")
-    inner = ndimage.binary_erosion(foreground, iterations=1)
-    # a [1, -2, 1] difference along each of d axes multiplies white noise's variance by 6^d
-    sigma = 1.4826 * np.median(np.abs(second[inner])) / np.sqrt(6.0**image.ndim)
-    squares = [
-        np.mean(np.gradient(image, h, axis=axis)[inner] ** 2) - sigma**2 / (2 * h**2)
-        for axis, h in enumerate(spacing)
-    ]
-    return float(sigma), float(max(np.mean(squares), 1e-12))
 
 
 # ------------------------------------------------------------------------ the saved cases
@@ -233,7 +204,7 @@ def measure(manifest) -> dict:
             # points_minus_grid: (x, y[, z]) components on the numpy grid
             fields.append(points_minus_grid(transform, grid).reshape(*mask.shape, -1))
         images = np.stack(images)
-        fields = non_linear_part(np.stack(fields), mask, spacing)
+        fields = np.stack([non_linear_part(f, mask, spacing) for f in fields])
         options = {"noise_variance": sigma**2, "displacement_variance": sigma**2 / g2}
         whole = description_length(images, fields, mask, **options)
         keep = np.ones(len(images), bool)
@@ -301,20 +272,48 @@ def families(bv, case: str) -> dict[str, tuple | None]:
     return out
 
 
-def _combined(before: str, added: str) -> str:
-    """The verdict's outcome with another preference's outcome added as evidence."""
-    if added == "open" or before == added:
-        return before
-    return added if before == "open" else "open"
+def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, str]]:
+    """The pairs ``(better, worse)`` today's verdict without labels decides for a saved case
+    when its scores carry the description lengths of `record` and the families `family`
+    (``itk_nrreval.measures.verdict``, which reads them)."""
+    import dataclasses
+
+    from itk_nrreval.measures.description_length import DescriptionLength
+    from itk_nrreval.measures.verdict import verdict
+
+    evaluation = bv._load(case)
+    sigma, g2 = record["sigma"], record["g2"]
+    scores = {}
+    for name, score in evaluation.scores.items():
+        r = record["registrations"][name]
+        dl = DescriptionLength(
+            r["bits"],
+            r["texture"],
+            r["shape"],
+            tuple(r["jackknife"]),
+            sigma,
+            (sigma**2 / g2) ** 0.5,
+        )
+        scores[name] = dataclasses.replace(score, description_length=dl, family=family.get(name))
+    v = verdict(scores, evaluation.comparisons, has_labels=False)
+    return {(d.better, d.worse) for d in v.decisions}
 
 
-def judge(bv, case: str, result: dict, verdict_rows: list[dict]) -> list[dict]:
+def judge(bv, case: str, record: dict, verdict_rows: list[dict]) -> list[dict]:
     """Each judged pair (true errors 10% apart) of `case`: the description length's outcome
-    (``mdl``; ``family``: counted only between two registrations of one known family), and
-    the verdict's (without labels) alone and with each added."""
+    alone (``mdl``; ``family``: only between two registrations of one known family), the
+    verdict's without labels (``verdict``), and today's verdict reading it (``with_family``;
+    ``with``: as if every registration were of one family)."""
+    result = record["registrations"]
     errors = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
     verdict = {(r["a"], r["b"]): r["outcome"] for r in verdict_rows if r["case"] == case}
     family = families(bv, case)
+    with_family = decided_with(bv, case, record, family)
+    with_all = decided_with(bv, case, record, dict.fromkeys(family, ("one",)))
+
+    def outcome(decided, a, b):
+        return "right" if (a, b) in decided else "wrong" if (b, a) in decided else "open"
+
     rows = []
     for a, b in itertools.combinations(errors, 2):
         if errors[b] < errors[a]:
@@ -324,18 +323,16 @@ def judge(bv, case: str, result: dict, verdict_rows: list[dict]) -> list[dict]:
         said = preference(result, a, b)
         mdl = "open" if said is None else ("right" if said == a else "wrong")
         same = family.get(a) is not None and family.get(a) == family.get(b)
-        within = mdl if same else "open"
-        before = verdict.get((a, b), "open")
         rows.append(
             {
                 "case": case,
                 "a": a,
                 "b": b,
                 "mdl": mdl,
-                "family": within,
-                "verdict": before,
-                "with": _combined(before, mdl),
-                "with_family": _combined(before, within),
+                "family": mdl if same else "open",
+                "verdict": verdict.get((a, b), "open"),
+                "with": outcome(with_all, a, b),
+                "with_family": outcome(with_family, a, b),
             }
         )
     return rows
@@ -363,7 +360,7 @@ def main(argv: list[str] | None = None) -> dict:
         if not (bv.OUT / case / "truth.json").exists():
             continue
         if path.exists():
-            results[case] = json.loads(path.read_text())["registrations"]
+            results[case] = json.loads(path.read_text())
             continue
         if "--compute" not in argv:
             continue
@@ -381,17 +378,18 @@ def main(argv: list[str] | None = None) -> dict:
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(record) + "\n")
         tmp.replace(path)
-        results[case] = record["registrations"]
+        results[case] = record
     for case, why in skipped.items():
         print(f"[description length] {case} left out: {why}")
     verdict_rows = []
     for case in results:
         verdict_rows += [dict(r, case=case) for r in bv.judge(case, labels=False)]
     by_split = collections.defaultdict(lambda: {"seen": [], "second": [], "rho": []})
-    for case, result in results.items():
+    for case, record in results.items():
+        result = record["registrations"]
         base = second_of.get(case, case)
         split = bv.split_of(base)
-        rows = judge(bv, case, result, verdict_rows)
+        rows = judge(bv, case, record, verdict_rows)
         by_split[split]["second" if case in second_of else "seen"] += rows
         truth = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
         names = [n for n in truth if n in result]

@@ -51,6 +51,7 @@ from .io.manifest import (
 from .io.pipeline_outputs import manifest_from_derivatives, manifest_from_transforms
 from .io.plausibility import Plausibility, SubjectThresholds, Thresholds, deformation_plausibility
 from .measures.confidence import Comparison, Interval, RankStability
+from .measures.description_length import DescriptionLength
 from .measures.label_metrics import LabelMetrics, MetricSummary
 from .measures.model import MixtureModel, TextureModel
 from .measures.overlap import WEIGHTINGS, OverlapTable, generalized_overlap, overlap_table
@@ -115,6 +116,7 @@ __all__ = [
     "Coverage",
     "SubjectQC",
     "LabelMetrics",
+    "DescriptionLength",
     "MetricSummary",
     "Verdict",
     "Decision",

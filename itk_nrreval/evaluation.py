@@ -60,6 +60,7 @@ from .io.plausibility import (
 from .measures._ranks import higher_is_better, ranks, relative_ranks
 from .measures.confidence import TIE_Z as TIE_Z  # read from here before tie_groups moved there
 from .measures.confidence import Comparison, Interval, RankStability, significance_map, tie_groups
+from .measures.description_length import DescriptionLength
 from .measures.label_metrics import LabelMetrics
 from .measures.specificity import GeneralizationResult, SpecificityResult
 from .measures.subject_qc import SubjectQC, across_registrations
@@ -123,6 +124,14 @@ class RegistrationScores:
         The numbers registration papers report from labels: Dice and HD95 (mm) per label
         and case in the common frame, against the registration's reference subject or
         over every pair (:mod:`itk_nrreval.measures.label_metrics`); None without labels.
+    description_length : DescriptionLength or None
+        Bits per subject to code the registered group, shape and texture priced in one
+        currency (:mod:`itk_nrreval.measures.description_length`); lower is better. None
+        unless ``evaluate(description_length=True)``.
+    family : tuple of str or None
+        ``(method, engine)`` from the manifest's ``parameters`` of the registration, where
+        it gives both: the verdict reads the description length only between registrations
+        of one family.
     """
 
     name: str
@@ -137,6 +146,8 @@ class RegistrationScores:
     coverage: Coverage | None = None
     subjects: tuple[SubjectQC, ...] = ()
     label_metrics: LabelMetrics | None = None
+    description_length: DescriptionLength | None = None
+    family: tuple[str, str] | None = None
 
     @property
     def flagged_subjects(self) -> tuple[SubjectQC, ...]:
@@ -201,6 +212,10 @@ class RegistrationScores:
             "label_metrics": (
                 self.label_metrics.to_dict() if self.label_metrics is not None else None
             ),
+            "description_length": (
+                self.description_length.to_dict() if self.description_length is not None else None
+            ),
+            "family": list(self.family) if self.family is not None else None,
         }
 
 
@@ -369,6 +384,7 @@ def evaluate(
     thresholds: Thresholds | None = None,
     subject_thresholds: SubjectThresholds | None = None,
     inverse_consistency: bool = True,
+    description_length: bool = False,
     execution: Execution | None = None,
     progress: bool = True,
 ) -> EvaluationResult:
@@ -414,6 +430,12 @@ def evaluate(
         of every registration's scores (a warning names it).
     inverse_consistency : bool
         Measure each transform's inverse consistency (one numerical inversion per image).
+    description_length : bool
+        Each registration's description length (``RegistrationScores.description_length``,
+        :mod:`itk_nrreval.measures.description_length`): label-free evidence the verdict
+        reads between settings of one registration method. Off by default: it samples every
+        transform's displacement on the common grid twice and takes 2 (dim + 1) Fourier
+        transforms of the grid per image. Not for a manifest whose images form groups.
     execution : Execution, optional
         Where the tasks run and the per-image cache (:class:`Execution`; default
         ``Execution()``: in this process, cache in a temporary folder).
@@ -450,7 +472,7 @@ def evaluate(
     run, run_info = _execute(
         m, n_samples=int(n_samples), seed=seed, distance=distance, progress=progress,
         resampling=resampling, execution=execution, subject_thresholds=subject_thresholds,
-        inverse_consistency=inverse_consistency,
+        inverse_consistency=inverse_consistency, description_length=bool(description_length),
         assess_subjects=subject_assessor(m, subject_thresholds),
         flagged_pictured=FLAGGED_SUBJECTS_SHOWN,  # the report's pictures of flagged subjects
     )  # fmt: skip
@@ -496,6 +518,7 @@ def _assembled(
         thresholds=thresholds,
         extent_mm=extent,
         label_names=m.label_names,
+        families={name: _registration_family(reg) for name, reg in m.registrations.items()},
     )
     _warn_if_flagged(scores)
     options = _recorded_options(
@@ -540,6 +563,9 @@ def _recorded_options(
         "confidence_samples": int(confidence_samples),
         "resamples": None if plan is None else len(plan.left_out),
         "inverse_consistency": bool(inverse_consistency),
+        "description_length": any(
+            r.description_length is not None for r in run.registrations.values()
+        ),
         "label_interpolation": resampling.label_interpolation,
         "label_sigma_mm": (
             None if resampling.label_sigma_mm is None else float(resampling.label_sigma_mm)
@@ -601,9 +627,12 @@ def _registration_scores(
     thresholds,
     extent_mm,
     label_names: Mapping[int, str] | None = None,
+    families: Mapping[str, tuple[str, str] | None] | None = None,
 ) -> dict[str, RegistrationScores]:
     """Every registration's scores, plausibility, flags and subjects (its label metrics
-    carrying the manifest's `label_names`)."""
+    carrying the manifest's `label_names`), with its description length (where computed)
+    and `families`' entry."""
+    families = families or {}
     regs = run.registrations
     plaus = {name: combine(r.plausibility) for name, r in regs.items()}
     reg_flags = flags(
@@ -628,8 +657,20 @@ def _registration_scores(
             r.coverage,
             subjects[name],
             label_metrics=_named(r.label_metrics, label_names),
+            description_length=r.description_length,
+            family=families.get(name),
         )
     return scores
+
+
+def _registration_family(reg) -> tuple[str, str] | None:
+    """``(method, engine)`` of a manifest registration's ``parameters``, where it gives both
+    (as ``nrreval register`` and the benchmarks record them); else None."""
+    p = reg.parameters or {}
+    method, engine = p.get("method"), p.get("engine")
+    if method is None or engine is None:
+        return None
+    return (str(method), str(engine))
 
 
 def _named(lm: LabelMetrics | None, names: Mapping[int, str] | None) -> LabelMetrics | None:

@@ -660,6 +660,7 @@ PUBLIC_MODULES = {
     "measures.confidence",  # subject-level confidence intervals of the scores (jackknife)
     "measures.verdict",  # which registrations the evidence decides are better, and why
     "measures.label_metrics",  # the numbers registration papers report: Dice, HD95 per label
+    "measures.description_length",  # shape and texture priced in one currency (issue 41)
     "measures.subject_qc",  # per-subject quality control of a registered cohort
     # io/: where ITK lives
     "io",  # the room of ITK: images, transforms, manifests, frames, pipelines' folders

@@ -54,9 +54,10 @@ def test_sweep_writes_one_registration_per_setting_and_reuses_them(population, t
     manifest = yaml.safe_load((out / "manifest.yaml").read_text())
     assert list(manifest["registrations"]) == names
     recorded = [r["parameters"] for r in manifest["registrations"].values()]
+    family = {"method": "fluid", "engine": "simpleitk"}
     assert recorded == [
-        {"smoothing_mm": 2.0, "iterations": [20, 10, 5]},
-        {"smoothing_mm": 6.0, "iterations": [20, 10, 5]},
+        {**family, "smoothing_mm": 2.0, "iterations": [20, 10, 5]},
+        {**family, "smoothing_mm": 6.0, "iterations": [20, 10, 5]},
     ]
     assert manifest["labels"] and manifest["images"]
     # every setting is scored, with the truth beside it, and the figure is written

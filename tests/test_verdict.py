@@ -775,3 +775,55 @@ def test_the_overlap_is_no_evidence_against_folds_either(cheat_case):
     assert f"1.61x the odds of overlap is less than the {bar:.2f}x" in v.open_pairs[0].reason
     beyond = odds(0.6) / (1.02 * bar)
     assert decided(beyond / (1 + beyond))[0] == [("demons", "bspline")]
+
+
+def test_the_description_length_decides_only_between_settings_of_one_family(cheat_case):
+    """Issue 41: the description length's preference by at least MIN_Z jackknife standard
+    errors is evidence between registrations of one family (method and engine), and none
+    between families (the benchmark found it wrong there, in both directions); specificity's
+    evidence the other way leaves the pair open."""
+    from itk_nrreval.measures.description_length import MIN_Z, DescriptionLength
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+    spread = np.array([0.0, 1.0, -1.0, 2.0, -2.0, 0.5])  # jackknife deviations, shared
+
+    def dl(bits, own):
+        """`bits` with the jackknife's shared spread plus `own` (its own deviations)."""
+        return DescriptionLength(bits, bits, 0.0, tuple(bits + spread + own), 1.0, 0.1)
+
+    # z of a against b: the paired jackknife's standard error of `own`'s difference
+    own = np.array([0.0, 1.0, -1.0, 1.0, -1.0, 0.0])
+    stderr = np.sqrt(5 / 6 * np.sum((own - own.mean()) ** 2))
+
+    def decided(gap, family_a, family_b, spec_a=10.0, spec_b=10.0, separable=False):
+        # equal roughness; specificity separable only where asked
+        a = dataclasses.replace(
+            _registration(base, "a", spec=spec_a, sdlogj=0.2),
+            description_length=dl(1000.0, own),
+            family=family_a,
+        )
+        b = dataclasses.replace(
+            _registration(base, "b", spec=spec_b, sdlogj=0.2),
+            description_length=dl(1000.0 + gap, 0.0 * own),
+            family=family_b,
+        )
+        values = {"a": spec_a, "b": spec_b}
+        comparisons = _separable_where(values, [{"a", "b"}] if separable else [])
+        v = verdict({"a": a, "b": b}, comparisons, has_labels=False)
+        return [(d.better, d.worse, d.basis) for d in v.decisions]
+
+    fluid = ("fluid", "simpleitk")
+    above, below = 1.05 * MIN_Z * stderr, 0.95 * MIN_Z * stderr
+    ((better, worse, basis),) = decided(above, fluid, fluid)
+    assert (better, worse) == ("a", "b") and basis.startswith("description length")
+    assert f"{MIN_Z * 1.05:.1f} standard errors" in basis
+    assert decided(-above, fluid, fluid)[0][:2] == ("b", "a")
+    assert decided(below, fluid, fluid) == []  # not enough standard errors
+    assert decided(above, fluid, ("pairwise", "elastix")) == []  # another family
+    assert decided(above, None, None) == []  # families unknown
+    # specificity's evidence for b (1.3x at equal roughness) against it: open
+    assert decided(above, fluid, fluid, spec_a=13.0, spec_b=10.0, separable=True) == []
+    # and for a: both decide it
+    ((_, _, basis),) = decided(above, fluid, fluid, spec_a=10.0, spec_b=13.0, separable=True)
+    assert basis.startswith("specificity and description length")

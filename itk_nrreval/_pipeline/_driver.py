@@ -47,6 +47,7 @@ from ._common_frame import (
     given_frame,
 )
 from ._coverage import check_region_covered, evaluated_region, left_out_of_scores
+from ._description_length import image_statistics, registration_description_length
 from ._image_tasks import (
     CachedMasks,
     Measured,
@@ -105,6 +106,7 @@ def run_pipeline(
     inverse_consistency: bool = True,
     assess_subjects: Callable[[ReducedRegistration, Callable], Sequence[SubjectQC]] | None = None,
     flagged_pictured: int = 0,
+    description_length: bool = False,
 ) -> PipelineRun:
     """Score every registration of `m` (the body of :func:`itk_nrreval.evaluate`).
 
@@ -143,6 +145,10 @@ def run_pipeline(
     flagged_pictured : int
         How many of the flagged subjects, worst first, the thumbnails also picture
         (``image_<i>``: read from the cache before it goes, a few slices rather than all N).
+    description_length : bool
+        Each registration's description length
+        (:func:`~._description_length.registration_description_length`), read while the
+        cache holds its images; not for a manifest whose images form groups (a mixture).
 
     Returns
     -------
@@ -175,6 +181,9 @@ def run_pipeline(
         left_out = left_out_of_scores(m, entries, off_grid)
         scored = tuple(i for i in range(m.n_images) if i not in left_out)
         region, coverage = evaluated_region(disk, grid, mask, m, entries, left_out)
+        statistics = None
+        if description_length and m.groups is None:
+            statistics = image_statistics(m, scored)
         region_ctx = ctx
         if region is not None and (mask is None or not np.array_equal(region, mask)):
             region_ctx = dataclasses.replace(ctx, mask_key=_stored_mask(disk, region))
@@ -185,7 +194,7 @@ def run_pipeline(
             values=values, region=region, n_samples=n_samples, seed=seed, distance=distance,
             resampling=resampling, keep_resampled=execution.keep_resampled,
             progress=progress, assess_subjects=assess_subjects,
-            flagged_pictured=flagged_pictured,
+            flagged_pictured=flagged_pictured, statistics=statistics,
         )  # fmt: skip
         runs, resampled = {}, {}
         for name, reg in measured.items():  # one registration's images in the cache at a time
@@ -396,7 +405,7 @@ def _label_metrics(
 def _score_registration(
     executor, ctx, region_ctx, disk, m, name, reg: Measured, *, coverage, counts, warned,
     own_values, mask, scored, values, region, n_samples, seed, distance, resampling,
-    keep_resampled, progress, assess_subjects, flagged_pictured,
+    keep_resampled, progress, assess_subjects, flagged_pictured, statistics,
 ) -> tuple[ReducedRegistration, Resampled]:  # fmt: skip
     """Registration `name` resampled, reduced to its scores, and its label metrics; its
     resampled images leave the cache unless `keep_resampled`, its mean image goes to the
@@ -436,6 +445,12 @@ def _score_registration(
         keep=keep_resampled, progress=progress,
     )  # fmt: skip
     run = dataclasses.replace(run, label_metrics=metrics)
+    if statistics is not None:  # (sigma, g2): the description length was asked for
+        dl = registration_description_length(
+            disk, m, name, keys=r.keys, frame_spec=r.frame_spec, grid=ctx.grid,
+            region=region, scored=scored, statistics=statistics,
+        )  # fmt: skip
+        run = dataclasses.replace(run, description_length=dl)
     if not keep_resampled:
         for key in set(r.keys):
             disk.remove("resampled", key)

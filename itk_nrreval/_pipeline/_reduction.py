@@ -26,6 +26,7 @@ from ..io.manifest import Manifest
 from ..io.plausibility import AffineFit, Plausibility
 from ..io.transforms import chain_transform, invert
 from ..measures._overlap_kernels import membership_pair_sums
+from ..measures.description_length import DescriptionLength
 from ..measures.label_metrics import LabelMetrics
 from ..measures.model import TextureModel
 from ..measures.overlap import OverlapTable
@@ -100,6 +101,9 @@ class ReducedRegistration:
         Dice and HD95 (mm) per label and case in the common frame
         (:mod:`itk_nrreval.measures.label_metrics`, :func:`~._label_metrics.label_metrics`); None
         without labels.
+    description_length : DescriptionLength or None
+        Bits per subject to code the registered group, shape and texture
+        (:mod:`itk_nrreval.measures.description_length`); None unless asked for.
     subjects : tuple of SubjectQC
         Every subject's quality control under this registration, by `assess_subjects` of
         :func:`run_pipeline` (empty without it).
@@ -125,6 +129,7 @@ class ReducedRegistration:
     scored: tuple[int, ...] = ()
     brain_masks: BrainMaskDice | None = None
     label_metrics: LabelMetrics | None = None
+    description_length: DescriptionLength | None = None
     subjects: tuple[SubjectQC, ...] = ()
     corrected_squares: np.ndarray | None = field(default=None, repr=False)
 

@@ -254,6 +254,12 @@ def _add_confidence_options(p) -> None:
     c.add_argument(
         "--no-confidence", action="store_true", help="skip the intervals and comparisons"
     )
+    p.add_argument(  # evidence, not confidence: among the command's own options
+        "--description-length",
+        action="store_true",
+        help="also each registration's description length: label-free evidence the verdict "
+        "reads between settings of one method (manifest parameters' method and engine)",
+    )
     c.add_argument(
         "--confidence-samples",
         type=integer(2),
@@ -503,6 +509,7 @@ def _evaluate_options(args: argparse.Namespace) -> dict:
             else Confidence(samples=args.confidence_samples, resamples=args.resamples)
         ),
         inverse_consistency=not args.no_inverse_consistency,
+        description_length=args.description_length,
         thresholds=Thresholds(
             folded_mean=args.flag_folded_mean,
             folded_max=args.flag_folded_max,

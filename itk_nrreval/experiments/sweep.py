@@ -405,7 +405,14 @@ def sweep(
     settings, logs = registrations.plan(parameters)
     logs.update(registrations.register_missing(settings, progress=progress))
     manifest = _write_manifest(
-        out, settings, logs, method=method, images=images, labels=labels, mask=mask
+        out,
+        settings,
+        logs,
+        method=method,
+        engine=engine,
+        images=images,
+        labels=labels,
+        mask=mask,
     )
     evaluation = evaluate(
         manifest,
@@ -536,12 +543,14 @@ def _write_manifest(
     logs: Mapping[str, dict],
     *,
     method: str,
+    engine: str,
     images: list[str],
     labels: Sequence[str | os.PathLike] | None,
     mask: str | os.PathLike | None,
 ) -> Path:
-    """``out/manifest.yaml`` (rewritten): every setting's registration with its values, in
-    grid order, the labels and the mask; ``out/identity.tfm`` its frame transforms."""
+    """``out/manifest.yaml`` (rewritten): every setting's registration with its method,
+    engine and values (one family: the verdict reads the description length between them),
+    in grid order, the labels and the mask; ``out/identity.tfm`` its frame transforms."""
     manifest = out / "manifest.yaml"
     with contextlib.suppress(FileNotFoundError):
         manifest.unlink()  # rewritten from this grid's registrations only
@@ -562,7 +571,7 @@ def _write_manifest(
             frame_transform=identity if same_frame else None,
             images=images,
             labels=list(labels) if labels is not None else None,
-            parameters=setting.values,
+            parameters={"method": method, "engine": engine, **setting.values},
         )
     if mask is not None:
         m = load_manifest(manifest)

@@ -53,6 +53,20 @@ was right every time). Besides, **severe folding** decides: a registration that 
 least :data:`SEVERE_FOLDED_FRACTION` of its voxels (a tear, not a fold) is decided worse
 than every registration that folds less than :data:`NO_FOLDING_FRACTION`.
 
+**The description length** (:mod:`~itk_nrreval.measures.description_length`, where
+``evaluate(description_length=True)`` computed it) is a third measure: its preference by at
+least :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors is
+evidence, like specificity's and the overlap's, but only between two registrations of one
+family (the same ``method`` and ``engine`` in the manifest's ``parameters``: settings of
+one method, as a sweep makes). No roughness charge applies: its shape part prices the
+deformation already. On the known-truth benchmark (``benchmarks/bench_description_length.py``)
+it decided no pair wrong within a family on any split, and between families it decided
+pairs wrong in both directions (a 40 mm B-spline grid that corresponded better than SyN,
+priced above SyN's better texture fit; a 60 mm grid, better than affine, priced below its
+shape cost), so there it is no evidence. Within a family it decides what roughness does
+not: a setting that under-fits (demons smoothed by 16 mm, a 60 mm grid) against one that
+corresponds better.
+
 Anything else stays open, with the reason in words, and so does every pair whose
 decisions go round in a cycle (a > b > c > a by different evidence: one of them is
 wrong). A plausibility flag by itself decides nothing: on the benchmark a B-spline
@@ -74,6 +88,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from .confidence import Comparison
+from .description_length import MIN_Z, z_of_difference
 
 __all__ = [
     "Decision",
@@ -183,7 +198,13 @@ computed with; the verdict does not use it."""
 
 _SPECIFICITY = "specificity"
 _OVERLAP = "overlap.inverse_volume"
-_WORD = {_SPECIFICITY: "specificity", _OVERLAP: "overlap"}  # in a decision's basis
+_DESCRIPTION_LENGTH = "description length"
+# in a decision's basis
+_WORD = {
+    _SPECIFICITY: "specificity",
+    _OVERLAP: "overlap",
+    _DESCRIPTION_LENGTH: "description length",
+}
 
 
 @dataclass(frozen=True)
@@ -378,6 +399,7 @@ def verdict(
         _add_smoother_evidence(
             evidence, comparison(_SPECIFICITY, a, b), spec, rough, folded, deforms
         )
+        _add_description_length(evidence, scores[a], scores[b])
         decision = _decide(a, b, evidence, rough, folded)
         if decision is not None:
             decisions.append(decision)
@@ -407,6 +429,24 @@ class _Preference(NamedTuple):
     # interval, as a ratio; None for a separable preference
     rougher_at_most: float | None = None
     why: str | None = None  # the discount in words, where _discounted cannot say it
+    z: float | None = None  # the description length's: jackknife standard errors
+
+
+def _add_description_length(evidence: dict, sa, sb) -> None:
+    """Add the description length's evidence: its preference by at least
+    :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors between
+    two registrations of one known family (``family``: method and engine); ``gain`` is the
+    difference in bits per subject."""
+    da = getattr(sa, "description_length", None)
+    db = getattr(sb, "description_length", None)
+    family = getattr(sa, "family", None)
+    if da is None or db is None or family is None or family != getattr(sb, "family", None):
+        return
+    z = z_of_difference(da, db)  # > 0: a's is the shorter
+    if not abs(z) >= MIN_Z:
+        return
+    (w, dw), (l, dl) = ((sa.name, da), (sb.name, db)) if z > 0 else ((sb.name, db), (sa.name, da))
+    evidence[_DESCRIPTION_LENGTH] = _Preference(w, l, dl.bits - dw.bits, None, z=abs(z))
 
 
 def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) -> dict:
@@ -534,7 +574,12 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
         f"{math.exp(evidence[m].gain):.2f}x "
         + ("the odds of overlap" if m == _OVERLAP else f"lower {_WORD[m]}")
         for m in used
-        if evidence[m].rougher_at_most is None
+        if evidence[m].rougher_at_most is None and evidence[m].z is None
+    ]
+    gains += [
+        f"{evidence[m].gain:.0f} bits per subject shorter, {evidence[m].z:.1f} standard errors"
+        for m in used
+        if evidence[m].z is not None
     ]
     details = [f"separable: {', '.join(gains)}"] if gains else []
     details += [_too_little(p, rough) for p in evidence.values() if p.rougher_at_most]

@@ -421,6 +421,9 @@ def results_csv(result) -> str:
     fields += ["frame_method", "frame_spread_mean_mm", "frame_spread_max_mm"]
     fields += ["folded_fraction", "folded_max", "sdlogj", "jacobian_min", "jacobian_max"]
     fields += ["inverse_consistency_mm", "flags"]
+    # only where computed: a result without it writes the columns it always wrote
+    with_dl = any(s.description_length is not None for s in result.scores.values())
+    fields += ["description_length_bits", "family"] if with_dl else []
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
     w.writeheader()
@@ -442,6 +445,10 @@ def results_csv(result) -> str:
             "inverse_consistency_mm": s.plausibility.inverse_consistency_mm,
             "flags": "; ".join(s.flags),
         }
+        if with_dl:
+            dl = s.description_length
+            row["description_length_bits"] = None if dl is None else dl.bits
+            row["family"] = None if s.family is None else " ".join(s.family)
         for m in ["specificity", "generalization", *overlaps]:
             iv = s.intervals.get(m)
             row[f"{m}_ci95_lo"] = iv.lo if iv is not None else None
