@@ -30,11 +30,12 @@ inside the case's mask (``n`` voxels of the grid's ``n_grid``):
   estimator, made robust to edges), and ``g^2`` as the mean squared central difference per
   axis, minus noise's ``sigma^2 / (2 h^2)``; the medians over the images.
 
-Since it entered the package (``itk_nrreval.measures.description_length``, which
-``evaluate`` computes), ``sigma``, ``g`` and the affine part are the package's functions
-(Otsu's threshold there is numpy's, on ITK's 128 bins, where the first measurement used
-SimpleITK's); the rate here stays the direct computation on whole arrays, which the
-package's frequency-domain sums match (``tests/test_description_length.py``).
+**Since it entered the package** (``itk_nrreval.measures.description_length``), every case
+is measured by ``evaluate(description_length=True)`` itself (:func:`measure`): in the
+common frame, over the evaluated region (the mask where every image covers it) rather than
+over the whole mask on each registration's own grid, with Otsu's threshold on ITK's 128
+bins in numpy rather than SimpleITK's. The tables are of that measurement; the first
+(mask, own grids) is in ``docs/verdict.md``.
 
 Lower is better. Its confidence is the jackknife over subjects (each subject left out in
 turn, the whole measure recomputed on the rest, bits per subject): a pair's difference is
@@ -81,8 +82,6 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 from scipy.stats import spearmanr
-
-from itk_nrreval.measures.description_length import noise_and_gradient, non_linear_part
 
 HERE = Path(__file__).resolve().parent
 RESULT_JSON = "description_length.json"
@@ -169,70 +168,44 @@ def _array(image: sitk.Image) -> np.ndarray:
 
 
 def measure(manifest) -> dict:
-    """Every registration's description length, with its jackknife, for one manifest."""
-    from itk_nrreval.io._images import Geometry, read_image
-    from itk_nrreval.io._transform_io import chain_transform
-    from itk_nrreval.io.frame import points_minus_grid
+    """Every registration's description length, with its jackknife, for one manifest: as
+    ``evaluate(description_length=True)`` computes it (over the evaluated region: the mask
+    where every image covers it; M = 1,000, no confidence: neither touches it)."""
+    import warnings
 
-    scored = manifest.evaluation_images or manifest.images
-    stats = []
-    for path in scored:
-        image = read_image(path)
-        stats.append(noise_and_gradient(_array(image), image.GetSpacing()[::-1]))
-    sigma = float(np.median([s for s, _ in stats]))
-    g2 = float(np.median([g for _, g in stats]))
-    mask = _array(read_image(manifest.mask)) > 0 if manifest.mask else None
-    out = {"sigma": sigma, "g2": g2, "registrations": {}}
-    for name, reg in manifest.registrations.items():
-        reference = read_image(reg.reference)
-        grid = Geometry.from_image(reference)
-        spacing = reference.GetSpacing()[::-1]
-        if manifest.mask is None:  # each registration's whole reference grid
-            mask = np.ones(reference.GetSize()[::-1], bool)
-        images, fields = [], []
-        for path, chain in zip(scored, reg.transforms, strict=True):
-            transform = chain_transform(list(chain))
-            moved = sitk.Resample(
-                sitk.Cast(read_image(path), sitk.sitkFloat32),
-                reference,
-                transform,
-                sitk.sitkLinear,
-                0.0,
-                sitk.sitkFloat32,
-            )
-            images.append(_array(moved))
-            # points_minus_grid: (x, y[, z]) components on the numpy grid
-            fields.append(points_minus_grid(transform, grid).reshape(*mask.shape, -1))
-        images = np.stack(images)
-        fields = np.stack([non_linear_part(f, mask, spacing) for f in fields])
-        options = {"noise_variance": sigma**2, "displacement_variance": sigma**2 / g2}
-        whole = description_length(images, fields, mask, **options)
-        keep = np.ones(len(images), bool)
-        jackknife = []
-        for j in range(len(images)):
-            keep[:] = True
-            keep[j] = False
-            jackknife.append(
-                description_length(images[keep], fields[keep], mask, **options)["bits"]
-            )
-        out["registrations"][name] = {**whole, "jackknife": jackknife}
+    import itk_nrreval as nr
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = nr.evaluate(
+            manifest,
+            n_samples=1000,
+            confidence=False,
+            inverse_consistency=False,
+            description_length=True,
+            progress=False,
+        )
+    first = next(iter(result.scores.values())).description_length
+    out = {
+        "sigma": first.noise_sd,
+        "g2": first.noise_sd**2 / first.displacement_precision_mm**2,
+        "registrations": {},
+    }
+    for name, scores in result.scores.items():
+        dl = scores.description_length
+        out["registrations"][name] = {
+            "bits": dl.bits,
+            "texture": dl.texture,
+            "shape": dl.shape,
+            "jackknife": list(dl.jackknife),
+        }
     return out
 
 
 def usable(manifest) -> str | None:
     """Why a saved case's manifest cannot be measured, or None."""
-    if manifest.groups is not None or manifest.subjects is not None:
-        return "its images form groups"
-    if manifest.mask is None:
-        return None
-    from itk_nrreval.io._images import Geometry, read_image
-
-    grid = Geometry.from_image(read_image(manifest.mask))
-    for name, reg in manifest.registrations.items():
-        if reg.frame_transform is not None:
-            return f"{name} has a frame transform"
-        if Geometry.from_image(read_image(reg.reference)) != grid:
-            return f"{name}'s reference grid is not the mask's"
+    if manifest.groups is not None:
+        return "its images form groups (a mixture)"
     return None
 
 
