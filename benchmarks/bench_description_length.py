@@ -39,7 +39,7 @@ bins in numpy rather than SimpleITK's. The tables are of that measurement; the f
 
 Lower is better. Its confidence is the jackknife over subjects (each subject left out in
 turn, the whole measure recomputed on the rest, bits per subject): a pair's difference is
-**separable** when it exceeds :data:`Z` jackknife standard errors.
+**separable** when it exceeds ``MIN_Z`` jackknife standard errors (below).
 
 **The rule declared with it.** The description length prefers ``a`` over ``b`` when ``a``'s
 is separably lower. Judged like the verdict (``bench_verdict``: pairs whose true errors differ
@@ -57,12 +57,19 @@ checked on FRESH10, declared before its cases ran. The verdict columns are now t
 ``itk_nrreval.measures.verdict``, which reads the description length so
 (``decided_with``), and the same verdict as if every registration were of one family.
 
-Cases: every saved case of ``bench_verdict`` whose registrations share the mask's grid and
-have no frame transform, and whose images form no groups (the multi-modal case is left
-out; so are cases whose manifest is gone). A case without a mask (the sweeps) is measured
-over each registration's whole reference grid, frame transforms or not; this was added
-after the first measurement, on ``TUNING`` (where every other case was then measured: 53 of
-65 pairs right, none wrong), before any other split was measured, and changes nothing else.
+Cases: every saved case of ``bench_verdict`` whose images form no groups (the multi-modal
+case is left out; so are cases whose manifest is gone). The first measurement took only
+cases whose registrations shared the mask's grid with no frame transform, and the sweeps
+(no mask) over each registration's whole reference grid, the latter added after its first
+run on ``TUNING`` (53 of 65 pairs right, none wrong), before any other split was measured;
+``evaluate`` now measures every case in its common frame.
+
+A preference needs :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife
+standard errors: declared as 1.96 (a 95% interval), set to 3.2 on ``TUNING`` alone, before
+any other split was measured (at 1.96 it decided 199 of TUNING's 243 judged pairs right and
+4 wrong, at z = 2.22-2.89: a 64 mm B-spline grid against an 8 mm one on the MNI 2D sweep,
+twice; 16 against 4 mm demons smoothing on the 3D MNI sweep; 1 mm demons against a 10 mm
+B-spline grid on families_mni2d's second scan); 3.2 is the steepest wrong plus 10%.
 
 ``python benchmarks/bench_description_length.py [--compute] [--split tuning,...]``:
 ``--compute`` measures the cases that lack it first (``description_length.json`` in the
@@ -80,19 +87,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 from scipy.stats import spearmanr
+
+from itk_nrreval.evaluation import _registration_family
+from itk_nrreval.measures.description_length import MIN_Z, DescriptionLength, z_of_difference
 
 HERE = Path(__file__).resolve().parent
 RESULT_JSON = "description_length.json"
-Z = 3.2
-"""Jackknife standard errors a difference must exceed to be a preference. Declared as 1.96
-(a 95% interval); set to 3.2 on ``TUNING`` alone, before any other split was measured: at
-1.96 the description length decided 199 of TUNING's 243 judged pairs (on the images the
-registrations were made on and on the second scans) right and 4 wrong, at z = 2.22-2.89
-(a 64 mm B-spline grid against an 8 mm one on the MNI 2D sweep, twice; 16 against 4 mm
-demons smoothing on the 3D MNI sweep; 1 mm demons against a 10 mm B-spline grid on
-families_mni2d's second scan); 3.2 is the steepest wrong plus 10%."""
 
 
 def _bench(name: str):
@@ -102,69 +103,7 @@ def _bench(name: str):
     return module
 
 
-# ------------------------------------------------------------------------ pure numerics
-
-
-def gaussian_rate(power: np.ndarray, distortion: float, fraction: float) -> float:
-    """Bits to code one sample of a stationary Gaussian source with power spectrum `power`
-    at mean squared error `distortion` per voxel (reverse water-filling, in the limit of
-    small distortion): ``fraction * sum_k max(0, log2(power_k / distortion) / 2)``;
-    `fraction` (mask voxels / grid voxels) counts the masked signal's degrees of freedom."""
-    ratio = np.maximum(power / distortion, 1.0)
-    return float(fraction * 0.5 * np.log2(ratio).sum())
-
-
-def _power(signals: np.ndarray, n: int) -> np.ndarray:
-    """Mean over the first axis of ``|FFT|^2 / n`` of each signal."""
-    return np.mean(np.abs(np.fft.fftn(signals, axes=tuple(range(1, signals.ndim)))) ** 2, 0) / n
-
-
-def _group_bits(samples: np.ndarray, mask: np.ndarray, distortion: float) -> float:
-    """Bits for the group `samples` (``(N, *grid)``): the residuals from their mean coded
-    by their mean power spectrum (N times), plus the mean (minus its mask mean) once."""
-    n = int(mask.sum())
-    fraction = n / mask.size
-    mean = samples.mean(axis=0)
-    residuals = (samples - mean) * mask
-    template = (mean - mean[mask].mean()) * mask
-    return len(samples) * gaussian_rate(_power(residuals, n), distortion, fraction) + gaussian_rate(
-        _power(template[None], n), distortion, fraction
-    )
-
-
-def description_length(
-    images: np.ndarray,
-    fields: np.ndarray,
-    mask: np.ndarray,
-    *,
-    noise_variance: float,
-    displacement_variance: float,
-) -> dict[str, float]:
-    """Bits per subject to code a registered group: texture and shape.
-
-    Parameters
-    ----------
-    images : ndarray of shape (N, *grid)
-        The registered images on the reference grid.
-    fields : ndarray of shape (N, *grid, dim)
-        Their non-linear displacements (mm).
-    mask : ndarray of bool, shape grid
-    noise_variance, displacement_variance : float
-        The distortions the texture (intensity^2) and shape (mm^2) are coded to.
-    """
-    n = len(images)
-    texture = _group_bits(images, mask, noise_variance)
-    shape = sum(
-        _group_bits(fields[..., c], mask, displacement_variance) for c in range(fields.shape[-1])
-    )
-    return {"bits": (texture + shape) / n, "texture": texture / n, "shape": shape / n}
-
-
 # ------------------------------------------------------------------------ the saved cases
-
-
-def _array(image: sitk.Image) -> np.ndarray:
-    return sitk.GetArrayFromImage(image).astype(np.float64)
 
 
 def measure(manifest) -> dict:
@@ -212,17 +151,25 @@ def usable(manifest) -> str | None:
 # ------------------------------------------------------------------------ judged
 
 
-def preference(result: dict, a: str, b: str) -> str | None:
-    """The registration the description length separably prefers of `a`, `b`, or None."""
-    ja = np.asarray(result[a]["jackknife"])
-    jb = np.asarray(result[b]["jackknife"])
-    n = len(ja)
-    d = jb - ja  # > 0: a shorter
-    stderr = np.sqrt((n - 1) / n * np.sum((d - d.mean()) ** 2))
-    diff = result[b]["bits"] - result[a]["bits"]
-    if abs(diff) <= Z * stderr:
+def description_lengths(record: dict) -> dict[str, DescriptionLength]:
+    """A saved case's description lengths (``description_length.json``), by registration."""
+    sigma, precision = record["sigma"], (record["sigma"] ** 2 / record["g2"]) ** 0.5
+    return {
+        name: DescriptionLength(
+            r["bits"], r["texture"], r["shape"], tuple(r["jackknife"]), sigma, precision
+        )
+        for name, r in record["registrations"].items()
+    }
+
+
+def preference(lengths: dict[str, DescriptionLength], a: str, b: str) -> str | None:
+    """The registration the description length prefers of `a`, `b` by at least
+    :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors, or
+    None."""
+    z = z_of_difference(lengths[a], lengths[b])  # > 0: a's is the shorter
+    if not abs(z) >= MIN_Z:
         return None
-    return a if diff > 0 else b
+    return a if z > 0 else b
 
 
 def families(bv, case: str) -> dict[str, tuple | None]:
@@ -233,16 +180,9 @@ def families(bv, case: str) -> dict[str, tuple | None]:
     from itk_nrreval.io.manifest import load_manifest
 
     manifest = bv._quiet(load_manifest, path)
-    out = {}
-    for name, reg in manifest.registrations.items():
-        p = reg.parameters or {}
-        if path.parent.name == "sweep":
-            out[name] = ("sweep",)
-        elif "method" in p and "engine" in p:
-            out[name] = (p["method"], p["engine"])
-        else:
-            out[name] = None
-    return out
+    if path.parent.name == "sweep":  # saved before sweeps recorded method and engine
+        return dict.fromkeys(manifest.registrations, ("sweep",))
+    return {name: _registration_family(reg) for name, reg in manifest.registrations.items()}
 
 
 def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, str]]:
@@ -251,23 +191,14 @@ def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, st
     (``itk_nrreval.measures.verdict``, which reads them)."""
     import dataclasses
 
-    from itk_nrreval.measures.description_length import DescriptionLength
     from itk_nrreval.measures.verdict import verdict
 
     evaluation = bv._load(case)
-    sigma, g2 = record["sigma"], record["g2"]
-    scores = {}
-    for name, score in evaluation.scores.items():
-        r = record["registrations"][name]
-        dl = DescriptionLength(
-            r["bits"],
-            r["texture"],
-            r["shape"],
-            tuple(r["jackknife"]),
-            sigma,
-            (sigma**2 / g2) ** 0.5,
-        )
-        scores[name] = dataclasses.replace(score, description_length=dl, family=family.get(name))
+    lengths = description_lengths(record)
+    scores = {
+        name: dataclasses.replace(score, description_length=lengths[name], family=family.get(name))
+        for name, score in evaluation.scores.items()
+    }
     v = verdict(scores, evaluation.comparisons, has_labels=False)
     return {(d.better, d.worse) for d in v.decisions}
 
@@ -277,7 +208,7 @@ def judge(bv, case: str, record: dict, verdict_rows: list[dict]) -> list[dict]:
     alone (``mdl``; ``family``: only between two registrations of one known family), the
     verdict's without labels (``verdict``), and today's verdict reading it (``with_family``;
     ``with``: as if every registration were of one family)."""
-    result = record["registrations"]
+    lengths = description_lengths(record)
     errors = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
     verdict = {(r["a"], r["b"]): r["outcome"] for r in verdict_rows if r["case"] == case}
     family = families(bv, case)
@@ -293,7 +224,7 @@ def judge(bv, case: str, record: dict, verdict_rows: list[dict]) -> list[dict]:
             a, b = b, a
         if errors[b] - errors[a] <= bv.MARGIN * errors[a]:
             continue
-        said = preference(result, a, b)
+        said = preference(lengths, a, b)
         mdl = "open" if said is None else ("right" if said == a else "wrong")
         same = family.get(a) is not None and family.get(a) == family.get(b)
         rows.append(
