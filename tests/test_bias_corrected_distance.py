@@ -10,10 +10,9 @@ import warnings
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_orientation import ROTATION_3D, SHIFT_3D, make_case_3d, moved_copy
+from test_orientation import make_moved_masked_case_3d
 
 import itk_nrreval as nr
 from itk_nrreval.measures._subject_measures import (
@@ -101,17 +100,8 @@ def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
     """Oblique, anisotropic 3D images not co-located with their reference: every subject's
     bias-corrected distance in results equals the one recomputed from the exported resampled
     images and the region, and its z enters the concern."""
-    (tmp_path / "plain").mkdir()
-    make_case_3d(tmp_path / "plain")
-    folder = tmp_path / "moved"
-    moved_copy(tmp_path / "plain", folder, ROTATION_3D, SHIFT_3D)
     # a mask (the phantom, dilated), so that the local means are taken inside a region
-    template = sitk.ReadImage(str(folder / "template.nii.gz"))
-    mask = sitk.BinaryDilate(sitk.BinaryThreshold(template, 1.0, 1e9), [1, 1, 1])
-    sitk.WriteImage(sitk.Cast(mask, sitk.sitkUInt8), str(folder / "mask.nii.gz"))
-    data = yaml.safe_load((folder / "manifest.yaml").read_text())
-    data["mask"] = "mask.nii.gz"
-    (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    folder = make_moved_masked_case_3d(tmp_path)
     cache = tmp_path / "cache"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

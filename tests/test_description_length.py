@@ -205,22 +205,12 @@ def test_evaluate_reports_the_description_length_of_the_exported_images_and_fiel
     grid sampled by SimpleITK (F, then T_i); one left-out subject likewise."""
     import warnings
 
-    import yaml
-    from test_orientation import ROTATION_3D, SHIFT_3D, make_case_3d, moved_copy
+    from test_orientation import make_moved_masked_case_3d
 
     import itk_nrreval as nr
     from itk_nrreval.io.manifest import load_manifest
 
-    (tmp_path / "plain").mkdir()
-    make_case_3d(tmp_path / "plain")
-    folder = tmp_path / "moved"
-    moved_copy(tmp_path / "plain", folder, ROTATION_3D, SHIFT_3D)
-    template = sitk.ReadImage(str(folder / "template.nii.gz"))
-    mask = sitk.BinaryDilate(sitk.BinaryThreshold(template, 1.0, 1e9), [1, 1, 1])
-    sitk.WriteImage(sitk.Cast(mask, sitk.sitkUInt8), str(folder / "mask.nii.gz"))
-    data = yaml.safe_load((folder / "manifest.yaml").read_text())
-    data["mask"] = "mask.nii.gz"
-    (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    folder = make_moved_masked_case_3d(tmp_path)
     cache = tmp_path / "cache"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

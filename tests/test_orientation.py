@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import shutil
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,6 +130,23 @@ def _image_3d(arr: np.ndarray) -> sitk.Image:
     img.SetSpacing(SPACING_3D)
     img.SetOrigin((-3.0, 4.0, 10.0))
     return img
+
+
+def make_moved_masked_case_3d(tmp_path) -> Path:
+    """:func:`make_case_3d` moved by ``ROTATION_3D``, ``SHIFT_3D`` (oblique, not co-located
+    with its reference), with a mask (the phantom, dilated by a voxel) in its manifest; the
+    case's folder."""
+    (tmp_path / "plain").mkdir()
+    make_case_3d(tmp_path / "plain")
+    folder = tmp_path / "moved"
+    moved_copy(tmp_path / "plain", folder, ROTATION_3D, SHIFT_3D)
+    template = sitk.ReadImage(str(folder / "template.nii.gz"))
+    mask = sitk.BinaryDilate(sitk.BinaryThreshold(template, 1.0, 1e9), [1, 1, 1])
+    sitk.WriteImage(sitk.Cast(mask, sitk.sitkUInt8), str(folder / "mask.nii.gz"))
+    data = yaml.safe_load((folder / "manifest.yaml").read_text())
+    data["mask"] = "mask.nii.gz"
+    (folder / "manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return folder
 
 
 def make_case_3d(folder) -> None:
