@@ -437,10 +437,8 @@ def _add_description_length(evidence: dict, sa, sb) -> None:
     :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors between
     two registrations of one known family (``family``: method and engine); ``gain`` is the
     difference in bits per subject."""
-    da = getattr(sa, "description_length", None)
-    db = getattr(sb, "description_length", None)
-    family = getattr(sa, "family", None)
-    if da is None or db is None or family is None or family != getattr(sb, "family", None):
+    da, db, family = sa.description_length, sb.description_length, sa.family
+    if da is None or db is None or family is None or family != sb.family:
         return
     z = z_of_difference(da, db)  # > 0: a's is the shorter
     if not abs(z) >= MIN_Z:
