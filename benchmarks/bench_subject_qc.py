@@ -103,6 +103,7 @@ def _setting(dim: int, n: int, size: int, seeds, groups, tmp: Path) -> dict:
     false_pos, partners, n_partners, others = 0, 0, 0, 0
     clean_flagged, clean_total = 0, 0
     clean_reasons: dict[str, int] = {}
+    false_pos_reasons: dict[str, int] = {}  # the damaged cohorts' false positives, by words
     zs: dict[str, list[float]] = {k: [] for k in Z_NAMES}
     for seed in seeds:
         pop = make_population("phantom", dim=dim, n=n, seed=seed, size=size)
@@ -139,6 +140,9 @@ def _setting(dim: int, n: int, size: int, seeds, groups, tmp: Path) -> dict:
                 else:
                     others += 1
                     false_pos += bool(q.flags)
+                    for flag in q.flags:
+                        key = " ".join(flag.split(":")[0].split()[:6])
+                        false_pos_reasons[key] = false_pos_reasons.get(key, 0) + 1
     return {
         "dim": dim,
         "n": n,
@@ -150,6 +154,7 @@ def _setting(dim: int, n: int, size: int, seeds, groups, tmp: Path) -> dict:
         "named": named,
         "right": right,
         "damaged_cohort_false_positives": [false_pos, others],
+        "damaged_cohort_false_positive_flags": false_pos_reasons,
         "duplicate_partners_flagged": [partners, n_partners],
         "clean_flagged": [clean_flagged, clean_total],
         "clean_flag_reasons": clean_reasons,
@@ -204,7 +209,8 @@ def _print(name: str, r: dict, seconds: float) -> None:
     p, np_ = r["duplicate_partners_flagged"]
     print(
         f"\nFalse positives: damaged cohorts {fp} of {others} undamaged subjects flagged "
-        f"({fp / others:.1%}); clean cohorts {cf} of {ct} ({cf / ct:.1%}), flags by first "
+        f"({fp / others:.1%}; their flags: {r.get('damaged_cohort_false_positive_flags')}); "
+        f"clean cohorts {cf} of {ct} ({cf / ct:.1%}), flags by first "
         f"word: {r['clean_flag_reasons']}. The subject a duplicate copies: {p}/{np_} flagged "
         "with it (expected: the pair is the finding)."
     )

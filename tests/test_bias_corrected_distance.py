@@ -133,3 +133,170 @@ def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
         # the cache holds the resampled and the corrected images in float32
         np.testing.assert_allclose(got, want, rtol=1e-4)
         assert all(q.corrected_z is not None for q in scores.subjects)
+
+
+# ------------------------------------------------------- the flag on the corrected distance
+
+
+def _bump(template: sitk.Image, *, amplitude_mm: float, width_mm: float):
+    """A smooth local displacement along x on `template`'s grid: a Gaussian bump of
+    `amplitude_mm` and standard deviation `width_mm` at the grid's centre. Its steepest
+    slope is amplitude / width * exp(-1/2), far below 1: it misregisters, it does not fold."""
+    size = np.array(template.GetSize())
+    spacing, origin = np.array(template.GetSpacing()), np.array(template.GetOrigin())
+    y, x = np.indices(size[::-1])
+    px, py = origin[0] + x * spacing[0], origin[1] + y * spacing[1]
+    centre = origin + spacing * (size - 1) / 2
+    bump = amplitude_mm * np.exp(
+        -((px - centre[0]) ** 2 + (py - centre[1]) ** 2) / (2 * width_mm**2)
+    )
+    field = sitk.GetImageFromArray(np.stack([bump, np.zeros_like(bump)], axis=-1), isVector=True)
+    field.CopyInformation(template)
+    return sitk.DisplacementFieldTransform(field)
+
+
+def test_a_misregistered_subject_is_flagged_and_a_gain_and_bias_is_not(tmp_path):
+    """Issue 42: a subject whose bias-corrected distance to the others' mean is more than
+    `corrected_ratio` (1.4) times the cohort's median is flagged. A generated cohort of 16
+    registered by its true transforms, but subject 5's composed with a smooth local shift
+    of 4 mm (no fold) and subject 9's image given a gain of 1.6 and a smooth bias of 30%
+    (its registration is right). The flags are recomputed from the exported resampled images
+    (each subject's distance to the others' mean, bias-corrected, over the median of the
+    others but the reference, subject 0); subject 5 is flagged and subject 9 is not, and a
+    threshold of 10 flags no one."""
+    from data_synth import make_population
+
+    pop = make_population("phantom", dim=2, n=16, seed=5, size=40)
+    images = []
+    for i, s in enumerate(pop.subjects):
+        image = s.image
+        if i == 9:
+            arr = sitk.GetArrayFromImage(image).astype(np.float64)
+            x = np.indices(arr.shape)[1] / (arr.shape[1] - 1)
+            image = sitk.GetImageFromArray(arr * 1.6 * (1.0 + 0.3 * x))
+            image.CopyInformation(s.image)
+        images.append(str(tmp_path / f"s{i:02d}.nii.gz"))
+        sitk.WriteImage(image, images[-1])
+    template = str(tmp_path / "template.nii.gz")
+    sitk.WriteImage(pop.template, template)
+    chains = [[s.template_to_subject] for s in pop.subjects]
+    chains[5] = [_bump(pop.template, amplitude_mm=4.0, width_mm=8.0), *chains[5]]
+    manifest = {
+        "images": images,
+        "registrations": {"shifted": {"reference": template, "transforms": chains}},
+    }
+
+    def flagged(threshold: float, cache=None):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = nr.evaluate(
+                manifest,
+                n_samples=200,
+                confidence=False,
+                progress=False,
+                subject_thresholds=nr.SubjectThresholds(corrected_ratio=threshold),
+                execution=nr.Execution(cache=cache, keep_resampled=cache is not None),
+            )
+        subjects = result.scores["shifted"].subjects
+        kinds = {
+            q.index
+            for q in subjects
+            if any(f.startswith("far from the others once gain and bias") for f in q.flags)
+        }
+        return result, kinds
+
+    cache = tmp_path / "cache"
+    result, kinds = flagged(1.4, cache)
+    out = nr.export_resampled(result, tmp_path / "resampled", cache=cache)
+    region_image = sitk.ReadImage(str(out / "region.nii.gz"))
+    region = sitk.GetArrayFromImage(region_image) > 0
+    corrected = np.stack(
+        [
+            bias_corrected(
+                sitk.GetArrayFromImage(sitk.ReadImage(str(out / f"shifted/image_{i:03d}.nii.gz"))),
+                region,
+                spacing=region_image.GetSpacing(),
+            )[region]
+            for i in range(16)
+        ]
+    )
+    distance = np.array(
+        [
+            np.linalg.norm(corrected[k] - np.delete(corrected, k, axis=0).mean(axis=0))
+            for k in range(16)
+        ]
+    )
+    # no reference among the subjects (the template is): the median over all of them
+    ratio = distance / np.median(distance)
+    assert ratio[5] > 1.4 and ratio[9] < 1.4  # the premise, measured independently
+    assert kinds == set(np.flatnonzero(ratio > 1.4)), ratio
+    assert 5 in kinds and 9 not in kinds
+    flags = result.scores["shifted"].subjects[5].flags
+    words = next(f for f in flags if f.startswith("far from the others"))
+    assert f"{ratio[5]:.2f}x the cohort's median" in words
+    assert flagged(10.0)[1] == set()
+    assert flagged(math.inf)[1] == set()  # the default: off
+    assert nr.SubjectThresholds().corrected_ratio == math.inf
+
+
+def test_the_reference_is_neither_flagged_for_its_distance_nor_in_the_median():
+    """assess_subjects on numbers: the corrected distances come from centred sums of squares
+    of vectors made here, one subject far off and the reference (subject 0) farther still.
+    The median the others are judged by leaves the reference out (brute force below), and
+    the reference is never flagged."""
+    from itk_nrreval.measures.subject_qc import assess_subjects
+
+    rng = np.random.default_rng(7)
+    n, v = 10, 500
+    h = 1.0 + 0.05 * rng.standard_normal((n, v))
+    h[0] += 0.4 * rng.standard_normal(v)  # the reference: far from everyone
+    h[6] += 0.11 * rng.standard_normal(v)  # one subject far off
+    squares = ((h - h.mean(axis=0)) ** 2).sum(axis=1)
+    distance = np.array(
+        [np.linalg.norm(h[k] - np.delete(h, k, axis=0).mean(axis=0)) for k in range(n)]
+    )
+    ratio = distance / np.median(distance[1:])  # the reference left out
+    expected = set(np.flatnonzero(ratio > 1.4)) - {0}
+    assert 6 in expected and ratio[0] > 1.4  # the premise
+    pixels = rng.standard_normal((n, 64))
+    centred = pixels - pixels.mean(axis=0)
+    deformation = {
+        "folded_fraction": [0.0] * n,
+        "sdlogj": [0.1] * n,
+        "jacobian_min": [0.6] * n,
+        "jacobian_max": [1.6] * n,
+        "inverse_consistency_mm": [0.2] * n,
+        "linear_det": [1.0] * n,
+        "nonlinear_rms_mm": [2.0] * n,
+        "displacement_rms_mm": [3.0] * n,
+    }
+    subjects = assess_subjects(
+        images=[f"s{i}.nii.gz" for i in range(n)],
+        scored=list(range(n)),
+        gram=centred @ centred.T,
+        deformation=deformation,
+        coverage=[1.0] * n,
+        reference=0,
+        corrected_squares=squares,
+        thresholds=nr.SubjectThresholds(corrected_ratio=1.4),
+    )
+    np.testing.assert_allclose([q.corrected_distance for q in subjects], distance, rtol=1e-10)
+    got = {q.index for q in subjects if any(f.startswith("far from the others") for f in q.flags)}
+    assert got == expected
+    assert subjects[0].reference and subjects[0].flags == ()
+
+
+def test_the_corrected_ratio_option_takes_a_ratio_above_one_or_off(capsys):
+    from itk_nrreval.cli import build_parser
+
+    parser = build_parser()
+
+    def parsed(*extra):
+        return parser.parse_args(["evaluate", "m.yaml", "--out", "o", *extra])
+
+    assert parsed().subject_corrected_ratio == math.inf
+    assert parsed("--subject-corrected-ratio", "1.4").subject_corrected_ratio == 1.4
+    assert parsed("--subject-corrected-ratio", "off").subject_corrected_ratio == math.inf
+    with pytest.raises(SystemExit):
+        parsed("--subject-corrected-ratio", "0.9")
+    assert "expected a number > 1, or off, got '0.9'" in capsys.readouterr().err

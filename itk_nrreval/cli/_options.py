@@ -85,6 +85,13 @@ def _number(text: str, ok, what: str) -> float:
     return value
 
 
+def ratio_or_off(text: str) -> float:
+    """A finite number > 1, or ``off`` (infinity: a ratio never reached)."""
+    if text.strip().lower() == "off":
+        return math.inf
+    return _number(text, lambda v: 1 < v < math.inf, "a number > 1, or off")
+
+
 def fraction(text: str) -> float:
     """A number in [0, 1]."""
     return _number(text, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")

@@ -4,6 +4,7 @@ by side in one frame."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ._options import (
@@ -12,6 +13,7 @@ from ._options import (
     fraction,
     integer,
     positive,
+    ratio_or_off,
     samples,
     seed,
 )
@@ -341,7 +343,7 @@ def _add_subject_options(p) -> None:
             type=parse,
             default=default,
             metavar=metavar,
-            help=f"{words} (default {default:g})",
+            help=f"{words} (default {'off' if default == math.inf else f'{default:g}'})",
         )
 
 
@@ -368,6 +370,15 @@ SUBJECT_OPTIONS = (
         positive,
         "R",
         "see --subject-deformation-z",
+    ),
+    (
+        "--subject-corrected-ratio",
+        "corrected_ratio",
+        ratio_or_off,
+        "R",
+        "flag a subject whose bias-corrected distance to the mean of the others (gain and "
+        "smooth bias taken away) is above R x the cohort's median; 1.4 was measured on "
+        "genuine registrations (docs/subject-qc.md)",
     ),
     (
         "--subject-overlap-z",

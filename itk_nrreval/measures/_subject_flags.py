@@ -77,6 +77,7 @@ FLAG_KINDS = {
     "duplicate": "have a resampled image (almost) identical to another subject's",
     "mirrored": "have a transform whose linear part mirrors space",
     "model_distance": "are far from the model of the others",
+    "corrected_distance": "are far from the others once gain and bias are taken away",
     "folding": "fold",  # said with the threshold and the range instead (shared_kinds)
     "sdlogj": "have an SDlogJ far above the cohort's",
     "nonlinear_rms_mm": "have a non-linear displacement far above the cohort's",
@@ -171,6 +172,7 @@ def cohort_statistics(
         corrected_distance, corrected_z = _corrected_distances(
             corrected_squares, n_all, scored, rows
         )
+        medians["corrected_distance"] = _median(corrected_distance[judged])
     dice = None
     if brain_mask_dice is not None:
         dice = np.array([math.nan if v is None else float(v) for v in brain_mask_dice])
@@ -255,6 +257,9 @@ def flags_and_causes(
             "model_distance",
             f"far from the model of the others: distance {_fmt(c.score[i])} ({_z_words(c.z[i])})",
         )
+    corrected = _corrected_flag(i, c, th)
+    if corrected:
+        add("corrected_distance", corrected)
     folded = defo["folded_fraction"][i]
     folds = folded > th.folded and add("folding", f"{folded:.1%} of its voxels fold (det J <= 0)")
     # folds between grid points, which central differences miss (issue 42): NaN never flags
@@ -308,6 +313,26 @@ def flags_and_causes(
             f"(below {BRAIN_MASK_DICE_MIN})",
         )
     return flags, causes, theirs
+
+
+def _corrected_flag(i: int, c: Cohort, th: SubjectThresholds) -> str | None:
+    """Subject `i`'s flag on its bias-corrected distance, in words, or None.
+
+    A material distance, not an unusual one: a ratio to the judged subjects' median, as the
+    failures it is for (true errors above 1.5x their registration's median) lie at 1.0-1.5x
+    that median distance (issue 42). Not computed (NaN, or fewer than four subjects scored)
+    never flags."""
+    z = math.nan if c.corrected_z is None else c.corrected_z[i]
+    median = c.medians.get("corrected_distance", math.nan)
+    if not (math.isfinite(z) and median > 0):
+        return None
+    ratio = c.corrected_distance[i] / median
+    if ratio <= th.corrected_ratio:
+        return None
+    return (
+        f"far from the others once gain and bias are taken away: bias-corrected distance "
+        f"{_fmt(c.corrected_distance[i])}, {ratio:.2f}x the cohort's median"
+    )
 
 
 def _fmt(v: float, digits: int = 3) -> str:

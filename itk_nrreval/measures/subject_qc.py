@@ -354,6 +354,7 @@ def assess_subjects(
     * the linear part of its transform mirrors space (determinant < 0) while the cohort's
       median does not;
     * its log model distance has z > ``th.outlier_z``;
+    * its bias-corrected distance is above ``th.corrected_ratio`` times the cohort's median;
     * it folds more than ``th.folded`` of its voxels;
     * its log SDlogJ, log non-linear displacement or log inverse consistency has z >
       ``th.deformation_z`` and is above ``th.deformation_ratio`` times the cohort's median
