@@ -235,8 +235,8 @@ def test_a_misregistered_subject_is_flagged_and_a_gain_and_bias_is_not(tmp_path)
     words = next(f for f in flags if f.startswith("far from the others"))
     assert f"{ratio[5]:.2f}x the cohort's median" in words
     assert flagged(10.0)[1] == set()
-    assert flagged(math.inf)[1] == set()  # the default: off
-    assert nr.SubjectThresholds().corrected_ratio == math.inf
+    assert flagged(None)[1] == set()  # the default: off
+    assert nr.SubjectThresholds().corrected_ratio is None
 
 
 def test_the_reference_is_neither_flagged_for_its_distance_nor_in_the_median():
@@ -294,9 +294,22 @@ def test_the_corrected_ratio_option_takes_a_ratio_above_one_or_off(capsys):
     def parsed(*extra):
         return parser.parse_args(["evaluate", "m.yaml", "--out", "o", *extra])
 
-    assert parsed().subject_corrected_ratio == math.inf
+    assert parsed().subject_corrected_ratio is None
     assert parsed("--subject-corrected-ratio", "1.4").subject_corrected_ratio == 1.4
-    assert parsed("--subject-corrected-ratio", "off").subject_corrected_ratio == math.inf
+    assert parsed("--subject-corrected-ratio", "off").subject_corrected_ratio is None
     with pytest.raises(SystemExit):
         parsed("--subject-corrected-ratio", "0.9")
     assert "expected a number > 1, or off, got '0.9'" in capsys.readouterr().err
+    words = next(a.help for a in _actions(parser) if a.dest == "subject_corrected_ratio")
+    assert words.endswith("(default off)")
+
+
+def _actions(parser):
+    """Every argparse action of `parser` and its subcommands."""
+    import argparse
+
+    for action in parser._actions:
+        yield action
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                yield from _actions(sub)

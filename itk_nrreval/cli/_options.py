@@ -85,10 +85,10 @@ def _number(text: str, ok, what: str) -> float:
     return value
 
 
-def ratio_or_off(text: str) -> float:
-    """A finite number > 1, or ``off`` (infinity: a ratio never reached)."""
+def ratio_or_off(text: str) -> float | None:
+    """A finite number > 1, or ``off`` (None)."""
     if text.strip().lower() == "off":
-        return math.inf
+        return None
     return _number(text, lambda v: 1 < v < math.inf, "a number > 1, or off")
 
 

@@ -4,7 +4,6 @@ by side in one frame."""
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 from ._options import (
@@ -343,7 +342,7 @@ def _add_subject_options(p) -> None:
             type=parse,
             default=default,
             metavar=metavar,
-            help=f"{words} (default {'off' if default == math.inf else f'{default:g}'})",
+            help=f"{words} (default {'off' if default is None else f'{default:g}'})",
         )
 
 

@@ -321,10 +321,10 @@ def _corrected_flag(i: int, c: Cohort, th: SubjectThresholds) -> str | None:
     A material distance, not an unusual one: a ratio to the judged subjects' median, as the
     failures it is for (true errors above 1.5x their registration's median) lie at 1.0-1.5x
     that median distance (issue 42). Not computed (NaN, or fewer than four subjects scored)
-    never flags."""
+    never flags; nor does anything while `th.corrected_ratio` is None (off, the default)."""
     z = math.nan if c.corrected_z is None else c.corrected_z[i]
     median = c.medians.get("corrected_distance", math.nan)
-    if not (math.isfinite(z) and median > 0):
+    if th.corrected_ratio is None or not (math.isfinite(z) and median > 0):
         return None
     ratio = c.corrected_distance[i] / median
     if ratio <= th.corrected_ratio:
