@@ -13,6 +13,7 @@ import SimpleITK as sitk
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_orientation import make_moved_masked_case_3d
+from test_subject_qc import bump_field
 
 import itk_nrreval as nr
 from itk_nrreval.measures._subject_measures import (
@@ -138,23 +139,6 @@ def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
 # ------------------------------------------------------- the flag on the corrected distance
 
 
-def _bump(template: sitk.Image, *, amplitude_mm: float, width_mm: float):
-    """A smooth local displacement along x on `template`'s grid: a Gaussian bump of
-    `amplitude_mm` and standard deviation `width_mm` at the grid's centre. Its steepest
-    slope is amplitude / width * exp(-1/2), far below 1: it misregisters, it does not fold."""
-    size = np.array(template.GetSize())
-    spacing, origin = np.array(template.GetSpacing()), np.array(template.GetOrigin())
-    y, x = np.indices(size[::-1])
-    px, py = origin[0] + x * spacing[0], origin[1] + y * spacing[1]
-    centre = origin + spacing * (size - 1) / 2
-    bump = amplitude_mm * np.exp(
-        -((px - centre[0]) ** 2 + (py - centre[1]) ** 2) / (2 * width_mm**2)
-    )
-    field = sitk.GetImageFromArray(np.stack([bump, np.zeros_like(bump)], axis=-1), isVector=True)
-    field.CopyInformation(template)
-    return sitk.DisplacementFieldTransform(field)
-
-
 def test_a_misregistered_subject_is_flagged_and_a_gain_and_bias_is_not(tmp_path):
     """Issue 42: a subject whose bias-corrected distance to the others' mean is more than
     `corrected_ratio` (1.4) times the cohort's median is flagged. A generated cohort of 16
@@ -180,7 +164,8 @@ def test_a_misregistered_subject_is_flagged_and_a_gain_and_bias_is_not(tmp_path)
     template = str(tmp_path / "template.nii.gz")
     sitk.WriteImage(pop.template, template)
     chains = [[s.template_to_subject] for s in pop.subjects]
-    chains[5] = [_bump(pop.template, amplitude_mm=4.0, width_mm=8.0), *chains[5]]
+    # a steepest slope of 4 / 8 * exp(-1/2) = 0.3: it misregisters, it does not fold
+    chains[5] = [bump_field(pop.template, amplitude_mm=4.0, width_mm=8.0), *chains[5]]
     manifest = {
         "images": images,
         "registrations": {"shifted": {"reference": template, "transforms": chains}},
