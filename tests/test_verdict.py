@@ -827,3 +827,35 @@ def test_the_description_length_decides_only_between_settings_of_one_family(chea
     # and for a: both decide it
     ((_, _, basis),) = decided(above, fluid, fluid, spec_a=10.0, spec_b=13.0, separable=True)
     assert basis.startswith("specificity and description length")
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 41, FRESH11: a known wrong decision between families, not fixed yet "
+    "(docs/verdict.md, 'FRESH11')",
+)
+def test_smoother_fields_alone_do_not_decide_between_families(cheat_case):
+    """FRESH11's wrong pair (docs/verdict.md): on the second scan of
+    `families_mni2d_syn_s44` the verdict decided SyN (SDlogJ 0.20) better than 3 mm demons
+    (SDlogJ 0.30) that corresponded better (1.44 against 1.67 mm), because the demons'
+    specificity advantage (1.04x here) is less than the exp(SMOOTHNESS_RATE x 0.09) = 1.23x
+    its extra roughness must buy. Between registrations of different families an SDlogJ
+    difference says how each family regularises, not which one corresponds better. The
+    rule that decided it made 584 right decisions and this one wrong on the splits that set
+    nothing; a change would be chosen after seeing this pair and needs a split declared to
+    check it, so it is not made yet: this test states what the verdict should do and fails
+    (strict xfail) until it does."""
+    _, result = cheat_case
+    base = result.scores["truth"]
+    scores = {
+        "syn": dataclasses.replace(
+            _registration(base, "syn", spec=15.53, sdlogj=0.201), family=("syn", "ants")
+        ),
+        "demons_3mm": dataclasses.replace(
+            _registration(base, "demons_3mm", spec=14.96, sdlogj=0.295),
+            family=("demons", "simpleitk"),
+        ),
+    }
+    values = {k: s.specificity.value for k, s in scores.items()}
+    v = verdict(scores, _separable_where(values, [{"syn", "demons_3mm"}]), has_labels=False)
+    assert [(d.better, d.worse) for d in v.decisions] == []
