@@ -4,6 +4,7 @@ oblique, anisotropic 3D case not co-located with its reference."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import warnings
 
@@ -97,6 +98,30 @@ def test_the_concern_takes_the_corrected_z_not_the_model_distance():
     assert concern[0] == pytest.approx(2.0)  # the model distance is no term of it
 
 
+def _distances_from_export(out, name: str, indices) -> np.ndarray:
+    """Each subject's bias-corrected distance to the mean of the others, recomputed from
+    `export_resampled`'s folder `out`: registration `name`'s images of `indices`, corrected
+    over the exported region and compared over it (brute force, one subject at a time)."""
+    region_image = sitk.ReadImage(str(out / "region.nii.gz"))
+    region = sitk.GetArrayFromImage(region_image) > 0
+    corrected = np.stack(
+        [
+            bias_corrected(
+                sitk.GetArrayFromImage(sitk.ReadImage(str(out / name / f"image_{i:03d}.nii.gz"))),
+                region,
+                spacing=region_image.GetSpacing(),
+            )[region]
+            for i in indices
+        ]
+    )
+    return np.array(
+        [
+            np.linalg.norm(corrected[k] - np.delete(corrected, k, axis=0).mean(axis=0))
+            for k in range(len(corrected))
+        ]
+    )
+
+
 def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
     """Oblique, anisotropic 3D images not co-located with their reference: every subject's
     bias-corrected distance in results equals the one recomputed from the exported resampled
@@ -115,21 +140,10 @@ def test_evaluate_reports_each_subjects_bias_corrected_distance(tmp_path):
             execution=nr.Execution(cache=cache, keep_resampled=True),
         )
     out = nr.export_resampled(result, tmp_path / "resampled", cache=cache)
-    region_image = sitk.ReadImage(str(out / "region.nii.gz"))
-    region = sitk.GetArrayFromImage(region_image) > 0
+    region = sitk.GetArrayFromImage(sitk.ReadImage(str(out / "region.nii.gz"))) > 0
     assert 0.1 < region.mean() < 1.0
     for name, scores in result.scores.items():
-        images = [
-            sitk.GetArrayFromImage(sitk.ReadImage(str(out / name / f"image_{q.index:03d}.nii.gz")))
-            for q in scores.subjects
-        ]
-        corrected = np.stack(
-            [bias_corrected(x, region, spacing=region_image.GetSpacing())[region] for x in images]
-        )
-        want = [
-            np.linalg.norm(corrected[k] - np.delete(corrected, k, axis=0).mean(axis=0))
-            for k in range(len(images))
-        ]
+        want = _distances_from_export(out, name, [q.index for q in scores.subjects])
         got = [q.corrected_distance for q in scores.subjects]
         # the cache holds the resampled and the corrected images in float32
         np.testing.assert_allclose(got, want, rtol=1e-4)
@@ -193,24 +207,7 @@ def test_a_misregistered_subject_is_flagged_and_a_gain_and_bias_is_not(tmp_path)
     cache = tmp_path / "cache"
     result, kinds = flagged(1.4, cache)
     out = nr.export_resampled(result, tmp_path / "resampled", cache=cache)
-    region_image = sitk.ReadImage(str(out / "region.nii.gz"))
-    region = sitk.GetArrayFromImage(region_image) > 0
-    corrected = np.stack(
-        [
-            bias_corrected(
-                sitk.GetArrayFromImage(sitk.ReadImage(str(out / f"shifted/image_{i:03d}.nii.gz"))),
-                region,
-                spacing=region_image.GetSpacing(),
-            )[region]
-            for i in range(16)
-        ]
-    )
-    distance = np.array(
-        [
-            np.linalg.norm(corrected[k] - np.delete(corrected, k, axis=0).mean(axis=0))
-            for k in range(16)
-        ]
-    )
+    distance = _distances_from_export(out, "shifted", range(16))
     # no reference among the subjects (the template is): the median over all of them
     ratio = distance / np.median(distance)
     assert ratio[5] > 1.4 and ratio[9] < 1.4  # the premise, measured independently
@@ -285,16 +282,7 @@ def test_the_corrected_ratio_option_takes_a_ratio_above_one_or_off(capsys):
     with pytest.raises(SystemExit):
         parsed("--subject-corrected-ratio", "0.9")
     assert "expected a number > 1, or off, got '0.9'" in capsys.readouterr().err
-    words = next(a.help for a in _actions(parser) if a.dest == "subject_corrected_ratio")
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    evaluate = commands.choices["evaluate"]._actions
+    words = next(a.help for a in evaluate if a.dest == "subject_corrected_ratio")
     assert words.endswith("(default off)")
-
-
-def _actions(parser):
-    """Every argparse action of `parser` and its subcommands."""
-    import argparse
-
-    for action in parser._actions:
-        yield action
-        if isinstance(action, argparse._SubParsersAction):
-            for sub in action.choices.values():
-                yield from _actions(sub)
