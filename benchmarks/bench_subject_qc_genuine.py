@@ -496,7 +496,7 @@ def summarize(measured: list[dict]) -> dict:
     for m in measured:
         for name, reg in m["registrations"].items():
             for r in reg["subjects"]:
-                before_flag = r.get("flagged_before", r["flagged"])
+                before_flag = r["flagged_before"]
                 if r["failed"]:
                     failed += 1
                     flagged_failed += r["flagged"]
@@ -507,7 +507,7 @@ def summarize(measured: list[dict]) -> dict:
                     others += 1
                     false_alarms += r["flagged"]
                     before["others_flagged"] += before_flag
-                    near = r.get("near_miss", False)
+                    near = r["near_miss"]
                     clear += r["flagged"] and not near
                     before["clear"] += before_flag and not near
                     if r["flagged"] and not before_flag:
