@@ -106,6 +106,13 @@ declared before its cases ran, decides the default by the same check (pooled ove
 cases), once. *It did:* passed on FRESH11's registered images, failed again on its second
 scans (false alarms 4% -> 6%, 1 of the 4 added a near miss). The flag stays off.
 
+Declared on 2026-11-28 (seventh session of issue 42), before ``bench_verdict.FRESH12`` ran:
+since both failures were on second scans, the flag becomes the default on the images the
+registrations were made from (still off where a manifest scores ``evaluation_images``) if,
+on FRESH12 pooled, on the registered images with labels and without, it passes the same
+check; it stays off otherwise, and no later split reopens it. A rule chosen after seeing
+HELD_OUT and FRESH11, so only FRESH12 may decide it.
+
 Run: ``python benchmarks/bench_subject_qc_genuine.py`` or
 ``python benchmarks/run_all.py subject_qc_genuine`` (``nice -n 5`` on a shared machine).
 """
@@ -142,6 +149,9 @@ FLAG_UNDER_TEST = nr.SubjectThresholds(corrected_ratio=1.4)
 UNSEEN_BY_THE_FLAG = ("fresh8", "fresh9", "fresh10")
 #: The split declared after that check, which decides whether the flag is the default.
 DECIDES_THE_DEFAULT = ("fresh11",)
+#: The split declared after FRESH11 failed the flag on second scans alone, which decides
+#: whether it is the default on the registered images (its registered-image modes only).
+DECIDES_THE_REGISTERED_DEFAULT = ("fresh12",)
 #: The registration that is not deformable (left out of the Spearman means).
 AFFINE = "affine"
 #: Issue 42's goals, judged on the held-out split.
@@ -823,6 +833,7 @@ def main(argv: list[str] | None = None) -> dict:
         "held-out": ("held-out",),
         "fresh8-fresh10": UNSEEN_BY_THE_FLAG,
         "fresh11 (decides the default)": DECIDES_THE_DEFAULT,
+        "fresh12 (decides the default on registered images)": DECIDES_THE_REGISTERED_DEFAULT,
     }
     check: dict[str, dict] = {}
     for group, members in checked.items():

@@ -42,8 +42,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
-each mode (:data:`MODES`: with labels, without labels, on the second scan). Ten fresh
-splits (:data:`FRESH` to :data:`FRESH11`) were each declared before their cases
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Twelve fresh
+splits (:data:`FRESH` to :data:`FRESH12`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -246,6 +246,31 @@ FRESH11 = (
     "families_phantom2d_n16_s43",  # phantom 2D, N = 16, seed 43, the seven
     "families_mni2d_syn_s44",  # MNI-based 2D, N = 12, seed 44, FAMILIES_SYN
 )
+# Declared on 2026-11-28 (ninth session of issue 41, seventh of issue 42), BEFORE these cases
+# ran, with the two changes they check; nothing is set on them.
+# Issue 41: FRESH11 found one pair decided wrong, across families, by the smoother-fields
+# rule (SMOOTHNESS_RATE): SyN over demons at 3 mm on the second scan (dr 0.094, the rougher's
+# advantage at most 1.12x). That rule now counts only between two registrations of one known
+# family (the same method and engine), as the description length does; across families, or
+# where a family is unknown, its preference is no evidence and the open pair's reason says
+# which way it leans. Chosen after seeing that pair, on the issue's own diagnosis (the rates
+# were fitted on sweeps within one engine); measured beforehand on the saved splits: across
+# families the rule had fired 299 times without labels where the truth was judged, 298 right
+# and this one wrong, so the restriction costs right decisions. Kept if FRESH12 has no pair
+# wrong in any mode.
+# Issue 42: the subject flag on the bias-corrected distance (corrected_ratio 1.4) failed its
+# check only on second scans (HELD_OUT's, FRESH11's), so it is off by default. It becomes the
+# default on the images the registrations were made from (off where a manifest scores
+# evaluation_images) if, on FRESH12 pooled, on the registered images, with labels and without,
+# the recall rises by more percentage points than the false alarms and at least half of the
+# false alarms it adds are near misses (true error >= 1.25x the registration's median); it
+# stays off otherwise, and no later split reopens it.
+FRESH12 = (
+    "families_mni2d_syn_s45",  # MNI-based 2D, N = 12, seed 45, FAMILIES_SYN
+    "families_phantom2d_syn_s46",  # phantom 2D, N = 12, seed 46, FAMILIES_SYN
+    "families_mni2d_mix_n16_s47",  # MNI-based 2D, N = 16, seed 47, FAMILIES_MIX
+    "families_mni3d_s48",  # MNI-based 3D, N = 10, seed 48, the seven (3D grids)
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -268,7 +293,7 @@ FRESH11 = (
 SPLIT_CASES = {
     "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
-    "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11,
+    "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -922,6 +947,19 @@ def _cases() -> dict:
         "families_mni2d_s42": {"kind": "mni", "seed": 42},
         "families_phantom2d_n16_s43": {"kind": "phantom", "seed": 43, "n": 16},
         "families_mni2d_syn_s44": {"kind": "mni", "seed": 44, "registrations": FAMILIES_SYN},
+        "families_mni2d_syn_s45": {"kind": "mni", "seed": 45, "registrations": FAMILIES_SYN},
+        "families_phantom2d_syn_s46": {
+            "kind": "phantom",
+            "seed": 46,
+            "registrations": FAMILIES_SYN,
+        },
+        "families_mni2d_mix_n16_s47": {
+            "kind": "mni",
+            "seed": 47,
+            "n": 16,
+            "registrations": FAMILIES_MIX,
+        },
+        "families_mni3d_s48": {"kind": "mni", "seed": 48, "dim": 3, "n": 10, "spacing": 3.0},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
