@@ -195,18 +195,6 @@ def _verdict_bench():
     return module
 
 
-def _manifest_of(bv, case: str) -> Path:
-    """The manifest a saved case of the verdict benchmark was scored from."""
-    if case == "cheat":
-        return bv.OUT / "demo" / "manifest_cheat.yaml"
-    if case == "multimodal":
-        return bv.OUT / case / "data" / "manifest.yaml"
-    for path in (bv.OUT / case / "manifest.yaml", bv.OUT / case / "sweep" / "manifest.yaml"):
-        if path.exists():
-            return path
-    raise FileNotFoundError(f"{case}: no manifest in {bv.OUT / case}")
-
-
 def add_smoothed(bv, case: str) -> None:
     """Score a saved case's registrations with their fields smoothed (frames kept, the
     case's M and seed) into the case's ``smoothed.json``; nothing is registered again."""
@@ -217,7 +205,7 @@ def add_smoothed(bv, case: str) -> None:
     from itk_nrreval.io.manifest import load_manifest
 
     evaluation = bv._load(case)
-    m = bv._quiet(load_manifest, _manifest_of(bv, case))
+    m = bv._quiet(load_manifest, bv.manifest_of(case))
     frames = {name: s.frame.transform for name, s in evaluation.scores.items()}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
@@ -265,8 +253,8 @@ def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
         return
     original = v._add_smoother_evidence
 
-    def add(evidence, c, spec, rough, folded, deforms):
-        original(evidence, c, spec, rough, folded, deforms)
+    def add(evidence, c, spec, rough, folded, deforms, family):
+        original(evidence, c, spec, rough, folded, deforms, family)
         if c is None:
             return
         found = _smoothed_preference(rule, c.a, c.b, smoothed, rough, folded, deforms)

@@ -171,7 +171,9 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
     def too_little(r, o):
         """Whether `r` is smoother than `o` by at least MIN_ROUGHNESS_DIFFERENCE and o's
         specificity advantage, at the bottom of the interval of spec(o) - spec(r), is below
-        exp(SMOOTHNESS_RATE * dr)."""
+        exp(SMOOTHNESS_RATE * dr), both of one known family."""
+        if scores[r].family is None or scores[r].family != scores[o].family:
+            return False  # only between settings of one method and engine
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
         nonlinear = [
             q.deformation["nonlinear_rms_mm"]
@@ -255,6 +257,9 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
     spec = dict(zip(names, np.round(rng.uniform(1, 3, n), 1), strict=True))  # some ties
     overlap = dict(zip(names, np.round(rng.uniform(0.3, 0.9, n), 2), strict=True))
     n_groups = 6
+    # mostly one family, so that the smoother-fields rule is exercised; some of another
+    # family and some unknown, where it must not decide
+    families = [("fluid", "simpleitk")] * 3 + [("pairwise", "elastix"), None]
     scores = {}
     for k in names:
         plaus = dataclasses.replace(
@@ -269,6 +274,7 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
             overlap={**base.overlap, "inverse_volume": float(overlap[k])},
             plausibility=plaus,
             flags=("0.2% of voxels fold (test)",) if rng.random() < p_flag else (),
+            family=families[rng.integers(len(families))],
         )
     comparisons = []
     if confidence:
@@ -322,6 +328,11 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
         assert d.to_dict() == {"better": d.better, "worse": d.worse, "basis": d.basis}
     assert v.to_dict()["decisions"] == [d.to_dict() for d in v.decisions]
     assert len(v.decisions) + len(v.open_pairs) == n * (n - 1) // 2
+    for p in v.open_pairs:  # a lean is one of the pair, and only across (unknown) families
+        assert p.leans_to in (None, p.a, p.b)
+        if p.leans_to is not None:
+            fa, fb = scores[p.a].family, scores[p.b].family
+            assert fa is None or fa != fb, p
 
 
 def test_two_registrations_of_equal_true_quality_are_left_open(tmp_path):
@@ -426,8 +437,19 @@ def test_a_preference_that_roughness_buys_is_no_evidence_against_the_other_measu
 # ----------------------------------------------------------------------------- issue 44
 
 
-def _registration(base, name, *, spec, overlap=0.5, sdlogj=0.1, folded=0.0, n_samples=None):
-    """`base` (a real registration's scores) with these numbers."""
+def _registration(
+    base,
+    name,
+    *,
+    spec,
+    overlap=0.5,
+    sdlogj=0.1,
+    folded=0.0,
+    n_samples=None,
+    family=("fluid", "simpleitk"),
+):
+    """`base` (a real registration's scores) with these numbers, of one family unless said
+    (the smoother-fields rule and the description length compare only within one)."""
     specificity = dataclasses.replace(base.specificity, value=float(spec))
     if n_samples is not None:
         specificity = dataclasses.replace(specificity, n_samples=int(n_samples))
@@ -440,6 +462,7 @@ def _registration(base, name, *, spec, overlap=0.5, sdlogj=0.1, folded=0.0, n_sa
             base.plausibility, sdlogj=float(sdlogj), folded_fraction=float(folded)
         ),
         flags=(),
+        family=family,
     )
 
 
@@ -829,33 +852,46 @@ def test_the_description_length_decides_only_between_settings_of_one_family(chea
     assert basis.startswith("specificity and description length")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 41, FRESH11: a known wrong decision between families, not fixed yet "
-    "(docs/verdict.md, 'FRESH11')",
+@pytest.mark.parametrize(
+    "family_syn, family_demons, decided",
+    [
+        (("fluid", "ants"), ("fluid", "simpleitk"), False),  # FRESH11's pair: two families
+        (None, ("fluid", "simpleitk"), False),  # a family unknown
+        (("fluid", "simpleitk"), ("fluid", "simpleitk"), True),  # settings of one family
+    ],
 )
-def test_smoother_fields_alone_do_not_decide_between_families(cheat_case):
+def test_smoother_fields_decide_only_within_one_family(
+    cheat_case, family_syn, family_demons, decided
+):
     """FRESH11's wrong pair (docs/verdict.md): on the second scan of
     `families_mni2d_syn_s44` the verdict decided SyN (SDlogJ 0.20) better than 3 mm demons
     (SDlogJ 0.30) that corresponded better (1.44 against 1.67 mm), because the demons'
     specificity advantage (1.04x here) is less than the exp(SMOOTHNESS_RATE x 0.09) = 1.23x
     its extra roughness must buy. Between registrations of different families an SDlogJ
-    difference says how each family regularises, not which one corresponds better. The
-    rule that decided it made 584 right decisions and this one wrong on the splits that set
-    nothing; a change would be chosen after seeing this pair and needs a split declared to
-    check it, so it is not made yet: this test states what the verdict should do and fails
-    (strict xfail) until it does."""
+    difference says how each family regularises, not which one corresponds better: the pair
+    stays open, and its reason says which way the rule leans and why it does not decide.
+    The same numbers between two settings of one family decide, as before."""
     _, result = cheat_case
     base = result.scores["truth"]
     scores = {
         "syn": dataclasses.replace(
-            _registration(base, "syn", spec=15.53, sdlogj=0.201), family=("syn", "ants")
+            _registration(base, "syn", spec=15.53, sdlogj=0.201), family=family_syn
         ),
         "demons_3mm": dataclasses.replace(
-            _registration(base, "demons_3mm", spec=14.96, sdlogj=0.295),
-            family=("demons", "simpleitk"),
+            _registration(base, "demons_3mm", spec=14.96, sdlogj=0.295), family=family_demons
         ),
     }
     values = {k: s.specificity.value for k, s in scores.items()}
     v = verdict(scores, _separable_where(values, [{"syn", "demons_3mm"}]), has_labels=False)
-    assert [(d.better, d.worse) for d in v.decisions] == []
+    if decided:
+        assert [(d.better, d.worse) for d in v.decisions] == [("syn", "demons_3mm")]
+        assert "that much roughness must buy" in v.decisions[0].basis
+        return
+    assert v.decisions == ()
+    ((pair),) = v.open_pairs
+    assert pair.leans_to == "syn"  # the hint, structured: results.json 'open'
+    assert pair.to_dict()["leans_to"] == "syn"
+    assert "1 of them leans one way" in " ".join(v.text)
+    assert "so it leans to syn" in pair.reason
+    why = "are of different families" if family_syn else "the family of syn is unknown"
+    assert why in pair.reason

@@ -215,6 +215,8 @@ def run_demo(
             reference_index=results[name].reference_index,
             images=images,
             labels=list(truth.labels),
+            # method and engine: the verdict compares roughness only within one family
+            parameters=results[name].manifest_parameters(),
         )
 
     m, mask = _brain_mask(out, manifest, dim)

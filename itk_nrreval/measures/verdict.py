@@ -43,7 +43,11 @@ corresponded better; in ``FRESH6`` a 25 mm B-spline folding 4.4% was preferred o
 10 mm one folding 8.6% that corresponded better): the
 extra roughness bought too little to be correspondence (the flat end of the trade-off's
 L-curve: demons or B-splines past their knee, fitting noise). Between the two rates the
-pair is the knee, and stays open unless the overlap decides it.
+pair is the knee, and stays open unless the overlap decides it. This converse counts only
+between two registrations of one known family (``family``: the same ``method`` and
+``engine`` in the manifest's ``parameters``): how rough a registration's fields are for the
+correspondence they reach is a property of its method, so across families (or where a
+family is unknown) the open pair's reason says which way it leans, and nothing is decided.
 
 A pair is decided for ``a`` when there is evidence for ``a`` and none for ``b`` (with
 labels, specificity and overlap each count; a preference that is not evidence does not
@@ -87,6 +91,16 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+from ._verdict_thresholds import (  # the rules' numbers, and how each was set
+    EXCHANGE_RATE,
+    MIN_ROUGHNESS_DIFFERENCE,
+    MIN_SAMPLES,
+    MIN_SPECIFICITY_RATIO,
+    NO_FOLDING_FRACTION,
+    OVERLAP_EXCHANGE_RATE,
+    SEVERE_FOLDED_FRACTION,
+    SMOOTHNESS_RATE,
+)
 from .confidence import Comparison
 from .description_length import MIN_Z, z_of_difference
 
@@ -104,97 +118,6 @@ __all__ = [
     "NO_FOLDING_FRACTION",
     "MIN_SAMPLES",
 ]
-
-EXCHANGE_RATE = 5.5
-"""What roughness is allowed to buy: fields rougher by ``dr`` (mean SDlogJ, dimensionless)
-must come with a specificity lower by a factor of at least ``exp(5.5 dr)`` (1.7x for
-``dr`` = 0.1, 4x for 0.25), or an overlap higher by that factor in odds, to be evidence. Set
-on the known-truth benchmark's 2D sweeps (demons smoothing, B-spline grid, bending weight;
-phantom and MNI) and its 3D MNI demons sweep: the steepest pairs a separable difference
-decided against the truth there had ``ln(ratio) / dr`` = 3.3 (2D, specificity), 2.8 (2D,
-overlap, log-odds) and 5.0 (3D MNI, specificity); 5.5 leaves a 10% margin above the
-steepest. Checked on the cases not used to set it (the demo, the cheat, over-fitting,
-B-spline grids, folding, similar registrations, the 3D phantom sweep, the sweeps scored on
-unseen images): no pair decided wrong there."""
-
-SMOOTHNESS_RATE = 2.3
-"""What roughness must at least buy, or the smoother registration is the better: where
-``a``'s fields are rougher by ``dr`` (at least :data:`MIN_ROUGHNESS_DIFFERENCE`) and its
-specificity advantage, even at the top of its subject-level 95% interval, is below
-``exp(2.3 dr)`` (1.26x for ``dr`` = 0.1, 2.2x for 0.35), the smoother ``b`` is preferred
-by specificity (issue 41). Between this and :data:`EXCHANGE_RATE` a pair stays open: the
-knee of the trade-off, where the data do not say whether the extra roughness corresponds.
-
-Set on the tuning split of the known-truth benchmark (``benchmarks/bench_verdict.py``:
-``TUNING``, with their second scans), and on nothing else: among the pairs whose rougher
-registration has the truly lower error (by more than 10%), the shallowest had the rougher's
-advantage at the top of its interval ``exp(2.57 dr)`` (an affine registration against 2 mm
-demons, scored on the second scan); 2.3 leaves a 10% margin below it. On the held-out
-split the rule then decided three pairs wrong in each mode, all an affine registration
-over a deformable one: SDlogJ cannot see the deformation an affine registration leaves
-out, so the rule now never prefers a registration without local deformation (at first:
-SDlogJ below :data:`MIN_ROUGHNESS_DIFFERENCE`; that also left out demons smoothed by 16 mm,
-SDlogJ 0.02, so now: a median non-linear displacement below 0.01 mm, which is affine's
-alone; checked on ``FRESH4``). That change was prompted by the held-out split, so it
-was checked on a third split declared before it was run (``FRESH``: no pair wrong). A
-fourth (``FRESH2``) found 3D B-splines that fold 3-6% preferred for their lower SDlogJ
-over demons that corresponded better (two pairs wrong with labels, three on the second
-scan); so the rule never prefers a registration that folds more than the other, checked
-on a fifth split (``FRESH3``). Without the affine
-pairs the tuning split would allow 2.7 (shallowest 3.01); 2.3 was kept. Only
-specificity: the same rule on the overlap decided two tuning pairs wrong at 2.3 (and at
-1.0), so the overlap keeps the one-sided charge."""
-
-MIN_SPECIFICITY_RATIO = 1.2
-"""The least specificity ratio a separable preference needs to be evidence, unless the
-preferred registration's fields are smoother by at least :data:`MIN_ROUGHNESS_DIFFERENCE`
-(issue 41). A held-out case outside the project, registrations of different families at
-equal roughness (SDlogJ 0.09 and 0.09), had demons at 3 mm decided better than a smoothed
-displacement-field registration on a separable 1.16x lower specificity, against the truth
-(4.79 vs 3.98 mm): between families a small specificity difference says how each family
-fits texture, not which corresponds better. Taken from that report (1.2 is the round number
-above 1.16), not fitted on the benchmark; on the benchmark's splits it leaves open 0-2
-pairs per split and mode that were decided right (``docs/verdict.md``), and it was checked
-on a split declared before it was run (``FRESH5``)."""
-
-MIN_ROUGHNESS_DIFFERENCE = 0.05
-"""The least SDlogJ difference (dimensionless) for :data:`SMOOTHNESS_RATE` to apply:
-nearly equal roughness says nothing about which corresponds better. Chosen before
-measuring, not fitted."""
-
-OVERLAP_EXCHANGE_RATE = 4.1
-""":data:`EXCHANGE_RATE` for the overlap: fields rougher by ``dr`` must come with odds of
-the inverse-volume generalized overlap higher by at least ``exp(4.1 dr)`` to be evidence.
-Set on the tuning split of the known-truth benchmark (issue 41): the steepest pair the
-overlap's separable preference for the rougher registration decided against the truth had
-``ln(odds ratio) / dr`` = 3.72 (the 3D MNI demons sweep, 4 mm over 16 mm smoothing); 4.1
-leaves a 10% margin. It was 5.5, the specificity's rate, before: the overlap is the paper's
-ground-truth reference, and roughness buys less of it than of specificity."""
-
-SEVERE_FOLDED_FRACTION = 0.10
-"""A registration that folds at least this fraction of its voxels (mean over its images)
-tears the image: decided worse than every registration that does not fold."""
-
-NO_FOLDING_FRACTION = 0.01
-"""Below this mean folded fraction a registration counts as not folding (for the severe
-folding rule)."""
-
-MIN_SAMPLES = 1000
-"""The fewest specificity samples M with which the verdict decides anything.
-
-The subject-level intervals the verdict decides by share one set of samples across their
-replicates (common random numbers), so they leave out specificity's Monte-Carlo error,
-``CV / sqrt(M)`` of its value with CV the relative spread of one sample's distance to its
-nearest image: 0.13-0.27 on generated cohorts (phantom N = 12 and 36, MNI-based N = 12, a
-demons sweep of five settings; issue 44). At M = 1000 that error is at most 0.9% of the
-specificity, at most a fifth of its subject-level standard error there (2.3% at N = 36,
-6-10% at N = 12), so leaving it out narrows the intervals by 2% at most. At M = 100 it is
-up to 0.58 of the subject-level error at N = 36 (the intervals 16% too narrow), and at M =
-2 it exceeds it, while its own estimate is noise (CV estimated 0.01-0.26 from two samples).
-Generalization is further from converged: the nearest of M samples to each image comes
-closer as M grows, slowly in N - 1 dimensions (on the sweep above 14 at M = 2, 5.7 at
-1000, 3.4 at 100,000), so its value, and its interval, hold only for the M it was
-computed with; the verdict does not use it."""
 
 _SPECIFICITY = "specificity"
 _OVERLAP = "overlap.inverse_volume"
@@ -238,14 +161,20 @@ class OpenPair:
         Registration names (`a` has the lower specificity).
     reason : str
         Why the evidence does not decide it, in words.
+    leans_to : str or None
+        The registration the smoother-fields rule prefers where it may not decide: between
+        registrations of different (or unknown) families. A hint, not a claim: the
+        known-truth benchmark's record of such leans is in ``docs/verdict.md``. None where
+        the evidence leans nowhere, or also the other way.
     """
 
     a: str
     b: str
     reason: str
+    leans_to: str | None = None
 
     def to_dict(self) -> dict:
-        return {"a": self.a, "b": self.b, "reason": self.reason}
+        return {"a": self.a, "b": self.b, "reason": self.reason, "leans_to": self.leans_to}
 
 
 @dataclass(frozen=True)
@@ -374,6 +303,7 @@ def verdict(
     rough = {n: float(scores[n].plausibility.sdlogj) for n in names}
     folded = {n: float(scores[n].plausibility.folded_fraction) for n in names}
     deforms = {n: _deforms_locally(scores[n]) for n in names}
+    family = {n: scores[n].family for n in names}
     overlap = {n: scores[n].measures().get(_OVERLAP, math.nan) for n in names}
     sep = {(c.measure, c.a, c.b): c for c in comparisons}
 
@@ -397,7 +327,7 @@ def verdict(
         flagged = {n for n in (a, b) if scores[n].flags}
         evidence = _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded)
         _add_smoother_evidence(
-            evidence, comparison(_SPECIFICITY, a, b), spec, rough, folded, deforms
+            evidence, comparison(_SPECIFICITY, a, b), spec, rough, folded, deforms, family
         )
         _add_description_length(evidence, scores[a], scores[b])
         decision = _decide(a, b, evidence, rough, folded)
@@ -405,7 +335,7 @@ def verdict(
             decisions.append(decision)
         else:
             reason = _why_open(evidence, rough, has_labels, bool(comparisons))
-            open_pairs.append(OpenPair(a, b, reason))
+            open_pairs.append(OpenPair(a, b, reason, _lean(evidence)))
     decisions, contradicted = _without_cycles(decisions)
     for d in contradicted:
         a, b = sorted((d.better, d.worse), key=spec.get)
@@ -424,7 +354,8 @@ class _Preference(NamedTuple):
     preferred: str
     other: str
     gain: float  # ln of the specificity ratio, or of the overlap odds ratio, in its favour
-    discount: str | None  # why not evidence: "rougher", "flagged", "folds", "small"; None: it is
+    discount: str | None  # why not evidence: "rougher", "flagged", "folds", "small",
+    # "families" (the smoother-fields rule across families); None: it is
     # the smoother-fields rule (SMOOTHNESS_RATE): the rougher's advantage at the top of its
     # interval, as a ratio; None for a separable preference
     rougher_at_most: float | None = None
@@ -437,14 +368,19 @@ def _add_description_length(evidence: dict, sa, sb) -> None:
     :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors between
     two registrations of one known family (``family``: method and engine); ``gain`` is the
     difference in bits per subject."""
-    da, db, family = sa.description_length, sb.description_length, sa.family
-    if da is None or db is None or family is None or family != sb.family:
+    da, db = sa.description_length, sb.description_length
+    if da is None or db is None or not _one_family(sa.family, sb.family):
         return
     z = z_of_difference(da, db)  # > 0: a's is the shorter
     if not abs(z) >= MIN_Z:
         return
     (w, dw), (l, dl) = ((sa.name, da), (sb.name, db)) if z > 0 else ((sb.name, db), (sa.name, da))
     evidence[_DESCRIPTION_LENGTH] = _Preference(w, l, dl.bits - dw.bits, None, z=abs(z))
+
+
+def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
+    """Whether two registrations are of one known family (the same ``(method, engine)``)."""
+    return fa is not None and fa == fb
 
 
 def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) -> dict:
@@ -511,12 +447,16 @@ def _small(preferred, other, gain, rough) -> str | None:
 
 
 def _add_smoother_evidence(
-    evidence: dict, c: Comparison | None, spec, rough, folded, deforms
+    evidence: dict, c: Comparison | None, spec, rough, folded, deforms, family
 ) -> None:
     """Add specificity's evidence for the smoother registration of a pair when the rougher
     one's specificity advantage, at the top of its interval, is below what
     :data:`SMOOTHNESS_RATE` says its extra roughness must buy (``gain`` is then minus that
-    top). Separable evidence already found, or a discount other than roughness, stays."""
+    top). Separable evidence already found, or a discount other than roughness, stays.
+
+    Only between two registrations of one known family (`family`: name -> ``(method,
+    engine)`` or None): across families the same preference is recorded as no evidence
+    (discount ``"families"``), so an open pair's reason says which way it leans."""
     if c is None:
         return
     s, r = sorted((c.a, c.b), key=rough.get)
@@ -532,8 +472,31 @@ def _add_smoother_evidence(
         return  # one that folds is not credited for its smoothness, whatever its SDlogJ
     lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
     top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
-    if top_gain < SMOOTHNESS_RATE * dr:
-        evidence[_SPECIFICITY] = _Preference(s, r, -top_gain, None, math.exp(top_gain))
+    if not top_gain < SMOOTHNESS_RATE * dr:
+        return
+    lean = _Preference(s, r, -top_gain, None, math.exp(top_gain))
+    if not _one_family(family[s], family[r]):
+        # Roughness is no common currency across families: in the benchmark's FRESH11, SyN
+        # (SDlogJ 0.20) was preferred this way over demons at 3 mm (0.30), which corresponded
+        # better. The rate was set on settings of one engine.
+        why = f"{_too_little(lean, rough)}, so it leans to {s}; {_across(s, r, family)}"
+        lean = lean._replace(discount="families", why=why)
+    evidence[_SPECIFICITY] = lean
+
+
+def _across(s: str, r: str, family) -> str:
+    """Why the smoother-fields rule does not decide between `s` and `r`, in words."""
+    if family[s] is None or family[r] is None:
+        unknown = " and ".join(n for n in (s, r) if family[n] is None)
+        return (
+            f"not decided, because the family of {unknown} is unknown (the manifest's "
+            "parameters give no method and engine), and roughness is compared only within one"
+        )
+    fs, fr = ("/".join(family[n]) for n in (s, r))
+    return (
+        f"not decided, because {s} ({fs}) and {r} ({fr}) are of different families, "
+        "whose roughness is no common currency"
+    )
 
 
 def _deforms_locally(score) -> bool:
@@ -552,6 +515,15 @@ def _deforms_locally(score) -> bool:
     if not values:
         return float(score.plausibility.sdlogj) >= MIN_ROUGHNESS_DIFFERENCE
     return statistics.median(values) >= IDENTITY_MM
+
+
+def _lean(evidence: dict) -> str | None:
+    """The registration the smoother-fields rule prefers across families (discount
+    ``"families"``), unless evidence that counts prefers the other."""
+    p = evidence.get(_SPECIFICITY)
+    if p is None or p.discount != "families" or p.other in _counted(evidence):
+        return None
+    return p.preferred
 
 
 def _counted(evidence: dict) -> set[str]:
@@ -580,7 +552,9 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
         if evidence[m].z is not None
     ]
     details = [f"separable: {', '.join(gains)}"] if gains else []
-    details += [_too_little(p, rough) for p in evidence.values() if p.rougher_at_most]
+    details += [
+        _too_little(p, rough) for p in evidence.values() if p.rougher_at_most and p.discount is None
+    ]
     details.append(_roughness(w, l, rough))
     details += [_discounted(m, p, rough) for m, p in evidence.items() if p.discount]
     return Decision(w, l, f"{' and '.join(_WORD[m] for m in used)} ({'; '.join(details)})")
@@ -780,5 +754,12 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
             "other subjects, so only severe folding decides."
         )
     n_pairs = len(decisions) + len(open_pairs)
-    text.append(f"{len(decisions)} of {n_pairs} pairs decided, {len(open_pairs)} open.")
+    leaning = sum(p.leans_to is not None for p in open_pairs)
+    lean = (
+        f" ({leaning} of them {'leans' if leaning == 1 else 'lean'} one way by smoother "
+        "fields across families, a hint and not a decision: results.json 'open', 'leans_to')"
+        if leaning
+        else ""
+    )
+    text.append(f"{len(decisions)} of {n_pairs} pairs decided, {len(open_pairs)} open{lean}.")
     return tuple(text + _closing(scores, names, has_labels))
