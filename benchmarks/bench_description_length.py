@@ -89,7 +89,6 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
-from itk_nrreval.evaluation import _registration_family
 from itk_nrreval.measures.description_length import MIN_Z, DescriptionLength, z_of_difference
 
 HERE = Path(__file__).resolve().parent
@@ -172,19 +171,6 @@ def preference(lengths: dict[str, DescriptionLength], a: str, b: str) -> str | N
     return a if z > 0 else b
 
 
-def families(bv, case: str) -> dict[str, tuple | None]:
-    """Each registration's family, ``(method, engine)`` from its manifest's ``parameters``;
-    a sweep's registrations (its manifest under ``sweep/``) are one family; None: unknown."""
-    smooth = _bench("bench_common_smoothness")
-    path = smooth._manifest_of(bv, case)
-    from itk_nrreval.io.manifest import load_manifest
-
-    manifest = bv._quiet(load_manifest, path)
-    if path.parent.name == "sweep":  # saved before sweeps recorded method and engine
-        return dict.fromkeys(manifest.registrations, ("sweep",))
-    return {name: _registration_family(reg) for name, reg in manifest.registrations.items()}
-
-
 def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, str]]:
     """The pairs ``(better, worse)`` today's verdict without labels decides for a saved case
     when its scores carry the description lengths of `record` and the families `family`
@@ -211,7 +197,7 @@ def judge(bv, case: str, record: dict, verdict_rows: list[dict]) -> list[dict]:
     lengths = description_lengths(record)
     errors = json.loads((bv.OUT / case / "truth.json").read_text())["true_error_mm"]
     verdict = {(r["a"], r["b"]): r["outcome"] for r in verdict_rows if r["case"] == case}
-    family = families(bv, case)
+    family = bv.families_of(case)
     with_family = decided_with(bv, case, record, family)
     with_all = decided_with(bv, case, record, dict.fromkeys(family, ("one",)))
 
@@ -251,7 +237,6 @@ def main(argv: list[str] | None = None) -> dict:
     """The tables (``rows``); `argv` ``["--compute"]`` measures the cases lacking it first."""
     argv = [] if argv is None else argv
     bv = _bench("bench_verdict")
-    smooth = _bench("bench_common_smoothness")
     from itk_nrreval.io.manifest import load_manifest
 
     splits = argv[argv.index("--split") + 1].split(",") if "--split" in argv else bv.SPLITS
@@ -269,7 +254,7 @@ def main(argv: list[str] | None = None) -> dict:
         if "--compute" not in argv:
             continue
         try:
-            manifest = bv._quiet(load_manifest, smooth._manifest_of(bv, case))
+            manifest = bv._quiet(load_manifest, bv.manifest_of(case))
         except FileNotFoundError as exc:
             skipped[case] = str(exc)
             continue

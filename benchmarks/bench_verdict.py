@@ -1006,10 +1006,50 @@ def _run_case(case: str) -> None:
     print(f"[verdict] {case}: {truth['seconds']:.0f} s", flush=True)
 
 
+def manifest_of(case: str) -> Path:
+    """The manifest a saved case was scored from."""
+    if case == "cheat":
+        return OUT / "demo" / "manifest_cheat.yaml"
+    if case == "multimodal":
+        return OUT / case / "data" / "manifest.yaml"
+    for path in (OUT / case / "manifest.yaml", OUT / case / "sweep" / "manifest.yaml"):
+        if path.exists():
+            return path
+    raise FileNotFoundError(f"{case}: no manifest in {OUT / case}")
+
+
+#: The sweeps' cases and their second scans: each one family (settings of one method).
+_SWEEPS = {c for pair in SECOND_SCAN.items() for c in pair if pair[0].startswith("sweep_")}
+
+
+def families_of(case: str) -> dict[str, tuple | None]:
+    """Each registration's family in a saved case, as ``evaluate`` records it today:
+    ``(method, engine)`` from the manifest's ``parameters``, None where they are not given.
+    A sweep's registrations, and their second scan's, are one family (``("sweep",)``): the
+    sweeps saved here were made before sweeps recorded method and engine."""
+    from itk_nrreval.evaluation import _registration_family
+    from itk_nrreval.io.manifest import load_manifest
+
+    manifest = _quiet(load_manifest, manifest_of(case))
+    if case in _SWEEPS or case.startswith("sweep_"):
+        return dict.fromkeys(manifest.registrations, ("sweep",))
+    return {name: _registration_family(reg) for name, reg in manifest.registrations.items()}
+
+
 def _load(case: str):
-    """The saved :class:`~itk_nrreval.EvaluationResult` of a case."""
+    """The saved :class:`~itk_nrreval.EvaluationResult` of a case, its registrations'
+    families as today's ``evaluate`` would record them (:func:`families_of`; evaluations saved
+    before scores carried families have None)."""
+    import dataclasses
+
     with open(OUT / case / "evaluation.pkl", "rb") as saved:
-        return _RenamingUnpickler(saved).load()
+        evaluation = _RenamingUnpickler(saved).load()
+    family = families_of(case)
+    scores = {
+        name: dataclasses.replace(score, family=family.get(name))
+        for name, score in evaluation.scores.items()
+    }
+    return dataclasses.replace(evaluation, scores=scores)
 
 
 def _verdict(case: str, *, labels: bool = True, evaluation=None):
@@ -1043,10 +1083,9 @@ def judge(case: str, *, labels: bool = True) -> list[dict]:
     open is the right answer)."""
     errors = json.loads((OUT / case / "truth.json").read_text())["true_error_mm"]
     evaluation = _load(case)
-    decided = {
-        (d.better, d.worse): d.basis
-        for d in _verdict(case, labels=labels, evaluation=evaluation).decisions
-    }
+    v = _verdict(case, labels=labels, evaluation=evaluation)
+    decided = {(d.better, d.worse): d.basis for d in v.decisions}
+    leans = {frozenset((p.a, p.b)): p.leans_to for p in v.open_pairs if p.leans_to}
     rows = []
     for a, b in itertools.combinations(errors, 2):
         if errors[b] < errors[a]:
@@ -1058,8 +1097,11 @@ def judge(case: str, *, labels: bool = True) -> list[dict]:
             decision, basis, outcome = f"{b} > {a}", decided[(b, a)], "wrong"
         else:
             decision, basis, outcome = "open", "", "open"
+        lean = leans.get(frozenset((a, b)))
+        lean = "" if lean is None else ("right" if lean == a else "wrong")
         if not judged:
             outcome = "near-tie, " + ("open" if outcome == "open" else "decided")
+            lean = "near-tie" if lean else ""
         rows.append(
             {
                 "case": case,
@@ -1071,6 +1113,7 @@ def judge(case: str, *, labels: bool = True) -> list[dict]:
                 "basis": basis,
                 "outcome": outcome,
                 "overlap": _overlap_says(evaluation, a, b) if labels else "-",
+                "lean": lean,  # an open pair's OpenPair.leans_to against the truth
             }
         )
     return rows
@@ -1159,7 +1202,9 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
             table[case][title]["open, overlap contradicts"] = sum(
                 r["outcome"] == "open" and r["overlap"] == "contradicts" for r in source
             )
-    keys = ("right", "wrong", "open", "open, overlap contradicts")
+            for lean in ("right", "wrong"):
+                table[case][title][f"leans {lean}"] = sum(r["lean"] == lean for r in source)
+    keys = ("right", "wrong", "open", "open, overlap contradicts", "leans right", "leans wrong")
     totals = {}
     for split in SPLITS:
         totals[split] = {}
@@ -1194,6 +1239,19 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
         if totals.get(split):
             cells = " | ".join(f"**{cell(totals[split].get(title))}**" for title, *_ in MODES)
             lines.append(f"| **{split}** | | {cells} |")
+    lines += [
+        "",
+        "Of the open pairs, those that lean one way (`OpenPair.leans_to`: the smoother-fields "
+        "rule across families, not a decision), leaning right / wrong:",
+        "",
+        "| split | " + " | ".join(t for t, *_ in MODES) + " |",
+        "|---|" + "--:|" * len(MODES),
+    ]
+    for split, t in totals.items():
+        if t:
+            leans = [t.get(title) for title, *_ in MODES]
+            cells = [f"{k['leans right']} / {k['leans wrong']}" if k else "-" for k in leans]
+            lines.append(f"| {split} | {' | '.join(cells)} |")
     text = "\n".join(lines) + "\n"
     (OUT / "splits.md").write_text(text)
     (OUT / "splits.json").write_text(
