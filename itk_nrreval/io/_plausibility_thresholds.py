@@ -114,8 +114,9 @@ class SubjectThresholds:
         registration's median) at one more false alarm in a hundred, but two of the three
         false alarms it added on the held-out second scans were clearly not failures (true
         errors 1.19-1.20x), which its declared check did not allow, and the split declared
-        to decide it (FRESH11) failed the same way on its second scans: it is not the
-        default.
+        to decide it (FRESH11) failed the same way on its second scans; the split declared
+        to decide it on the registered images alone (FRESH12) failed there too (1 of the 3
+        false alarms it added a near miss): it is not the default.
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
         3.5) ...
