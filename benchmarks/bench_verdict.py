@@ -59,7 +59,8 @@ verdict without the overlap, as on data without labels) and ``splits.md`` / ``sp
 Run: ``python benchmarks/run_all.py verdict`` (every case), or
 ``python benchmarks/bench_verdict.py [--quick] [--new] [--cases a,b] [--rejudge]``;
 ``--quick`` runs ``demo``, ``similar`` and ``folding`` (a few minutes), ``--new`` the
-``families_*`` cases and their second scans.
+``families_*`` cases and their second scans; whichever cases ran, the tables are written
+over every saved case.
 """
 
 from __future__ import annotations
@@ -1287,10 +1288,12 @@ def main(argv: list[str] | None = None) -> dict:
         missing = [c for c in cases if not (OUT / c / "evaluation.pkl").exists()]
         if missing:
             print(f"[verdict] not run yet, left out: {', '.join(missing)}", flush=True)
-        cases = [c for c in cases if c not in missing]
     else:
         for case in cases:
             _run_case(case)
+    # The tables always cover every saved case (judged by today's verdict), so that running
+    # or rejudging a few cases does not leave summary.md and splits.md with those alone.
+    cases = [c for c in known if (OUT / c / "evaluation.pkl").exists()]
     rows = [row for case in cases for row in judge(case)]
     unlabelled = [row for case in cases for row in judge(case, labels=False)]
     result = _write(rows, cases, unlabelled)
