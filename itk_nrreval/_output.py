@@ -9,7 +9,9 @@ import math
 import os
 import shutil
 import signal
+import sys
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -302,17 +304,52 @@ def sigint_handled_by(handler) -> Iterator[None]:
     """Handle Ctrl-C (SIGINT) with `handler` for the block, then as before it.
 
     Only the main thread can set signal handlers; elsewhere (a Slicer or Dask thread) the
-    block runs with the handler there is.
+    block runs with the handler there is. Meanwhile a KeyboardInterrupt raised where it
+    cannot propagate is sent again (:func:`_interrupts_delivered_again`), not printed.
     """
     try:
         previous = signal.signal(signal.SIGINT, handler)
     except ValueError:  # not the main thread
         yield
         return
+    previous_hook, active = sys.unraisablehook, threading.Event()
+    active.set()
+    sys.unraisablehook = _interrupts_delivered_again(previous_hook, active)
     try:
         yield
     finally:
+        active.clear()
+        sys.unraisablehook = previous_hook
         signal.signal(signal.SIGINT, previous)
+
+
+def _interrupts_delivered_again(previous_hook, active: threading.Event):
+    """A ``sys.unraisablehook`` that sends Ctrl-C again when its KeyboardInterrupt was raised
+    where it cannot propagate, and passes anything else to `previous_hook`.
+
+    Ctrl-C that lands in a callback from compiled code (llvmlite's ctypes callbacks while
+    numba loads its cache) or in a ``__del__`` is reported as "Exception ignored" with a
+    traceback, and the command carries on. Sent again from another thread, 50 ms later (a
+    signal sent in the hook itself would be handled in the hook, and be unraisable again), the main
+    thread's handler takes it at its next bytecode, outside that callback; `active` is
+    cleared when the handler is no longer the command's.
+    """
+
+    def send_again() -> None:
+        if active.is_set():
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            # a little later: Thread.start waits for the thread, and a signal sent at once
+            # would be handled here, in the hook
+            timer = threading.Timer(0.05, send_again)
+            timer.daemon = True
+            timer.start()
+            return
+        previous_hook(unraisable)
+
+    return hook
 
 
 def _interrupts_held_off():

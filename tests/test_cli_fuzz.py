@@ -495,3 +495,35 @@ def test_ctrl_c_after_the_swap_is_exit_0_every_time(base, tmp_path, monkeypatch,
     assert (out / ".nrreval-output.json").is_file()
     # after the command, Ctrl-C is handled as it was before it (in a console: by Python)
     assert signal.getsignal(signal.SIGINT) is handler
+
+
+class _InterruptedWhenCollected:
+    """An object whose collection raises KeyboardInterrupt where nothing can catch it, as
+    Ctrl-C does when it lands in a callback from compiled code (llvmlite's ctypes callbacks
+    while numba loads its cache): Python reports it through ``sys.unraisablehook``."""
+
+    def __del__(self):
+        raise KeyboardInterrupt
+
+
+def test_ctrl_c_where_it_cannot_propagate_still_ends_the_command(
+    base, tmp_path, monkeypatch, capsys
+):
+    """Issue 44, 4, as seen once in the subprocess test above: a Ctrl-C raised inside a
+    callback was printed as "Exception ignored ..." with a traceback, and the command carried
+    on. It must end the command as any Ctrl-C does: exit 130, one line, nothing else."""
+    import data_synth.population as population
+
+    make = population.make_population
+
+    def interrupted_inside_a_callback(*args, **kwargs):
+        _InterruptedWhenCollected()  # collected at once: its KeyboardInterrupt is unraisable
+        return make(*args, **kwargs)
+
+    _sandbox(base, tmp_path)
+    monkeypatch.setattr(population, "make_population", interrupted_inside_a_callback)
+    out = tmp_path / "synth"
+    assert main(_command("synth", tmp_path, out, [])) == 130
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["nrreval synth: interrupted"], err
+    assert not out.exists()
