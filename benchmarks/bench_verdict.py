@@ -1019,8 +1019,8 @@ def manifest_of(case: str) -> Path:
     raise FileNotFoundError(f"{case}: no manifest in {OUT / case}")
 
 
-#: The sweeps' cases and their second scans: each one family (settings of one method).
-_SWEEPS = {c for pair in SECOND_SCAN.items() for c in pair if pair[0].startswith("sweep_")}
+#: The sweeps' second scans: each, as its sweep, one family (settings of one method).
+_SWEEP_SECOND_SCANS = {scan for case, scan in SECOND_SCAN.items() if case.startswith("sweep_")}
 
 
 def families_of(case: str) -> dict[str, tuple | None]:
@@ -1032,7 +1032,7 @@ def families_of(case: str) -> dict[str, tuple | None]:
     from itk_nrreval.io.manifest import load_manifest
 
     manifest = _quiet(load_manifest, manifest_of(case))
-    if case in _SWEEPS or case.startswith("sweep_"):
+    if case.startswith("sweep_") or case in _SWEEP_SECOND_SCANS:
         return dict.fromkeys(manifest.registrations, ("sweep",))
     return {name: _registration_family(reg) for name, reg in manifest.registrations.items()}
 

@@ -330,9 +330,9 @@ def _interrupts_delivered_again(previous_hook, active: threading.Event):
     Ctrl-C that lands in a callback from compiled code (llvmlite's ctypes callbacks while
     numba loads its cache) or in a ``__del__`` is reported as "Exception ignored" with a
     traceback, and the command carries on. Sent again from another thread, 50 ms later (a
-    signal sent in the hook itself would be handled in the hook, and be unraisable again), the main
-    thread's handler takes it at its next bytecode, outside that callback; `active` is
-    cleared when the handler is no longer the command's.
+    signal sent in the hook itself would be handled in the hook, and be unraisable again),
+    the main thread's handler takes it at its next bytecode, outside that callback; `active`
+    is cleared when the handler is no longer the command's.
     """
 
     def send_again() -> None:
