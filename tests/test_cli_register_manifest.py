@@ -324,6 +324,81 @@ def test_manifest_of_pipelines_sharing_the_reference_writes_the_identity_frame(
     assert [r.frame_transform is None for r in same.registrations.values()] == [True, False, False]
 
 
+@pytest.mark.filterwarnings("ignore:registration 'ants' is flagged as implausible")
+def test_manifest_records_each_engine_and_the_method_its_files_name(tmp_path, capsys, monkeypatch):
+    """The verdict weighs roughness against specificity only between settings of one method
+    (the same ``method`` and ``engine`` in a registration's ``parameters``). `manifest` records
+    every registration's engine, and its method where its files name one: an elastix folder's
+    ``Transform``, an ANTs chain without a warp (affine). A warp does not say whether SyN or
+    B-spline SyN wrote it: the command says how to give the method, and ``--method`` records
+    it, which the evaluation reads as the registration's family."""
+    import itk_nrreval as nr
+
+    write_pipelines(tmp_path)
+    for i in range(3):  # an ANTs registration that stopped at its affine stage
+        (tmp_path / "lin").mkdir(exist_ok=True)
+        affine = (tmp_path / "ants" / f"sub-0{i}_0GenericAffine.mat").read_bytes()
+        (tmp_path / "lin" / f"sub-0{i}_0GenericAffine.mat").write_bytes(affine)
+    monkeypatch.chdir(tmp_path)
+    args = ["manifest", "--images", "img/sub-*_T1w.nii.gz", "--reference", "template.nii.gz"]
+    args += ["--ants", "ants/sub-*_", "--ants", "lin=lin/sub-*_", "--elastix", "elx/sub-*/"]
+    assert main([*args, "--out", "m.yaml"]) == 0
+    out = capsys.readouterr().out
+    regs = yaml.safe_load((tmp_path / "m.yaml").read_text())["registrations"]
+    assert {name: reg["parameters"] for name, reg in regs.items()} == {
+        "ants": {"engine": "ants"},
+        "lin": {"engine": "ants", "method": "affine"},
+        "elastix": {"engine": "elastix", "method": "TranslationTransform"},
+    }
+    assert "the files of ants do not say which method wrote them" in out
+    assert "--method ants=METHOD" in out
+
+    assert main([*args, "--method", "ants=SyN", "--out", "m2.yaml"]) == 0
+    assert "do not say" not in capsys.readouterr().out
+    result = nr.evaluate(
+        tmp_path / "m2.yaml", n_samples=50, seed=0, progress=False, confidence=False
+    )
+    assert {name: s.family for name, s in result.scores.items()} == {
+        "ants": ("SyN", "ants"),
+        "lin": ("affine", "ants"),
+        "elastix": ("TranslationTransform", "elastix"),
+    }
+
+
+@pytest.mark.parametrize(
+    ("method", "message"),
+    [
+        ("nope=SyN", "--method nope=SyN: no registration named 'nope' (there are ants, elastix)"),
+        ("ants", "--method ants: give NAME=METHOD"),
+    ],
+)
+def test_manifest_method_of_no_registration_is_one_line(
+    tmp_path, capsys, monkeypatch, method, message
+):
+    write_pipelines(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    args = ["manifest", "--images", "img/sub-*_T1w.nii.gz", "--reference", "template.nii.gz"]
+    args += ["--ants", "ants/sub-*_", "--elastix", "elx/sub-*/", "--method", method]
+    assert main([*args, "--out", "m.yaml"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "m.yaml").exists()
+
+
+def test_method_written_needs_every_subject_to_name_the_same(tmp_path):
+    """Subjects whose elastix files name different transforms give no method: the
+    registration is not one method's."""
+    from itk_nrreval.io._transform_patterns import method_written
+
+    chains = {}
+    for i, transform in enumerate(("BSplineTransform", "BSplineTransform", "AffineTransform")):
+        path = tmp_path / f"TransformParameters.{i}.txt"
+        path.write_text(f'(Transform "{transform}")\n(NumberOfParameters 0)\n')
+        chains[(f"{i}",)] = [path]
+    assert method_written("elastix", dict(list(chains.items())[:2])) == "BSplineTransform"
+    assert method_written("elastix", chains) is None
+
+
 # ----------------------------------------------------------------------------- item 14
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -324,6 +325,7 @@ def test_bad_arguments_one_line(tmp_path, population, capsys):
             f"{root}: no from-T1w_to-MNI152NLin6Asym",
         ),
         (["manifest", root, "--ants", "x/sub-*_", "--out", tmp_path / "x.yaml"], "not both"),
+        (["manifest", root, "--method", "a=SyN", "--out", tmp_path / "x.yaml"], "--method goes"),
         (["manifest", "--ants", "x/sub-*_", "--out", tmp_path / "x.yaml"], "need --images"),
         (["evaluate", manifest, root, "--out", out], "m.yaml: give one manifest file"),
         (["evaluate", manifest, "--space", SPACE, "--out", out], "--space goes with"),
@@ -407,6 +409,8 @@ def test_ants_prefixes_read_as_written_by_ants(tmp_path, population, capsys, mon
     }
     (tmp_path / "hand.yaml").write_text(yaml.safe_dump(hand_manifest(tmp_path, labels, chains)))
     assert_same_files(nr.load_manifest("m.yaml"), nr.load_manifest("hand.yaml"))
+    # a warp does not say whether SyN wrote it: the engine alone
+    assert nr.load_manifest("m.yaml").registrations["syn"].parameters == {"engine": "ants"}
     # independent of the reading: the chain resamples each image as ANTs itself did
     m = nr.load_manifest("m.yaml")
     template = sitk.ReadImage("template.nii.gz")
@@ -490,6 +494,17 @@ def test_elastix_folders_read_as_written_by_elastix(tmp_path, population, capsys
     for name in ("m.yaml", "hand.yaml"):
         assert run_cli(["evaluate", name, "--out", f"out-{name}", *EVALUATE], capsys)[0] == 0
     assert_same_scores(scores(tmp_path / "out-m.yaml"), scores(tmp_path / "out-hand.yaml"))
+    # the last parameter file names the B-spline as its Transform: the registration's method,
+    # which the evaluation records as its family (the hand-written manifest gives none)
+    named = re.search(r'\(Transform "(\w+)"\)', first)
+    assert named is not None and "BSpline" in named.group(1)
+    family = {
+        name: json.loads((tmp_path / f"out-{name}" / "results.json").read_text())["registrations"][
+            "elastix"
+        ]["family"]
+        for name in ("m.yaml", "hand.yaml")
+    }
+    assert family == {"m.yaml": [named.group(1), "elastix"], "hand.yaml": None}
 
 
 def test_elastix_chain_by_hand(tmp_path):

@@ -737,6 +737,12 @@ def test_cli_manifest_fsl_and_niftyreg_layouts(tmp_path, capsys, monkeypatch):
         "file": "flirt/sub-2.mat",
         "format": "fsl",
     }
+    # FLIRT and reg_aladin matrices say which method wrote them (the verdict's families)
+    assert written["registrations"]["flirt"]["parameters"] == {"engine": "fsl", "method": "flirt"}
+    assert written["registrations"]["niftyreg"]["parameters"] == {
+        "engine": "niftyreg",
+        "method": "aladin",
+    }
     m = load_manifest(tmp_path / "m.yaml")
     itk = [read_transform(tmp_path / t) for t in data["registrations"]["itk"]["transforms"]]
     pts = points(tmp_path / "ref.nii.gz", 10)
@@ -750,6 +756,23 @@ def test_cli_manifest_fsl_and_niftyreg_layouts(tmp_path, capsys, monkeypatch):
     assert code == 2
     err = capsys.readouterr().err
     assert "sub-9.mat: a transform without its image" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize(("intent", "method"), [(2007, "fnirt"), (2009, "fnirt"), (2006, None)])
+def test_fsl_field_names_fnirt_only_by_its_coefficients(tmp_path, intent, method):
+    """FNIRT's coefficient files (intent codes 2007-2009) are fnirt's alone; a displacement
+    field (2006) may come from convertwarp's chain of anything, so it names no method. Read
+    from the NIfTI header as nibabel writes it."""
+    from itk_nrreval.io._transform_patterns import method_written
+
+    img = nib.Nifti1Image(np.zeros((4, 5, 6, 3), np.float32), np.eye(4))
+    img.header.set_intent(intent)
+    chains = {}
+    for i in range(2):
+        nib.save(img, tmp_path / f"warp-{i}.nii.gz")
+        chains[(str(i),)] = [{"file": str(tmp_path / f"warp-{i}.nii.gz"), "format": "fsl"}]
+    assert nib.load(tmp_path / "warp-0.nii.gz").header["intent_code"] == intent
+    assert method_written("fsl", chains) == method
 
 
 # ----------------------------------------------------------------------------- RAS as LPS

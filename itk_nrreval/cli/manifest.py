@@ -88,6 +88,16 @@ def add_parser(sub) -> None:
         help="with --ants/--elastix/--fsl/--niftyreg: the fixed image every subject was "
         "registered to",
     )
+    p.add_argument(
+        "--method",
+        action="append",
+        default=[],
+        metavar="NAME=METHOD",
+        help="with --ants/--elastix/--fsl/--niftyreg: the method of the registration NAME "
+        "(e.g. syn=SyN), where its files do not say it (ANTs warps, NiftyReg fields); "
+        "recorded with its engine, so the verdict can weigh roughness between settings of one "
+        "method; repeat for more",
+    )
     p.add_argument("--mask", metavar="FILE", help="a mask on the template's (reference's) grid")
     p.add_argument("--out", required=True, metavar="FILE", help="the manifest to write (YAML)")
     p.set_defaults(func=run)
@@ -120,6 +130,7 @@ def manifest_of(args: argparse.Namespace):
         )
     if args.derivatives:
         given = [o for o in ("images", "labels", "reference") if getattr(args, o, None) is not None]
+        given += ["method"] * bool(getattr(args, "method", None))
         if given:
             raise InputError(f"--{given[0]} goes with {layouts}, not derivatives folders")
         return manifest_from_derivatives(args.derivatives, space=args.space, mask=args.mask)
@@ -144,7 +155,23 @@ def manifest_of(args: argparse.Namespace):
         **patterns,
         labels=args.labels,
         mask=args.mask,
+        methods=_methods(args.method),
     )
+
+
+def _methods(values: list[str]) -> dict[str, str]:
+    """``NAME=METHOD`` values -> {name: method}."""
+    from .._errors import InputError
+
+    out: dict[str, str] = {}
+    for value in values:
+        name, eq, method = value.partition("=")
+        if not (eq and name and method):
+            raise InputError(f"--method {value}: give NAME=METHOD, e.g. --method syn=SyN")
+        if name in out:
+            raise InputError(f"--method {value}: a second method for {name!r}")
+        out[name] = method
+    return out
 
 
 #: The options given as patterns, with an example of each for the messages.
@@ -213,4 +240,15 @@ def run(args: argparse.Namespace) -> int:
         f"manifest of {manifest.n_images} images and {len(manifest.names)} registrations "
         f"({', '.join(manifest.names)}) written to {args.out}"
     )
+    unknown = [
+        name
+        for name, reg in manifest.registrations.items()
+        if "engine" in (reg.parameters or {}) and "method" not in reg.parameters
+    ]
+    if unknown and len(manifest.names) > 1:
+        print(
+            f"the files of {', '.join(unknown)} do not say which method wrote them: give "
+            f"--method {unknown[0]}=METHOD (e.g. SyN) to let the verdict weigh roughness "
+            "between settings of one method"
+        )
     return 0

@@ -16,9 +16,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from .._errors import InputError
-from ._elastix_files import final_parameter_file
+from ._elastix_files import final_parameter_file, read_parameter_file
 
-__all__ = ["matches", "registrations_found", "subject_label"]
+__all__ = ["engines_of", "matches", "method_written", "registrations_found", "subject_label"]
 
 
 def _pattern_regex(pattern: str) -> str:
@@ -193,3 +193,65 @@ def registrations_found(
                 )
         registrations[name] = chains
     return registrations
+
+
+def engines_of(
+    *,
+    ants: Mapping[str, str] | Sequence[str] | str | None,
+    elastix: Mapping[str, str] | Sequence[str] | str | None,
+    fsl: Mapping[str, str] | Sequence[str] | str | None,
+    niftyreg: Mapping[str, str] | Sequence[str] | str | None,
+) -> dict[str, str]:
+    """Registration name -> the tool whose files it reads (``ants``, ``elastix``, ``fsl``,
+    ``niftyreg``), named as :func:`registrations_found` names them."""
+    given = {"ants": ants, "elastix": elastix, "fsl": fsl, "niftyreg": niftyreg}
+    return {name: engine for engine, value in given.items() for name in _named(value, engine)}
+
+
+# FSL's intent codes of FNIRT's coefficient files (fsl.data.constants: cubic spline, DCT,
+# quadratic spline): written by fnirt alone. A displacement field (2006) is not among them:
+# convertwarp writes those too, from any chain of transforms.
+_FNIRT_COEFFICIENTS = {2007, 2008, 2009}
+
+
+def method_written(engine: str, chains: Mapping[tuple, list]) -> str | None:
+    """The method a registration's files name, where every subject's files name the same one;
+    else None (the files do not say, or subjects differ).
+
+    What each tool's files say: an ANTs chain without a warp (``*GenericAffine.mat`` and the
+    like) is ``affine``; a warp or a ``Composite.h5`` does not say which of SyN, B-spline SyN
+    or another wrote it. An elastix folder's last parameter file names its ``Transform``
+    (``BSplineTransform``, ``AffineTransform``...). An FSL matrix is ``flirt``, an FNIRT
+    coefficient file ``fnirt``; an FSL displacement field does not say (convertwarp writes
+    them too). A NiftyReg matrix is ``aladin``; a field converted by ``reg_transform`` does not
+    say which registration made it.
+
+    With ``engine``, the method is the registration's family (``parameters: method, engine``),
+    which the verdict reads: it weighs roughness against specificity only between settings
+    of one method (:mod:`itk_nrreval.measures.verdict`).
+    """
+    methods = {_method_of(engine, chain) for chain in chains.values()}
+    return methods.pop() if len(methods) == 1 else None
+
+
+def _method_of(engine: str, chain: list) -> str | None:
+    """The method one subject's chain names (:func:`method_written`), or None."""
+    if engine == "ants":
+        names = [Path(p).name for p in chain]
+        linear = all(n.endswith(".mat") for n in names)
+        return "affine" if linear else None
+    if engine == "elastix":
+        transform = read_parameter_file(chain[-1]).get("Transform") or [None]
+        return transform[0]
+    path = Path(_file_of(chain[-1]))
+    if not path.name.lower().endswith((".nii", ".nii.gz")):
+        return {"fsl": "flirt", "niftyreg": "aladin"}.get(engine)
+    if engine == "fsl":
+        import nibabel as nib
+
+        try:
+            code = int(nib.load(path).header["intent_code"])
+        except Exception:  # unreadable: the manifest's own check names the file
+            return None
+        return "fnirt" if code in _FNIRT_COEFFICIENTS else None
+    return None

@@ -58,7 +58,13 @@ import numpy as np
 
 from .._errors import InputError
 from ._images import read_header
-from ._transform_patterns import matches, registrations_found, subject_label
+from ._transform_patterns import (
+    engines_of,
+    matches,
+    method_written,
+    registrations_found,
+    subject_label,
+)
 from .manifest import IDENTITY_FRAME, Manifest, load_manifest
 
 __all__ = [
@@ -536,6 +542,7 @@ def manifest_from_transforms(
     niftyreg: Mapping[str, str] | Sequence[str] | str | None = None,
     labels: str | None = None,
     mask: str | os.PathLike | None = None,
+    methods: Mapping[str, str] | None = None,
 ) -> Manifest:
     """A manifest of registrations written by antsRegistration, elastix, FSL and NiftyReg,
     matched by subject.
@@ -563,6 +570,9 @@ def manifest_from_transforms(
         Shell pattern of the label maps, matched to the images by subject label.
     mask : path, optional, keyword-only
         A mask on the reference's grid.
+    methods : mapping of name to str, optional, keyword-only
+        Registration name -> its method (``{"syn": "SyN"}``), where its files do not say it
+        or say it wrongly: recorded as given.
 
     Returns
     -------
@@ -570,13 +580,19 @@ def manifest_from_transforms(
         Subjects in label order; registrations in the order given (ANTs, elastix, FSL,
         NiftyReg); the first is
         the common frame, and the others, registered to the same reference, are in it
-        (``frame_transform: identity``), so no frame is estimated.
+        (``frame_transform: identity``), so no frame is estimated. Each registration's
+        ``parameters`` give its ``engine`` (the tool whose files it reads) and, where its
+        files name one (:func:`~itk_nrreval.io._transform_patterns.method_written`: an
+        elastix ``Transform``, FLIRT, FNIRT coefficients, reg_aladin, an ANTs chain without
+        a warp) or `methods` gives it, its ``method``: the verdict weighs roughness against
+        specificity only between registrations of one method and engine.
 
     Raises
     ------
     InputError
         Naming the file: no image matches, a transform without its image, two candidate
-        transforms for one subject, an elastix folder holding two chains.
+        transforms for one subject, an elastix folder holding two chains; a method given
+        for no registration of that name.
 
     Warns
     -----
@@ -591,6 +607,14 @@ def manifest_from_transforms(
     registrations = registrations_found(
         image_of, ants=ants, elastix=elastix, fsl=fsl, niftyreg=niftyreg
     )
+    methods = dict(methods or {})
+    for name in methods:
+        if name not in registrations:
+            raise InputError(
+                f"--method {name}={methods[name]}: no registration named {name!r} (there are "
+                f"{', '.join(registrations)})"
+            )
+    engines = engines_of(ants=ants, elastix=elastix, fsl=fsl, niftyreg=niftyreg)
     kept = _subjects_in_every_registration(image_of, registrations)
     label_files = None
     if labels is not None:
@@ -617,12 +641,22 @@ def manifest_from_transforms(
                     "transforms": [
                         [p if isinstance(p, Mapping) else str(p) for p in chains[k]] for k in kept
                     ],
+                    "parameters": _family(
+                        engines[name], {k: chains[k] for k in kept}, methods.get(name)
+                    ),
                 }
                 for name, chains in registrations.items()
             }
         ),
     }
     return load_manifest(data)
+
+
+def _family(engine: str, chains: dict[tuple, list], method: str | None) -> dict[str, str]:
+    """A registration's ``parameters``: its engine, and its method where given or where its
+    files name one."""
+    method = method if method is not None else method_written(engine, chains)
+    return {"engine": engine, **({"method": method} if method is not None else {})}
 
 
 def _subjects_in_every_registration(
