@@ -54,7 +54,7 @@ def write(image: sitk.Image, path) -> None:
     sitk.WriteImage(image, str(path))
 
 
-def write_tree(root, pop, *, version, keys, perturb=False, leave_out=()):
+def write_tree(root, pop, *, version, keys, perturb=False, leave_out=(), pipeline="SynthPrep"):
     """A BIDS derivatives tree of `pop` as fMRIPrep lays its anatomical outputs out.
 
     `keys`: per subject of `pop`, its (subject, session) labels (session "" for none).
@@ -65,7 +65,7 @@ def write_tree(root, pop, *, version, keys, perturb=False, leave_out=()):
         "Name": "synthetic derivatives",
         "BIDSVersion": "1.8.0",
         "DatasetType": "derivative",
-        "GeneratedBy": [{"Name": "SynthPrep", "Version": version}],
+        "GeneratedBy": [{"Name": pipeline, "Version": version}],
     }
     (root / "dataset_description.json").write_text(json.dumps(description))
     for i, (subject, (sub, ses)) in enumerate(zip(pop.subjects, keys, strict=True)):
@@ -197,6 +197,8 @@ def test_two_pipeline_versions_compared_as_a_hand_written_manifest(tmp_path, pop
     for m in (from_python, nr.load_manifest(tmp_path / "m.yaml")):
         assert_same_files(m, expected)
         assert m.registrations["SynthPrep-2.0"].parameters["generated_by"] == "SynthPrep 2.0"
+        # a pipeline of unknown method: no family (the verdict does not weigh roughness)
+        assert "method" not in m.registrations["SynthPrep-2.0"].parameters
 
 
 def assert_same_files(m, expected) -> None:
@@ -246,6 +248,24 @@ def test_sessions_matched_in_label_order_and_evaluated_from_python(tmp_path, pop
     b = nr.evaluate(hand, **kw).scores["SynthPrep-1.0"]
     assert a.specificity.value == b.specificity.value
     assert a.overlap == b.overlap
+
+
+@pytest.mark.filterwarnings("ignore:the scores are taken on")
+def test_fmriprep_versions_are_settings_of_one_method(tmp_path, population):
+    """fMRIPrep and sMRIPrep normalize with ANTs SyN in every version, so two versions of
+    them are one family for the verdict (``method: SyN``, ``engine: ants``), which the
+    evaluation records; a pipeline of unknown method has none."""
+    folders = [
+        write_tree(tmp_path / name, population, version=v, keys=NO_SESSIONS, pipeline=name)
+        for name, v in (("fMRIPrep", "23.1.0"), ("sMRIPrep", "0.15.0"), ("OtherPrep", "1"))
+    ]
+    m = nr.manifest_from_derivatives(folders)
+    result = nr.evaluate(m, n_samples=200, seed=0, progress=False, confidence=False)
+    assert {name: s.family for name, s in result.scores.items()} == {
+        "fMRIPrep-23.1.0": ("SyN", "ants"),
+        "sMRIPrep-0.15.0": ("SyN", "ants"),
+        "OtherPrep-1": None,
+    }
 
 
 # ----------------------------------------------------------------------------- bad trees

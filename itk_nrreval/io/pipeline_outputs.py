@@ -166,6 +166,22 @@ def _generated_by(root: Path) -> str:
     return " ".join(str(entry[k]) for k in ("Name", "Version") if entry.get(k))
 
 
+#: Pipelines whose normalization to a template is one known method, in every version:
+#: fMRIPrep and sMRIPrep register the T1w image with ANTs SyN (niworkflows'
+#: RobustMNINormalization; its settings, ``t1w-mni_registration_*.json``, chain Rigid, Affine
+#: and SyN). Their versions are settings of one method for the verdict.
+_PIPELINE_FAMILIES = {"fmriprep": ("SyN", "ants"), "smriprep": ("SyN", "ants")}
+
+
+def _pipeline_family(generated_by: str) -> dict[str, str]:
+    """``{method, engine}`` of a known pipeline (``GeneratedBy`` name), else empty."""
+    name = generated_by.split(" ", 1)[0].lower()
+    if name not in _PIPELINE_FAMILIES:
+        return {}
+    method, engine = _PIPELINE_FAMILIES[name]
+    return {"method": method, "engine": engine}
+
+
 def _scan(root: Path) -> _Folder:
     generated_by = _generated_by(root)
     found = _Folder(root, "", generated_by, {}, {}, {}, {}, {})
@@ -333,9 +349,10 @@ def manifest_from_derivatives(
         every one has a ``desc-brain_mask``) of the first folder, subjects in label order
         (then session); per folder a registration named after its ``GeneratedBy`` whose
         reference is a ``space-<SPACE>`` image and whose parameters record the pipeline,
-        folder and space. The first folder's is the common frame; the
-        others are in the same template space (``frame_transform: identity``), so no frame
-        is estimated.
+        folder and space (and, for fMRIPrep and sMRIPrep, whose normalization is ANTs SyN,
+        ``method: SyN`` and ``engine: ants``: the verdict's family). The first folder's is
+        the common frame; the others are in the same template space (``frame_transform:
+        identity``), so no frame is estimated.
 
     Raises
     ------
@@ -397,6 +414,7 @@ def manifest_from_derivatives(
                         "generated_by": f.generated_by or None,
                         "folder": str(f.root),
                         "space": space_name,
+                        **_pipeline_family(f.generated_by),
                     },
                 }
                 for f, r, ref in zip(scanned, registered, references, strict=True)
