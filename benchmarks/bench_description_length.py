@@ -73,7 +73,8 @@ B-spline grid on families_mni2d's second scan); 3.2 is the steepest wrong plus 1
 
 ``python benchmarks/bench_description_length.py [--compute] [--split tuning,...]``:
 ``--compute`` measures the cases that lack it first (``description_length.json`` in the
-case's folder; seconds a 2D case, minutes a 3D one); the tables go to
+case's folder; seconds a 2D case, minutes a 3D one), ``--split`` only those splits' cases;
+the tables, over every case measured so far, go to
 ``benchmarks/out/verdict/description_length.md``.
 """
 
@@ -234,7 +235,8 @@ def _cell(rows: list[dict], key: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """The tables (``rows``); `argv` ``["--compute"]`` measures the cases lacking it first."""
+    """The tables (``rows``) over every saved case; `argv` ``["--compute"]`` measures the
+    cases lacking it first (``--split a,b``: only those splits' cases)."""
     argv = [] if argv is None else argv
     bv = _bench("bench_verdict")
     from itk_nrreval.io.manifest import load_manifest
@@ -243,15 +245,13 @@ def main(argv: list[str] | None = None) -> dict:
     second_of = {v: k for k, v in bv.SECOND_SCAN.items()}
     results, skipped = {}, {}
     for case in [*bv.DECLARED, *bv.SECOND_SCAN.values()]:
-        if bv.split_of(second_of.get(case, case)) not in splits:
-            continue
         path = bv.OUT / case / RESULT_JSON
         if not (bv.OUT / case / "truth.json").exists():
             continue
-        if path.exists():
+        if path.exists():  # every saved case is in the tables, whichever splits are computed
             results[case] = json.loads(path.read_text())
             continue
-        if "--compute" not in argv:
+        if "--compute" not in argv or bv.split_of(second_of.get(case, case)) not in splits:
             continue
         try:
             manifest = bv._quiet(load_manifest, bv.manifest_of(case))

@@ -42,8 +42,8 @@ Cases (2D, N = 12, M = ``N_SAMPLES``, unless said):
 
 **The split** (:data:`TUNING`, :data:`HELD_OUT`, declared before the ``families_*`` cases
 were run): a rule may be set on the tuning cases only; ``splits.md`` reports every split in
-each mode (:data:`MODES`: with labels, without labels, on the second scan). Twelve fresh
-splits (:data:`FRESH` to :data:`FRESH12`) were each declared before their cases
+each mode (:data:`MODES`: with labels, without labels, on the second scan). Thirteen fresh
+splits (:data:`FRESH` to :data:`FRESH13`) were each declared before their cases
 ran, to check rules changed after the previous split had been seen (``docs/verdict.md``).
 
 Everything a changed verdict needs is saved per case in ``benchmarks/out/verdict/<case>/``
@@ -272,6 +272,17 @@ FRESH12 = (
     "families_mni2d_mix_n16_s47",  # MNI-based 2D, N = 16, seed 47, FAMILIES_MIX
     "families_mni3d_s48",  # MNI-based 3D, N = 10, seed 48, the seven (3D grids)
 )
+# Declared on 2026-11-28 (tenth session of issue 41, eighth of issue 42), BEFORE these cases
+# ran, with no rule of the verdict changed: it checks today's verdict once more (issue 41),
+# and, for issue 42, whatever per-subject term of the local normalised cross-correlation
+# to the others' mean is set this session on TUNING alone (its definition and weight are
+# fixed before FRESH13 is judged; nothing is set on FRESH13).
+FRESH13 = (
+    "families_mni2d_s49",  # MNI-based 2D, N = 12, seed 49, the seven
+    "families_phantom2d_syn_s50",  # phantom 2D, N = 12, seed 50, FAMILIES_SYN
+    "families_mni2d_mix_s51",  # MNI-based 2D, N = 12, seed 51, FAMILIES_MIX
+    "families_mni3d_s52",  # MNI-based 3D, N = 10, seed 52, the seven (3D grids)
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -295,6 +306,7 @@ SPLIT_CASES = {
     "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
+    "fresh13": FRESH13,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -961,6 +973,14 @@ def _cases() -> dict:
             "registrations": FAMILIES_MIX,
         },
         "families_mni3d_s48": {"kind": "mni", "seed": 48, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_mni2d_s49": {"kind": "mni", "seed": 49},
+        "families_phantom2d_syn_s50": {
+            "kind": "phantom",
+            "seed": 50,
+            "registrations": FAMILIES_SYN,
+        },
+        "families_mni2d_mix_s51": {"kind": "mni", "seed": 51, "registrations": FAMILIES_MIX},
+        "families_mni3d_s52": {"kind": "mni", "seed": 52, "dim": 3, "n": 10, "spacing": 3.0},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
