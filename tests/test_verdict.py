@@ -333,6 +333,15 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
         if p.leans_to is not None:
             fa, fb = scores[p.a].family, scores[p.b].family
             assert fa is None or fa != fb, p
+    # every lean the text names is one of the open pairs', the registration leaned to first
+    leaning = [p for p in v.open_pairs if p.leans_to is not None]
+    named = [t for t in v.text if t.startswith("Leaning, not decided: ")]
+    assert len(named) == (1 if leaning else 0)
+    if leaning:
+        listed = named[0].removeprefix("Leaning, not decided: ").removesuffix(".").split("; ")
+        expected = [f"{p.leans_to} over {({p.a, p.b} - {p.leans_to}).pop()}" for p in leaning]
+        assert listed[: len(expected[:6])] == expected[:6]
+        assert listed[6:] == ([f"and {len(leaning) - 6} more"] if len(leaning) > 6 else [])
 
 
 def test_two_registrations_of_equal_true_quality_are_left_open(tmp_path):
@@ -892,6 +901,21 @@ def test_smoother_fields_decide_only_within_one_family(
     assert pair.leans_to == "syn"  # the hint, structured: results.json 'open'
     assert pair.to_dict()["leans_to"] == "syn"
     assert "1 of them leans one way" in " ".join(v.text)
+    assert "Leaning, not decided: syn over demons_3mm." in v.text  # named, for the report
     assert "so it leans to syn" in pair.reason
     why = "are of different families" if family_syn else "the family of syn is unknown"
     assert why in pair.reason
+
+
+def test_the_leaning_sentence_names_six_pairs_then_counts_the_rest():
+    """The verdict's text names the open pairs that lean (the registration leaned to first),
+    at most six; the others are counted (all are in results.json 'open')."""
+    from itk_nrreval.measures.verdict import OpenPair, _leaning_sentence
+
+    pairs = [OpenPair(f"a{i}", f"b{i}", "why", f"b{i}" if i % 2 else f"a{i}") for i in range(8)]
+    sentence = _leaning_sentence(pairs)
+    assert sentence == (
+        "Leaning, not decided: a0 over b0; b1 over a1; a2 over b2; b3 over a3; a4 over b4; "
+        "b5 over a5; and 2 more."
+    )
+    assert _leaning_sentence(pairs[:1]) == "Leaning, not decided: a0 over b0."

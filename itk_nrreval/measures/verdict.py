@@ -754,12 +754,28 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
             "other subjects, so only severe folding decides."
         )
     n_pairs = len(decisions) + len(open_pairs)
-    leaning = sum(p.leans_to is not None for p in open_pairs)
+    leaning = [p for p in open_pairs if p.leans_to is not None]
     lean = (
-        f" ({leaning} of them {'leans' if leaning == 1 else 'lean'} one way by smoother "
-        "fields across families, a hint and not a decision: results.json 'open', 'leans_to')"
+        f" ({len(leaning)} of them {'leans' if len(leaning) == 1 else 'lean'} one way by "
+        "smoother fields across families, a hint and not a decision: results.json 'open', "
+        "'leans_to')"
         if leaning
         else ""
     )
     text.append(f"{len(decisions)} of {n_pairs} pairs decided, {len(open_pairs)} open{lean}.")
+    if leaning:
+        text.append(_leaning_sentence(leaning))
     return tuple(text + _closing(scores, names, has_labels))
+
+
+#: The most leaning pairs the verdict's text names (the rest: results.json 'open').
+_LEANS_NAMED = 6
+
+
+def _leaning_sentence(leaning: Sequence[OpenPair]) -> str:
+    """The open pairs that lean, named (the registration leaned to first), so a reader
+    without labels sees the hints without opening results.json."""
+    named = [f"{p.leans_to} over {p.b if p.leans_to == p.a else p.a}" for p in leaning]
+    more = len(named) - _LEANS_NAMED
+    shown = "; ".join(named[:_LEANS_NAMED]) + (f"; and {more} more" if more > 0 else "")
+    return f"Leaning, not decided: {shown}."
