@@ -273,10 +273,13 @@ FRESH12 = (
     "families_mni3d_s48",  # MNI-based 3D, N = 10, seed 48, the seven (3D grids)
 )
 # Declared on 2026-11-28 (tenth session of issue 41, eighth of issue 42), BEFORE these cases
-# ran, with no rule of the verdict changed: it checks today's verdict once more (issue 41),
-# and, for issue 42, whatever per-subject term of the local normalised cross-correlation
-# to the others' mean is set this session on TUNING alone (its definition and weight are
-# fixed before FRESH13 is judged; nothing is set on FRESH13).
+# ran: it checks today's verdict once more (issue 41), and whatever is set this session on
+# TUNING alone before FRESH13 is judged: for issue 41, a lower exchange rate for the
+# overlap's preference of a deformable registration over one without local deformation
+# (affine), if one is set (the overlap's roughness charge left such pairs open where the
+# overlap was right); for issue 42, a per-subject term of the local normalised
+# cross-correlation to the others' mean, if one is set. Nothing is set on FRESH13; its
+# cases may run before those rules are fixed, but are judged only after they are committed.
 FRESH13 = (
     "families_mni2d_s49",  # MNI-based 2D, N = 12, seed 49, the seven
     "families_phantom2d_syn_s50",  # phantom 2D, N = 12, seed 50, FAMILIES_SYN
