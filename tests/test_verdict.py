@@ -153,9 +153,19 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         MIN_SPECIFICITY_RATIO,
         NO_FOLDING_FRACTION,
         OVERLAP_EXCHANGE_RATE,
+        OVERLAP_RATE_AGAINST_LINEAR,
         SEVERE_FOLDED_FRACTION,
         SMOOTHNESS_RATE,
     )
+
+    def deforms_locally(r) -> bool:
+        """Whether r's subjects' median non-linear displacement reaches 0.01 mm."""
+        nonlinear = [
+            q.deformation["nonlinear_rms_mm"]
+            for q in scores[r].subjects
+            if not q.reference and q.deformation.get("nonlinear_rms_mm") is not None
+        ]
+        return bool(np.median(nonlinear) >= 0.01)
 
     def winner(measure, lower):
         """The registration of the two that `measure` separably prefers, or None."""
@@ -175,12 +185,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         if scores[r].family is None or scores[r].family != scores[o].family:
             return False  # only between settings of one method and engine
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
-        nonlinear = [
-            q.deformation["nonlinear_rms_mm"]
-            for q in scores[r].subjects
-            if not q.reference and q.deformation.get("nonlinear_rms_mm") is not None
-        ]
-        if np.median(nonlinear) < 0.01:
+        if not deforms_locally(r):
             return False  # r does not deform locally (affine: no non-linear displacement)
         if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
             return False  # r folds more: not the smoother, whatever its SDlogJ
@@ -220,7 +225,10 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         fr, fo = scores[r].plausibility.folded_fraction, scores[o].plausibility.folded_fraction
         if fo >= NO_FOLDING_FRACTION and fo > fr:  # as for specificity: o's fields taken flat
             rougher = max(rougher, scores[r].plausibility.sdlogj)
-        return by_overlap == r and gain >= OVERLAP_EXCHANGE_RATE * rougher and not scores[r].flags
+        # against a registration that does not deform locally (affine), a lower rate
+        linear = deforms_locally(r) and not deforms_locally(o)
+        rate = OVERLAP_RATE_AGAINST_LINEAR if linear else OVERLAP_EXCHANGE_RATE
+        return by_overlap == r and gain >= rate * rougher and not scores[r].flags
 
     out = []
     pw, pl = scores[w].plausibility, scores[l].plausibility
@@ -267,6 +275,13 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
             sdlogj=float(rng.choice([0.0, 0.1, 0.2, 0.5, 1.5])),
             folded_fraction=float(rng.choice([0.0, 0.0, 0.005, 0.03, 0.2])),
         )
+        subjects = base.subjects
+        if rng.random() < 0.25:  # affine: no local deformation, flat fields, no folds
+            plaus = dataclasses.replace(plaus, sdlogj=0.0, folded_fraction=0.0)
+            subjects = tuple(
+                dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
+                for q in base.subjects
+            )
         scores[k] = dataclasses.replace(
             base,
             name=k,
@@ -275,6 +290,7 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
             plausibility=plaus,
             flags=("0.2% of voxels fold (test)",) if rng.random() < p_flag else (),
             family=families[rng.integers(len(families))],
+            subjects=subjects,
         )
     comparisons = []
     if confidence:
@@ -807,6 +823,50 @@ def test_the_overlap_is_no_evidence_against_folds_either(cheat_case):
     assert f"1.61x the odds of overlap is less than the {bar:.2f}x" in v.open_pairs[0].reason
     beyond = odds(0.6) / (1.02 * bar)
     assert decided(beyond / (1 + beyond))[0] == [("demons", "bspline")]
+
+
+@pytest.mark.parametrize(("sdlogj", "odds_ratio", "decided"), [
+    (0.35, 2.76, True),  # families_mni2d's 2 mm demons over affine (1.72 vs 2.74 mm)
+    (0.71, 2.42, False),  # its 1 mm demons, which the truth put behind affine (3.07 mm)
+])  # fmt: skip
+def test_the_overlap_against_affine_is_charged_at_its_own_rate(
+    cheat_case, sdlogj, odds_ratio, decided
+):
+    """Against a registration that does not deform locally (affine), SDlogJ is all of the
+    other's local deformation, so the overlap's odds must beat exp(OVERLAP_RATE_AGAINST_LINEAR
+    x SDlogJ), not exp(OVERLAP_EXCHANGE_RATE x SDlogJ). The benchmark's tuning pairs: the
+    2 mm demons' 2.76x odds over affine is evidence (it was not at the exchange rate, 4.2x);
+    the 1 mm demons' 2.42x for fields twice as rough is not. Between two deformable
+    registrations the same numbers are charged at the exchange rate, as before."""
+    from itk_nrreval.measures.verdict import OVERLAP_EXCHANGE_RATE, OVERLAP_RATE_AGAINST_LINEAR
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+    affine = _registration(base, "affine", spec=10.0, overlap=0.5, sdlogj=0.0)
+    affine = dataclasses.replace(
+        affine,
+        subjects=tuple(
+            dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
+            for q in base.subjects
+        ),
+        family=("affine", "simpleitk"),
+    )
+    p = odds_ratio / (1 + odds_ratio)  # odds 1 for affine's 0.5
+    demons = _registration(base, "demons", spec=10.0, overlap=p, sdlogj=sdlogj)
+    assert np.exp(OVERLAP_EXCHANGE_RATE * sdlogj) > odds_ratio  # open at the exchange rate
+    assert (np.exp(OVERLAP_RATE_AGAINST_LINEAR * sdlogj) < odds_ratio) == decided
+    for other, expected in ((affine, decided), (_registration(base, "affine", spec=10.0,
+                            overlap=0.5, sdlogj=0.0), False)):  # fmt: skip
+        scores = {"demons": demons, "affine": other}
+        overlaps = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
+        comparisons = _separable_where(overlaps, [{"demons", "affine"}], "overlap.inverse_volume")
+        v = verdict(scores, comparisons, has_labels=True)
+        pairs = [(d.better, d.worse) for d in v.decisions]
+        # the second "affine" deforms locally (the truth's subjects): the exchange rate
+        assert pairs == ([("demons", "affine")] if expected else []), (other.subjects[1], pairs)
+        if expected:
+            assert v.decisions[0].basis.startswith("overlap")
+            assert "affine does not deform locally" in v.decisions[0].basis
 
 
 def test_the_description_length_decides_only_between_settings_of_one_family(cheat_case):

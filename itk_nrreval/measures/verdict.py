@@ -13,8 +13,10 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   deviation of the log Jacobian determinant) and the advantage is smaller than roughness
   alone can buy: ``ln(spec(b) / spec(a)) < EXCHANGE_RATE * dr`` for specificity (a 1.7x
   lower specificity for 0.1 rougher fields, 4x for 0.25), and on the log-odds of the
-  inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; smoother fields are
-  not charged; or
+  inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`
+  (:data:`OVERLAP_RATE_AGAINST_LINEAR` where ``b`` does not deform locally, an affine
+  registration: there SDlogJ is all of ``a``'s local deformation, the correspondence it
+  gains included); smoother fields are not charged; or
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat); or
 - it is a preference for ``a`` over a ``b`` that folds (at least
@@ -98,6 +100,7 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     MIN_SPECIFICITY_RATIO,
     NO_FOLDING_FRACTION,
     OVERLAP_EXCHANGE_RATE,
+    OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
 )
@@ -112,6 +115,7 @@ __all__ = [
     "EXCHANGE_RATE",
     "SMOOTHNESS_RATE",
     "OVERLAP_EXCHANGE_RATE",
+    "OVERLAP_RATE_AGAINST_LINEAR",
     "MIN_ROUGHNESS_DIFFERENCE",
     "MIN_SPECIFICITY_RATIO",
     "SEVERE_FOLDED_FRACTION",
@@ -325,7 +329,9 @@ def verdict(
         by_spec = prefers(_SPECIFICITY, a, b, lower=True)
         by_overlap = prefers(_OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
-        evidence = _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded)
+        evidence = _evidence(
+            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms
+        )
         _add_smoother_evidence(
             evidence, comparison(_SPECIFICITY, a, b), spec, rough, folded, deforms, family
         )
@@ -383,10 +389,12 @@ def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
     return fa is not None and fa == fb
 
 
-def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) -> dict:
+def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms) -> dict:
     """Each measure's separable preference in the pair ``{measure: _Preference}``. It is
     evidence unless the preferred registration's fields are rougher by ``dr`` and the gain
-    is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it), or it is the overlap's
+    is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for the overlap
+    ``OVERLAP_EXCHANGE_RATE``, or ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration
+    that does not deform locally, `deforms`), or it is the overlap's
     preference for a flagged registration (what a cheat games), or a preference over a
     registration that folds (:func:`_against_folds`), or specificity's by a small ratio
     (:data:`MIN_SPECIFICITY_RATIO`)."""
@@ -401,6 +409,9 @@ def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) 
             gain = _log_ratio(_odds(overlap[preferred]), _odds(overlap[other]))
         discount, why = None, None
         rate = EXCHANGE_RATE if measure == _SPECIFICITY else OVERLAP_EXCHANGE_RATE
+        linear = measure == _OVERLAP and deforms[preferred] and not deforms[other]
+        if linear:
+            rate = OVERLAP_RATE_AGAINST_LINEAR  # SDlogJ is all of preferred's deformation
         if measure == _OVERLAP and preferred in flagged:
             discount = "flagged"
         elif gain < rate * max(0.0, rough[preferred] - rough[other]):
@@ -409,6 +420,12 @@ def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded) 
             discount = "folds"
         elif measure == _SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
+        elif linear and rough[preferred] > rough[other]:  # evidence: say why it counts
+            why = (
+                f"{other} does not deform locally, so {preferred}'s SDlogJ is all of its local "
+                f"deformation, and {math.exp(gain):.2f}x the odds is more than the "
+                f"{math.exp(rate * (rough[preferred] - rough[other])):.2f}x it could buy"
+            )
         out[measure] = _Preference(preferred, other, gain, discount, why=why)
     return out
 
@@ -555,6 +572,7 @@ def _decide(a, b, evidence, rough, folded) -> Decision | None:
     details += [
         _too_little(p, rough) for p in evidence.values() if p.rougher_at_most and p.discount is None
     ]
+    details += [p.why for p in evidence.values() if p.discount is None and p.why]
     details.append(_roughness(w, l, rough))
     details += [_discounted(m, p, rough) for m, p in evidence.items() if p.discount]
     return Decision(w, l, f"{' and '.join(_WORD[m] for m in used)} ({'; '.join(details)})")
