@@ -91,7 +91,6 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--method",
         action="append",
-        default=[],
         metavar="NAME=METHOD",
         help="with --ants/--elastix/--fsl/--niftyreg: the method of the registration NAME "
         "(e.g. syn=SyN), where its files do not say it (ANTs warps, NiftyReg fields); "
@@ -155,7 +154,7 @@ def manifest_of(args: argparse.Namespace):
         **patterns,
         labels=args.labels,
         mask=args.mask,
-        methods=_methods(args.method),
+        methods=_methods(args.method or []),
     )
 
 
