@@ -57,10 +57,11 @@ errors, decision, basis, outcome), ``summary.md`` (per case and overall; also th
 verdict without the overlap, as on data without labels) and ``splits.md`` / ``splits.json``.
 
 Run: ``python benchmarks/run_all.py verdict`` (every case), or
-``python benchmarks/bench_verdict.py [--quick] [--new] [--cases a,b] [--rejudge]``;
+``python benchmarks/bench_verdict.py [--quick] [--new] [--cases a,b] [--missing] [--rejudge]``;
 ``--quick`` runs ``demo``, ``similar`` and ``folding`` (a few minutes), ``--new`` the
-``families_*`` cases and their second scans; whichever cases ran, the tables are written
-over every saved case.
+``families_*`` cases and their second scans, ``--missing`` only those of them not saved yet
+(``benchmarks/out/`` is not in the repository: on a new machine every case, 3-4 hours);
+whichever cases ran, the tables are written over every saved case.
 """
 
 from __future__ import annotations
@@ -1299,11 +1300,19 @@ def main(argv: list[str] | None = None) -> dict:
         action="store_true",
         help="only the cases of issue 41 (families_*) and their second scans",
     )
+    parser.add_argument(
+        "--missing",
+        action="store_true",
+        help="only the cases not saved yet (benchmarks/out/ is not in the repository: on a "
+        "new machine, every case), each before its second scan",
+    )
     args = parser.parse_args([] if argv is None else argv)
-    known = list(_cases())
+    known = list(_cases())  # each case before its second scan
     new = [c for c in known if "families_" in c]
     cases = args.cases.split(",") if args.cases else list(QUICK if args.quick else known)
     cases = new if args.new and not args.cases else cases
+    if args.missing:
+        cases = [c for c in cases if not (OUT / c / "evaluation.pkl").exists()]
     unknown = [c for c in cases if c not in known]
     if unknown:
         parser.error(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(known)}")
