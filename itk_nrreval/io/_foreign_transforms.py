@@ -75,6 +75,7 @@ __all__ = [
     "parse_entry",
     "entry_of",
     "plain_field_problem",
+    "method_of_file",
 ]
 
 FORMATS = ("fsl", "afni", "lta", "niftyreg", "itk")
@@ -104,6 +105,10 @@ _NIFTYREG_TYPES = {
 }
 # FSL's NIfTI intent codes (fsl.data.constants): FNIRT, topup and DCT fields and coefficients
 _FSL_INTENTS = {2006, 2007, 2008, 2009, 2010, 2016, 2017, 2018}
+# Of those, FNIRT's coefficient files (cubic spline, DCT, quadratic spline): written by fnirt
+# alone. A displacement field (2006) is not among them: convertwarp writes those too, from
+# any chain of transforms.
+_FNIRT_COEFFICIENTS = {2007, 2008, 2009}
 
 
 # ----------------------------------------------------------------------------- grids
@@ -626,6 +631,26 @@ def _nifti_header(path: Path):
         return nib.load(path)
     except Exception as exc:
         raise InputError(f"{path}: cannot read it as NIfTI ({_first_line(exc)})") from None
+
+
+def method_of_file(path: str | os.PathLike, fmt: str) -> str | None:
+    """The registration method an FSL or NiftyReg transform file names, or None where it
+    does not say: a FLIRT matrix is ``flirt``, an FNIRT coefficient file ``fnirt``, a
+    reg_aladin matrix ``aladin``; an FSL displacement field and a NiftyReg field do not say
+    (convertwarp and reg_transform write them from any chain of transforms).
+
+    Raises
+    ------
+    InputError
+        Naming the file, where an FSL field cannot be read as NIfTI.
+    """
+    path = Path(path)
+    if not path.name.lower().endswith(_NIFTI):
+        return {"fsl": "flirt", "niftyreg": "aladin"}.get(fmt)
+    if fmt != "fsl":
+        return None
+    code = int(_nifti_header(path).header["intent_code"])
+    return "fnirt" if code in _FNIRT_COEFFICIENTS else None
 
 
 def _niftyreg_kind(img, path: Path) -> int:

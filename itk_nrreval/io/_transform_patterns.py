@@ -17,6 +17,7 @@ from pathlib import Path
 
 from .._errors import InputError
 from ._elastix_files import final_parameter_file, read_parameter_file
+from ._foreign_transforms import method_of_file
 
 __all__ = ["engines_of", "matches", "method_written", "registrations_found", "subject_label"]
 
@@ -208,12 +209,6 @@ def engines_of(
     return {name: engine for engine, value in given.items() for name in _named(value, engine)}
 
 
-# FSL's intent codes of FNIRT's coefficient files (fsl.data.constants: cubic spline, DCT,
-# quadratic spline): written by fnirt alone. A displacement field (2006) is not among them:
-# convertwarp writes those too, from any chain of transforms.
-_FNIRT_COEFFICIENTS = {2007, 2008, 2009}
-
-
 def method_written(engine: str, chains: Mapping[tuple, list]) -> str | None:
     """The method a registration's files name, where every subject's files name the same one;
     else None (the files do not say, or subjects differ).
@@ -243,15 +238,4 @@ def _method_of(engine: str, chain: list) -> str | None:
     if engine == "elastix":
         transform = read_parameter_file(chain[-1]).get("Transform") or [None]
         return transform[0]
-    path = Path(_file_of(chain[-1]))
-    if not path.name.lower().endswith((".nii", ".nii.gz")):
-        return {"fsl": "flirt", "niftyreg": "aladin"}.get(engine)
-    if engine == "fsl":
-        import nibabel as nib
-
-        try:
-            code = int(nib.load(path).header["intent_code"])
-        except Exception:  # unreadable: the manifest's own check names the file
-            return None
-        return "fnirt" if code in _FNIRT_COEFFICIENTS else None
-    return None
+    return method_of_file(_file_of(chain[-1]), engine)
