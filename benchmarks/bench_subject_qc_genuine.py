@@ -767,7 +767,7 @@ def _markdown(result: dict) -> str:
 def main(argv: list[str] | None = None) -> dict:
     bv = _verdict_bench()
     # the splits bench_verdict declares (later ones, FRESH2, FRESH3, ..., where it has them)
-    declared = {"tuning": "TUNING", "held-out": "HELD_OUT", "fresh": "FRESH"}
+    declared = {"tuning": "TUNING", "tuning2": "TUNING2", "held-out": "HELD_OUT", "fresh": "FRESH"}
     declared |= {f"fresh{k}": f"FRESH{k}" for k in range(2, 100)}
     split_cases = {
         split: [c for c in getattr(bv, name) if c.startswith("families_")]
