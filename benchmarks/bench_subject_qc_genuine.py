@@ -154,6 +154,14 @@ DECIDES_THE_DEFAULT = ("fresh11",)
 #: The split declared after FRESH11 failed the flag on second scans alone, which decides
 #: whether it is the default on the registered images (its registered-image modes only).
 DECIDES_THE_REGISTERED_DEFAULT = ("fresh12",)
+#: The subject flag on the concern declared in the ninth session of issue 42
+#: (``bench_verdict``, with TUNING2 and FRESH14): the thresholds tried, the most the flag
+#: may flag of the subjects that did not fail (its own false alarms, in every mode) on the
+#: splits that set it, those splits, and the split that decides whether it is the default.
+CONCERN_THRESHOLDS = tuple(1.0 + 0.25 * k for k in range(13))
+CONCERN_OWN_FALSE_ALARMS = 0.03
+SETS_THE_CONCERN = ("tuning", "tuning2")
+DECIDES_THE_CONCERN = ("fresh14",)
 #: The registration that is not deformable (left out of the Spearman means).
 AFFINE = "affine"
 #: Issue 42's goals, judged on the held-out split.
@@ -606,6 +614,74 @@ def flag_check(s: dict) -> dict:
     }
 
 
+def concern_flags(subjects: list[dict], threshold: float) -> list[bool]:
+    """Which of one registration's judged subjects (rows of :func:`measure_case`, in one
+    mode) the flag on the concern marks as their own: concern above `threshold`, unless at
+    least half of them, and at least two, carry it (then it is the registration's, as
+    :func:`itk_nrreval.measures.subject_qc.assess_subjects` says any such kind once)."""
+    above = [bool(r["terms"]["concern"] > threshold) for r in subjects]  # NaN: False
+    if sum(above) >= 2 and 2 * sum(above) >= len(subjects):
+        return [False] * len(subjects)
+    return above
+
+
+def concern_flag_numbers(measured: list[dict], threshold: float) -> dict:
+    """Pooled over the (case, registration) entries of `measured` (one group, one mode): the
+    recall and false alarms of the default flags (every kind but the bias-corrected
+    distance's, which is off by default), of the default flags with the flag on the concern,
+    and the flag's own false alarms (the others it marks, whatever else they carry)."""
+    failed = others = hit_before = hit = fa_before = fa = own_fa = 0
+    for m in measured:
+        for reg in m["registrations"].values():
+            rows = reg["subjects"]
+            for r, flagged in zip(rows, concern_flags(rows, threshold), strict=True):
+                default = r["flagged_before"]
+                if r["failed"]:
+                    failed += 1
+                    hit_before += default
+                    hit += default or flagged
+                else:
+                    others += 1
+                    fa_before += default
+                    fa += default or flagged
+                    own_fa += flagged
+    return {
+        "threshold": threshold,
+        "failed": failed,
+        "others": others,
+        "recall_before": _rate(hit_before, failed),
+        "recall": _rate(hit, failed),
+        "false_alarms_before": _rate(fa_before, others),
+        "false_alarms": _rate(fa, others),
+        "own_false_alarms": _rate(own_fa, others),
+    }
+
+
+def choose_concern_threshold(by_mode: dict[str, list[dict]]) -> float | None:
+    """The declared rule: the least of :data:`CONCERN_THRESHOLDS` at which the flag's own
+    false alarms are at most :data:`CONCERN_OWN_FALSE_ALARMS` in every mode of `by_mode`
+    (mode -> the measured cases of :data:`SETS_THE_CONCERN`); None if none is."""
+    for threshold in CONCERN_THRESHOLDS:
+        own = [concern_flag_numbers(m, threshold)["own_false_alarms"] for m in by_mode.values()]
+        if own and all(v is not None and v <= CONCERN_OWN_FALSE_ALARMS for v in own):
+            return threshold
+    return None
+
+
+def concern_check(numbers: dict) -> dict:
+    """The criterion the flag on the concern becomes the default by (declared with it), on
+    one mode of :data:`DECIDES_THE_CONCERN` pooled: every flag together at most the issue's
+    5% false alarms, and the recall rising by more than the false alarms."""
+    gain = (numbers["recall"] or 0.0) - (numbers["recall_before"] or 0.0)
+    rise = (numbers["false_alarms"] or 0.0) - (numbers["false_alarms_before"] or 0.0)
+    return {
+        "recall_gain": gain,
+        "false_alarm_rise": rise,
+        "false alarms <= 5%": (numbers["false_alarms"] or 0.0) <= GOALS["false_alarms"],
+        "recall rises by more than the false alarms": gain > rise,
+    }
+
+
 def _pct(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.0f}%"
 
@@ -687,6 +763,7 @@ def _markdown(result: dict) -> str:
                 f"- {group}, {mode}: recall +{100 * c['recall_gain']:.0f} points, false "
                 f"alarms +{100 * c['false_alarm_rise']:.0f} points; {words}"
             )
+    lines += _concern_flag_lines(result["concern_flag"])
     lines += ["", "Goals of issue 42 on the held-out split:", ""]
     for mode, g in result["goals_held_out"].items():
         words = "; ".join(
@@ -847,6 +924,7 @@ def main(argv: list[str] | None = None) -> dict:
                 check[group][mode] = flag_check(pooled)
     result = {
         "failed_ratio": FAILED_RATIO,
+        "concern_flag": _concern_flag(cases, split_cases, missing),
         "flag_check": check,
         "goals": GOALS,
         "splits": splits,
@@ -870,6 +948,75 @@ def main(argv: list[str] | None = None) -> dict:
     print(text)
     # run_all saves what main returns: the pooled numbers, not every subject
     return _json_safe({k: v for k, v in result.items() if k != "cases"})
+
+
+def _concern_flag(cases: list[dict], split_cases: dict, missing: list[str]) -> dict:
+    """The flag on the concern: its threshold set by the declared rule on
+    :data:`SETS_THE_CONCERN` (None while any of their cases is not saved), then its numbers
+    per split and mode, and the check of :data:`DECIDES_THE_CONCERN`."""
+
+    def measured(splits: tuple[str, ...], mode: str) -> list[dict]:
+        return [
+            c["modes"][mode]["measured"]
+            for c in cases
+            if c["split"] in splits and c["modes"].get(mode)
+        ]
+
+    setting = [c for split in SETS_THE_CONCERN for c in split_cases.get(split, [])]
+    if any(c in missing or f"unseen_{c}" in missing for c in setting):
+        return {"threshold": None, "why": "not set: a case of the splits that set it is missing"}
+    threshold = choose_concern_threshold({m: measured(SETS_THE_CONCERN, m) for m, _, _ in MODES})
+    if threshold is None:
+        return {"threshold": None, "why": "no threshold tried meets the rule"}
+    splits = {
+        split: {m: concern_flag_numbers(measured((split,), m), threshold) for m, _, _ in MODES}
+        for split in split_cases
+        if any(c["split"] == split for c in cases)
+    }
+    check = {
+        m: concern_check(concern_flag_numbers(measured(DECIDES_THE_CONCERN, m), threshold))
+        for m, _, _ in MODES
+        if measured(DECIDES_THE_CONCERN, m)
+    }
+    return {"threshold": threshold, "splits": splits, "check": check}
+
+
+def _concern_flag_lines(flag: dict) -> list[str]:
+    if flag["threshold"] is None:
+        return ["", f"The flag on the concern (issue 42, ninth session): {flag['why']}."]
+    lines = [
+        "",
+        f"The flag on the concern (issue 42, ninth session): concern above "
+        f"{flag['threshold']:g}, the least of {CONCERN_THRESHOLDS[0]:g}-"
+        f"{CONCERN_THRESHOLDS[-1]:g} at which it flags at most "
+        f"{CONCERN_OWN_FALSE_ALARMS:.0%} of the subjects that did not fail in every mode over "
+        f"{' and '.join(SETS_THE_CONCERN)} (the declared rule). Recall and false alarms of "
+        "the default flags -> with it; its own false alarms:",
+        "",
+        "| split | mode | recall | false alarms | its own false alarms |",
+        "|---|---|--:|--:|--:|",
+    ]
+    for split, modes in flag["splits"].items():
+        for mode, n in modes.items():
+            if n["failed"] + n["others"] == 0:
+                continue
+            lines.append(
+                f"| {split} | {mode} | {_pct(n['recall_before'])} -> {_pct(n['recall'])} | "
+                f"{_pct(n['false_alarms_before'])} -> {_pct(n['false_alarms'])} | "
+                f"{_pct(n['own_false_alarms'])} |"
+            )
+    lines += ["", f"Its check on {', '.join(DECIDES_THE_CONCERN)} (declared with it):", ""]
+    for mode, c in flag["check"].items():
+        words = "; ".join(
+            f"{k}: {'pass' if v else 'FAIL'}" for k, v in c.items() if isinstance(v, bool)
+        )
+        lines.append(
+            f"- {mode}: recall +{100 * c['recall_gain']:.0f} points, false alarms "
+            f"+{100 * c['false_alarm_rise']:.0f} points; {words}"
+        )
+    if not flag["check"]:
+        lines.append("- not run yet")
+    return lines
 
 
 def _json_safe(value):

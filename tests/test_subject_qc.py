@@ -874,17 +874,14 @@ def test_a_subject_folding_only_between_grid_points_is_flagged_for_folding():
     assert "central differences: 0.00%" in flagged[4][0]
 
 
-def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first():
-    """Issue 42: on a generated cohort registered to its own subject 0 (the identity), with
-    one subject of poor label overlap, one rough (SDlogJ 4x) and one stopped early (almost no
-    non-linear displacement, the least SDlogJ): every subject's concern and the term it comes
-    from are the ones written out by hand from its own z-scores, with and without labels;
-    the subjects are ranked by it, worst first; the reference has none, is never flagged and
-    is listed last."""
-    from itk_nrreval.measures.subject_qc import assess_subjects, ranked
+def _concern_cohort(thresholds):
+    """A generated cohort of 12 registered to its own subject 0 (the identity), with one
+    subject of poor label overlap (9), one rough (7: SDlogJ 4x) and one stopped early (4),
+    assessed with and without labels under `thresholds`: (labelled, unlabelled)."""
+    from itk_nrreval.measures.subject_qc import assess_subjects
 
     n, n_labels = 12, 4
-    numbers = _cohort_numbers([0.3] * n, seed=3)
+    numbers = {**_cohort_numbers([0.3] * n, seed=3), "thresholds": thresholds}
     defo = numbers["deformation"]
     for key, value in (("sdlogj", 0.0), ("nonlinear_rms_mm", 0.0), ("displacement_rms_mm", 0.0)):
         defo[key][0] = value  # the reference: the identity
@@ -905,7 +902,52 @@ def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first(
         overlap_target_sums=target,
         overlap_weights=np.ones(n_labels),
     )
-    unlabelled = assess_subjects(**numbers, reference=0)
+    return labelled, assess_subjects(**numbers, reference=0)
+
+
+@pytest.mark.parametrize("threshold", [0.5, 1.0, 2.0, None])
+def test_the_concern_flag_flags_exactly_the_subjects_above_its_threshold(threshold):
+    """Issue 42: `SubjectThresholds.concern` flags a subject whose concern, written out by
+    hand from its own z-scores, is above the threshold, and no other subject for that
+    reason, with and without labels; the reference never; None (off) flags none for it. Its
+    words give the concern and the term it comes from most."""
+    flagged_somewhere = set()
+    for subjects in _concern_cohort(nr.SubjectThresholds(concern=threshold)):
+        reference, *others = subjects
+        assert reference.flags == () and reference.concern is None
+        for q in others:
+            by_hand, words = _concern_by_hand(
+                {
+                    "overlap_z": q.overlap_z,
+                    "corrected_z": q.corrected_z,
+                    "sdlogj_z": q.deformation["sdlogj_z"],
+                    "inverse_consistency_z": q.deformation["inverse_consistency_z"],
+                }
+            )
+            mine = [f for f in q.flags if f.startswith("among the worst of its cohort")]
+            expected = threshold is not None and by_hand > threshold
+            assert bool(mine) == expected, (q.index, by_hand)
+            if expected:
+                (flag,) = mine
+                assert (
+                    f"concern {by_hand:+.2f} (above {threshold:g}; most from its {words})" in flag
+                )
+                flagged_somewhere.add(q.index)
+    # the cohort has subjects on both sides of every threshold tried (the test can fail)
+    assert (9 in flagged_somewhere) == (threshold is not None)
+    assert len(flagged_somewhere) < 11
+
+
+def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first():
+    """Issue 42: on a generated cohort registered to its own subject 0 (the identity), with
+    one subject of poor label overlap, one rough (SDlogJ 4x) and one stopped early (almost no
+    non-linear displacement, the least SDlogJ): every subject's concern and the term it comes
+    from are the ones written out by hand from its own z-scores, with and without labels;
+    the subjects are ranked by it, worst first; the reference has none, is never flagged and
+    is listed last."""
+    from itk_nrreval.measures.subject_qc import ranked
+
+    labelled, unlabelled = _concern_cohort(nr.SubjectThresholds())
     for subjects, labels in ((labelled, True), (unlabelled, False)):
         reference, *others = subjects
         assert reference.reference and reference.concern is None

@@ -92,6 +92,13 @@ def ratio_or_off(text: str) -> float | None:
     return _number(text, lambda v: 1 < v < math.inf, "a number > 1, or off")
 
 
+def positive_or_off(text: str) -> float | None:
+    """A finite number > 0, or ``off`` (None)."""
+    if text.strip().lower() == "off":
+        return None
+    return _number(text, lambda v: 0 < v < math.inf, "a positive number, or off")
+
+
 def fraction(text: str) -> float:
     """A number in [0, 1]."""
     return _number(text, lambda v: 0 <= v <= 1, "a fraction in [0, 1]")

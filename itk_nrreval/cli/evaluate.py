@@ -12,6 +12,7 @@ from ._options import (
     fraction,
     integer,
     positive,
+    positive_or_off,
     ratio_or_off,
     samples,
     seed,
@@ -378,6 +379,14 @@ SUBJECT_OPTIONS = (
         "flag a subject whose bias-corrected distance to the mean of the others (gain and "
         "smooth bias taken away) is above R x the cohort's median; 1.4 was measured on "
         "genuine registrations (docs/subject-qc.md)",
+    ),
+    (
+        "--subject-concern",
+        "concern",
+        positive_or_off,
+        "C",
+        "flag a subject whose concern (the weighted mean of its robust z-scores that ranks "
+        "the subjects, docs/subject-qc.md) is above C",
     ),
     (
         "--subject-overlap-z",

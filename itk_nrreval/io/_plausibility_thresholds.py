@@ -117,6 +117,13 @@ class SubjectThresholds:
         to decide it (FRESH11) failed the same way on its second scans; the split declared
         to decide it on the registered images alone (FRESH12) failed there too (1 of the 3
         false alarms it added a near miss): it is not the default.
+    concern : float or None
+        Flag a subject whose concern (the ranked per-subject score,
+        :attr:`~itk_nrreval.measures.subject_qc.SubjectQC.concern`: a weighted mean of its
+        robust z-scores, positive worse) is above this. Off by default (None); the threshold
+        is set on the genuine registrations' tuning splits and checked on a split declared
+        before it ran (``benchmarks/bench_subject_qc_genuine.py``, ``docs/subject-qc.md``,
+        issue 42).
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
         3.5) ...
@@ -160,6 +167,7 @@ class SubjectThresholds:
     deformation_z: float = 3.5
     deformation_ratio: float = 1.5
     corrected_ratio: float | None = None
+    concern: float | None = None
     overlap_z: float = 3.5
     overlap_ratio: float = 1.5
     folded: float = 0.01

@@ -24,13 +24,21 @@ from ._subject_measures import (
     others_mean_distances,
     pair_distances,
     robust_z,
+    subject_concern,
     subject_overlaps,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..io.plausibility import SubjectThresholds
 
-__all__ = ["FLAG_KINDS", "Cohort", "cohort_statistics", "flags_and_causes", "shared_kinds"]
+__all__ = [
+    "FLAG_KINDS",
+    "Cohort",
+    "cohort_statistics",
+    "concern_of",
+    "flags_and_causes",
+    "shared_kinds",
+]
 
 #: Below this cohort median (mm) of the non-linear displacement, the cohort itself is affine
 #: and "affine only" says nothing about one subject.
@@ -85,6 +93,7 @@ FLAG_KINDS = {
     "affine_only": "have almost no non-linear displacement",
     "overlap": "have a label overlap with the others far below the cohort's",
     "brain_mask": "have a brain mask that matches the common mask poorly in the common frame",
+    "concern": "have a concern above the threshold",
 }
 
 
@@ -260,6 +269,13 @@ def flags_and_causes(
     corrected = _corrected_flag(i, c, th)
     if corrected:
         add("corrected_distance", corrected)
+    concern, concern_from = concern_of(i, c)
+    if th.concern is not None and concern is not None and concern > th.concern:
+        add(
+            "concern",
+            f"among the worst of its cohort: concern {concern:+.2f} (above {th.concern:g}; "
+            f"most from its {concern_from})",
+        )
     folded = defo["folded_fraction"][i]
     folds = folded > th.folded and add("folding", f"{folded:.1%} of its voxels fold (det J <= 0)")
     # folds between grid points, which central differences miss (issue 42): NaN never flags
@@ -313,6 +329,24 @@ def flags_and_causes(
             f"(below {BRAIN_MASK_DICE_MIN})",
         )
     return flags, causes, theirs
+
+
+def concern_of(i: int, c: Cohort) -> tuple[float | None, str | None]:
+    """Subject `i`'s concern (:func:`~._subject_measures.subject_concern`, from its robust
+    z-scores against the cohort `c`) and the term contributing most; (None, None) where no
+    term was measured."""
+
+    def z(values: np.ndarray | None) -> float | None:
+        return None if values is None or math.isnan(values[i]) else float(values[i])
+
+    return subject_concern(
+        {
+            "overlap_z": z(c.overlap_z),
+            "corrected_z": z(c.corrected_z),
+            "sdlogj_z": z(c.deformation_z["sdlogj"]),
+            "inverse_consistency_z": z(c.deformation_z["inverse_consistency_mm"]),
+        }
+    )
 
 
 def _corrected_flag(i: int, c: Cohort, th: SubjectThresholds) -> str | None:

@@ -111,7 +111,14 @@ import numpy as np
 
 from .._output import json_number
 from ._reference_subject import IDENTITY_MM, reference_subject
-from ._subject_flags import FLAG_KINDS, Cohort, cohort_statistics, flags_and_causes, shared_kinds
+from ._subject_flags import (
+    FLAG_KINDS,
+    Cohort,
+    cohort_statistics,
+    concern_of,
+    flags_and_causes,
+    shared_kinds,
+)
 from ._subject_measures import (
     CONCERN_TERMS,
     MAD_TO_SD,
@@ -120,7 +127,6 @@ from ._subject_measures import (
     leave_one_out_distances,
     pair_distances,
     robust_z,
-    subject_concern,
     subject_overlaps,
 )
 from ._transform_mixups import MAX_MIXUP_SUBJECTS, Alternative, better_fits
@@ -457,11 +463,7 @@ def _subject_qc(
     }
     z, overlap_z = number(c.z[i]), number(c.overlap_z[i])
     corrected_z = None if c.corrected_z is None else number(c.corrected_z[i])
-    concern, concern_from = (
-        (None, None)
-        if reference
-        else subject_concern({**deformation, "corrected_z": corrected_z, "overlap_z": overlap_z})
-    )
+    concern, concern_from = (None, None) if reference else concern_of(i, c)
     return SubjectQC(
         index=i,
         image=str(images[i]),
