@@ -246,12 +246,13 @@ def _smoothed_preference(rule, a, b, smoothed, rough, folded, deforms):
 def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
     """The package's verdict with the rule's evidence added to every pair that has
     subject-level confidence (its smoother-fields step wrapped); None: as it is."""
+    from itk_nrreval.measures import _pair_evidence as e
     from itk_nrreval.measures import verdict as v
 
     if rule is None or smoothed is None:
         yield
         return
-    original = v._add_smoother_evidence
+    original = v.add_smoother_evidence
 
     def add(evidence, c, spec, rough, folded, deforms, family):
         original(evidence, c, spec, rough, folded, deforms, family)
@@ -260,15 +261,15 @@ def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
         found = _smoothed_preference(rule, c.a, c.b, smoothed, rough, folded, deforms)
         if found is not None:
             p, gain = found
-            evidence[_MEASURE] = v._Preference(p, c.b if p == c.a else c.a, gain, None)
+            evidence[_MEASURE] = e.Preference(p, c.b if p == c.a else c.a, gain, None)
 
-    v._add_smoother_evidence = add
-    v._WORD[_MEASURE] = "specificity at a common smoothness"
+    v.add_smoother_evidence = add  # the name verdict calls it by
+    e.WORD[_MEASURE] = "specificity at a common smoothness"
     try:
         yield
     finally:
-        v._add_smoother_evidence = original
-        v._WORD.pop(_MEASURE)
+        v.add_smoother_evidence = original
+        e.WORD.pop(_MEASURE)
 
 
 def main(argv: list[str] | None = None) -> dict:

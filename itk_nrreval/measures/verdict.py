@@ -88,11 +88,21 @@ from __future__ import annotations
 
 import itertools
 import math
-import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
+from ._pair_evidence import (
+    OVERLAP,
+    SPECIFICITY,
+    add_description_length,
+    add_smoother_evidence,
+    decision,
+    deforms_locally,
+    lean,
+    measure_evidence,
+    why_open,
+)
 from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     EXCHANGE_RATE,
     MIN_ROUGHNESS_DIFFERENCE,
@@ -105,7 +115,6 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     SMOOTHNESS_RATE,
 )
 from .confidence import Comparison
-from .description_length import MIN_Z, z_of_difference
 
 __all__ = [
     "Decision",
@@ -122,16 +131,6 @@ __all__ = [
     "NO_FOLDING_FRACTION",
     "MIN_SAMPLES",
 ]
-
-_SPECIFICITY = "specificity"
-_OVERLAP = "overlap.inverse_volume"
-_DESCRIPTION_LENGTH = "description length"
-# in a decision's basis
-_WORD = {
-    _SPECIFICITY: "specificity",
-    _OVERLAP: "overlap",
-    _DESCRIPTION_LENGTH: "description length",
-}
 
 
 @dataclass(frozen=True)
@@ -306,9 +305,9 @@ def verdict(
         return _unconverged(scores, n_samples, has_labels)
     rough = {n: float(scores[n].plausibility.sdlogj) for n in names}
     folded = {n: float(scores[n].plausibility.folded_fraction) for n in names}
-    deforms = {n: _deforms_locally(scores[n]) for n in names}
+    deforms = {n: deforms_locally(scores[n]) for n in names}
     family = {n: scores[n].family for n in names}
-    overlap = {n: scores[n].measures().get(_OVERLAP, math.nan) for n in names}
+    overlap = {n: scores[n].measures().get(OVERLAP, math.nan) for n in names}
     sep = {(c.measure, c.a, c.b): c for c in comparisons}
 
     def comparison(measure: str, a: str, b: str) -> Comparison | None:
@@ -326,22 +325,22 @@ def verdict(
     open_pairs: list[OpenPair] = []
     for a, b in itertools.combinations(names, 2):
         a, b = sorted((a, b), key=spec.get)
-        by_spec = prefers(_SPECIFICITY, a, b, lower=True)
-        by_overlap = prefers(_OVERLAP, a, b, lower=False) if has_labels else None
+        by_spec = prefers(SPECIFICITY, a, b, lower=True)
+        by_overlap = prefers(OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
-        evidence = _evidence(
+        found = measure_evidence(
             a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms
         )
-        _add_smoother_evidence(
-            evidence, comparison(_SPECIFICITY, a, b), spec, rough, folded, deforms, family
+        add_smoother_evidence(
+            found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family
         )
-        _add_description_length(evidence, scores[a], scores[b])
-        decision = _decide(a, b, evidence, rough, folded)
-        if decision is not None:
-            decisions.append(decision)
+        add_description_length(found, scores[a], scores[b])
+        decided = decision(a, b, found, rough, folded)
+        if decided is not None:
+            decisions.append(Decision(*decided))
         else:
-            reason = _why_open(evidence, rough, has_labels, bool(comparisons))
-            open_pairs.append(OpenPair(a, b, reason, _lean(evidence)))
+            reason = why_open(found, rough, has_labels, bool(comparisons))
+            open_pairs.append(OpenPair(a, b, reason, lean(found)))
     decisions, contradicted = _without_cycles(decisions)
     for d in contradicted:
         a, b = sorted((d.better, d.worse), key=spec.get)
@@ -354,296 +353,9 @@ def verdict(
     return Verdict(ranking, best, text, tuple(decisions), tuple(open_pairs))
 
 
-class _Preference(NamedTuple):
-    """One measure's separable preference within a pair, and what it is worth."""
-
-    preferred: str
-    other: str
-    gain: float  # ln of the specificity ratio, or of the overlap odds ratio, in its favour
-    discount: str | None  # why not evidence: "rougher", "flagged", "folds", "small",
-    # "families" (the smoother-fields rule across families); None: it is
-    # the smoother-fields rule (SMOOTHNESS_RATE): the rougher's advantage at the top of its
-    # interval, as a ratio; None for a separable preference
-    rougher_at_most: float | None = None
-    why: str | None = None  # the discount in words, where _discounted cannot say it
-    z: float | None = None  # the description length's: jackknife standard errors
-
-
-def _add_description_length(evidence: dict, sa, sb) -> None:
-    """Add the description length's evidence: its preference by at least
-    :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors between
-    two registrations of one known family (``family``: method and engine); ``gain`` is the
-    difference in bits per subject."""
-    da, db = sa.description_length, sb.description_length
-    if da is None or db is None or not _one_family(sa.family, sb.family):
-        return
-    z = z_of_difference(da, db)  # > 0: a's is the shorter
-    if not abs(z) >= MIN_Z:
-        return
-    (w, dw), (l, dl) = ((sa.name, da), (sb.name, db)) if z > 0 else ((sb.name, db), (sa.name, da))
-    evidence[_DESCRIPTION_LENGTH] = _Preference(w, l, dl.bits - dw.bits, None, z=abs(z))
-
-
-def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
-    """Whether two registrations are of one known family (the same ``(method, engine)``)."""
-    return fa is not None and fa == fb
-
-
-def _evidence(a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms) -> dict:
-    """Each measure's separable preference in the pair ``{measure: _Preference}``. It is
-    evidence unless the preferred registration's fields are rougher by ``dr`` and the gain
-    is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for the overlap
-    ``OVERLAP_EXCHANGE_RATE``, or ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration
-    that does not deform locally, `deforms`), or it is the overlap's
-    preference for a flagged registration (what a cheat games), or a preference over a
-    registration that folds (:func:`_against_folds`), or specificity's by a small ratio
-    (:data:`MIN_SPECIFICITY_RATIO`)."""
-    out = {}
-    for measure, preferred in ((_SPECIFICITY, by_spec), (_OVERLAP, by_overlap)):
-        if preferred is None:
-            continue
-        other = b if preferred == a else a
-        if measure == _SPECIFICITY:
-            gain = _log_ratio(spec[other], spec[preferred])
-        else:
-            gain = _log_ratio(_odds(overlap[preferred]), _odds(overlap[other]))
-        discount, why = None, None
-        rate = EXCHANGE_RATE if measure == _SPECIFICITY else OVERLAP_EXCHANGE_RATE
-        linear = measure == _OVERLAP and deforms[preferred] and not deforms[other]
-        if linear:
-            rate = OVERLAP_RATE_AGAINST_LINEAR  # SDlogJ is all of preferred's deformation
-        if measure == _OVERLAP and preferred in flagged:
-            discount = "flagged"
-        elif gain < rate * max(0.0, rough[preferred] - rough[other]):
-            discount = "rougher"
-        elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded):
-            discount = "folds"
-        elif measure == _SPECIFICITY and (why := _small(preferred, other, gain, rough)):
-            discount = "small"
-        elif linear and rough[preferred] > rough[other]:  # evidence: say why it counts
-            why = (
-                f"{other} does not deform locally, so {preferred}'s SDlogJ is all of its local "
-                f"deformation, and {math.exp(gain):.2f}x the odds is more than the "
-                f"{math.exp(rate * (rough[preferred] - rough[other])):.2f}x it could buy"
-            )
-        out[measure] = _Preference(preferred, other, gain, discount, why=why)
-    return out
-
-
-def _against_folds(measure, rate, preferred, other, gain, rough, folded) -> str | None:
-    """Why `measure`'s preference for `preferred` is no evidence against `other`, which
-    folds, in words; None where it is (the gain reaches what ``preferred``'s own roughness
-    could buy at the measure's exchange `rate`, or `other` folds less than
-    :data:`NO_FOLDING_FRACTION`, or no more than `preferred`)."""
-    if folded[other] < NO_FOLDING_FRACTION or folded[other] <= folded[preferred]:
-        return None
-    if gain >= rate * rough[preferred]:
-        return None
-    what = "lower specificity" if measure == _SPECIFICITY else "the odds of overlap"
-    return (
-        f"{other} folds {folded[other]:.1%} of its voxels, so SDlogJ ({rough[other]:.2f} vs "
-        f"{rough[preferred]:.2f}) does not say which fields are the rougher; "
-        f"{preferred}'s {math.exp(gain):.2f}x {what} is less than the "
-        f"{math.exp(rate * rough[preferred]):.2f}x its own roughness could buy"
-    )
-
-
-def _small(preferred, other, gain, rough) -> str | None:
-    """Why specificity's preference for `preferred` is too small to be evidence, in words;
-    None where it is not (its ratio reaches :data:`MIN_SPECIFICITY_RATIO`, or its fields are
-    smoother by at least :data:`MIN_ROUGHNESS_DIFFERENCE`)."""
-    if gain >= math.log(MIN_SPECIFICITY_RATIO):
-        return None
-    if rough[other] - rough[preferred] >= MIN_ROUGHNESS_DIFFERENCE:
-        return None
-    return (
-        f"{preferred}'s specificity is only {math.exp(gain):.2f}x lower, below the "
-        f"{MIN_SPECIFICITY_RATIO:g}x a difference must reach where its fields are not clearly "
-        f"smoother (SDlogJ {rough[preferred]:.2f} vs {rough[other]:.2f})"
-    )
-
-
-def _add_smoother_evidence(
-    evidence: dict, c: Comparison | None, spec, rough, folded, deforms, family
-) -> None:
-    """Add specificity's evidence for the smoother registration of a pair when the rougher
-    one's specificity advantage, at the top of its interval, is below what
-    :data:`SMOOTHNESS_RATE` says its extra roughness must buy (``gain`` is then minus that
-    top). Separable evidence already found, or a discount other than roughness, stays.
-
-    Only between two registrations of one known family (`family`: name -> ``(method,
-    engine)`` or None): across families the same preference is recorded as no evidence
-    (discount ``"families"``), so an open pair's reason says which way it leans."""
-    if c is None:
-        return
-    s, r = sorted((c.a, c.b), key=rough.get)
-    dr = rough[r] - rough[s]
-    found = evidence.get(_SPECIFICITY)
-    if dr < MIN_ROUGHNESS_DIFFERENCE or (found is not None and found.discount != "rougher"):
-        return
-    if not deforms[s]:
-        return  # no local deformation (affine): SDlogJ cannot see what it leaves out
-    if folded[s] > folded[r]:
-        return  # folds: roughness that SDlogJ (over the voxels that do not fold) ranks poorly
-    if folded[s] >= NO_FOLDING_FRACTION:
-        return  # one that folds is not credited for its smoothness, whatever its SDlogJ
-    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
-    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
-    if not top_gain < SMOOTHNESS_RATE * dr:
-        return
-    lean = _Preference(s, r, -top_gain, None, math.exp(top_gain))
-    if not _one_family(family[s], family[r]):
-        # Roughness is no common currency across families: in the benchmark's FRESH11, SyN
-        # (SDlogJ 0.20) was preferred this way over demons at 3 mm (0.30), which corresponded
-        # better. The rate was set on settings of one engine.
-        why = f"{_too_little(lean, rough)}, so it leans to {s}; {_across(s, r, family)}"
-        lean = lean._replace(discount="families", why=why)
-    evidence[_SPECIFICITY] = lean
-
-
-def _across(s: str, r: str, family) -> str:
-    """Why the smoother-fields rule does not decide between `s` and `r`, in words."""
-    if family[s] is None or family[r] is None:
-        unknown = " and ".join(n for n in (s, r) if family[n] is None)
-        return (
-            f"not decided, because the family of {unknown} is unknown (the manifest's "
-            "parameters give no method and engine), and roughness is compared only within one"
-        )
-    fs, fr = ("/".join(family[n]) for n in (s, r))
-    return (
-        f"not decided, because {s} ({fs}) and {r} ({fr}) are of different families, "
-        "whose roughness is no common currency"
-    )
-
-
-def _deforms_locally(score) -> bool:
-    """Whether a registration deforms locally: its subjects' median non-linear displacement
-    (RMS, mm) is at least :data:`~itk_nrreval.measures.subject_qc.IDENTITY_MM` (an affine
-    registration's is 0 to round-off). Without per-subject measures: its SDlogJ is at least
-    :data:`MIN_ROUGHNESS_DIFFERENCE`."""
-    from .subject_qc import IDENTITY_MM
-
-    values = [
-        q.deformation.get("nonlinear_rms_mm")
-        for q in (score.subjects or ())
-        if not q.reference and q.deformation
-    ]
-    values = [v for v in values if v is not None and math.isfinite(v)]
-    if not values:
-        return float(score.plausibility.sdlogj) >= MIN_ROUGHNESS_DIFFERENCE
-    return statistics.median(values) >= IDENTITY_MM
-
-
-def _lean(evidence: dict) -> str | None:
-    """The registration the smoother-fields rule prefers across families (discount
-    ``"families"``), unless evidence that counts prefers the other."""
-    p = evidence.get(_SPECIFICITY)
-    if p is None or p.discount != "families" or p.other in _counted(evidence):
-        return None
-    return p.preferred
-
-
-def _counted(evidence: dict) -> set[str]:
-    """The registrations the evidence (not discounted) prefers: none, one, or both."""
-    return {p.preferred for p in evidence.values() if p.discount is None}
-
-
-def _decide(a, b, evidence, rough, folded) -> Decision | None:
-    for w, l in ((a, b), (b, a)):
-        if folded[l] >= SEVERE_FOLDED_FRACTION and folded[w] < NO_FOLDING_FRACTION:
-            return Decision(w, l, f"severe folding ({l} folds {folded[l]:.0%} of its voxels)")
-    if len(_counted(evidence)) != 1:
-        return None  # no evidence, or the measures' evidence disagrees
-    (w,) = _counted(evidence)
-    l = b if w == a else a
-    used = [m for m, p in evidence.items() if p.discount is None]
-    gains = [
-        f"{math.exp(evidence[m].gain):.2f}x "
-        + ("the odds of overlap" if m == _OVERLAP else f"lower {_WORD[m]}")
-        for m in used
-        if evidence[m].rougher_at_most is None and evidence[m].z is None
-    ]
-    gains += [
-        f"{evidence[m].gain:.0f} bits per subject shorter, {evidence[m].z:.1f} standard errors"
-        for m in used
-        if evidence[m].z is not None
-    ]
-    details = [f"separable: {', '.join(gains)}"] if gains else []
-    details += [
-        _too_little(p, rough) for p in evidence.values() if p.rougher_at_most and p.discount is None
-    ]
-    details += [p.why for p in evidence.values() if p.discount is None and p.why]
-    details.append(_roughness(w, l, rough))
-    details += [_discounted(m, p, rough) for m, p in evidence.items() if p.discount]
-    return Decision(w, l, f"{' and '.join(_WORD[m] for m in used)} ({'; '.join(details)})")
-
-
-def _too_little(p: _Preference, rough) -> str:
-    """Why the smoother registration is preferred by the smoother-fields rule, in words."""
-    dr = rough[p.other] - rough[p.preferred]
-    return (
-        f"{p.other}'s fields are {dr:.2f} rougher in SDlogJ, and its specificity advantage is "
-        f"at most {p.rougher_at_most:.2f}x, less than the {math.exp(SMOOTHNESS_RATE * dr):.2f}x "
-        "that much roughness must buy"
-    )
-
-
-def _discounted(measure: str, p: _Preference, rough) -> str:
-    """Why a measure's preference is not evidence, in words."""
-    if p.why is not None:
-        return p.why
-    if p.discount == "flagged":
-        return f"only the overlap prefers {p.preferred}, which is flagged (a cheat games overlap)"
-    what = "lower specificity" if measure == _SPECIFICITY else "higher overlap"
-    return (
-        f"{p.preferred}'s {what} comes with fields "
-        f"{_times(rough[p.preferred], rough[p.other])}rougher (SDlogJ "
-        f"{rough[p.preferred]:.2f} vs {rough[p.other]:.2f}), and its advantage is not larger "
-        "than what roughness alone can buy"
-    )
-
-
 def _basis_words(basis: str) -> list[str]:
     """The kinds of evidence a decision's basis names: "specificity", "overlap", ..."""
     return basis.split(" (")[0].split(" and ")
-
-
-def _odds(p: float) -> float:
-    return p / (1.0 - p) if p < 1.0 else math.inf
-
-
-def _log_ratio(x: float, y: float) -> float:
-    """ln(x / y) for positive x, y; at the edges -inf (x <= 0) or inf (y <= 0), not an
-    error."""
-    if not x > 0:
-        return -math.inf
-    if not y > 0 or math.isinf(x):
-        return math.inf
-    return math.log(x / y)
-
-
-def _roughness(w: str, l: str, rough) -> str:
-    word = "no rougher" if rough[w] <= rough[l] else "rougher"
-    return f"fields {word}: SDlogJ {rough[w]:.2f} vs {rough[l]:.2f}"
-
-
-def _times(x: float, y: float) -> str:
-    # a factor over a near-zero SDlogJ (an affine registration's) means nothing
-    return f"{x / y:.1f}x " if y >= 0.01 else ""
-
-
-def _why_open(evidence, rough, has_labels, confidence) -> str:
-    if not confidence:
-        return "subject-level confidence was not computed, so no difference is known to hold"
-    if len(_counted(evidence)) == 2:  # each measure that counts, and whom it prefers
-        return ", ".join(
-            f"{_WORD[m]} prefers {p.preferred}" for m, p in evidence.items() if p.discount is None
-        )
-    if evidence:
-        return "; ".join(_discounted(m, p, rough) for m, p in evidence.items())
-    if has_labels:
-        return "neither specificity nor overlap differs separably"
-    return "the specificity difference is not separable"
 
 
 def _without_cycles(decisions: list[Decision]) -> tuple[list[Decision], list[Decision]]:
@@ -711,8 +423,8 @@ def _unconverged(scores, n_samples: int, has_labels: bool) -> Verdict:
 def _closing(scores, names, has_labels) -> list[str]:
     """The verdict's last sentences: the highest overlap, and each flagged registration."""
     text = []
-    if has_labels and all(_OVERLAP in scores[n].measures() for n in names):
-        value = {n: scores[n].measures()[_OVERLAP] for n in names}
+    if has_labels and all(OVERLAP in scores[n].measures() for n in names):
+        value = {n: scores[n].measures()[OVERLAP] for n in names}
         top_o = max(names, key=lambda n: value[n])
         text.append(f"Highest inverse-volume overlap (the ground-truth reference): {top_o}.")
     for n in names:
