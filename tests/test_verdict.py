@@ -156,6 +156,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
         OVERLAP_RATE_AGAINST_LINEAR,
         SEVERE_FOLDED_FRACTION,
         SMOOTHNESS_RATE,
+        SPECIFICITY_RATE_AGAINST_LINEAR,
     )
 
     def deforms_locally(r) -> bool:
@@ -213,9 +214,12 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
             gain = np.log(scores[o].specificity.value / scores[r].specificity.value)
             fr, fo = scores[r].plausibility.folded_fraction, scores[o].plausibility.folded_fraction
             sr, so = scores[r].plausibility.sdlogj, scores[o].plausibility.sdlogj
-            if by_spec == r and gain >= EXCHANGE_RATE * rougher:
+            # against one that does not deform locally (affine), a lower rate, unless r folds
+            linear = deforms_locally(r) and not deforms_locally(o) and fr < NO_FOLDING_FRACTION
+            rate = SPECIFICITY_RATE_AGAINST_LINEAR if linear else EXCHANGE_RATE
+            if by_spec == r and gain >= rate * rougher:
                 # against one that folds more (>= 1%): r charged as if o's fields were flat
-                if fo >= NO_FOLDING_FRACTION and fo > fr and gain < EXCHANGE_RATE * sr:
+                if fo >= NO_FOLDING_FRACTION and fo > fr and gain < rate * sr:
                     return False
                 # a small ratio, where r is not smoother by MIN_ROUGHNESS_DIFFERENCE
                 return gain >= np.log(MIN_SPECIFICITY_RATIO) or so - sr >= MIN_ROUGHNESS_DIFFERENCE
@@ -867,6 +871,48 @@ def test_the_overlap_against_affine_is_charged_at_its_own_rate(
         if expected:
             assert v.decisions[0].basis.startswith("overlap")
             assert "affine does not deform locally" in v.decisions[0].basis
+
+
+@pytest.mark.parametrize(("sdlogj", "ratio", "decided"), [
+    (0.35, 2.64, True),  # families_mni2d's 2 mm demons over affine (1.72 vs 2.74 mm)
+    (0.71, 3.06, False),  # its 1 mm demons, which the truth put behind affine (3.07 mm)
+])  # fmt: skip
+def test_specificity_against_affine_is_charged_at_its_own_rate(cheat_case, sdlogj, ratio, decided):
+    """Without labels, against a registration that does not deform locally (affine),
+    specificity must be lower by exp(SPECIFICITY_RATE_AGAINST_LINEAR x SDlogJ), not
+    exp(EXCHANGE_RATE x SDlogJ): the 2 mm demons' 2.64x lower specificity than affine is
+    evidence (it was not at the exchange rate, 6.9x); the 1 mm demons' 3.06x for fields twice
+    as rough is not. Against a registration that deforms locally the same numbers are
+    charged at the exchange rate, as before. The numbers are the tuning case's own."""
+    from itk_nrreval.measures.verdict import EXCHANGE_RATE, SPECIFICITY_RATE_AGAINST_LINEAR
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+    rigid = _registration(base, "affine", spec=10.0 * ratio, overlap=0.5, sdlogj=0.0)
+    rigid = dataclasses.replace(
+        rigid,
+        subjects=tuple(
+            dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
+            for q in base.subjects
+        ),
+        family=("affine", "simpleitk"),
+    )
+    demons = _registration(base, "demons", spec=10.0, overlap=0.5, sdlogj=sdlogj)
+    assert np.exp(EXCHANGE_RATE * sdlogj) > ratio  # open at the exchange rate
+    assert (np.exp(SPECIFICITY_RATE_AGAINST_LINEAR * sdlogj) < ratio) == decided
+    deforming = _registration(base, "affine", spec=10.0 * ratio, overlap=0.5, sdlogj=0.0)
+    for other, expected in ((rigid, decided), (deforming, False)):
+        scores = {"demons": demons, "affine": other}
+        values = {k: s.specificity.value for k, s in scores.items()}
+        comparisons = _separable_where(values, [{"demons", "affine"}], "specificity")
+        v = verdict(scores, comparisons, has_labels=False)
+        pairs = [(d.better, d.worse) for d in v.decisions]
+        # the second "affine" deforms locally (the truth's subjects): the exchange rate
+        assert (("demons", "affine") in pairs) == expected, pairs
+        if expected:
+            basis = v.decisions[0].basis
+            assert basis.startswith("specificity") and "affine does not deform locally" in basis
+            assert f"{ratio:.2f}x lower specificity is more than the" in basis
 
 
 @pytest.mark.xfail(

@@ -24,6 +24,7 @@ from ._verdict_thresholds import (
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SPECIFICITY_RATE_AGAINST_LINEAR,
 )
 from .confidence import Comparison
 from .description_length import MIN_Z, z_of_difference
@@ -96,11 +97,11 @@ def measure_evidence(
     """Each measure's separable preference in the pair ``{measure: Preference}``. It is
     evidence unless the preferred registration's fields are rougher by ``dr`` and the gain
     is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for the overlap
-    ``OVERLAP_EXCHANGE_RATE``, or ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration
-    that does not deform locally, `deforms`), or it is the overlap's
-    preference for a flagged registration (what a cheat games), or a preference over a
-    registration that folds (:func:`_against_folds`), or specificity's by a small ratio
-    (:data:`MIN_SPECIFICITY_RATIO`)."""
+    ``OVERLAP_EXCHANGE_RATE``; against a registration that does not deform locally,
+    `deforms`, ``SPECIFICITY_RATE_AGAINST_LINEAR`` and ``OVERLAP_RATE_AGAINST_LINEAR``), or
+    it is the overlap's preference for a flagged registration (what a cheat games), or a
+    preference over a registration that folds (:func:`_against_folds`), or specificity's by
+    a small ratio (:data:`MIN_SPECIFICITY_RATIO`)."""
     out = {}
     for measure, preferred in ((SPECIFICITY, by_spec), (OVERLAP, by_overlap)):
         if preferred is None:
@@ -112,9 +113,14 @@ def measure_evidence(
             gain = _log_ratio(_odds(overlap[preferred]), _odds(overlap[other]))
         discount, why = None, None
         rate = EXCHANGE_RATE if measure == SPECIFICITY else OVERLAP_EXCHANGE_RATE
-        linear = measure == OVERLAP and deforms[preferred] and not deforms[other]
-        if linear:
-            rate = OVERLAP_RATE_AGAINST_LINEAR  # SDlogJ is all of preferred's deformation
+        linear = deforms[preferred] and not deforms[other]
+        if linear and measure == SPECIFICITY:
+            # SDlogJ is all of preferred's deformation, unless it folds: SDlogJ (over the
+            # voxels that do not fold) ranks folds poorly (a label-matching cheat's)
+            linear = folded[preferred] < NO_FOLDING_FRACTION
+            rate = SPECIFICITY_RATE_AGAINST_LINEAR if linear else rate
+        elif linear:  # SDlogJ is all of preferred's deformation
+            rate = OVERLAP_RATE_AGAINST_LINEAR
         if measure == OVERLAP and preferred in flagged:
             discount = "flagged"
         elif gain < rate * max(0.0, rough[preferred] - rough[other]):
@@ -124,9 +130,10 @@ def measure_evidence(
         elif measure == SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
         elif linear and rough[preferred] > rough[other]:  # evidence: say why it counts
+            what = "lower specificity" if measure == SPECIFICITY else "the odds"
             why = (
                 f"{other} does not deform locally, so {preferred}'s SDlogJ is all of its local "
-                f"deformation, and {math.exp(gain):.2f}x the odds is more than the "
+                f"deformation, and {math.exp(gain):.2f}x {what} is more than the "
                 f"{math.exp(rate * (rough[preferred] - rough[other])):.2f}x it could buy"
             )
         out[measure] = Preference(preferred, other, gain, discount, why=why)

@@ -13,10 +13,10 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   deviation of the log Jacobian determinant) and the advantage is smaller than roughness
   alone can buy: ``ln(spec(b) / spec(a)) < EXCHANGE_RATE * dr`` for specificity (a 1.7x
   lower specificity for 0.1 rougher fields, 4x for 0.25), and on the log-odds of the
-  inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`
-  (:data:`OVERLAP_RATE_AGAINST_LINEAR` where ``b`` does not deform locally, an affine
-  registration: there SDlogJ is all of ``a``'s local deformation, the correspondence it
-  gains included); smoother fields are not charged; or
+  inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; where ``b`` does
+  not deform locally (an affine registration) at :data:`SPECIFICITY_RATE_AGAINST_LINEAR`
+  and :data:`OVERLAP_RATE_AGAINST_LINEAR`: there SDlogJ is all of ``a``'s local
+  deformation, the correspondence it gains included; smoother fields are not charged; or
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat); or
 - it is a preference for ``a`` over a ``b`` that folds (at least
@@ -113,6 +113,7 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SPECIFICITY_RATE_AGAINST_LINEAR,
 )
 from .confidence import Comparison
 
@@ -125,6 +126,7 @@ __all__ = [
     "SMOOTHNESS_RATE",
     "OVERLAP_EXCHANGE_RATE",
     "OVERLAP_RATE_AGAINST_LINEAR",
+    "SPECIFICITY_RATE_AGAINST_LINEAR",
     "MIN_ROUGHNESS_DIFFERENCE",
     "MIN_SPECIFICITY_RATIO",
     "SEVERE_FOLDED_FRACTION",
