@@ -1151,7 +1151,10 @@ def _verdict(case: str, *, labels: bool = True, evaluation=None):
 
     evaluation = _load(case) if evaluation is None else evaluation
     has_labels = labels and any(s.overlap for s in evaluation.scores.values())
-    return verdict(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
+    dimension = next(iter(evaluation.scores.values())).frame.transform.GetDimension()
+    return verdict(
+        evaluation.scores, evaluation.comparisons, has_labels=has_labels, dimension=dimension
+    )
 
 
 def _overlap_says(evaluation, better: str, worse: str) -> str:

@@ -763,7 +763,12 @@ def _result(
         __version__,
         run=dict(run),
         comparisons=tuple(comparisons),
-        verdict=verdict(scores, comparisons, has_labels=m.labels is not None),
+        verdict=verdict(
+            scores,
+            comparisons,
+            has_labels=m.labels is not None,
+            dimension=next(iter(scores.values())).frame.transform.GetDimension(),
+        ),
         thumbnails=dict(thumbnails or {}),
         rank_stability=dict(rank_stability or {}),
         resampled=resampled,

@@ -144,7 +144,7 @@ def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):
     assert "--flag-folded-mean: expected a fraction in [0, 1], got '2'" in err
 
 
-def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
+def _rules_allow(w, l, scores, comparisons, has_labels, dimension=None) -> list[str]:
     """The rules of the verdict (module docstring of itk_nrreval.measures.verdict), restated:
     which of them let `w` be decided better than `l`."""
     from itk_nrreval.measures.verdict import (
@@ -214,8 +214,10 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
             gain = np.log(scores[o].specificity.value / scores[r].specificity.value)
             fr, fo = scores[r].plausibility.folded_fraction, scores[o].plausibility.folded_fraction
             sr, so = scores[r].plausibility.sdlogj, scores[o].plausibility.sdlogj
-            # against one that does not deform locally (affine), a lower rate, unless r folds
+            # against one that does not deform locally (affine), a lower rate, unless r folds;
+            # only in 2D, where it was set
             linear = deforms_locally(r) and not deforms_locally(o) and fr < NO_FOLDING_FRACTION
+            linear = linear and dimension == 2
             rate = SPECIFICITY_RATE_AGAINST_LINEAR if linear else EXCHANGE_RATE
             if by_spec == r and gain >= rate * rougher:
                 # against one that folds more (>= 1%): r charged as if o's fields were flat
@@ -254,9 +256,10 @@ def _rules_allow(w, l, scores, comparisons, has_labels) -> list[str]:
     p_flag=st.sampled_from([0.0, 0.3, 1.0]),
     labels=st.booleans(),
     confidence=st.booleans(),
+    dimension=st.sampled_from([2, 3, None]),
 )
 def test_decisions_follow_the_rules_and_every_other_pair_is_open(
-    cheat_case, seed, n, noise, p_flag, labels, confidence
+    cheat_case, seed, n, noise, p_flag, labels, confidence, dimension
 ):
     """A pair is decided exactly when one of the verdict's rules allows it (restated here
     from the documentation), in that rule's direction, never both ways; the ranking puts the
@@ -302,13 +305,13 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
             scale = noise if measure == "specificity" else noise / 10
             reps = {k: v + scale * rng.standard_normal(n_groups) for k, v in values.items()}
             comparisons += compare(measure, values, reps)
-    v = verdict(scores, comparisons, has_labels=labels)
+    v = verdict(scores, comparisons, has_labels=labels, dimension=dimension)
 
     pairs = [frozenset((d.better, d.worse)) for d in v.decisions]
     assert len(pairs) == len(set(pairs))  # no pair decided twice, so never both ways
     for a, b in itertools.combinations(names, 2):
-        ab = _rules_allow(a, b, scores, comparisons, labels)
-        ba = _rules_allow(b, a, scores, comparisons, labels)
+        ab = _rules_allow(a, b, scores, comparisons, labels, dimension)
+        ba = _rules_allow(b, a, scores, comparisons, labels, dimension)
         decided = [d for d in v.decisions if {d.better, d.worse} == {a, b}]
         if not ab and not ba:
             assert not decided, (a, b, decided)
@@ -540,7 +543,7 @@ def test_too_few_samples_decide_nothing_and_the_text_says_so(cheat_case, tmp_pat
             n: dataclasses.replace(s, specificity=dataclasses.replace(s.specificity, n_samples=m))
             for n, s in base.items()
         }
-        again = verdict(scores, converged.comparisons, has_labels=True)
+        again = verdict(scores, converged.comparisons, has_labels=True, dimension=2)  # as evaluate
         assert bool(again.decisions) == decides
         if decides:
             assert again == converged.verdict
@@ -882,8 +885,9 @@ def test_specificity_against_affine_is_charged_at_its_own_rate(cheat_case, sdlog
     specificity must be lower by exp(SPECIFICITY_RATE_AGAINST_LINEAR x SDlogJ), not
     exp(EXCHANGE_RATE x SDlogJ): the 2 mm demons' 2.64x lower specificity than affine is
     evidence (it was not at the exchange rate, 6.9x); the 1 mm demons' 3.06x for fields twice
-    as rough is not. Against a registration that deforms locally the same numbers are
-    charged at the exchange rate, as before. The numbers are the tuning case's own."""
+    as rough is not. Against a registration that deforms locally, in 3D, and where the
+    dimension is unknown, the same numbers are charged at the exchange rate, as before. The
+    numbers are the tuning case's own (2D)."""
     from itk_nrreval.measures.verdict import EXCHANGE_RATE, SPECIFICITY_RATE_AGAINST_LINEAR
 
     _, result = cheat_case
@@ -901,11 +905,16 @@ def test_specificity_against_affine_is_charged_at_its_own_rate(cheat_case, sdlog
     assert np.exp(EXCHANGE_RATE * sdlogj) > ratio  # open at the exchange rate
     assert (np.exp(SPECIFICITY_RATE_AGAINST_LINEAR * sdlogj) < ratio) == decided
     deforming = _registration(base, "affine", spec=10.0 * ratio, overlap=0.5, sdlogj=0.0)
-    for other, expected in ((rigid, decided), (deforming, False)):
+    for other, dimension, expected in (
+        (rigid, 2, decided),
+        (rigid, 3, False),  # set on 2D cases alone, and used only there
+        (rigid, None, False),
+        (deforming, 2, False),
+    ):
         scores = {"demons": demons, "affine": other}
         values = {k: s.specificity.value for k, s in scores.items()}
         comparisons = _separable_where(values, [{"demons", "affine"}], "specificity")
-        v = verdict(scores, comparisons, has_labels=False)
+        v = verdict(scores, comparisons, has_labels=False, dimension=dimension)
         pairs = [(d.better, d.worse) for d in v.decisions]
         # the second "affine" deforms locally (the truth's subjects): the exchange rate
         assert (("demons", "affine") in pairs) == expected, pairs

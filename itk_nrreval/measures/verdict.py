@@ -14,9 +14,10 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   alone can buy: ``ln(spec(b) / spec(a)) < EXCHANGE_RATE * dr`` for specificity (a 1.7x
   lower specificity for 0.1 rougher fields, 4x for 0.25), and on the log-odds of the
   inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; where ``b`` does
-  not deform locally (an affine registration) at :data:`SPECIFICITY_RATE_AGAINST_LINEAR`
-  and :data:`OVERLAP_RATE_AGAINST_LINEAR`: there SDlogJ is all of ``a``'s local
-  deformation, the correspondence it gains included; smoother fields are not charged; or
+  not deform locally (an affine registration) at :data:`OVERLAP_RATE_AGAINST_LINEAR`, and
+  in 2D at :data:`SPECIFICITY_RATE_AGAINST_LINEAR` where ``a`` folds less than
+  :data:`NO_FOLDING_FRACTION`: there SDlogJ is all of ``a``'s local deformation, the
+  correspondence it gains included; smoother fields are not charged; or
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat); or
 - it is a preference for ``a`` over a ``b`` that folds (at least
@@ -105,6 +106,7 @@ from ._pair_evidence import (
 )
 from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     EXCHANGE_RATE,
+    LINEAR_DIMENSIONS,
     MIN_ROUGHNESS_DIFFERENCE,
     MIN_SAMPLES,
     MIN_SPECIFICITY_RATIO,
@@ -127,6 +129,7 @@ __all__ = [
     "OVERLAP_EXCHANGE_RATE",
     "OVERLAP_RATE_AGAINST_LINEAR",
     "SPECIFICITY_RATE_AGAINST_LINEAR",
+    "LINEAR_DIMENSIONS",
     "MIN_ROUGHNESS_DIFFERENCE",
     "MIN_SPECIFICITY_RATIO",
     "SEVERE_FOLDED_FRACTION",
@@ -280,6 +283,7 @@ def verdict(
     comparisons: Sequence[Comparison],
     *,
     has_labels: bool,
+    dimension: int | None = None,
 ) -> Verdict:
     """Decide, pair by pair, which registrations are better, and say so in words.
 
@@ -295,6 +299,9 @@ def verdict(
         From :func:`itk_nrreval.measures.confidence.compare` (empty: no confidence computed).
     has_labels : bool
         Whether the overlap is a measure here.
+    dimension : int, optional
+        The images' dimension (2 or 3). A rate set on cases of one dimension alone is used
+        only there (:data:`SPECIFICITY_RATE_AGAINST_LINEAR`: 2D); None (unknown): nowhere.
 
     Returns
     -------
@@ -331,7 +338,7 @@ def verdict(
         by_overlap = prefers(OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
         found = measure_evidence(
-            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms
+            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms, dimension
         )
         add_smoother_evidence(
             found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family
