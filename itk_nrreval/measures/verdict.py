@@ -14,10 +14,12 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   alone can buy: ``ln(spec(b) / spec(a)) < EXCHANGE_RATE * dr`` for specificity (a 1.7x
   lower specificity for 0.1 rougher fields, 4x for 0.25), and on the log-odds of the
   inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; where ``b`` does
-  not deform locally (an affine registration) at :data:`OVERLAP_RATE_AGAINST_LINEAR`, and
-  in 2D at :data:`SPECIFICITY_RATE_AGAINST_LINEAR` where ``a`` folds less than
-  :data:`NO_FOLDING_FRACTION`: there SDlogJ is all of ``a``'s local deformation, the
-  correspondence it gains included; smoother fields are not charged; or
+  not deform locally (an affine registration) the overlap at
+  :data:`OVERLAP_RATE_AGAINST_LINEAR`: there SDlogJ is all of ``a``'s local deformation,
+  the correspondence it gains included (specificity's preference there, beyond
+  :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ in 2D where ``a`` folds less than
+  :data:`NO_FOLDING_FRACTION`, is a lean, ``OpenPair.leans_to``, not evidence); smoother
+  fields are not charged; or
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat); or
 - it is a preference for ``a`` over a ``b`` that folds (at least
@@ -170,8 +172,10 @@ class OpenPair:
     reason : str
         Why the evidence does not decide it, in words.
     leans_to : str or None
-        The registration the smoother-fields rule prefers where it may not decide: between
-        registrations of different (or unknown) families. A hint, not a claim: the
+        The registration specificity leans to where it may not decide: by the smoother-fields
+        rule between registrations of different (or unknown) families, or, in 2D, by a
+        lower specificity than an affine registration's beyond
+        :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ. A hint, not a claim: the
         known-truth benchmark's record of such leans is in ``docs/verdict.md``. None where
         the evidence leans nowhere, or also the other way.
     """
@@ -496,8 +500,8 @@ def _sentences(scores, best, decisions, open_pairs, has_labels, confidence) -> t
     leaning = [p for p in open_pairs if p.leans_to is not None]
     lean = (
         f" ({len(leaning)} of them {'leans' if len(leaning) == 1 else 'lean'} one way by "
-        "smoother fields across families, a hint and not a decision: results.json 'open', "
-        "'leans_to')"
+        "smoother fields across families or by specificity against affine, a hint and not a "
+        "decision: results.json 'open', 'leans_to')"
         if leaning
         else ""
     )
