@@ -189,7 +189,10 @@ FLAG_WORDS = (
     ("label overlap with the others", "overlap"),
     ("its brain mask has Dice", "brain_mask"),
     ("% of its voxels fold", "folding"),
+    ("among the worst of its cohort", "concern"),
 )
+#: The kind of the flag on the concern.
+CONCERN_KIND = "concern"
 #: The per-subject score terms correlated with the true error: (name, where in a subject's
 #: dict, sign). Signed so that positive is worse, as in ``concern``; the raw measures that
 #: have a z-score are left out (a z is monotone in its measure within a registration).
@@ -386,7 +389,15 @@ def check_unlabelled_derivation(seed: int = 0) -> dict:
     for a, b in zip(with_labels, without, strict=True):
         qa, qb = a.to_dict(), b.to_dict()
         kinds_seen |= {flag_kind(f) for f in a.flags}
-        assert [f for f in a.flags if flag_kind(f) != "overlap"] == list(b.flags), (a, b)
+        # the concern, and so its flag, differs (its overlap term): recomputed, as measured
+        mine = ("overlap", CONCERN_KIND)
+        assert [f for f in a.flags if flag_kind(f) not in mine] == [
+            f for f in b.flags if flag_kind(f) != CONCERN_KIND
+        ], (a, b)
+        limit = common["thresholds"].concern
+        for q, labels in ((a, True), (b, False)):
+            flagged = any(flag_kind(f) == CONCERN_KIND for f in q.flags)
+            assert flagged == (limit is not None and concern(q.to_dict(), labels=labels) > limit)
         assert a.registration_flags == b.registration_flags
         assert qa["z"] == qb["z"] and qa["plausibility"] == qb["plausibility"]
         for q, labels in ((qa, True), (qb, False), (qa, False)):
@@ -465,13 +476,20 @@ def measure_case(case: dict, *, labels: bool) -> dict:
                 "true_error_mm": errors[i],
                 "failed": errors[i] > FAILED_RATIO * median,
                 "near_miss": errors[i] >= NEAR_MISS_RATIO * median,
-                "kinds": views[i]["kinds"],
-                "flagged": bool(views[i]["kinds"]),
-                "flagged_before": any(k != NEW_KIND for k in views[i]["kinds"]),
+                # the flag on the concern as today's default sets it, recomputed from the
+                # terms below (cases saved before it was the default have none saved)
+                "kinds": [k for k in views[i]["kinds"] if k != CONCERN_KIND],
                 "terms": views[i]["terms"],
             }
             for i in judged
         ]
+        default = nr.SubjectThresholds().concern
+        marked = concern_flags(rows, default) if default is not None else [False] * len(rows)
+        for r, flagged in zip(rows, marked, strict=True):
+            r["flagged_without_concern"] = any(k != NEW_KIND for k in r["kinds"])
+            r["kinds"] += [CONCERN_KIND] if flagged else []
+            r["flagged"] = bool(r["kinds"])
+            r["flagged_before"] = any(k != NEW_KIND for k in r["kinds"])
         reference = [
             {"index": i, "kinds": v["kinds"], "flagged": bool(v["kinds"])}
             for i, v in enumerate(views)
@@ -627,15 +645,16 @@ def concern_flags(subjects: list[dict], threshold: float) -> list[bool]:
 
 def concern_flag_numbers(measured: list[dict], threshold: float) -> dict:
     """Pooled over the (case, registration) entries of `measured` (one group, one mode): the
-    recall and false alarms of the default flags (every kind but the bias-corrected
-    distance's, which is off by default), of the default flags with the flag on the concern,
-    and the flag's own false alarms (the others it marks, whatever else they carry)."""
+    recall and false alarms of the other default flags (every kind but the bias-corrected
+    distance's, which is off by default, and the concern's), of those with the flag on the
+    concern at `threshold`, and the flag's own false alarms (the others it marks, whatever
+    else they carry)."""
     failed = others = hit_before = hit = fa_before = fa = own_fa = 0
     for m in measured:
         for reg in m["registrations"].values():
             rows = reg["subjects"]
             for r, flagged in zip(rows, concern_flags(rows, threshold), strict=True):
-                default = r["flagged_before"]
+                default = r["flagged_without_concern"]
                 if r["failed"]:
                     failed += 1
                     hit_before += default
