@@ -269,13 +269,6 @@ def flags_and_causes(
     corrected = _corrected_flag(i, c, th)
     if corrected:
         add("corrected_distance", corrected)
-    concern, concern_from = concern_of(i, c)
-    if th.concern is not None and concern is not None and concern > th.concern:
-        add(
-            "concern",
-            f"among the worst of its cohort: concern {concern:+.2f} (above {th.concern:g}; "
-            f"most from its {concern_from})",
-        )
     folded = defo["folded_fraction"][i]
     folds = folded > th.folded and add("folding", f"{folded:.1%} of its voxels fold (det J <= 0)")
     # folds between grid points, which central differences miss (issue 42): NaN never flags
@@ -328,6 +321,8 @@ def flags_and_causes(
             f"its brain mask has Dice {dice:.3f} with the common mask in the common frame "
             f"(below {BRAIN_MASK_DICE_MIN})",
         )
+    if concern := _concern_flag(i, c, th):  # last: it sums up the z-scores judged above
+        add("concern", concern)
     return flags, causes, theirs
 
 
@@ -346,6 +341,18 @@ def concern_of(i: int, c: Cohort) -> tuple[float | None, str | None]:
             "sdlogj_z": z(c.deformation_z["sdlogj"]),
             "inverse_consistency_z": z(c.deformation_z["inverse_consistency_mm"]),
         }
+    )
+
+
+def _concern_flag(i: int, c: Cohort, th: SubjectThresholds) -> str | None:
+    """Subject `i`'s flag on its concern, in words, or None: above `th.concern` (None: off).
+    Not measured (no z-score at all) never flags."""
+    concern, concern_from = concern_of(i, c)
+    if th.concern is None or concern is None or not concern > th.concern:
+        return None
+    return (
+        f"among the worst of its cohort: concern {concern:+.2f} (above {th.concern:g}; most "
+        f"from its {concern_from})"
     )
 
 

@@ -76,10 +76,12 @@ without): a mean is not decided by one noisy deformation term. Its image term wa
 model distance until the bias-corrected distance replaced it (chosen on the same tuning split:
 0.84 with labels, 0.83 without), because gain and bias dominate raw intensities' distances.
 Every subject is listed worst first by it (:func:`ranked`), so the few most unlike their
-cohort can be looked at even when none crosses a threshold. It ranks, it does not flag:
-the flags on absolute limits (folding, mirroring, a duplicate, off the grid) are not in it,
-so a subject flagged for one of them may rank below unflagged subjects (its flags say why
-it is listed).
+cohort can be looked at even when none crosses a threshold. Above
+``SubjectThresholds.concern`` (1.75 by default) it also flags the subject ("among the worst
+of its cohort"; set on the tuning splits of the genuine registrations, and made the default
+by a split declared before it ran: ``docs/subject-qc.md``). The flags on absolute limits
+(folding, mirroring, a duplicate, off the grid) are not in it, so a subject flagged for one
+of them may rank below unflagged subjects (its flags say why it is listed).
 :attr:`~SubjectQC.concern_from` names the term contributing most to it. The reference has
 no concern and is listed last.
 
@@ -371,7 +373,8 @@ def assess_subjects(
     * its overlap has z < ``-th.overlap_z`` and its mismatch ``1 - overlap`` is above
       ``th.overlap_ratio`` times the cohort's median mismatch;
     * its brain mask's Dice with the common mask is below
-      :data:`~itk_nrreval.io._brain_masks.BRAIN_MASK_DICE_MIN` (0.8).
+      :data:`~itk_nrreval.io._brain_masks.BRAIN_MASK_DICE_MIN` (0.8);
+    * its concern (:func:`concern_scores`) is above ``th.concern`` (None: never).
 
     Every z-score's scale has a floor in its measure's units (:func:`robust_z`'s
     `least_spread`: :mod:`itk_nrreval.measures._subject_flags`), so none is infinite.

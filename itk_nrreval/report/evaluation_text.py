@@ -234,10 +234,11 @@ SUBJECT_FLAG_WORDS = (
 CONCERN_WORDS = (
     "Subjects are listed worst first by their concern: a weighted mean of their robust "
     "z-scores, each signed so that positive is worse (label overlap with the others, weight "
-    "3, where labels exist; distance to the model of the others, SDlogJ and inverse "
-    "consistency, weight 1 each, the last two only above zero). It ranks, it does not flag: "
-    "look at the first few even when none is flagged. Flags on absolute limits (folding, "
-    "mirroring, a duplicate, off the grid) are not in it."
+    "3, where labels exist; distance to the others with gain and bias divided out, SDlogJ "
+    "and inverse consistency, weight 1 each, the last two only above zero). Above a "
+    "threshold (--subject-concern, 1.75 by default) it flags the subject; look at the first "
+    "few even when none is flagged. Flags on absolute limits (folding, mirroring, a "
+    "duplicate, off the grid) are not in it."
 )
 
 #: How many subjects of highest concern summary.md names for a registration that flags none.
