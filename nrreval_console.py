@@ -40,11 +40,37 @@ def _interrupt(signum, frame) -> None:
 
     The command line (:func:`itk_nrreval.cli.main`) holds the same rule while its command
     runs, then restores this handler; this one covers the moments before and after it.
+    Where the interrupted code is a callback whose exceptions Python ignores, the interrupt
+    is asked for again shortly instead (:func:`_swallowed_in`).
     """
     output = sys.modules.get("itk_nrreval._output")
     if output is not None and output.swaps_done() > 0:
         return
+    if _swallowed_in(frame):
+        _ask_again()
+        return
     raise KeyboardInterrupt
+
+
+def _swallowed_in(frame) -> bool:
+    """Whether an exception raised in `frame` would be ignored: Python prints "Exception
+    ignored in ...", a traceback, and carries on. So it is in the import system's weakref
+    callback (``_get_module_lock.<locals>.cb``, run while the package imports) and in any
+    ``__del__``: a Ctrl-C raised there was lost, with a traceback on stderr."""
+    if frame is None:
+        return False
+    code = frame.f_code
+    return code.co_name == "__del__" or (code.co_name == "cb" and "importlib" in code.co_filename)
+
+
+def _ask_again(delay_s: float = 0.05) -> None:
+    """Send this process SIGINT again in `delay_s` seconds, from a daemon thread (signals are
+    handled in the main thread, which by then has left the callback)."""
+    import threading
+
+    timer = threading.Timer(delay_s, os.kill, (os.getpid(), signal.SIGINT))
+    timer.daemon = True
+    timer.start()
 
 
 def main() -> None:

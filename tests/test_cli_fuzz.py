@@ -404,6 +404,34 @@ def test_two_runs_into_one_out_the_second_is_refused(base, tmp_path, capsys):
     assert (out / "results.json").is_file()
 
 
+def test_ctrl_c_in_a_callback_whose_errors_python_ignores_is_asked_again(monkeypatch):
+    """A Ctrl-C landing in the import system's weakref callback (importlib's
+    ``_get_module_lock.<locals>.cb``) or in a ``__del__`` was raised where Python ignores
+    exceptions: it printed "Exception ignored ... Traceback" and was lost (CI, the random
+    point test below, seed 2). There the handler asks for it again shortly instead of
+    raising; in any other frame it raises, as before."""
+    import signal
+
+    import nrreval_console as console
+
+    asked = []
+    monkeypatch.setattr(console, "_ask_again", lambda: asked.append(True))
+    namespace: dict = {}
+    source = "import sys\ndef cb(ref):\n    return sys._getframe()\n"
+    source += "class A:\n    def __del__(self):\n        return sys._getframe()\n"
+    exec(compile(source, "<frozen importlib._bootstrap>", "exec"), namespace)
+    for frame in (namespace["cb"](None), namespace["A"].__del__(object())):
+        console._interrupt(signal.SIGINT, frame)  # does not raise
+    assert asked == [True, True]
+    ordinary = compile("def cb(ref):\n    return sys._getframe()\n", "mine.py", "exec")
+    namespace_2: dict = {"sys": __import__("sys")}
+    exec(ordinary, namespace_2)  # a function named cb that is not importlib's
+    for frame in (namespace_2["cb"](None), None):
+        with pytest.raises(KeyboardInterrupt):
+            console._interrupt(signal.SIGINT, frame)
+    assert asked == [True, True]
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_ctrl_c_at_a_random_point_ends_in_one_line_or_a_complete_result(base, tmp_path, seed):
     """Issue 44, 4: SIGINT anywhere in an evaluate run (imports, checks, tasks in threads,

@@ -359,8 +359,7 @@ def assess_subjects(
       (then it is not in `scored`, and only its deformation is judged);
     * another subject's resampled image lies within ``th.duplicate_distance`` times the
       cohort's median pairwise distance;
-    * the linear part of its transform mirrors space (determinant < 0) while the cohort's
-      median does not;
+    * its transform's linear part mirrors space (det < 0), the cohort's median's does not;
     * its log model distance has z > ``th.outlier_z``;
     * its bias-corrected distance is above ``th.corrected_ratio`` times the cohort's median;
     * it folds more than ``th.folded`` of its voxels;
