@@ -411,11 +411,14 @@ def test_ctrl_c_in_a_callback_whose_errors_python_ignores_is_asked_again(monkeyp
     point test below, seed 2). There the handler asks for it again shortly instead of
     raising; in any other frame it raises, as before."""
     import signal
+    import sys
 
     import nrreval_console as console
 
     asked = []
     monkeypatch.setattr(console, "_ask_again", lambda: asked.append(True))
+    # no command's result in place yet (this process may have written some: other tests)
+    monkeypatch.delitem(sys.modules, "itk_nrreval._output", raising=False)
     namespace: dict = {}
     source = "import sys\ndef cb(ref):\n    return sys._getframe()\n"
     source += "class A:\n    def __del__(self):\n        return sys._getframe()\n"
