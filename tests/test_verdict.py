@@ -827,6 +827,20 @@ def test_the_overlap_is_no_evidence_against_folds_either(cheat_case):
     assert decided(beyond / (1 + beyond))[0] == [("demons", "bspline")]
 
 
+def _affine(base, *, spec):
+    """An affine registration "affine" (overlap 0.5, SDlogJ 0): `base`'s scores with every
+    subject's non-linear displacement 0, so it does not deform locally."""
+    affine = _registration(base, "affine", spec=spec, overlap=0.5, sdlogj=0.0)
+    return dataclasses.replace(
+        affine,
+        subjects=tuple(
+            dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
+            for q in base.subjects
+        ),
+        family=("affine", "simpleitk"),
+    )
+
+
 @pytest.mark.parametrize(("sdlogj", "odds_ratio", "decided"), [
     (0.35, 2.76, True),  # families_mni2d's 2 mm demons over affine (1.72 vs 2.74 mm)
     (0.71, 2.42, False),  # its 1 mm demons, which the truth put behind affine (3.07 mm)
@@ -844,15 +858,7 @@ def test_the_overlap_against_affine_is_charged_at_its_own_rate(
 
     _, result = cheat_case
     base = result.scores["truth"]
-    affine = _registration(base, "affine", spec=10.0, overlap=0.5, sdlogj=0.0)
-    affine = dataclasses.replace(
-        affine,
-        subjects=tuple(
-            dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
-            for q in base.subjects
-        ),
-        family=("affine", "simpleitk"),
-    )
+    affine = _affine(base, spec=10.0)
     p = odds_ratio / (1 + odds_ratio)  # odds 1 for affine's 0.5
     demons = _registration(base, "demons", spec=10.0, overlap=p, sdlogj=sdlogj)
     assert np.exp(OVERLAP_EXCHANGE_RATE * sdlogj) > odds_ratio  # open at the exchange rate
@@ -887,15 +893,7 @@ def test_specificity_against_affine_leans_at_its_own_rate(cheat_case, sdlogj, ra
 
     _, result = cheat_case
     base = result.scores["truth"]
-    rigid = _registration(base, "affine", spec=10.0 * ratio, overlap=0.5, sdlogj=0.0)
-    rigid = dataclasses.replace(
-        rigid,
-        subjects=tuple(
-            dataclasses.replace(q, deformation={**q.deformation, "nonlinear_rms_mm": 0.0})
-            for q in base.subjects
-        ),
-        family=("affine", "simpleitk"),
-    )
+    rigid = _affine(base, spec=10.0 * ratio)
     demons = _registration(base, "demons", spec=10.0, overlap=0.5, sdlogj=sdlogj)
     assert np.exp(EXCHANGE_RATE * sdlogj) > ratio  # not decided at the exchange rate
     assert (np.exp(SPECIFICITY_RATE_AGAINST_LINEAR * sdlogj) < ratio) == leans

@@ -63,9 +63,11 @@ class Preference(NamedTuple):
     preferred: str
     other: str
     gain: float  # ln of the specificity ratio, or of the overlap odds ratio, in its favour
-    discount: str | None  # why not evidence: "rougher", "flagged", "folds", "small",
-    # "families" (the smoother-fields rule across families); None: it is
-    # the smoother-fields rule (SMOOTHNESS_RATE): the rougher's advantage at the top of its
+    # why it is not evidence: "rougher", "flagged", "folds", "small"; or a lean: "families"
+    # (the smoother-fields rule across families), "linear" (specificity against affine);
+    # None: it is evidence
+    discount: str | None
+    # the smoother-fields rule's (SMOOTHNESS_RATE): the rougher's advantage at the top of its
     # interval, as a ratio; None for a separable preference
     rougher_at_most: float | None = None
     why: str | None = None  # the discount in words, where _discounted cannot say it
