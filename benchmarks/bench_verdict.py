@@ -326,6 +326,23 @@ FRESH14 = (
     "families_phantom2d_span_s62",  # phantom 2D, N = 12, seed 62, FAMILIES_SPAN
     "families_mni3d_s63",  # MNI-based 3D, N = 10, seed 63, the seven (3D grids)
 )
+# Declared on 2026-11-29 (twelfth session of issue 41, tenth of issue 42), BEFORE these cases
+# ran and before any rule of this session was set. Issue 41: FRESH15 checks any rule set on
+# TUNING and TUNING2 in this session, before FRESH15 is judged with it; nothing is set on it.
+# Disclosed: before this declaration, which of the overlap's discounted preferences the truth
+# agrees with was printed once for every saved case of every split (the overlap's preference
+# against a registration that folds agreed with the truth in all 58 such pairs; those for a
+# flagged registration in 36 of 105, for a rougher one in 13 of 19), so no split but this one
+# can check a rule about them. Issue 42: FRESH15 checks any subject-QC rule set in this
+# session the same way.
+FRESH15 = (
+    "families_mni2d_s64",  # MNI-based 2D, N = 12, seed 64, the seven
+    "families_phantom2d_mix_s65",  # phantom 2D, N = 12, seed 65, FAMILIES_MIX
+    "families_mni2d_syn_n16_s66",  # MNI-based 2D, N = 16, seed 66, FAMILIES_SYN
+    "families_phantom2d_s67",  # phantom 2D, N = 12, seed 67, the seven
+    "families_mni2d_span_s68",  # MNI-based 2D, N = 12, seed 68, FAMILIES_SPAN
+    "families_mni3d_s69",  # MNI-based 3D, N = 10, seed 69, the seven (3D grids)
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -349,7 +366,7 @@ SPLIT_CASES = {
     "tuning": TUNING, "held-out": HELD_OUT, "fresh": FRESH, "fresh2": FRESH2, "fresh3": FRESH3,
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
-    "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14,
+    "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -1052,6 +1069,21 @@ def _cases() -> dict:
             "registrations": FAMILIES_SPAN,
         },
         "families_mni3d_s63": {"kind": "mni", "seed": 63, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_mni2d_s64": {"kind": "mni", "seed": 64},
+        "families_phantom2d_mix_s65": {
+            "kind": "phantom",
+            "seed": 65,
+            "registrations": FAMILIES_MIX,
+        },
+        "families_mni2d_syn_n16_s66": {
+            "kind": "mni",
+            "seed": 66,
+            "n": 16,
+            "registrations": FAMILIES_SYN,
+        },
+        "families_phantom2d_s67": {"kind": "phantom", "seed": 67},
+        "families_mni2d_span_s68": {"kind": "mni", "seed": 68, "registrations": FAMILIES_SPAN},
+        "families_mni3d_s69": {"kind": "mni", "seed": 69, "dim": 3, "n": 10, "spacing": 3.0},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
