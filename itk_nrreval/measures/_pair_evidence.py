@@ -21,6 +21,7 @@ from ._verdict_thresholds import (
     MIN_ROUGHNESS_DIFFERENCE,
     MIN_SPECIFICITY_RATIO,
     NO_FOLDING_FRACTION,
+    OVERLAP_AGAINST_FOLDS_DIMENSIONS,
     OVERLAP_EXCHANGE_RATE,
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
@@ -104,7 +105,8 @@ def measure_evidence(
     does not deform locally, `deforms`; specificity's may then lean:
     :func:`_leans_against_linear`), or it is the overlap's preference for a flagged
     registration (what a cheat games), or a preference over a registration that folds
-    (:func:`_against_folds`), or specificity's by a small ratio
+    (:func:`_against_folds`; for the overlap not in a `dimension` of
+    ``OVERLAP_AGAINST_FOLDS_DIMENSIONS``), or specificity's by a small ratio
     (:data:`MIN_SPECIFICITY_RATIO`)."""
     out = {}
     for measure, preferred in ((SPECIFICITY, by_spec), (OVERLAP, by_overlap)):
@@ -129,7 +131,9 @@ def measure_evidence(
                 preferred, other, gain, rough, folded, linear, dimension
             )):  # fmt: skip
                 discount = "linear"
-        elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded):
+        elif (measure == SPECIFICITY or dimension not in OVERLAP_AGAINST_FOLDS_DIMENSIONS) and (
+            why := _against_folds(measure, rate, preferred, other, gain, rough, folded)
+        ):
             discount = "folds"
         elif measure == SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
