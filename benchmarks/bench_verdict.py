@@ -1179,14 +1179,11 @@ def _load(case: str):
 def _verdict(case: str, *, labels: bool = True, evaluation=None):
     """The verdict of a saved case, recomputed by today's :func:`verdict`; with
     ``labels=False`` as if the case had no label maps (specificity and folding alone)."""
-    from itk_nrreval.evaluation import verdict
+    from itk_nrreval.evaluation import _judged
 
     evaluation = _load(case) if evaluation is None else evaluation
     has_labels = labels and any(s.overlap for s in evaluation.scores.values())
-    dimension = next(iter(evaluation.scores.values())).frame.transform.GetDimension()
-    return verdict(
-        evaluation.scores, evaluation.comparisons, has_labels=has_labels, dimension=dimension
-    )
+    return _judged(evaluation.scores, evaluation.comparisons, has_labels=has_labels)
 
 
 def _overlap_says(evaluation, better: str, worse: str) -> str:

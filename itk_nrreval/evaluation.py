@@ -708,6 +708,13 @@ def _own_stderr(scores, measure, comparisons) -> dict[str, float] | None:
     return None
 
 
+def _judged(scores, comparisons, *, has_labels: bool) -> Verdict:
+    """The verdict on `scores`, in the images' dimension (the benchmark re-judges saved
+    evaluations through this, with and without labels)."""
+    dimension = next(iter(scores.values())).frame.transform.GetDimension()
+    return verdict(scores, comparisons, has_labels=has_labels, dimension=dimension)
+
+
 def _result(
     m,
     scores,
@@ -763,12 +770,7 @@ def _result(
         __version__,
         run=dict(run),
         comparisons=tuple(comparisons),
-        verdict=verdict(
-            scores,
-            comparisons,
-            has_labels=m.labels is not None,
-            dimension=next(iter(scores.values())).frame.transform.GetDimension(),
-        ),
+        verdict=_judged(scores, comparisons, has_labels=m.labels is not None),
         thumbnails=dict(thumbnails or {}),
         rank_stability=dict(rank_stability or {}),
         resampled=resampled,
