@@ -332,9 +332,9 @@ FRESH14 = (
 # Disclosed: before this declaration, which of the overlap's discounted preferences the truth
 # agrees with was printed once for every saved case of every split (the overlap's preference
 # against a registration that folds agreed with the truth in all 58 such pairs; those for a
-# flagged registration in 36 of 105, for a rougher one in 13 of 19), so no split but this one
-# can check a rule about them. Issue 42: FRESH15 checks any subject-QC rule set in this
-# session the same way.
+# flagged registration in 54 of 139 (first written here as 36 of 105, misread from the same
+# print), for a rougher one in 13 of 19), so no split but this one can check a rule about
+# them. Issue 42: FRESH15 checks any subject-QC rule set in this session the same way.
 FRESH15 = (
     "families_mni2d_s64",  # MNI-based 2D, N = 12, seed 64, the seven
     "families_phantom2d_mix_s65",  # phantom 2D, N = 12, seed 65, FAMILIES_MIX
