@@ -105,8 +105,7 @@ def measure_evidence(
     does not deform locally, `deforms`; specificity's may then lean:
     :func:`_leans_against_linear`), or it is the overlap's preference for a flagged
     registration (what a cheat games), or a preference over a registration that folds
-    (:func:`_against_folds`; for the overlap not in a `dimension` of
-    ``OVERLAP_AGAINST_FOLDS_DIMENSIONS``), or specificity's by a small ratio
+    (:func:`_against_folds`), or specificity's by a small ratio
     (:data:`MIN_SPECIFICITY_RATIO`)."""
     out = {}
     for measure, preferred in ((SPECIFICITY, by_spec), (OVERLAP, by_overlap)):
@@ -131,9 +130,7 @@ def measure_evidence(
                 preferred, other, gain, rough, folded, linear, dimension
             )):  # fmt: skip
                 discount = "linear"
-        elif (measure == SPECIFICITY or dimension not in OVERLAP_AGAINST_FOLDS_DIMENSIONS) and (
-            why := _against_folds(measure, rate, preferred, other, gain, rough, folded)
-        ):
+        elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded, dimension):
             discount = "folds"
         elif measure == SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
@@ -172,11 +169,14 @@ def _leans_against_linear(preferred, other, gain, rough, folded, linear, dimensi
     )
 
 
-def _against_folds(measure, rate, preferred, other, gain, rough, folded) -> str | None:
+def _against_folds(measure, rate, preferred, other, gain, rough, folded, dimension) -> str | None:
     """Why `measure`'s preference for `preferred` is no evidence against `other`, which
     folds, in words; None where it is (the gain reaches what ``preferred``'s own roughness
     could buy at the measure's exchange `rate`, or `other` folds less than
-    :data:`NO_FOLDING_FRACTION`, or no more than `preferred`)."""
+    :data:`NO_FOLDING_FRACTION`, or no more than `preferred`, or it is the overlap's in a
+    `dimension` of :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS`)."""
+    if measure == OVERLAP and dimension in OVERLAP_AGAINST_FOLDS_DIMENSIONS:
+        return None
     if folded[other] < NO_FOLDING_FRACTION or folded[other] <= folded[preferred]:
         return None
     if gain >= rate * rough[preferred]:
