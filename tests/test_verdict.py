@@ -20,6 +20,7 @@ from data_synth.cheat import class_matching_cheat
 from itk_nrreval.cli import main
 from itk_nrreval.evaluation import verdict
 from itk_nrreval.measures.confidence import compare
+from itk_nrreval.measures.verdict import LINEAR_DIMENSIONS
 
 KW = dict(n_samples=3000, seed=2, progress=False)
 
@@ -144,6 +145,16 @@ def test_cli_thresholds_decide_the_flags(cheat_case, tmp_path, capsys):
     assert "--flag-folded-mean: expected a fraction in [0, 1], got '2'" in err
 
 
+def _deforms_locally(score) -> bool:
+    """Whether a registration's subjects' median non-linear displacement reaches 0.01 mm."""
+    nonlinear = [
+        q.deformation["nonlinear_rms_mm"]
+        for q in score.subjects
+        if not q.reference and q.deformation.get("nonlinear_rms_mm") is not None
+    ]
+    return bool(np.median(nonlinear) >= 0.01)
+
+
 def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
     """The rules of the verdict (module docstring of itk_nrreval.measures.verdict), restated:
     which of them let `w` be decided better than `l` in images of `dimension` (2, 3 or None:
@@ -160,13 +171,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
     )
 
     def deforms_locally(r) -> bool:
-        """Whether r's subjects' median non-linear displacement reaches 0.01 mm."""
-        nonlinear = [
-            q.deformation["nonlinear_rms_mm"]
-            for q in scores[r].subjects
-            if not q.reference and q.deformation.get("nonlinear_rms_mm") is not None
-        ]
-        return bool(np.median(nonlinear) >= 0.01)
+        return _deforms_locally(scores[r])
 
     def winner(measure, lower):
         """The registration of the two that `measure` separably prefers, or None."""
@@ -349,11 +354,19 @@ def test_decisions_follow_the_rules_and_every_other_pair_is_open(
         assert d.to_dict() == {"better": d.better, "worse": d.worse, "basis": d.basis}
     assert v.to_dict()["decisions"] == [d.to_dict() for d in v.decisions]
     assert len(v.decisions) + len(v.open_pairs) == n * (n - 1) // 2
-    for p in v.open_pairs:  # a lean is one of the pair, and only across (unknown) families
+    # a lean is one of the pair: across (unknown) families, or in LINEAR_DIMENSIONS to one that
+    # deforms locally over one that does not (specificity against affine, whatever the family)
+    for p in v.open_pairs:
         assert p.leans_to in (None, p.a, p.b)
         if p.leans_to is not None:
+            other = p.b if p.leans_to == p.a else p.a
+            against_linear = (
+                dimension in LINEAR_DIMENSIONS
+                and _deforms_locally(scores[p.leans_to])
+                and not _deforms_locally(scores[other])
+            )
             fa, fb = scores[p.a].family, scores[p.b].family
-            assert fa is None or fa != fb, p
+            assert against_linear or fa is None or fa != fb, p
     # every lean the text names is one of the open pairs', the registration leaned to first
     leaning = [p for p in v.open_pairs if p.leans_to is not None]
     named = [t for t in v.text if t.startswith("Leaning, not decided: ")]
