@@ -2,23 +2,13 @@
 ``least_spearman_by_chance``) against a brute-force reference: the same draws, each
 registration's Spearman by scipy."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
+from _benchmarks import benchmark_module
 from scipy.stats import spearmanr
 
-
-def _bench_module():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_subject_qc_genuine.py"
-    spec = importlib.util.spec_from_file_location("bench_subject_qc_genuine", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-least_spearman_by_chance = _bench_module().least_spearman_by_chance
+least_spearman_by_chance = benchmark_module("bench_subject_qc_genuine").least_spearman_by_chance
 
 
 def _brute_force(subjects, rho, seed, draws):

@@ -10,24 +10,13 @@ than mm, or components mixed with axes, shows as a large error.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from _benchmarks import benchmark_module
 from scipy import ndimage
 
-
-def _bench_module():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_common_smoothness.py"
-    spec = importlib.util.spec_from_file_location("bench_common_smoothness", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-smoothed_field_transform = _bench_module().smoothed_field_transform
+smoothed_field_transform = benchmark_module("bench_common_smoothness").smoothed_field_transform
 
 
 def _rotation(dim: int, degrees: float) -> np.ndarray:
