@@ -596,6 +596,8 @@ def summarize(measured: list[dict]) -> dict:
             "undefined": len(values) - len(v),
         }
 
+    spearman = {term: stats(v) for term, v in per_term.items()}
+    concern_mean = spearman["concern"]["mean"]
     return {
         "registrations": sum(len(m["registrations"]) for m in measured),
         "deformable_registrations": deformable,
@@ -618,13 +620,13 @@ def summarize(measured: list[dict]) -> dict:
         "flag_kinds_failed": dict(sorted(hit_kinds.items())),
         "flag_kinds_false_alarms": dict(sorted(fa_kinds.items())),
         "flag_kinds_reference": dict(sorted(ref_kinds.items())),
-        "spearman": {term: stats(v) for term, v in per_term.items()},
+        "spearman": spearman,
         "judged_subjects": judged_subjects,
         # the least Spearman sampling alone gives, were every deformable registration's
         # population Spearman the mean measured here
         "concern_least_by_chance": None
-        if not judged_subjects or not per_term["concern"]
-        else least_spearman_by_chance(judged_subjects, stats(per_term["concern"])["mean"]),
+        if concern_mean is None
+        else least_spearman_by_chance(judged_subjects, concern_mean),
     }
 
 
