@@ -162,6 +162,10 @@ CONCERN_THRESHOLDS = tuple(1.0 + 0.25 * k for k in range(13))
 CONCERN_OWN_FALSE_ALARMS = 0.03
 SETS_THE_CONCERN = ("tuning", "tuning2")
 DECIDES_THE_CONCERN = ("fresh14",)
+#: The concern's own threshold without labels (issue 42, eleventh session): set by the same rule
+#: on the modes without labels alone, over the same splits; decided by FRESH16, declared first.
+UNLABELLED_MODES = ("without labels", "second scan, without labels")
+DECIDES_THE_UNLABELLED_CONCERN = ("fresh16",)
 #: The registration that is not deformable (left out of the Spearman means).
 AFFINE = "affine"
 #: Issue 42's goals, judged on the held-out split.
@@ -505,7 +509,8 @@ def measure_case(case: dict, *, labels: bool) -> dict:
             }
             for i in judged
         ]
-        default = nr.SubjectThresholds().concern
+        defaults = nr.SubjectThresholds()
+        default = defaults.concern if labels else defaults.concern_without_labels
         marked = concern_flags(rows, default) if default is not None else [False] * len(rows)
         for r, flagged in zip(rows, marked, strict=True):
             r["flagged_without_concern"] = any(k != NEW_KIND for k in r["kinds"])
@@ -1032,7 +1037,76 @@ def _concern_flag(cases: list[dict], split_cases: dict, missing: list[str]) -> d
         for m, _, _ in MODES
         if measured(DECIDES_THE_CONCERN, m)
     }
-    return {"threshold": threshold, "splits": splits, "check": check}
+    unlabelled = _unlabelled_concern_flag(measured, split_cases, threshold)
+    return {"threshold": threshold, "splits": splits, "check": check, "unlabelled": unlabelled}
+
+
+def _unlabelled_concern_flag(measured, split_cases: dict, shared: float) -> dict:
+    """The concern's own threshold without labels (declared with FRESH16): set by the rule on
+    :data:`UNLABELLED_MODES` of :data:`SETS_THE_CONCERN`, then, per split and mode without
+    labels, the recall and false alarms at the threshold shared before (`shared`) -> at it, and
+    the check of :data:`DECIDES_THE_UNLABELLED_CONCERN`."""
+    threshold = choose_concern_threshold(
+        {m: measured(SETS_THE_CONCERN, m) for m in UNLABELLED_MODES}
+    )
+    if threshold is None:
+        return {"threshold": None, "why": "no threshold tried meets the rule"}
+
+    def numbers(splits: tuple[str, ...], mode: str) -> dict:
+        before = concern_flag_numbers(measured(splits, mode), shared)
+        after = concern_flag_numbers(measured(splits, mode), threshold)
+        return {
+            **after,
+            "recall_before": before["recall"],
+            "false_alarms_before": before["false_alarms"],
+        }
+
+    splits = {
+        split: {m: numbers((split,), m) for m in UNLABELLED_MODES if measured((split,), m)}
+        for split in split_cases
+    }
+    check = {
+        m: concern_check(numbers(DECIDES_THE_UNLABELLED_CONCERN, m))
+        for m in UNLABELLED_MODES
+        if measured(DECIDES_THE_UNLABELLED_CONCERN, m)
+    }
+    return {"threshold": threshold, "shared": shared, "splits": splits, "check": check}
+
+
+def _unlabelled_concern_lines(flag: dict) -> list[str]:
+    if flag["threshold"] is None:
+        return ["", f"The concern's threshold without labels: {flag['why']}."]
+    lines = [
+        "",
+        f"The concern's own threshold without labels (issue 42, eleventh session): "
+        f"{flag['threshold']:g}, by the same rule on the modes without labels alone over "
+        f"{' and '.join(SETS_THE_CONCERN)}. Recall and false alarms of every default flag, "
+        f"with the concern's flag at {flag['shared']:g} (the threshold shared before) -> at "
+        f"{flag['threshold']:g}; the flag's own false alarms at {flag['threshold']:g}:",
+        "",
+        "| split | mode | recall | false alarms | its own false alarms |",
+        "|---|---|--:|--:|--:|",
+    ]
+    for split, modes in flag["splits"].items():
+        for mode, n in modes.items():
+            lines.append(
+                f"| {split} | {mode} | {_pct(n['recall_before'])} -> {_pct(n['recall'])} | "
+                f"{_pct(n['false_alarms_before'])} -> {_pct(n['false_alarms'])} | "
+                f"{_pct(n['own_false_alarms'])} |"
+            )
+    decided = ", ".join(DECIDES_THE_UNLABELLED_CONCERN)
+    lines += ["", f"Its check on {decided} (declared before it ran):", ""]
+    for mode, c in flag["check"].items():
+        words = "; ".join(
+            f"{k}: {'pass' if v else 'FAIL'}" for k, v in c.items() if isinstance(v, bool)
+        )
+        lines.append(
+            f"- {mode}: recall {100 * c['recall_gain']:+.0f} points, false alarms "
+            f"{100 * c['false_alarm_rise']:+.0f} points; {words}"
+        )
+    if not flag["check"]:
+        lines.append("- not run yet")
+    return lines
 
 
 def _concern_flag_lines(flag: dict) -> list[str]:
@@ -1070,7 +1144,7 @@ def _concern_flag_lines(flag: dict) -> list[str]:
         )
     if not flag["check"]:
         lines.append("- not run yet")
-    return lines
+    return lines + _unlabelled_concern_lines(flag["unlabelled"])
 
 
 def _json_safe(value):

@@ -905,17 +905,26 @@ def _concern_cohort(thresholds):
     return labelled, assess_subjects(**numbers, reference=0)
 
 
-@pytest.mark.parametrize("threshold", [0.5, 1.0, 2.0, None])
-def test_the_concern_flag_flags_exactly_the_subjects_above_its_threshold(threshold):
+@pytest.mark.parametrize(
+    ("with_labels", "without_labels"),
+    [(0.5, 2.0), (2.0, 0.5), (1.0, 1.0), (None, 1.0), (1.0, None)],
+)
+def test_the_concern_flag_flags_exactly_the_subjects_above_its_threshold(
+    with_labels, without_labels
+):
     """Issue 42: `SubjectThresholds.concern` flags a subject whose concern, written out by
     hand from its own z-scores, is above the threshold, and no other subject for that
-    reason, with and without labels; the reference never; None (off) flags none for it. Its
-    words give the concern and the term it comes from most."""
-    flagged_somewhere = set()
-    for subjects in _concern_cohort(nr.SubjectThresholds(concern=threshold)):
+    reason; `concern_without_labels` does the same where the overlap was not measured; the
+    reference never; None (off) flags none for it. Its words give the concern and the term
+    it comes from most."""
+    thresholds = nr.SubjectThresholds(concern=with_labels, concern_without_labels=without_labels)
+    labelled, unlabelled = _concern_cohort(thresholds)
+    for subjects, threshold in ((labelled, with_labels), (unlabelled, without_labels)):
         reference, *others = subjects
         assert reference.flags == () and reference.concern is None
+        flagged = set()
         for q in others:
+            assert (q.overlap_z is not None) == (subjects is labelled)
             by_hand, words = _concern_by_hand(
                 {
                     "overlap_z": q.overlap_z,
@@ -932,10 +941,15 @@ def test_the_concern_flag_flags_exactly_the_subjects_above_its_threshold(thresho
                 assert (
                     f"concern {by_hand:+.2f} (above {threshold:g}; most from its {words})" in flag
                 )
-                flagged_somewhere.add(q.index)
-    # the cohort has subjects on both sides of every threshold tried (the test can fail)
-    assert (9 in flagged_somewhere) == (threshold is not None)
-    assert len(flagged_somewhere) < 11
+                flagged.add(q.index)
+        # each cohort has subjects on both sides of the thresholds tried (the test can fail):
+        # with labels the poor overlap (9) is above 2; without labels the rough one (7) is
+        # between 1 and 2, the rest below 1
+        if subjects is labelled:
+            assert (9 in flagged) == (threshold is not None)
+        else:
+            assert (7 in flagged) == (threshold is not None and threshold < 1.5)
+        assert len(flagged) < 11
 
 
 def test_the_concern_is_the_weighted_mean_of_its_z_scores_and_ranks_worst_first():

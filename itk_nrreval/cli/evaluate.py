@@ -386,7 +386,15 @@ SUBJECT_OPTIONS = (
         positive_or_off,
         "C",
         "flag a subject whose concern (the weighted mean of its robust z-scores that ranks "
-        "the subjects, docs/subject-qc.md) is above C",
+        "the subjects, docs/subject-qc.md) is above C, where its labels were measured",
+    ),
+    (
+        "--subject-concern-without-labels",
+        "concern_without_labels",
+        positive_or_off,
+        "C",
+        "the same, for a subject whose labels were not measured (its concern has no overlap "
+        "term)",
     ),
     (
         "--subject-overlap-z",

@@ -126,7 +126,14 @@ class SubjectThresholds:
         check declared with it, on a split declared before it ran (``FRESH14``: recall 55-58%
         -> 64-79%, false alarms 2-3% -> 4-5%); on the synthetic damage it flags no clean
         subject (``benchmarks/bench_subject_qc_genuine.py``, ``docs/subject-qc.md``, issue
-        42).
+        42). It applies to a subject whose label overlap was measured; without labels, see
+        the next.
+    concern_without_labels : float or None
+        The same, for a subject whose label overlap was not measured (a cohort without
+        labels; default 1.75; None: off). Its concern is then the mean of three image and
+        deformation z-scores, without the overlap's z, which is half of it with labels; a
+        mean of fewer, correlated terms spreads less over a cohort, so the same number means
+        a rarer subject.
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
         3.5) ...
@@ -171,6 +178,7 @@ class SubjectThresholds:
     deformation_ratio: float = 1.5
     corrected_ratio: float | None = None
     concern: float | None = 1.75
+    concern_without_labels: float | None = 1.75
     overlap_z: float = 3.5
     overlap_ratio: float = 1.5
     folded: float = 0.01

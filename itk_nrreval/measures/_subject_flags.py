@@ -345,13 +345,16 @@ def concern_of(i: int, c: Cohort) -> tuple[float | None, str | None]:
 
 
 def _concern_flag(i: int, c: Cohort, th: SubjectThresholds) -> str | None:
-    """Subject `i`'s flag on its concern, in words, or None: above `th.concern` (None: off).
-    Not measured (no z-score at all) never flags."""
+    """Subject `i`'s flag on its concern, in words, or None: above `th.concern` where its
+    label overlap was measured, `th.concern_without_labels` where not (None: off). Not
+    measured (no z-score at all) never flags."""
     concern, concern_from = concern_of(i, c)
-    if th.concern is None or concern is None or not concern > th.concern:
+    labelled = c.overlap_z is not None and not math.isnan(c.overlap_z[i])
+    threshold = th.concern if labelled else th.concern_without_labels
+    if threshold is None or concern is None or not concern > threshold:
         return None
     return (
-        f"among the worst of its cohort: concern {concern:+.2f} (above {th.concern:g}; most "
+        f"among the worst of its cohort: concern {concern:+.2f} (above {threshold:g}; most "
         f"from its {concern_from})"
     )
 

@@ -373,7 +373,8 @@ def assess_subjects(
       ``th.overlap_ratio`` times the cohort's median mismatch;
     * its brain mask's Dice with the common mask is below
       :data:`~itk_nrreval.io._brain_masks.BRAIN_MASK_DICE_MIN` (0.8);
-    * its concern (:func:`concern_scores`) is above ``th.concern`` (None: never).
+    * its concern (:func:`concern_scores`) is above ``th.concern`` where its overlap was
+      measured, ``th.concern_without_labels`` where not (None: never).
 
     Every z-score's scale has a floor in its measure's units (:func:`robust_z`'s
     `least_spread`: :mod:`itk_nrreval.measures._subject_flags`), so none is infinite.
