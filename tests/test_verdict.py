@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from test_evaluate import N_IMAGES, make_case
 
@@ -251,7 +251,12 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
     return out
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+# Drawn anew on every run; the examples are two restatement mismatches that draws found only
+# now and then (at 80 draws a run, 0 of 6 runs found the first): a lean against affine within
+# one family in 2D, and the overlap's preference against folds in 2D.
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@example(seed=26772, n=4, noise=0.01, p_flag=0.0, labels=False, confidence=True, dimension=2)
+@example(seed=375, n=2, noise=0.01, p_flag=0.0, labels=True, confidence=True, dimension=2)
 @given(
     seed=st.integers(0, 2**32 - 1),
     n=st.integers(2, 6),
