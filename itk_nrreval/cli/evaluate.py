@@ -393,8 +393,7 @@ SUBJECT_OPTIONS = (
         "concern_without_labels",
         positive_or_off,
         "C",
-        "the same, for a subject whose labels were not measured (its concern has no overlap "
-        "term)",
+        "the same, for a subject whose labels were not measured (its concern has no overlap term)",
     ),
     (
         "--subject-overlap-z",

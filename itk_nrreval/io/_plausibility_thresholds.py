@@ -133,7 +133,10 @@ class SubjectThresholds:
         labels; default 1.75; None: off). Its concern is then the mean of three image and
         deformation z-scores, without the overlap's z, which is half of it with labels; a
         mean of fewer, correlated terms spreads less over a cohort, so the same number means
-        a rarer subject.
+        a rarer subject. 1.0, set by the same rule on the tuning splits without labels,
+        failed the check declared for it (``FRESH16``: recall 39% -> 68%, but false alarms
+        4% -> 8%), so the default stays 1.75; a lower one finds more failed subjects at more
+        false alarms (``docs/subject-qc.md``).
     overlap_z : float
         Flag a subject whose label overlap with the others has z below minus this (default
         3.5) ...

@@ -236,7 +236,8 @@ CONCERN_WORDS = (
     "z-scores, each signed so that positive is worse (label overlap with the others, weight "
     "3, where labels exist; distance to the others with gain and bias divided out, SDlogJ "
     "and inverse consistency, weight 1 each, the last two only above zero). Above a "
-    "threshold (--subject-concern, 1.75 by default) it flags the subject; look at the first "
+    "threshold (--subject-concern, 1.75 by default; --subject-concern-without-labels where "
+    "a subject's labels were not measured) it flags the subject; look at the first "
     "few even when none is flagged. Flags on absolute limits (folding, mirroring, a "
     "duplicate, off the grid) are not in it."
 )
