@@ -371,8 +371,7 @@ def assess_subjects(
       median (when that median is above 0.001 mm);
     * its overlap has z < ``-th.overlap_z`` and its mismatch ``1 - overlap`` is above
       ``th.overlap_ratio`` times the cohort's median mismatch;
-    * its brain mask's Dice with the common mask is below
-      :data:`~itk_nrreval.io._brain_masks.BRAIN_MASK_DICE_MIN` (0.8);
+    * its brain mask's Dice with the common mask is below ``BRAIN_MASK_DICE_MIN`` (0.8);
     * its concern (:func:`concern_scores`) is above ``th.concern`` where its overlap was
       measured, ``th.concern_without_labels`` where not (None: never).
 
