@@ -1084,18 +1084,28 @@ def _unlabelled_concern_lines(flag: dict) -> list[str]:
         f"with the concern's flag at {flag['shared']:g} (the threshold shared before) -> at "
         f"{flag['threshold']:g}; the flag's own false alarms at {flag['threshold']:g}:",
         "",
+    ]
+    decided = ", ".join(DECIDES_THE_UNLABELLED_CONCERN)
+    return lines + _flag_lines(flag, f"Its check on {decided} (declared before it ran):")
+
+
+def _flag_lines(flag: dict, check_title: str) -> list[str]:
+    """A flag's numbers per split and mode (recall and false alarms before -> with it, its
+    own false alarms) as a table, then its declared check under `check_title`."""
+    lines = [
         "| split | mode | recall | false alarms | its own false alarms |",
         "|---|---|--:|--:|--:|",
     ]
     for split, modes in flag["splits"].items():
         for mode, n in modes.items():
+            if n["failed"] + n["others"] == 0:
+                continue
             lines.append(
                 f"| {split} | {mode} | {_pct(n['recall_before'])} -> {_pct(n['recall'])} | "
                 f"{_pct(n['false_alarms_before'])} -> {_pct(n['false_alarms'])} | "
                 f"{_pct(n['own_false_alarms'])} |"
             )
-    decided = ", ".join(DECIDES_THE_UNLABELLED_CONCERN)
-    lines += ["", f"Its check on {decided} (declared before it ran):", ""]
+    lines += ["", check_title, ""]
     for mode, c in flag["check"].items():
         words = "; ".join(
             f"{k}: {'pass' if v else 'FAIL'}" for k, v in c.items() if isinstance(v, bool)
@@ -1121,30 +1131,9 @@ def _concern_flag_lines(flag: dict) -> list[str]:
         f"{' and '.join(SETS_THE_CONCERN)} (the declared rule). Recall and false alarms of "
         "the default flags -> with it; its own false alarms:",
         "",
-        "| split | mode | recall | false alarms | its own false alarms |",
-        "|---|---|--:|--:|--:|",
     ]
-    for split, modes in flag["splits"].items():
-        for mode, n in modes.items():
-            if n["failed"] + n["others"] == 0:
-                continue
-            lines.append(
-                f"| {split} | {mode} | {_pct(n['recall_before'])} -> {_pct(n['recall'])} | "
-                f"{_pct(n['false_alarms_before'])} -> {_pct(n['false_alarms'])} | "
-                f"{_pct(n['own_false_alarms'])} |"
-            )
-    lines += ["", f"Its check on {', '.join(DECIDES_THE_CONCERN)} (declared with it):", ""]
-    for mode, c in flag["check"].items():
-        words = "; ".join(
-            f"{k}: {'pass' if v else 'FAIL'}" for k, v in c.items() if isinstance(v, bool)
-        )
-        lines.append(
-            f"- {mode}: recall +{100 * c['recall_gain']:.0f} points, false alarms "
-            f"+{100 * c['false_alarm_rise']:.0f} points; {words}"
-        )
-    if not flag["check"]:
-        lines.append("- not run yet")
-    return lines + _unlabelled_concern_lines(flag["unlabelled"])
+    title = f"Its check on {', '.join(DECIDES_THE_CONCERN)} (declared with it):"
+    return lines + _flag_lines(flag, title) + _unlabelled_concern_lines(flag["unlabelled"])
 
 
 def _json_safe(value):
