@@ -410,6 +410,25 @@ FRESH17 = (
     "families_phantom2d_s80",  # phantom 2D, N = 12, seed 80, the seven
     "families_mni3d_s81",  # MNI-based 3D, N = 10, seed 81, the seven (3D grids)
 )
+# Declared on 2026-11-29 (fourteenth session of issue 41), BEFORE these cases ran, after
+# FRESH17 was judged: FRESH17 had the smoother-fields rule decide, within one family, a 60 mm
+# B-spline grid over a 25 mm one that corresponded better (1.86 against 1.34 mm), which the
+# description length preferred at z = 2.3, below its MIN_Z (3.2). FRESH18 checks one rule,
+# set on TUNING and TUNING2 alone before it was declared: within one family, the smoother-
+# fields rule's evidence is no evidence where the description length prefers the rougher
+# registration by more than 1.1 jackknife standard errors (the steepest right smoother-fields
+# decision the description length disagreed with there was at 0.99, on sweep_mni2d_pairwise:
+# a 64 mm grid over an 8 mm one; plus 10%). It enters the verdict if, on FRESH18 (registered
+# images and second scans, with and without labels, each case with its description length),
+# it opens no pair decided right and no pair is decided wrong; the older splits that set
+# nothing are reported beside it. All 2D: the rule is used in 2D only, as it was set there.
+FRESH18 = (
+    "families_mni2d_span_s82",  # MNI-based 2D, N = 12, seed 82, FAMILIES_SPAN
+    "families_phantom2d_span_s83",  # phantom 2D, N = 12, seed 83, FAMILIES_SPAN
+    "families_mni2d_span_n16_s84",  # MNI-based 2D, N = 16, seed 84, FAMILIES_SPAN
+    "families_mni2d_s85",  # MNI-based 2D, N = 12, seed 85, the seven
+    "families_phantom2d_syn_s86",  # phantom 2D, N = 12, seed 86, FAMILIES_SYN
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -435,6 +454,7 @@ SPLIT_CASES = {
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
     "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
     "fresh16": FRESH16, "fresh17": FRESH17,
+    "fresh18": FRESH18,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -1182,6 +1202,24 @@ def _cases() -> dict:
         "families_mni2d_span_s79": {"kind": "mni", "seed": 79, "registrations": FAMILIES_SPAN},
         "families_phantom2d_s80": {"kind": "phantom", "seed": 80},
         "families_mni3d_s81": {"kind": "mni", "seed": 81, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_mni2d_span_s82": {"kind": "mni", "seed": 82, "registrations": FAMILIES_SPAN},
+        "families_phantom2d_span_s83": {
+            "kind": "phantom",
+            "seed": 83,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_span_n16_s84": {
+            "kind": "mni",
+            "seed": 84,
+            "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_s85": {"kind": "mni", "seed": 85},
+        "families_phantom2d_syn_s86": {
+            "kind": "phantom",
+            "seed": 86,
+            "registrations": FAMILIES_SYN,
+        },
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
@@ -1258,17 +1296,25 @@ def families_of(case: str) -> dict[str, tuple | None]:
     return {name: _registration_family(reg) for name, reg in manifest.registrations.items()}
 
 
-def _load(case: str):
+def _load(case: str, *, description_length: bool = False):
     """The saved :class:`~itk_nrreval.EvaluationResult` of a case, its registrations'
     families as today's ``evaluate`` would record them (:func:`families_of`; evaluations saved
-    before scores carried families have None)."""
+    before scores carried families have None). With `description_length`, each score carries
+    the case's description length, as ``evaluate(description_length=True)`` measured it
+    (``bench_description_length.py --compute``: ``description_length.json``), where measured."""
     import dataclasses
 
     with open(OUT / case / "evaluation.pkl", "rb") as saved:
         evaluation = _RenamingUnpickler(saved).load()
     family = families_of(case)
+    lengths = {}
+    if description_length and (OUT / case / "description_length.json").exists():
+        record = json.loads((OUT / case / "description_length.json").read_text())
+        lengths = _bench("description_length").description_lengths(record)
     scores = {
-        name: dataclasses.replace(score, family=family.get(name))
+        name: dataclasses.replace(
+            score, family=family.get(name), description_length=lengths.get(name)
+        )
         for name, score in evaluation.scores.items()
     }
     return dataclasses.replace(evaluation, scores=scores)
@@ -1298,13 +1344,14 @@ def _overlap_says(evaluation, better: str, worse: str) -> str:
     return "-"
 
 
-def judge(case: str, *, labels: bool = True) -> list[dict]:
+def judge(case: str, *, labels: bool = True, description_length: bool = False) -> list[dict]:
     """Every pair of registrations of a saved case, with the verdict's decision and outcome
-    (``labels=False``: the verdict without the overlap), and what the overlap says of the
-    pair against the truth (``overlap``: with labels only; where it contradicts the truth,
-    open is the right answer)."""
+    (``labels=False``: the verdict without the overlap; `description_length`: with the case's
+    description length where measured, :func:`_load`), and what the overlap says of the pair
+    against the truth (``overlap``: with labels only; where it contradicts the truth, open is
+    the right answer)."""
     errors = json.loads((OUT / case / "truth.json").read_text())["true_error_mm"]
-    evaluation = _load(case)
+    evaluation = _load(case, description_length=description_length)
     v = _verdict(case, labels=labels, evaluation=evaluation)
     decided = {(d.better, d.worse): d.basis for d in v.decisions}
     leans = {frozenset((p.a, p.b)): p.leans_to for p in v.open_pairs if p.leans_to}
@@ -1346,14 +1393,14 @@ def _counts(rows: list[dict]) -> dict[str, int]:
     return {k: sum(r["outcome"] == k for r in rows) for k in keys}
 
 
-def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
+def _write(rows: list[dict], cases: list[str], unlabelled: list[dict], suffix: str = "") -> dict:
     OUT.mkdir(parents=True, exist_ok=True)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]) if rows else ["case"])
     writer.writeheader()
     writer.writerows(rows)
-    (OUT / "pairs.csv").write_text(buffer.getvalue())
-    (OUT / "pairs.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (OUT / f"pairs{suffix}.csv").write_text(buffer.getvalue())
+    (OUT / f"pairs{suffix}.json").write_text(json.dumps(rows, indent=1) + "\n")
     counts = {c: _counts([r for r in rows if r["case"] == c]) for c in cases}
     counts["overall"] = _counts(rows)
     alone = {c: _counts([r for r in unlabelled if r["case"] == c]) for c in cases}
@@ -1383,7 +1430,7 @@ def _write(rows: list[dict], cases: list[str], unlabelled: list[dict]) -> dict:
         if r["outcome"] == "wrong"
     ] or ["- none"]
     text = "\n".join(lines) + "\n"
-    (OUT / "summary.md").write_text(text)
+    (OUT / f"summary{suffix}.md").write_text(text)
     print(text)
     return {"counts": counts, "counts_without_labels": alone, "pairs": rows}
 
@@ -1407,7 +1454,9 @@ MODES = (
 )
 
 
-def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) -> dict:
+def _write_splits(
+    rows: list[dict], unlabelled: list[dict], cases: list[str], suffix: str = ""
+) -> dict:
     """Per case and per split (:data:`TUNING`, :data:`HELD_OUT`), right / wrong / open in
     each mode (:data:`MODES`); ``splits.md`` and ``splits.json``. A case's second scan counts
     only where it was judged in the same run."""
@@ -1475,8 +1524,8 @@ def _write_splits(rows: list[dict], unlabelled: list[dict], cases: list[str]) ->
             cells = [f"{k['leans right']} / {k['leans wrong']}" if k else "-" for k in leans]
             lines.append(f"| {split} | {' | '.join(cells)} |")
     text = "\n".join(lines) + "\n"
-    (OUT / "splits.md").write_text(text)
-    (OUT / "splits.json").write_text(
+    (OUT / f"splits{suffix}.md").write_text(text)
+    (OUT / f"splits{suffix}.json").write_text(
         json.dumps({"cases": table, "totals": totals}, indent=1) + "\n"
     )
     print(text)
@@ -1491,6 +1540,13 @@ def main(argv: list[str] | None = None) -> dict:
         "--rejudge",
         action="store_true",
         help="recompute only the verdict from the saved evaluations (no registration)",
+    )
+    parser.add_argument(
+        "--description-length",
+        action="store_true",
+        help="judge each saved case with its description length where measured "
+        "(bench_description_length.py --compute), as evaluate(description_length=True) "
+        "would; the tables go to *_description_length.md",
     )
     parser.add_argument(
         "--new",
@@ -1523,10 +1579,12 @@ def main(argv: list[str] | None = None) -> dict:
     # The tables always cover every saved case (judged by today's verdict), so that running
     # or rejudging a few cases does not leave summary.md and splits.md with those alone.
     cases = [c for c in known if (OUT / c / "evaluation.pkl").exists()]
-    rows = [row for case in cases for row in judge(case)]
-    unlabelled = [row for case in cases for row in judge(case, labels=False)]
-    result = _write(rows, cases, unlabelled)
-    result["splits"] = _write_splits(rows, unlabelled, cases)
+    dl = args.description_length
+    rows = [row for case in cases for row in judge(case, description_length=dl)]
+    unlabelled = [row for case in cases for row in judge(case, labels=False, description_length=dl)]
+    suffix = "_description_length" if dl else ""
+    result = _write(rows, cases, unlabelled, suffix)
+    result["splits"] = _write_splits(rows, unlabelled, cases, suffix)
     return result
 
 
