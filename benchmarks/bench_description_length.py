@@ -178,7 +178,7 @@ def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, st
     (``itk_nrreval.measures.verdict``, which reads them)."""
     import dataclasses
 
-    from itk_nrreval.measures.verdict import verdict
+    from itk_nrreval.evaluation import _judged
 
     evaluation = bv._load(case)
     lengths = description_lengths(record)
@@ -186,7 +186,7 @@ def decided_with(bv, case: str, record: dict, family: dict) -> set[tuple[str, st
         name: dataclasses.replace(score, description_length=lengths[name], family=family.get(name))
         for name, score in evaluation.scores.items()
     }
-    v = verdict(scores, evaluation.comparisons, has_labels=False)
+    v = _judged(scores, evaluation.comparisons, has_labels=False)  # in the images' dimension
     return {(d.better, d.worse) for d in v.decisions}
 
 
