@@ -69,6 +69,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import importlib.util
 import io
 import itertools
@@ -453,8 +454,7 @@ SPLIT_CASES = {
     "fresh4": FRESH4, "fresh5": FRESH5, "fresh6": FRESH6, "fresh7": FRESH7, "fresh8": FRESH8,
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
     "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
-    "fresh16": FRESH16, "fresh17": FRESH17,
-    "fresh18": FRESH18,
+    "fresh16": FRESH16, "fresh17": FRESH17, "fresh18": FRESH18,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -545,8 +545,10 @@ class _RenamingUnpickler(pickle.Unpickler):
         return super().find_class(_renamed(module), name)
 
 
+@functools.cache
 def _bench(name: str):
-    """Another benchmark module of this folder (its builders are reused, not copied)."""
+    """Another benchmark module of this folder (its builders are reused, not copied); loaded
+    once (:func:`_load` asks for one for every saved case)."""
     path = HERE / f"bench_{name}.py"
     spec = importlib.util.spec_from_file_location(path.stem, path)
     module = importlib.util.module_from_spec(spec)

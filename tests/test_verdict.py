@@ -528,6 +528,14 @@ def _separable_where(values, pairs, measure="specificity"):
     return out
 
 
+def _specificity_verdict(scores, separable, *, dimension=None):
+    """The verdict without labels on `scores`, whose specificity differences are separable in
+    exactly the pair `separable` (a set of two names) and no other."""
+    values = {k: s.specificity.value for k, s in scores.items()}
+    comparisons = _separable_where(values, [separable])
+    return verdict(scores, comparisons, has_labels=False, dimension=dimension)
+
+
 def test_too_few_samples_decide_nothing_and_the_text_says_so(cheat_case, tmp_path):
     """--samples 2 is legal for a quick try, but the verdict decides no pair (the same data
     at M = 3000 decide the truth best), every pair open with the reason, and the verdict's
@@ -711,8 +719,7 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
             "smooth": _registration(base, "smooth", spec=10.0, sdlogj=0.1),
             "rough": _registration(base, "rough", spec=10.0 / ratio, sdlogj=rough_sdlogj),
         }
-        values = {k: s.specificity.value for k, s in scores.items()}
-        v = verdict(scores, _separable_where(values, [{"smooth", "rough"}]), has_labels=False)
+        v = _specificity_verdict(scores, {"smooth", "rough"})
         return [(d.better, d.worse, d.basis) for d in v.decisions], v
 
     # the intervals of _separable_where are a few thousandths wide: ratios stay clear of them
@@ -740,11 +747,10 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
         ),
         "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=dr),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
+    v = _specificity_verdict(scores, {"affine", "rough"})
     assert v.decisions == ()
     scores["affine"] = _registration(base, "affine", spec=10.0, sdlogj=0.0)  # deforms
-    v = verdict(scores, _separable_where(values, [{"affine", "rough"}]), has_labels=False)
+    v = _specificity_verdict(scores, {"affine", "rough"})
     assert [(d.better, d.worse) for d in v.decisions] == [("affine", "rough")]
     # nor one that folds more than the rougher one: folds are roughness that SDlogJ ranks
     # poorly (a B-spline folding 3% with SDlogJ 0.5 corresponded worse than demons at 1.0)
@@ -755,8 +761,7 @@ def test_roughness_that_buys_too_little_decides_for_the_smoother(cheat_case):
             "smooth": _registration(base, "smooth", spec=10.0, sdlogj=0.1, folded=folds),
             "rough": _registration(base, "rough", spec=10.0 / 1.1, sdlogj=0.1 + dr, folded=0.086),
         }
-        values = {k: s.specificity.value for k, s in scores.items()}
-        v = verdict(scores, _separable_where(values, [{"smooth", "rough"}]), has_labels=False)
+        v = _specificity_verdict(scores, {"smooth", "rough"})
         assert tuple(d.better for d in v.decisions) == expected, folds
 
 
@@ -780,8 +785,7 @@ def test_specificity_is_no_evidence_against_folds_or_by_a_small_ratio(cheat_case
 
     def decided(a, b):
         scores = {a.name: a, b.name: b}
-        values = {k: s.specificity.value for k, s in scores.items()}
-        v = verdict(scores, _separable_where(values, [{a.name, b.name}]), has_labels=False)
+        v = _specificity_verdict(scores, {a.name, b.name})
         return [(d.better, d.worse) for d in v.decisions], v
 
     # a registration that folds 2.3% against demons whose specificity is 1.3x lower
@@ -860,9 +864,7 @@ def test_the_overlap_is_no_evidence_against_folds_in_3d(cheat_case):
             base, "bspline", spec=16.1, overlap=0.6, sdlogj=0.64, folded=0.017
         ),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    comparisons = _separable_where(values, [{"demons", "bspline"}], "specificity")
-    v = verdict(scores, comparisons, has_labels=False, dimension=2)
+    v = _specificity_verdict(scores, {"demons", "bspline"}, dimension=2)
     assert v.decisions == ()
     assert "bspline folds 1.7% of its voxels" in v.open_pairs[0].reason
 
@@ -945,9 +947,7 @@ def test_specificity_against_affine_leans_at_its_own_rate(cheat_case, sdlogj, ra
         (deforming, 2, False),
     ):
         scores = {"demons": demons, "affine": other}
-        values = {k: s.specificity.value for k, s in scores.items()}
-        comparisons = _separable_where(values, [{"demons", "affine"}], "specificity")
-        v = verdict(scores, comparisons, has_labels=False, dimension=dimension)
+        v = _specificity_verdict(scores, {"demons", "affine"}, dimension=dimension)
         assert ("demons", "affine") not in [(d.better, d.worse) for d in v.decisions]
         pairs = [p for p in v.open_pairs if {p.a, p.b} == {"demons", "affine"}]
         assert any(p.leans_to == "demons" for p in pairs) == expected, (dimension, pairs)
@@ -1029,9 +1029,7 @@ def test_demons_over_a_coarse_bspline_by_specificity_stays_open(cheat_case):
             base, "bspline_40mm", spec=15.455, sdlogj=0.119, family=("pairwise", "elastix")
         ),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    comparisons = _separable_where(values, [{"demons_3mm", "bspline_40mm"}])
-    v = verdict(scores, comparisons, has_labels=False, dimension=2)
+    v = _specificity_verdict(scores, {"demons_3mm", "bspline_40mm"}, dimension=2)
     assert v.decisions == ()
 
 
@@ -1060,9 +1058,7 @@ def test_a_coarser_grid_is_not_decided_better_by_smoother_fields_alone(cheat_cas
             base, "bspline_60mm", spec=21.243, sdlogj=0.112, family=elastix
         ),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    comparisons = _separable_where(values, [{"bspline_25mm", "bspline_60mm"}])
-    v = verdict(scores, comparisons, has_labels=False, dimension=2)
+    v = _specificity_verdict(scores, {"bspline_25mm", "bspline_60mm"}, dimension=2)
     assert v.decisions == ()
 
 
@@ -1147,8 +1143,7 @@ def test_smoother_fields_decide_only_within_one_family(
             _registration(base, "demons_3mm", spec=14.96, sdlogj=0.295), family=family_demons
         ),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    v = verdict(scores, _separable_where(values, [{"syn", "demons_3mm"}]), has_labels=False)
+    v = _specificity_verdict(scores, {"syn", "demons_3mm"})
     if decided:
         assert [(d.better, d.worse) for d in v.decisions] == [("syn", "demons_3mm")]
         assert "that much roughness must buy" in v.decisions[0].basis
