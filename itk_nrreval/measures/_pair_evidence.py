@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 from ._verdict_thresholds import (
     EXCHANGE_RATE,
+    EXCHANGE_RATE_ACROSS_FAMILIES,
     LINEAR_DIMENSIONS,
     MIN_ROUGHNESS_DIFFERENCE,
     MIN_SPECIFICITY_RATIO,
@@ -96,14 +97,27 @@ def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
 
 
 def measure_evidence(
-    a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms, dimension=None
+    a,
+    b,
+    by_spec,
+    by_overlap,
+    spec,
+    overlap,
+    rough,
+    flagged,
+    folded,
+    deforms,
+    dimension=None,
+    family=None,
 ) -> dict:
     """Each measure's separable preference in the pair ``{measure: Preference}``. It is
     evidence unless the preferred registration's fields are rougher by ``dr`` and the gain
-    is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for the overlap
-    ``OVERLAP_EXCHANGE_RATE``, or ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that
-    does not deform locally, `deforms`; specificity's may then lean:
-    :func:`_leans_against_linear`), or it is the overlap's preference for a flagged
+    is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for specificity between
+    two registrations that deform locally and are not of one known `family`,
+    ``EXCHANGE_RATE_ACROSS_FAMILIES``; for the overlap ``OVERLAP_EXCHANGE_RATE``, or
+    ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that does not deform locally,
+    `deforms`; specificity's may then lean: :func:`_leans_against_linear`), or it is the
+    overlap's preference for a flagged
     registration (what a cheat games), or a preference over a registration that folds
     (:func:`_against_folds`), or specificity's by a small ratio
     (:data:`MIN_SPECIFICITY_RATIO`)."""
@@ -121,12 +135,21 @@ def measure_evidence(
         linear = deforms[preferred] and not deforms[other]
         if linear and measure == OVERLAP:
             rate = OVERLAP_RATE_AGAINST_LINEAR  # SDlogJ is all of preferred's deformation
+        across = (
+            measure == SPECIFICITY
+            and deforms[other]
+            and not _one_family(*((family or {}).get(n) for n in (preferred, other)))
+        )
+        # EXCHANGE_RATE was set on sweeps of one engine (FRESH17: wrong across families)
+        charge = EXCHANGE_RATE_ACROSS_FAMILIES if across else rate
         dr = max(0.0, rough[preferred] - rough[other])
         if measure == OVERLAP and preferred in flagged:
             discount = "flagged"
-        elif gain < rate * dr:
+        elif gain < charge * dr:
             discount = "rougher"
-            if measure == SPECIFICITY and (why := _leans_against_linear(
+            if across and gain >= rate * dr:
+                why = _across_rate(preferred, other, gain, rough, family)
+            elif measure == SPECIFICITY and (why := _leans_against_linear(
                 preferred, other, gain, rough, folded, linear, dimension
             )):  # fmt: skip
                 discount = "linear"
@@ -166,6 +189,24 @@ def _leans_against_linear(preferred, other, gain, rough, folded, linear, dimensi
         f"than the {math.exp(SPECIFICITY_RATE_AGAINST_LINEAR * dr):.2f}x that would buy "
         f"against affine, so it leans to {preferred}, but less than the "
         f"{math.exp(EXCHANGE_RATE * dr):.2f}x that decides"
+    )
+
+
+def _across_rate(preferred, other, gain, rough, family) -> str:
+    """Why specificity's preference for the rougher `preferred` is no evidence across
+    families though it reaches what ``EXCHANGE_RATE`` says roughness can buy, in words."""
+    dr = rough[preferred] - rough[other]
+    kinds = (
+        "are of different families"
+        if family and family.get(preferred) is not None and family.get(other) is not None
+        else "are not known to be of one family"
+    )
+    return (
+        f"{preferred}'s {math.exp(gain):.2f}x lower specificity comes with fields rougher "
+        f"(SDlogJ {rough[preferred]:.2f} vs {rough[other]:.2f}); {preferred} and {other} "
+        f"{kinds}, whose roughness is no common currency, so it must reach "
+        f"{math.exp(EXCHANGE_RATE_ACROSS_FAMILIES * dr):.2f}x, not the "
+        f"{math.exp(EXCHANGE_RATE * dr):.2f}x within one family"
     )
 
 

@@ -12,7 +12,9 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
 - ``a``'s fields are rougher by ``dr = SDlogJ(a) - SDlogJ(b)`` (the mean standard
   deviation of the log Jacobian determinant) and the advantage is smaller than roughness
   alone can buy: ``ln(spec(b) / spec(a)) < EXCHANGE_RATE * dr`` for specificity (a 1.7x
-  lower specificity for 0.1 rougher fields, 4x for 0.25), and on the log-odds of the
+  lower specificity for 0.1 rougher fields, 4x for 0.25; between two registrations that
+  deform locally and are not of one known family, :data:`EXCHANGE_RATE_ACROSS_FAMILIES`: a
+  unit of SDlogJ is not the same roughness across families), and on the log-odds of the
   inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; where ``b`` does
   not deform locally (an affine registration) the overlap at
   :data:`OVERLAP_RATE_AGAINST_LINEAR`: there SDlogJ is all of ``a``'s local deformation,
@@ -110,6 +112,7 @@ from ._pair_evidence import (
 )
 from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     EXCHANGE_RATE,
+    EXCHANGE_RATE_ACROSS_FAMILIES,
     LINEAR_DIMENSIONS,
     MIN_ROUGHNESS_DIFFERENCE,
     MIN_SAMPLES,
@@ -130,6 +133,7 @@ __all__ = [
     "Verdict",
     "verdict",
     "EXCHANGE_RATE",
+    "EXCHANGE_RATE_ACROSS_FAMILIES",
     "SMOOTHNESS_RATE",
     "OVERLAP_EXCHANGE_RATE",
     "OVERLAP_RATE_AGAINST_LINEAR",
@@ -347,8 +351,9 @@ def verdict(
         by_overlap = prefers(OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
         found = measure_evidence(
-            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms, dimension
-        )
+            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms, dimension,
+            family,
+        )  # fmt: skip
         add_smoother_evidence(
             found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family
         )
