@@ -1098,18 +1098,26 @@ def test_a_coarser_grid_is_not_decided_better_by_smoother_fields_alone(cheat_cas
     assert "rougher" in v.open_pairs[0].reason
 
 
-@pytest.mark.parametrize("same_family", [True, False])
-def test_across_families_roughness_must_buy_more_specificity(cheat_case, same_family):
+@pytest.mark.parametrize(
+    ("other", "why"),
+    [
+        (("fluid", "simpleitk"), None),  # the rough one's own family
+        (("pairwise", "elastix"), "are of different families"),
+        (None, "are not known to be of one family"),  # no method and engine in the manifest
+    ],
+)
+def test_across_families_roughness_must_buy_more_specificity(cheat_case, other, why):
     """A rougher registration's separable specificity advantage beyond exp(EXCHANGE_RATE dr)
-    decides the pair within one family; across families (FRESH17: demons over a coarse
-    B-spline, wrong at ln(ratio) / dr = 6.0) only beyond exp(EXCHANGE_RATE_ACROSS_FAMILIES
-    dr), and the open pair says why. Checked just inside and just beyond each rate."""
+    decides the pair within one family; across families or where a family is unknown
+    (FRESH17: demons over a coarse B-spline, wrong at ln(ratio) / dr = 6.0) only beyond
+    exp(EXCHANGE_RATE_ACROSS_FAMILIES dr), and the open pair says why. Checked just inside
+    and just beyond each rate."""
     from itk_nrreval.measures.verdict import EXCHANGE_RATE, EXCHANGE_RATE_ACROSS_FAMILIES
 
     _, result = cheat_case
     base = result.scores["truth"]
     dr, smooth_spec = 0.1, 20.0
-    other = ("fluid", "simpleitk") if same_family else ("pairwise", "elastix")
+    same_family = why is None
     for rate, decided_within, decided_across in (
         (EXCHANGE_RATE * 0.98, False, False),
         ((EXCHANGE_RATE + EXCHANGE_RATE_ACROSS_FAMILIES) / 2, True, False),
@@ -1127,7 +1135,9 @@ def test_across_families_roughness_must_buy_more_specificity(cheat_case, same_fa
             [("rough", "smooth")] if decided else []
         )
         if not decided and not same_family and rate > EXCHANGE_RATE:
-            assert "different families" in v.open_pairs[0].reason
+            (pair,) = v.open_pairs
+            assert why in pair.reason
+            assert f"must reach {np.exp(EXCHANGE_RATE_ACROSS_FAMILIES * dr):.2f}x" in pair.reason
 
 
 def test_the_description_length_decides_only_between_settings_of_one_family(cheat_case):
