@@ -117,10 +117,9 @@ def measure_evidence(
     ``EXCHANGE_RATE_ACROSS_FAMILIES``; for the overlap ``OVERLAP_EXCHANGE_RATE``, or
     ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that does not deform locally,
     `deforms`; specificity's may then lean: :func:`_leans_against_linear`), or it is the
-    overlap's preference for a flagged
-    registration (what a cheat games), or a preference over a registration that folds
-    (:func:`_against_folds`), or specificity's by a small ratio
-    (:data:`MIN_SPECIFICITY_RATIO`)."""
+    overlap's preference for a flagged registration (what a cheat games), or a preference
+    over a registration that folds (:func:`_against_folds`), or specificity's by a small
+    ratio (:data:`MIN_SPECIFICITY_RATIO`)."""
     out = {}
     for measure, preferred in ((SPECIFICITY, by_spec), (OVERLAP, by_overlap)):
         if preferred is None:
