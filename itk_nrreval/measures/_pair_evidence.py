@@ -97,18 +97,7 @@ def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
 
 
 def measure_evidence(
-    a,
-    b,
-    by_spec,
-    by_overlap,
-    spec,
-    overlap,
-    rough,
-    flagged,
-    folded,
-    deforms,
-    dimension=None,
-    family=None,
+    a, b, by_spec, by_overlap, *, spec, overlap, rough, flagged, folded, deforms, dimension, family
 ) -> dict:
     """Each measure's separable preference in the pair ``{measure: Preference}``. It is
     evidence unless the preferred registration's fields are rougher by ``dr`` and the gain

@@ -351,8 +351,8 @@ def verdict(
         by_overlap = prefers(OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
         found = measure_evidence(
-            a, b, by_spec, by_overlap, spec, overlap, rough, flagged, folded, deforms, dimension,
-            family,
+            a, b, by_spec, by_overlap, spec=spec, overlap=overlap, rough=rough, flagged=flagged,
+            folded=folded, deforms=deforms, dimension=dimension, family=family,
         )  # fmt: skip
         add_smoother_evidence(
             found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family
