@@ -126,7 +126,7 @@ def measure_evidence(
         across = (
             measure == SPECIFICITY
             and deforms[other]
-            and not _one_family(*((family or {}).get(n) for n in (preferred, other)))
+            and not _one_family(family[preferred], family[other])
         )
         # EXCHANGE_RATE was set on sweeps of one engine (FRESH17: wrong across families)
         charge = EXCHANGE_RATE_ACROSS_FAMILIES if across else rate
@@ -186,7 +186,7 @@ def _across_rate(preferred, other, gain, rough, family) -> str:
     dr = rough[preferred] - rough[other]
     kinds = (
         "are of different families"
-        if family and family.get(preferred) is not None and family.get(other) is not None
+        if family[preferred] is not None and family[other] is not None
         else "are not known to be of one family"
     )
     return (
