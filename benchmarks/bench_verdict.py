@@ -456,6 +456,31 @@ FRESH19 = (
     "families_phantom2d_mix_s91",  # phantom 2D, N = 12, seed 91, FAMILIES_MIX
     "families_mni2d_span_n16_s92",  # MNI-based 2D, N = 16, seed 92, FAMILIES_SPAN
 )
+# Declared on 2026-11-29 (sixteenth session of issue 41), BEFORE these cases ran. Two of the
+# verdict's leans become decisions (without labels they were 29% of the judged pairs over
+# the splits above, right in all but 5 of about 1,000), set on every split judged so far
+# (all of them now set these numbers; FRESH20 checks them):
+# (1) The smoother-fields rule between registrations of different (or unknown) families
+#     decides where the rougher one's SDlogJ is higher by at least
+#     ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE = 0.2; below it, it still leans. The four wrong
+#     leans of this kind were at 0.09 (FRESH11, FRESH19: SyN over demons at 3 mm) and 0.17
+#     (FRESH13, both scans: demons at 3 mm over a 15 mm grid); 0.2 is 10% above 0.17, rounded up.
+# (2) In 2D, specificity's preference for a registration that deforms locally over one that
+#     does not (affine) decides where ln(ratio) / SDlogJ reaches
+#     SPECIFICITY_DECIDES_AGAINST_LINEAR = 2.5 (it leans from 1.75); the one wrong lean of this
+#     kind was at 2.2 (FRESH6: demons at 2 mm over affine); 2.5 is 10% above it, rounded up.
+# FRESH20 checks them: kept only if no pair is decided wrong in any mode (registered images
+# and second scans, with and without labels); the older splits are reported beside it. All 2D
+# (rule 2 is 2D only; the 3D cases take too long for one session). Issue 42: no subject-QC
+# rule changed; FRESH20 reports today's flags.
+FRESH20 = (
+    "families_mni2d_mix_s93",  # MNI-based 2D, N = 12, seed 93, FAMILIES_MIX
+    "families_phantom2d_s94",  # phantom 2D, N = 12, seed 94, the seven
+    "families_mni2d_syn_n16_s95",  # MNI-based 2D, N = 16, seed 95, FAMILIES_SYN
+    "families_phantom2d_span_s96",  # phantom 2D, N = 12, seed 96, FAMILIES_SPAN
+    "families_mni2d_s97",  # MNI-based 2D, N = 12, seed 97, the seven
+    "families_phantom2d_syn_s98",  # phantom 2D, N = 12, seed 98, FAMILIES_SYN
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -481,6 +506,7 @@ SPLIT_CASES = {
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
     "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
     "fresh16": FRESH16, "fresh17": FRESH17, "fresh18": FRESH18, "fresh19": FRESH19,
+    "fresh20": FRESH20,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -1271,6 +1297,25 @@ def _cases() -> dict:
             "seed": 92,
             "n": 16,
             "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_mix_s93": {"kind": "mni", "seed": 93, "registrations": FAMILIES_MIX},
+        "families_phantom2d_s94": {"kind": "phantom", "seed": 94},
+        "families_mni2d_syn_n16_s95": {
+            "kind": "mni",
+            "seed": 95,
+            "n": 16,
+            "registrations": FAMILIES_SYN,
+        },
+        "families_phantom2d_span_s96": {
+            "kind": "phantom",
+            "seed": 96,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_s97": {"kind": "mni", "seed": 97},
+        "families_phantom2d_syn_s98": {
+            "kind": "phantom",
+            "seed": 98,
+            "registrations": FAMILIES_SYN,
         },
     }
     for case, spec in families.items():
