@@ -16,6 +16,7 @@ import statistics
 from typing import NamedTuple
 
 from ._verdict_thresholds import (
+    ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE,
     EXCHANGE_RATE,
     EXCHANGE_RATE_ACROSS_FAMILIES,
     LINEAR_DIMENSIONS,
@@ -27,6 +28,7 @@ from ._verdict_thresholds import (
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SPECIFICITY_DECIDES_AGAINST_LINEAR,
     SPECIFICITY_RATE_AGAINST_LINEAR,
 )
 from .confidence import Comparison
@@ -105,7 +107,7 @@ def measure_evidence(
     two registrations that deform locally and are not of one known `family`,
     ``EXCHANGE_RATE_ACROSS_FAMILIES``; for the overlap ``OVERLAP_EXCHANGE_RATE``, or
     ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that does not deform locally,
-    `deforms`; specificity's may then lean: :func:`_leans_against_linear`), or it is the
+    `deforms`; specificity's may then decide or lean: :func:`_against_linear`), or it is the
     overlap's preference for a flagged registration (what a cheat games), or a preference
     over a registration that folds (:func:`_against_folds`), or specificity's by a small
     ratio (:data:`MIN_SPECIFICITY_RATIO`)."""
@@ -137,10 +139,10 @@ def measure_evidence(
             discount = "rougher"
             if across and gain >= rate * dr:
                 why = _across_rate(preferred, other, gain, rough, family)
-            elif measure == SPECIFICITY and (why := _leans_against_linear(
+            elif measure == SPECIFICITY and (found := _against_linear(
                 preferred, other, gain, rough, folded, linear, dimension
             )):  # fmt: skip
-                discount = "linear"
+                discount, why = found
         elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded, dimension):
             discount = "folds"
         elif measure == SPECIFICITY and (why := _small(preferred, other, gain, rough)):
@@ -155,15 +157,19 @@ def measure_evidence(
     return out
 
 
-def _leans_against_linear(preferred, other, gain, rough, folded, linear, dimension) -> str | None:
+def _against_linear(
+    preferred, other, gain, rough, folded, linear, dimension
+) -> tuple[str | None, str] | None:
     """Where specificity's preference for `preferred`, which deforms locally, over `other`,
     which does not (`linear`), reaches ``exp(SPECIFICITY_RATE_AGAINST_LINEAR * SDlogJ)``
-    though roughness could buy it at the exchange rate: that it leans to `preferred`, in
-    words; else None. Only where `preferred` folds less than ``NO_FOLDING_FRACTION`` (SDlogJ,
-    over the voxels that do not fold, ranks folds poorly: a label-matching cheat's) and in a
-    `dimension` of ``LINEAR_DIMENSIONS`` (the rate was set on 2D cases alone; in 3D the
-    held-out split has demons at 2 mm over an affine registration that corresponded better
-    at 1.88). A lean, not a decision: in 2D, the split ``FRESH6`` has the same at 2.2."""
+    though roughness could buy it at the exchange rate: ``(None, why)`` where it reaches
+    ``exp(SPECIFICITY_DECIDES_AGAINST_LINEAR * SDlogJ)`` and ``MIN_SPECIFICITY_RATIO``
+    (evidence), else ``("linear", why)``
+    (it leans to `preferred`); `why` in words. None elsewhere: where `preferred` folds at
+    least ``NO_FOLDING_FRACTION`` (SDlogJ, over the voxels that do not fold, ranks folds
+    poorly: a label-matching cheat's), and outside ``LINEAR_DIMENSIONS`` (both rates were set
+    on 2D cases alone; in 3D the held-out split has demons at 2 mm over an affine
+    registration that corresponded better at 1.88)."""
     if not linear or folded[preferred] >= NO_FOLDING_FRACTION:
         return None
     if dimension not in LINEAR_DIMENSIONS:
@@ -171,12 +177,20 @@ def _leans_against_linear(preferred, other, gain, rough, folded, linear, dimensi
     dr = rough[preferred] - rough[other]
     if gain < SPECIFICITY_RATE_AGAINST_LINEAR * dr:
         return None
-    return (
+    because = (
         f"{other} does not deform locally, so {preferred}'s SDlogJ ({rough[preferred]:.2f}) is "
-        f"all of its local deformation; its {math.exp(gain):.2f}x lower specificity is more "
-        f"than the {math.exp(SPECIFICITY_RATE_AGAINST_LINEAR * dr):.2f}x that would buy "
-        f"against affine, so it leans to {preferred}, but less than the "
-        f"{math.exp(EXCHANGE_RATE * dr):.2f}x that decides"
+        f"all of its local deformation"
+    )
+    decides = max(math.exp(SPECIFICITY_DECIDES_AGAINST_LINEAR * dr), MIN_SPECIFICITY_RATIO)
+    if gain >= math.log(decides):
+        return None, (
+            f"{because}, and its {math.exp(gain):.2f}x lower specificity reaches the "
+            f"{decides:.2f}x that decides against affine"
+        )
+    return "linear", (
+        f"{because}; its {math.exp(gain):.2f}x lower specificity is more than the "
+        f"{math.exp(SPECIFICITY_RATE_AGAINST_LINEAR * dr):.2f}x that would buy against "
+        f"affine, so it leans to {preferred}, but less than the {decides:.2f}x that decides"
     )
 
 
@@ -242,9 +256,10 @@ def add_smoother_evidence(
     :data:`SMOOTHNESS_RATE` says its extra roughness must buy (``gain`` is then minus that
     top). Separable evidence already found, or a discount other than roughness, stays.
 
-    Only between two registrations of one known family (`family`: name -> ``(method,
-    engine)`` or None): across families the same preference is recorded as no evidence
-    (discount ``"families"``), so an open pair's reason says which way it leans."""
+    Between registrations of different (or unknown) families (`family`: name -> ``(method,
+    engine)`` or None) only where the SDlogJ difference reaches
+    :data:`ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE`: below it the same preference is recorded as
+    no evidence (discount ``"families"``), so an open pair's reason says which way it leans."""
     if c is None:
         return
     s, r = sorted((c.a, c.b), key=rough.get)
@@ -262,14 +277,34 @@ def add_smoother_evidence(
     top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
     if not top_gain < SMOOTHNESS_RATE * dr:
         return
-    lean = Preference(s, r, -top_gain, None, math.exp(top_gain))
+    found = Preference(s, r, -top_gain, None, math.exp(top_gain))
     if not _one_family(family[s], family[r]):
-        # Roughness is no common currency across families: in the benchmark's FRESH11, SyN
-        # (SDlogJ 0.20) was preferred this way over demons at 3 mm (0.30), which corresponded
-        # better. The rate was set on settings of one engine.
-        why = f"{_too_little(lean, rough)}, so it leans to {s}; {_across(s, r, family)}"
-        lean = lean._replace(discount="families", why=why)
-    evidence[SPECIFICITY] = lean
+        if dr >= ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE and folded[r] < NO_FOLDING_FRACTION:
+            # A large difference is more than what separates two families' fields at one
+            # accuracy (the wrong leans of the benchmark's splits were at 0.09 and 0.17);
+            # but not where r folds: its SDlogJ, inflated around the folds, does not say how
+            # much rougher it is (issue 41's own case: a 25 mm B-spline folding 2.3%, SDlogJ
+            # 0.54, corresponded better than demons at 1 mm, 0.29).
+            why = (
+                f"across families ({_families_of(s, r, family)}), {r}'s fields are rougher "
+                f"by at least the {ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE:g} in SDlogJ that "
+                "decides there"
+            )
+            found = found._replace(why=why)
+        else:
+            # Roughness is no common currency across families: in the benchmark's FRESH11,
+            # SyN (SDlogJ 0.20) was preferred this way over demons at 3 mm (0.30), which
+            # corresponded better. The rate was set on settings of one engine.
+            why = f"{_too_little(found, rough)}, so it leans to {s}; {_across(s, r, family)}"
+            found = found._replace(discount="families", why=why)
+    evidence[SPECIFICITY] = found
+
+
+def _families_of(s: str, r: str, family) -> str:
+    """The families of `s` and `r`, in words: ``"method/engine"`` each, or "unknown"."""
+    return " and ".join(
+        f"{n}: {'/'.join(family[n]) if family[n] is not None else 'unknown'}" for n in (s, r)
+    )
 
 
 def _across(s: str, r: str, family) -> str:

@@ -141,6 +141,33 @@ tuning pair's least (2.07), so no rate set on the tuning splits separates them: 
 lean, not a decision (as the smoother-fields rule across families became after
 ``FRESH11``). Checked on ``FRESH14``, declared before it ran."""
 
+SPECIFICITY_DECIDES_AGAINST_LINEAR = 2.5
+"""Where :data:`SPECIFICITY_RATE_AGAINST_LINEAR` leans, specificity's preference for the
+registration that deforms locally *decides* once its ratio reaches ``exp(2.5 s)`` (``s`` its
+SDlogJ: 2.4x for ``s`` = 0.35), in :data:`LINEAR_DIMENSIONS`, where it folds less than
+:data:`NO_FOLDING_FRACTION`. Set on every split of the known-truth benchmark judged by the
+sixteenth session of issue 41 (``TUNING`` to ``FRESH19``): over about 500 such leans, the
+one the truth says is wrong had ``ln(ratio) / SDlogJ`` = 2.2 (``FRESH6``: demons at 2 mm,
+3.86 mm, over affine, 3.42 mm); the right ones a median of 3.75 and a tenth below 2.37. 2.5
+is 10% above 2.2, rounded up. Checked on ``FRESH20``, declared before it ran: no pair
+decided wrong. A preference below :data:`MIN_SPECIFICITY_RATIO` still only leans."""
+
+ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE = 0.2
+"""The least SDlogJ difference at which :data:`SMOOTHNESS_RATE`'s preference for the smoother
+registration decides between registrations of different (or unknown) families, where the
+rougher one folds less than :data:`NO_FOLDING_FRACTION`; otherwise it leans
+(``OpenPair.leans_to``). A unit of SDlogJ is not the same roughness across families (a
+B-spline's and a dense field's), but a large difference is more than what separates two
+families' fields at one accuracy. Set on every split of the known-truth benchmark judged by
+the sixteenth session of issue 41 (``TUNING`` to ``FRESH19``): over about 520 such leans,
+the four the truth says are wrong had differences of 0.09 (``FRESH11`` and ``FRESH19``'s
+second scans: SyN over demons at 3 mm) and 0.17 (``FRESH13``, both scans: demons at 3 mm
+over a 15 mm B-spline grid); the right ones a median of 0.55. 0.2 is 10% above 0.17, rounded
+up. Checked on ``FRESH20``, declared before it ran: no pair decided wrong. The condition on
+folds came after, from issue 41's own held-out case, not from the benchmark (where such
+leans were all right): a 25 mm B-spline folding 2.3% (SDlogJ 0.54, inflated around its
+folds) corresponded better than demons at 1 mm (0.29). It only leaves pairs open."""
+
 LINEAR_DIMENSIONS = (2,)
 """The image dimensions :data:`SPECIFICITY_RATE_AGAINST_LINEAR` was set in, and leans in;
 elsewhere, and where the dimension is not known, specificity against affine is charged at

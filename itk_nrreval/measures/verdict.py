@@ -18,9 +18,10 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   inverse-volume generalized overlap with :data:`OVERLAP_EXCHANGE_RATE`; where ``b`` does
   not deform locally (an affine registration) the overlap at
   :data:`OVERLAP_RATE_AGAINST_LINEAR`: there SDlogJ is all of ``a``'s local deformation,
-  the correspondence it gains included (specificity's preference there, beyond
-  :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ in 2D where ``a`` folds less than
-  :data:`NO_FOLDING_FRACTION`, is a lean, ``OpenPair.leans_to``, not evidence); smoother
+  the correspondence it gains included (specificity's preference there, in 2D where ``a``
+  folds less than :data:`NO_FOLDING_FRACTION`, is evidence from
+  :data:`SPECIFICITY_DECIDES_AGAINST_LINEAR` x SDlogJ, and from
+  :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ a lean, ``OpenPair.leans_to``); smoother
   fields are not charged; or
 - it is the overlap's preference for a registration flagged as implausible (overlap is what
   a label-matching cheat games, by folding: Rohlfing's cheat); or
@@ -52,11 +53,13 @@ corresponded better; in ``FRESH6`` a 25 mm B-spline folding 4.4% was preferred o
 10 mm one folding 8.6% that corresponded better): the
 extra roughness bought too little to be correspondence (the flat end of the trade-off's
 L-curve: demons or B-splines past their knee, fitting noise). Between the two rates the
-pair is the knee, and stays open unless the overlap decides it. This converse counts only
-between two registrations of one known family (``family``: the same ``method`` and
-``engine`` in the manifest's ``parameters``): how rough a registration's fields are for the
-correspondence they reach is a property of its method, so across families (or where a
-family is unknown) the open pair's reason says which way it leans, and nothing is decided.
+pair is the knee, and stays open unless the overlap decides it. Between registrations of
+different families (``family``: the same ``method`` and ``engine`` in the manifest's
+``parameters`` make one; or where a family is unknown) this converse counts only where the
+SDlogJ difference reaches :data:`ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE` and ``a`` folds less
+than :data:`NO_FOLDING_FRACTION`: how rough a registration's fields are for the
+correspondence they reach is partly a property of its method, so otherwise the open pair's
+reason says which way it leans, and nothing is decided.
 
 A pair is decided for ``a`` when there is evidence for ``a`` and none for ``b`` (with
 labels, specificity and overlap each count; a preference that is not evidence does not
@@ -111,6 +114,7 @@ from ._pair_evidence import (
     why_open,
 )
 from ._verdict_thresholds import (  # the rules' numbers, and how each was set
+    ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE,
     EXCHANGE_RATE,
     EXCHANGE_RATE_ACROSS_FAMILIES,
     LINEAR_DIMENSIONS,
@@ -123,6 +127,7 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SPECIFICITY_DECIDES_AGAINST_LINEAR,
     SPECIFICITY_RATE_AGAINST_LINEAR,
 )
 from .confidence import Comparison
@@ -138,6 +143,8 @@ __all__ = [
     "OVERLAP_EXCHANGE_RATE",
     "OVERLAP_RATE_AGAINST_LINEAR",
     "SPECIFICITY_RATE_AGAINST_LINEAR",
+    "SPECIFICITY_DECIDES_AGAINST_LINEAR",
+    "ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE",
     "LINEAR_DIMENSIONS",
     "OVERLAP_AGAINST_FOLDS_DIMENSIONS",
     "MIN_ROUGHNESS_DIFFERENCE",
@@ -181,9 +188,12 @@ class OpenPair:
         Why the evidence does not decide it, in words.
     leans_to : str or None
         The registration specificity leans to where it may not decide: by the smoother-fields
-        rule between registrations of different (or unknown) families, or, in 2D, by a
-        lower specificity than an affine registration's beyond
-        :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ. A hint, not a claim: the
+        rule between registrations of different (or unknown) families whose SDlogJ differ by
+        less than :data:`ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE` (or whose rougher one folds),
+        or, in 2D, by a lower
+        specificity than an affine registration's beyond
+        :data:`SPECIFICITY_RATE_AGAINST_LINEAR` x SDlogJ (short of
+        :data:`SPECIFICITY_DECIDES_AGAINST_LINEAR` x SDlogJ). A hint, not a claim: the
         known-truth benchmark's record of such leans is in ``docs/verdict.md``. None where
         the evidence leans nowhere, or also the other way.
     """
@@ -313,7 +323,8 @@ def verdict(
         Whether the overlap is a measure here.
     dimension : int, optional
         The images' dimension (2 or 3). A rule set on cases of one dimension alone is used
-        only there (:data:`SPECIFICITY_RATE_AGAINST_LINEAR` and
+        only there (:data:`SPECIFICITY_RATE_AGAINST_LINEAR`,
+        :data:`SPECIFICITY_DECIDES_AGAINST_LINEAR` and
         :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS`: 2D); None (unknown): nowhere.
 
     Returns
