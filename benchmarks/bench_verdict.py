@@ -481,6 +481,26 @@ FRESH20 = (
     "families_mni2d_s97",  # MNI-based 2D, N = 12, seed 97, the seven
     "families_phantom2d_syn_s98",  # phantom 2D, N = 12, seed 98, FAMILIES_SYN
 )
+# Declared on 2026-11-29 (sixteenth session of issue 41), after FRESH20 was judged and BEFORE
+# these cases ran. One rule more, the converse of specificity against affine, set on every
+# split judged so far (FRESH20 included; FRESH21 checks it): in 2D, a registration that
+# deforms locally and folds less than 1% is decided WORSE than an affine one where its
+# specificity advantage over affine, at the top of its subject-level interval, is below
+# exp(SMOOTHNESS_RATE_AGAINST_LINEAR s), s its SDlogJ, SMOOTHNESS_RATE_AGAINST_LINEAR = 1.25.
+# Over those pairs (2D, not folding) the lowest such advantage where the deformable one
+# corresponded better was exp(1.42 s) (FRESH11, families_mni2d_s42's second scan: a 25 mm
+# grid); 1.25 is 10% below it, rounded down. FRESH21 checks it: kept only if it decides no
+# pair wrong in any mode (registered images and second scans, with and without labels);
+# what the verdict's older rules decide wrong there is reported apart. All 2D (the rule is
+# 2D only). Issue 42: no subject-QC rule changed; FRESH21 reports today's flags.
+FRESH21 = (
+    "families_mni2d_span_s99",  # MNI-based 2D, N = 12, seed 99, FAMILIES_SPAN
+    "families_phantom2d_mix_s100",  # phantom 2D, N = 12, seed 100, FAMILIES_MIX
+    "families_mni2d_n16_s101",  # MNI-based 2D, N = 16, seed 101, the seven
+    "families_phantom2d_span_n16_s102",  # phantom 2D, N = 16, seed 102, FAMILIES_SPAN
+    "families_mni2d_syn_s103",  # MNI-based 2D, N = 12, seed 103, FAMILIES_SYN
+    "families_phantom2d_s104",  # phantom 2D, N = 12, seed 104, the seven
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -506,7 +526,7 @@ SPLIT_CASES = {
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
     "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
     "fresh16": FRESH16, "fresh17": FRESH17, "fresh18": FRESH18, "fresh19": FRESH19,
-    "fresh20": FRESH20,
+    "fresh20": FRESH20, "fresh21": FRESH21,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -1317,6 +1337,21 @@ def _cases() -> dict:
             "seed": 98,
             "registrations": FAMILIES_SYN,
         },
+        "families_mni2d_span_s99": {"kind": "mni", "seed": 99, "registrations": FAMILIES_SPAN},
+        "families_phantom2d_mix_s100": {
+            "kind": "phantom",
+            "seed": 100,
+            "registrations": FAMILIES_MIX,
+        },
+        "families_mni2d_n16_s101": {"kind": "mni", "seed": 101, "n": 16},
+        "families_phantom2d_span_n16_s102": {
+            "kind": "phantom",
+            "seed": 102,
+            "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_mni2d_syn_s103": {"kind": "mni", "seed": 103, "registrations": FAMILIES_SYN},
+        "families_phantom2d_s104": {"kind": "phantom", "seed": 104},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
