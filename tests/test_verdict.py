@@ -170,6 +170,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
         OVERLAP_RATE_AGAINST_LINEAR,
         SEVERE_FOLDED_FRACTION,
         SMOOTHNESS_RATE,
+        SMOOTHNESS_RATE_AGAINST_LINEAR,
         SPECIFICITY_DECIDES_AGAINST_LINEAR,
     )
 
@@ -192,18 +193,24 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
         specificity advantage, at the bottom of the interval of spec(o) - spec(r), is below
         exp(SMOOTHNESS_RATE * dr), both of one known family, or smoother by at least
         ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE than an `o` that folds less than
-        NO_FOLDING_FRACTION."""
+        NO_FOLDING_FRACTION; or, in 2D, `r` does not deform locally (affine), `o` does and
+        folds less than NO_FOLDING_FRACTION, and the advantage is below
+        exp(SMOOTHNESS_RATE_AGAINST_LINEAR * dr)."""
         dr = scores[o].plausibility.sdlogj - scores[r].plausibility.sdlogj
-        one_family = scores[r].family is not None and scores[r].family == scores[o].family
         o_folds = scores[o].plausibility.folded_fraction >= NO_FOLDING_FRACTION
-        if not one_family and (dr < ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE or o_folds):
-            return False  # across families only a large difference, of fields that do not fold
-        if not deforms_locally(r):
-            return False  # r does not deform locally (affine: no non-linear displacement)
-        if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
-            return False  # r folds more: not the smoother, whatever its SDlogJ
-        if scores[r].plausibility.folded_fraction >= NO_FOLDING_FRACTION:
-            return False  # r folds: not credited for smoothness at all
+        if not deforms_locally(r):  # affine: no non-linear displacement
+            if dimension != 2 or not deforms_locally(o) or o_folds:
+                return False  # its own rate, in 2D, against fields that deform and do not fold
+            rate = SMOOTHNESS_RATE_AGAINST_LINEAR
+        else:
+            one_family = scores[r].family is not None and scores[r].family == scores[o].family
+            if not one_family and (dr < ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE or o_folds):
+                return False  # across families only a large difference, of unfolded fields
+            if scores[r].plausibility.folded_fraction > scores[o].plausibility.folded_fraction:
+                return False  # r folds more: not the smoother, whatever its SDlogJ
+            if scores[r].plausibility.folded_fraction >= NO_FOLDING_FRACTION:
+                return False  # r folds: not credited for smoothness at all
+            rate = SMOOTHNESS_RATE
         for c in comparisons:
             if (
                 c.measure == "specificity"
@@ -212,9 +219,7 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
             ):
                 o_minus_r = c.ci95[0] if c.a == o else -c.ci95[1]
                 best_o = scores[r].specificity.value + o_minus_r
-                return best_o > 0 and scores[r].specificity.value / best_o < np.exp(
-                    SMOOTHNESS_RATE * dr
-                )
+                return best_o > 0 and scores[r].specificity.value / best_o < np.exp(rate * dr)
         return False
 
     def evidence(measure, r):
@@ -995,6 +1000,49 @@ def test_specificity_against_affine_decides_and_leans_at_its_own_rates(
             assert f"its {ratio:.2f}x lower specificity is more than the" in pair.reason
             assert "so it leans to demons" in pair.reason
             assert any(t.startswith("Leaning, not decided: demons over affine") for t in v.text)
+
+
+@pytest.mark.parametrize(("sdlogj", "ratio", "folded", "dimension", "affine_better"), [
+    # families_mni2d_s2's demons at 0.5 mm: 3.50x lower specificity than affine for SDlogJ
+    # 1.41 (ln 3.50 / 1.41 = 0.89), and a worse true error (3.84 against 2.74 mm)
+    (1.411, 3.50, 0.0, 2, True),
+    (1.411, 3.50, 0.0, 3, False),  # set on 2D cases alone, and used only there
+    (1.411, 3.50, 0.0, None, False),
+    (1.411, 3.50, 0.023, 2, False),  # folds: its SDlogJ understates what it bought
+    # families_mni2d_s2's demons at 1 mm: ln 3.08 / 0.83 = 1.35, above the rate
+    (0.833, 3.08, 0.0, 2, False),
+])  # fmt: skip
+def test_affine_is_decided_better_where_the_deformation_bought_too_little(
+    cheat_case, sdlogj, ratio, folded, dimension, affine_better
+):
+    """The converse of specificity against affine: in 2D, where a registration that deforms
+    locally and does not fold has a specificity advantage over an affine registration that,
+    at the top of its interval, is below exp(SMOOTHNESS_RATE_AGAINST_LINEAR x SDlogJ), the
+    affine registration is decided better; its SDlogJ is all of its local deformation, and it
+    bought too little to be correspondence. The numbers are the benchmark's own."""
+    from itk_nrreval.measures.verdict import SMOOTHNESS_RATE_AGAINST_LINEAR
+
+    _, result = cheat_case
+    base = result.scores["truth"]
+    rigid = _affine(base, spec=10.0 * ratio)
+    demons = _registration(base, "demons", spec=10.0, overlap=0.5, sdlogj=sdlogj, folded=folded)
+    assert (np.log(ratio) < SMOOTHNESS_RATE_AGAINST_LINEAR * sdlogj) == (
+        affine_better or folded > 0 or dimension != 2
+    )
+    v = _specificity_verdict({"demons": demons, "affine": rigid}, {"demons", "affine"},
+                             dimension=dimension)  # fmt: skip
+    decided = [(d.better, d.worse) for d in v.decisions]
+    if affine_better:
+        assert decided == [("affine", "demons")]
+        basis = v.decisions[0].basis
+        assert basis.startswith("specificity (")
+        assert "affine does not deform locally, so demons's SDlogJ is all of its" in basis
+        too_little = np.exp(SMOOTHNESS_RATE_AGAINST_LINEAR * sdlogj)
+        assert f"less than the {too_little:.2f}x that much roughness must buy" in basis
+        assert v.best == ("affine",)
+    else:
+        assert decided == [], v
+        assert v.open_pairs[0].leans_to is None
 
 
 @pytest.mark.xfail(

@@ -28,6 +28,7 @@ from ._verdict_thresholds import (
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SMOOTHNESS_RATE_AGAINST_LINEAR,
     SPECIFICITY_DECIDES_AGAINST_LINEAR,
     SPECIFICITY_RATE_AGAINST_LINEAR,
 )
@@ -76,6 +77,8 @@ class Preference(NamedTuple):
     rougher_at_most: float | None = None
     why: str | None = None  # the discount in words, where _discounted cannot say it
     z: float | None = None  # the description length's: jackknife standard errors
+    # the smoother-fields rule's rate, where it is not SMOOTHNESS_RATE (against affine)
+    rate: float | None = None
 
 
 def add_description_length(evidence: dict, sa, sb) -> None:
@@ -249,7 +252,7 @@ def _small(preferred, other, gain, rough) -> str | None:
 
 
 def add_smoother_evidence(
-    evidence: dict, c: Comparison | None, spec, rough, folded, deforms, family
+    evidence: dict, c: Comparison | None, spec, rough, folded, deforms, family, *, dimension
 ) -> None:
     """Add specificity's evidence for the smoother registration of a pair when the rougher
     one's specificity advantage, at the top of its interval, is below what
@@ -268,7 +271,8 @@ def add_smoother_evidence(
     if dr < MIN_ROUGHNESS_DIFFERENCE or (found is not None and found.discount != "rougher"):
         return
     if not deforms[s]:
-        return  # no local deformation (affine): SDlogJ cannot see what it leaves out
+        _add_affine_evidence(evidence, c, s, r, spec, rough, folded, deforms, dimension)
+        return
     if folded[s] > folded[r]:
         return  # folds: roughness that SDlogJ (over the voxels that do not fold) ranks poorly
     if folded[s] >= NO_FOLDING_FRACTION:
@@ -298,6 +302,26 @@ def add_smoother_evidence(
             why = f"{_too_little(found, rough)}, so it leans to {s}; {_across(s, r, family)}"
             found = found._replace(discount="families", why=why)
     evidence[SPECIFICITY] = found
+
+
+def _add_affine_evidence(evidence, c, s, r, spec, rough, folded, deforms, dimension) -> None:
+    """The smoother-fields rule where the smoother `s` does not deform locally (affine), at
+    :data:`SMOOTHNESS_RATE_AGAINST_LINEAR`: in ``LINEAR_DIMENSIONS`` only, and only against
+    an `r` that deforms locally and folds less than ``NO_FOLDING_FRACTION``. Elsewhere an
+    affine registration's zero SDlogJ says nothing of the deformation it leaves out."""
+    if dimension not in LINEAR_DIMENSIONS or not deforms[r] or folded[r] >= NO_FOLDING_FRACTION:
+        return
+    dr = rough[r] - rough[s]  # all of r's local deformation
+    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
+    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
+    if not top_gain < SMOOTHNESS_RATE_AGAINST_LINEAR * dr:
+        return
+    why = (
+        f"{s} does not deform locally, so {r}'s SDlogJ is all of its local deformation, "
+        "which bought too little to be correspondence"
+    )
+    rate = SMOOTHNESS_RATE_AGAINST_LINEAR
+    evidence[SPECIFICITY] = Preference(s, r, -top_gain, None, math.exp(top_gain), why, rate=rate)
 
 
 def _families_of(s: str, r: str, family) -> str:
@@ -390,9 +414,10 @@ def decision(a, b, evidence, rough, folded) -> tuple[str, str, str] | None:
 def _too_little(p: Preference, rough) -> str:
     """Why the smoother registration is preferred by the smoother-fields rule, in words."""
     dr = rough[p.other] - rough[p.preferred]
+    rate = SMOOTHNESS_RATE if p.rate is None else p.rate
     return (
         f"{p.other}'s fields are {dr:.2f} rougher in SDlogJ, and its specificity advantage is "
-        f"at most {p.rougher_at_most:.2f}x, less than the {math.exp(SMOOTHNESS_RATE * dr):.2f}x "
+        f"at most {p.rougher_at_most:.2f}x, less than the {math.exp(rate * dr):.2f}x "
         "that much roughness must buy"
     )
 

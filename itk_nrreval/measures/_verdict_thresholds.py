@@ -152,6 +152,23 @@ one the truth says is wrong had ``ln(ratio) / SDlogJ`` = 2.2 (``FRESH6``: demons
 is 10% above 2.2, rounded up. Checked on ``FRESH20``, declared before it ran: no pair
 decided wrong. A preference below :data:`MIN_SPECIFICITY_RATIO` still only leans."""
 
+SMOOTHNESS_RATE_AGAINST_LINEAR = 1.25
+""":data:`SMOOTHNESS_RATE` against an affine registration (one that does not deform locally),
+the converse of :data:`SPECIFICITY_RATE_AGAINST_LINEAR`: in :data:`LINEAR_DIMENSIONS`, where a
+registration that deforms locally (SDlogJ ``s``, folding less than
+:data:`NO_FOLDING_FRACTION`) has a specificity advantage over the affine one that, even at the
+top of its subject-level 95% interval, is below ``exp(1.25 s)`` (1.5x for ``s`` = 0.35), the
+affine registration is the better: the deformation bought too little to be correspondence
+(demons at 0.5 mm, SDlogJ 1.4, fitting noise). :data:`SMOOTHNESS_RATE` itself never prefers an
+affine registration, whose zero SDlogJ says nothing of the deformation it leaves out: at 2.3
+it decided three held-out pairs wrong so. Set on every split of the known-truth benchmark
+judged by the sixteenth session of issue 41 (``TUNING`` to ``FRESH20``): over those pairs in
+2D where the deformable registration does not fold, the lowest such advantage where it
+corresponded better was ``exp(1.42 s)`` (``FRESH11``, the second scan of a 25 mm B-spline
+grid); 1.25 is 10% below it, rounded down. A registration that folds is left out: its SDlogJ,
+inflated around its folds, would understate what its deformation bought. Checked on
+``FRESH21``, declared before it ran."""
+
 ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE = 0.2
 """The least SDlogJ difference at which :data:`SMOOTHNESS_RATE`'s preference for the smoother
 registration decides between registrations of different (or unknown) families, where the

@@ -127,6 +127,7 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
+    SMOOTHNESS_RATE_AGAINST_LINEAR,
     SPECIFICITY_DECIDES_AGAINST_LINEAR,
     SPECIFICITY_RATE_AGAINST_LINEAR,
 )
@@ -140,6 +141,7 @@ __all__ = [
     "EXCHANGE_RATE",
     "EXCHANGE_RATE_ACROSS_FAMILIES",
     "SMOOTHNESS_RATE",
+    "SMOOTHNESS_RATE_AGAINST_LINEAR",
     "OVERLAP_EXCHANGE_RATE",
     "OVERLAP_RATE_AGAINST_LINEAR",
     "SPECIFICITY_RATE_AGAINST_LINEAR",
@@ -366,8 +368,9 @@ def verdict(
             folded=folded, deforms=deforms, dimension=dimension, family=family,
         )  # fmt: skip
         add_smoother_evidence(
-            found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family
-        )
+            found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family,
+            dimension=dimension,
+        )  # fmt: skip
         add_description_length(found, scores[a], scores[b])
         decided = decision(a, b, found, rough, folded)
         if decided is not None:
