@@ -46,7 +46,9 @@ specificity advantage, even at the top of its subject-level interval, is below
 ``exp(SMOOTHNESS_RATE * dr)``, that is specificity's evidence for the smoother ``b``, if
 ``b`` deforms locally (its subjects' median non-linear displacement is at least
 :data:`~itk_nrreval.measures.subject_qc.IDENTITY_MM`; an affine registration's zero SDlogJ says
-nothing of the deformation it leaves out), folds no more than ``a`` and less than
+nothing of the deformation it leaves out, so against affine, in 2D, only at
+:data:`SMOOTHNESS_RATE_AGAINST_LINEAR` x SDlogJ and where ``a`` folds less than
+:data:`NO_FOLDING_FRACTION`), folds no more than ``a`` and less than
 :data:`NO_FOLDING_FRACTION` (folds are roughness that SDlogJ, taken over the voxels that
 do not fold, ranks poorly: 3D B-splines folding 3-6% had a lower SDlogJ than demons that
 corresponded better; in ``FRESH6`` a 25 mm B-spline folding 4.4% was preferred over a
@@ -326,7 +328,7 @@ def verdict(
     dimension : int, optional
         The images' dimension (2 or 3). A rule set on cases of one dimension alone is used
         only there (:data:`SPECIFICITY_RATE_AGAINST_LINEAR`,
-        :data:`SPECIFICITY_DECIDES_AGAINST_LINEAR` and
+        :data:`SPECIFICITY_DECIDES_AGAINST_LINEAR`, :data:`SMOOTHNESS_RATE_AGAINST_LINEAR` and
         :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS`: 2D); None (unknown): nowhere.
 
     Returns
