@@ -167,12 +167,11 @@ def _against_linear(
     which does not (`linear`), reaches ``exp(SPECIFICITY_RATE_AGAINST_LINEAR * SDlogJ)``
     though roughness could buy it at the exchange rate: ``(None, why)`` where it reaches
     ``exp(SPECIFICITY_DECIDES_AGAINST_LINEAR * SDlogJ)`` and ``MIN_SPECIFICITY_RATIO``
-    (evidence), else ``("linear", why)``
-    (it leans to `preferred`); `why` in words. None elsewhere: where `preferred` folds at
-    least ``NO_FOLDING_FRACTION`` (SDlogJ, over the voxels that do not fold, ranks folds
-    poorly: a label-matching cheat's), and outside ``LINEAR_DIMENSIONS`` (both rates were set
-    on 2D cases alone; in 3D the held-out split has demons at 2 mm over an affine
-    registration that corresponded better at 1.88)."""
+    (evidence), else ``("linear", why)`` (it leans to `preferred`); `why` in words. None
+    elsewhere: where `preferred` folds at least ``NO_FOLDING_FRACTION`` (SDlogJ, over the
+    voxels that do not fold, ranks folds poorly: a label-matching cheat's), and outside
+    ``LINEAR_DIMENSIONS`` (both rates were set on 2D cases alone; in 3D the held-out split
+    has demons at 2 mm over an affine registration that corresponded better at 1.88)."""
     if not linear or folded[preferred] >= NO_FOLDING_FRACTION:
         return None
     if dimension not in LINEAR_DIMENSIONS:
@@ -270,15 +269,15 @@ def add_smoother_evidence(
     found = evidence.get(SPECIFICITY)
     if dr < MIN_ROUGHNESS_DIFFERENCE or (found is not None and found.discount != "rougher"):
         return
+    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
+    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
     if not deforms[s]:
-        _add_affine_evidence(evidence, c, s, r, spec, rough, folded, deforms, dimension)
+        _add_affine_evidence(evidence, s, r, top_gain, dr, folded, deforms, dimension)
         return
     if folded[s] > folded[r]:
         return  # folds: roughness that SDlogJ (over the voxels that do not fold) ranks poorly
     if folded[s] >= NO_FOLDING_FRACTION:
         return  # one that folds is not credited for its smoothness, whatever its SDlogJ
-    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
-    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
     if not top_gain < SMOOTHNESS_RATE * dr:
         return
     found = Preference(s, r, -top_gain, None, math.exp(top_gain))
@@ -304,16 +303,15 @@ def add_smoother_evidence(
     evidence[SPECIFICITY] = found
 
 
-def _add_affine_evidence(evidence, c, s, r, spec, rough, folded, deforms, dimension) -> None:
+def _add_affine_evidence(evidence, s, r, top_gain, dr, folded, deforms, dimension) -> None:
     """The smoother-fields rule where the smoother `s` does not deform locally (affine), at
     :data:`SMOOTHNESS_RATE_AGAINST_LINEAR`: in ``LINEAR_DIMENSIONS`` only, and only against
     an `r` that deforms locally and folds less than ``NO_FOLDING_FRACTION``. Elsewhere an
-    affine registration's zero SDlogJ says nothing of the deformation it leaves out."""
+    affine registration's zero SDlogJ says nothing of the deformation it leaves out.
+    `top_gain`: r's specificity advantage at the top of its interval (ln); `dr`: the SDlogJ
+    difference, all of r's local deformation."""
     if dimension not in LINEAR_DIMENSIONS or not deforms[r] or folded[r] >= NO_FOLDING_FRACTION:
         return
-    dr = rough[r] - rough[s]  # all of r's local deformation
-    lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
-    top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
     if not top_gain < SMOOTHNESS_RATE_AGAINST_LINEAR * dr:
         return
     why = (

@@ -150,7 +150,8 @@ sixteenth session of issue 41 (``TUNING`` to ``FRESH19``): over about 500 such l
 one the truth says is wrong had ``ln(ratio) / SDlogJ`` = 2.2 (``FRESH6``: demons at 2 mm,
 3.86 mm, over affine, 3.42 mm); the right ones a median of 3.75 and a tenth below 2.37. 2.5
 is 10% above 2.2, rounded up. Checked on ``FRESH20`` and ``FRESH21``, each declared before
-it ran: no pair decided wrong. A preference below :data:`MIN_SPECIFICITY_RATIO` still only leans."""
+it ran: no pair decided wrong. A preference below :data:`MIN_SPECIFICITY_RATIO` still only
+leans."""
 
 SMOOTHNESS_RATE_AGAINST_LINEAR = 1.25
 """:data:`SMOOTHNESS_RATE` against an affine registration (one that does not deform locally),
@@ -181,10 +182,10 @@ the four the truth says are wrong had differences of 0.09 (``FRESH11`` and ``FRE
 second scans: SyN over demons at 3 mm) and 0.17 (``FRESH13``, both scans: demons at 3 mm
 over a 15 mm B-spline grid); the right ones a median of 0.55. 0.2 is 10% above 0.17, rounded
 up. Checked on ``FRESH20`` and ``FRESH21``, each declared before it ran: no pair decided
-wrong (their wrong leans were at 0.08 and 0.11). The condition on
-folds came after, from issue 41's own held-out case, not from the benchmark (where such
-leans were all right): a 25 mm B-spline folding 2.3% (SDlogJ 0.54, inflated around its
-folds) corresponded better than demons at 1 mm (0.29). It only leaves pairs open."""
+wrong (their wrong leans were at 0.08 and 0.11). The condition on folds came after, from
+issue 41's own held-out case, not from the benchmark (where such leans were all right): a
+25 mm B-spline folding 2.3% (SDlogJ 0.54, inflated around its folds) corresponded better
+than demons at 1 mm (0.29). It only leaves pairs open."""
 
 LINEAR_DIMENSIONS = (2,)
 """The image dimensions :data:`SPECIFICITY_RATE_AGAINST_LINEAR` was set in, and leans in;
