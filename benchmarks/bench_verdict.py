@@ -501,6 +501,31 @@ FRESH21 = (
     "families_mni2d_syn_s103",  # MNI-based 2D, N = 12, seed 103, FAMILIES_SYN
     "families_phantom2d_s104",  # phantom 2D, N = 12, seed 104, the seven
 )
+# Declared on 2026-11-29 (seventeenth session of issue 41), BEFORE these cases ran, after
+# FRESH21 was judged. A preference over a registration that folds (at least 1%, and more than
+# the preferred one) is charged as if the folding one's fields were flat: its gain must reach
+# what the preferred registration's own SDlogJ s could buy. At EXCHANGE_RATE (specificity) and
+# OVERLAP_EXCHANGE_RATE (the overlap, 3D only) that charge left 209 such specificity
+# preferences open or decided by other evidence where the truth agreed with them, and 2 where
+# it did not; for the overlap, 75 and 2. The 2 are one pair, both scans (FRESH5,
+# families_mni3d_n12_s20: demons at 2 mm over a 10 mm B-spline folding 1.7%, 3.88 vs 3.51
+# mm), at ln(ratio) / s = 0.37 (specificity, second scan) and 1.02 (the overlap). So the
+# charge is now at its own rates, 10% beyond that pair, rounded away from it:
+#     SPECIFICITY_RATE_AGAINST_FOLDS = 0.41, OVERLAP_RATE_AGAINST_FOLDS = 1.13
+# (the overlap's still only outside OVERLAP_AGAINST_FOLDS_DIMENSIONS: in 2D it is not
+# charged). Set on every split judged so far (TUNING to FRESH21, held-out excepted); FRESH22
+# checks it: kept only if it decides no pair wrong in any mode (registered images and second
+# scans, with and without labels). Two 3D cases (the overlap's rate is 3D only) and four 2D
+# cases with a 10 mm B-spline that folds. Issue 42: no subject-QC rule changed; FRESH22
+# reports today's flags.
+FRESH22 = (
+    "families_mni3d_s105",  # MNI-based 3D, N = 10, seed 105, the seven (3D grids)
+    "families_mni2d_s106",  # MNI-based 2D, N = 12, seed 106, the seven
+    "families_mni3d_n12_s107",  # MNI-based 3D, N = 12, seed 107, the seven (3D grids)
+    "families_mni2d_span_n16_s108",  # MNI-based 2D, N = 16, seed 108, FAMILIES_SPAN
+    "families_phantom2d_s109",  # phantom 2D, N = 12, seed 109, the seven
+    "families_mni2d_n16_s110",  # MNI-based 2D, N = 16, seed 110, the seven
+)
 # Declared on 2026-11-28 (fourth session of issue 41), BEFORE any case outside TUNING was
 # judged with it: a new label-free measure, specificity at a common smoothness (every
 # registration's fields smoothed by a Gaussian of 8 mm before resampling), and its rule, set
@@ -526,7 +551,7 @@ SPLIT_CASES = {
     "fresh9": FRESH9, "fresh10": FRESH10, "fresh11": FRESH11, "fresh12": FRESH12,
     "fresh13": FRESH13, "tuning2": TUNING2, "fresh14": FRESH14, "fresh15": FRESH15,
     "fresh16": FRESH16, "fresh17": FRESH17, "fresh18": FRESH18, "fresh19": FRESH19,
-    "fresh20": FRESH20, "fresh21": FRESH21,
+    "fresh20": FRESH20, "fresh21": FRESH21, "fresh22": FRESH22,
 }  # fmt: skip
 SPLITS = tuple(SPLIT_CASES)
 #: Every case of a declared split.
@@ -1352,6 +1377,17 @@ def _cases() -> dict:
         },
         "families_mni2d_syn_s103": {"kind": "mni", "seed": 103, "registrations": FAMILIES_SYN},
         "families_phantom2d_s104": {"kind": "phantom", "seed": 104},
+        "families_mni3d_s105": {"kind": "mni", "seed": 105, "dim": 3, "n": 10, "spacing": 3.0},
+        "families_mni2d_s106": {"kind": "mni", "seed": 106},
+        "families_mni3d_n12_s107": {"kind": "mni", "seed": 107, "dim": 3, "n": 12, "spacing": 3.0},
+        "families_mni2d_span_n16_s108": {
+            "kind": "mni",
+            "seed": 108,
+            "n": 16,
+            "registrations": FAMILIES_SPAN,
+        },
+        "families_phantom2d_s109": {"kind": "phantom", "seed": 109},
+        "families_mni2d_n16_s110": {"kind": "mni", "seed": 110, "n": 16},
     }
     for case, spec in families.items():
         cases[case] = lambda folder, spec=spec: _families(folder, **spec)
