@@ -34,7 +34,10 @@ interval of the difference excludes 0) for ``a`` over ``b`` is **evidence** unle
   0.54, corresponded better than demons at 1 mm, SDlogJ 0.29, whose specificity was
   separably lower: issue 41's held-out case; in the benchmark's ``FRESH5`` a 3D B-spline
   folding 1.7% corresponded better than demons at 2 mm, whose specificity and overlap
-  were separably better). For the overlap only outside
+  were separably better). Against a ``b`` that clearly folds (at least
+  :data:`CLEARLY_FOLDS_FRACTION`) the rates are lower, :data:`SPECIFICITY_RATE_AGAINST_FOLDS`
+  and :data:`OVERLAP_RATE_AGAINST_FOLDS`: there the truth sided with 209 of the benchmark's
+  211 such specificity preferences. For the overlap only outside
   :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS` (in 2D the overlap's preference there agreed
   with the truth on every tuning case); or
 - it is specificity's preference by less than :data:`MIN_SPECIFICITY_RATIO` (1.2x) for a
@@ -117,6 +120,7 @@ from ._pair_evidence import (
 )
 from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE,
+    CLEARLY_FOLDS_FRACTION,
     EXCHANGE_RATE,
     EXCHANGE_RATE_ACROSS_FAMILIES,
     LINEAR_DIMENSIONS,
@@ -126,11 +130,13 @@ from ._verdict_thresholds import (  # the rules' numbers, and how each was set
     NO_FOLDING_FRACTION,
     OVERLAP_AGAINST_FOLDS_DIMENSIONS,
     OVERLAP_EXCHANGE_RATE,
+    OVERLAP_RATE_AGAINST_FOLDS,
     OVERLAP_RATE_AGAINST_LINEAR,
     SEVERE_FOLDED_FRACTION,
     SMOOTHNESS_RATE,
     SMOOTHNESS_RATE_AGAINST_LINEAR,
     SPECIFICITY_DECIDES_AGAINST_LINEAR,
+    SPECIFICITY_RATE_AGAINST_FOLDS,
     SPECIFICITY_RATE_AGAINST_LINEAR,
 )
 from .confidence import Comparison
@@ -151,6 +157,9 @@ __all__ = [
     "ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE",
     "LINEAR_DIMENSIONS",
     "OVERLAP_AGAINST_FOLDS_DIMENSIONS",
+    "SPECIFICITY_RATE_AGAINST_FOLDS",
+    "OVERLAP_RATE_AGAINST_FOLDS",
+    "CLEARLY_FOLDS_FRACTION",
     "MIN_ROUGHNESS_DIFFERENCE",
     "MIN_SPECIFICITY_RATIO",
     "SEVERE_FOLDED_FRACTION",
