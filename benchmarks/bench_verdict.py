@@ -524,8 +524,8 @@ FRESH21 = (
 # they decide no pair wrong in any mode (registered images and second scans, with and
 # without labels). Two 3D cases (the overlap's rate is 3D only) and four 2D cases with a
 # 10 mm B-spline that folds.
-# Issue 42, amended the same way (before any FRESH22 case had finished; no subject-QC number
-# of FRESH22 looked at): the flag on the concern without labels, SubjectThresholds.
+# Issue 42, amended the same way (one FRESH22 case had finished running, but no subject-QC number
+# of FRESH22 was computed or looked at): the flag on the concern without labels, SubjectThresholds.
 # concern_without_labels, is set by its own declared rule (the least of 1.0, 1.25, ..., 4.0
 # at which the flag itself flags at most 3% of the subjects that did not fail, in both modes
 # without labels) on every split judged so far but held-out (TUNING..FRESH21), no longer on
