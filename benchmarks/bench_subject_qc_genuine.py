@@ -420,8 +420,10 @@ def check_unlabelled_derivation(seed: int = 0) -> dict:
         assert [f for f in a.flags if flag_kind(f) not in mine] == [
             f for f in b.flags if flag_kind(f) != CONCERN_KIND
         ], (a, b)
-        limit = common["thresholds"].concern
+        th = common["thresholds"]
         for q, labels in ((a, True), (b, False)):
+            # a subject without labels has a threshold of its own
+            limit = th.concern if labels else th.concern_without_labels
             flagged = any(flag_kind(f) == CONCERN_KIND for f in q.flags)
             assert flagged == (limit is not None and concern(q.to_dict(), labels=labels) > limit)
         assert a.registration_flags == b.registration_flags

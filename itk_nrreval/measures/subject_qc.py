@@ -77,7 +77,7 @@ model distance until the bias-corrected distance replaced it (chosen on the same
 0.84 with labels, 0.83 without), because gain and bias dominate raw intensities' distances.
 Every subject is listed worst first by it (:func:`ranked`), so the few most unlike their
 cohort can be looked at even when none crosses a threshold. Above
-``SubjectThresholds.concern`` (1.75 by default; ``concern_without_labels`` without labels) it
+``SubjectThresholds.concern`` (1.75 by default; ``concern_without_labels``, 1.25, without labels) it
 also flags the subject ("among the worst of its cohort"; set on the tuning splits of the
 genuine registrations, and made the default by a split declared before it ran:
 ``docs/subject-qc.md``). The flags on absolute limits (folding, mirroring, a duplicate, off
