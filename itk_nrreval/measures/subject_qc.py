@@ -77,8 +77,8 @@ model distance until the bias-corrected distance replaced it (chosen on the same
 0.84 with labels, 0.83 without), because gain and bias dominate raw intensities' distances.
 Every subject is listed worst first by it (:func:`ranked`), so the few most unlike their
 cohort can be looked at even when none crosses a threshold. Above
-``SubjectThresholds.concern`` (1.75 by default; ``concern_without_labels``, 1.25, without labels) it
-also flags the subject ("among the worst of its cohort"; set on the tuning splits of the
+``SubjectThresholds.concern`` (1.75 by default; ``concern_without_labels``, 1.25, without
+labels) it also flags the subject ("among the worst of its cohort"; set on splits of the
 genuine registrations, and made the default by a split declared before it ran:
 ``docs/subject-qc.md``). The flags on absolute limits (folding, mirroring, a duplicate, off
 the grid) are not in it, so a subject flagged for one of them may rank below unflagged
