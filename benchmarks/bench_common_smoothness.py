@@ -254,8 +254,8 @@ def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
         return
     original = v.add_smoother_evidence
 
-    def add(evidence, c, spec, rough, folded, deforms, family):
-        original(evidence, c, spec, rough, folded, deforms, family)
+    def add(evidence, c, spec, rough, folded, deforms, family, **keywords):
+        original(evidence, c, spec, rough, folded, deforms, family, **keywords)
         if c is None:
             return
         found = _smoothed_preference(rule, c.a, c.b, smoothed, rough, folded, deforms)

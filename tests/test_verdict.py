@@ -985,6 +985,25 @@ def test_against_a_registration_that_clearly_folds_the_charge_is_lower(cheat_cas
     assert by_overlap(1.61, 0.017, 2) == [("demons", "bspline")]  # 2D: not charged at all
 
 
+def test_the_common_smoothness_benchmark_wraps_todays_verdict(cheat_case):
+    """benchmarks/bench_common_smoothness.py (a measure tried and not kept) adds its evidence
+    by wrapping the verdict's smoother-fields step. The wrapper must take what the verdict
+    passes: it raised a TypeError once the step took a `dimension` keyword, so the
+    benchmark could not run."""
+    from _benchmarks import benchmark_module
+
+    bench = benchmark_module("bench_common_smoothness")
+    _, result = cheat_case
+    base = result.scores["truth"]
+    scores = {n: _registration(base, n, spec=10.0, sdlogj=0.3) for n in ("a", "b")}
+    smoothed = {"a": 10.0, "b": 13.0}  # 1.3x lower at a common smoothness, neither folds
+    with bench._with_rule("v1", smoothed):
+        v = _specificity_verdict(scores, set(), dimension=2)  # specificity not separable
+    assert [(d.better, d.worse) for d in v.decisions] == [("a", "b")]
+    assert v.decisions[0].basis.startswith("specificity at a common smoothness")
+    assert _specificity_verdict(scores, set(), dimension=2).decisions == ()  # unwrapped again
+
+
 def _affine(base, *, spec):
     """An affine registration "affine" (overlap 0.5, SDlogJ 0): `base`'s scores with every
     subject's non-linear displacement 0, so it does not deform locally."""
