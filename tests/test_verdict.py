@@ -575,6 +575,15 @@ def _specificity_verdict(scores, separable, *, dimension=None):
     return verdict(scores, comparisons, has_labels=False, dimension=dimension)
 
 
+def _overlap_verdict(scores, separable, *, dimension=None):
+    """The verdict with labels on `scores`, whose overlap differences are separable in
+    exactly the pair `separable` (a set of two names) and no other; no specificity
+    comparison."""
+    overlaps = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
+    comparisons = _separable_where(overlaps, [separable], "overlap.inverse_volume")
+    return verdict(scores, comparisons, has_labels=True, dimension=dimension)
+
+
 def test_too_few_samples_decide_nothing_and_the_text_says_so(cheat_case, tmp_path):
     """--samples 2 is legal for a quick try, but the verdict decides no pair (the same data
     at M = 3000 decide the truth best), every pair open with the reason, and the verdict's
@@ -878,10 +887,7 @@ def test_the_overlap_is_no_evidence_against_folds_in_3d(cheat_case):
                 base, "bspline", spec=10.0, overlap=bspline_overlap, sdlogj=0.64, folded=0.017
             ),
         }
-        overlaps = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
-        pair = [{"demons", "bspline"}]
-        comparisons = _separable_where(overlaps, pair, "overlap.inverse_volume")
-        v = verdict(scores, comparisons, has_labels=True, dimension=dimension)
+        v = _overlap_verdict(scores, {"demons", "bspline"}, dimension=dimension)
         return [(d.better, d.worse) for d in v.decisions], v
 
     bar = np.exp(OVERLAP_EXCHANGE_RATE * 0.47)
@@ -970,9 +976,7 @@ def test_against_a_registration_that_clearly_folds_the_charge_is_lower(cheat_cas
                 base, "bspline", spec=10.0, overlap=o / (1 + o), sdlogj=0.64, folded=folds
             ),
         }
-        overlaps = {k: r.overlap["inverse_volume"] for k, r in scores.items()}
-        comparisons = _separable_where(overlaps, [{"demons", "bspline"}], "overlap.inverse_volume")
-        v = verdict(scores, comparisons, has_labels=True, dimension=dimension)
+        v = _overlap_verdict(scores, {"demons", "bspline"}, dimension=dimension)
         return [(d.better, d.worse) for d in v.decisions]
 
     bar = np.exp(OVERLAP_RATE_AGAINST_FOLDS * s)
@@ -1043,9 +1047,7 @@ def test_the_overlap_against_affine_is_charged_at_its_own_rate(
     for other, expected in ((affine, decided), (_registration(base, "affine", spec=10.0,
                             overlap=0.5, sdlogj=0.0), False)):  # fmt: skip
         scores = {"demons": demons, "affine": other}
-        overlaps = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
-        comparisons = _separable_where(overlaps, [{"demons", "affine"}], "overlap.inverse_volume")
-        v = verdict(scores, comparisons, has_labels=True)
+        v = _overlap_verdict(scores, {"demons", "affine"})
         pairs = [(d.better, d.worse) for d in v.decisions]
         # the second "affine" deforms locally (the truth's subjects): the exchange rate
         assert pairs == ([("demons", "affine")] if expected else []), (other.subjects[1], pairs)
