@@ -254,11 +254,13 @@ def _with_rule(rule: str | None, smoothed: Mapping[str, float] | None):
         return
     original = v.add_smoother_evidence
 
-    def add(evidence, c, spec, rough, folded, deforms, family, **keywords):
-        original(evidence, c, spec, rough, folded, deforms, family, **keywords)
+    def add(evidence, c, facts):
+        original(evidence, c, facts)
         if c is None:
             return
-        found = _smoothed_preference(rule, c.a, c.b, smoothed, rough, folded, deforms)
+        found = _smoothed_preference(
+            rule, c.a, c.b, smoothed, facts.rough, facts.folded, facts.deforms
+        )
         if found is not None:
             p, gain = found
             evidence[_MEASURE] = e.Preference(p, c.b if p == c.a else c.a, gain, None)

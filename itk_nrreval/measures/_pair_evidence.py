@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections.abc import Mapping
 from typing import NamedTuple
 
 from ._verdict_thresholds import (
@@ -44,6 +45,7 @@ __all__ = [
     "DESCRIPTION_LENGTH",
     "WORD",
     "Preference",
+    "RegistrationFacts",
     "measure_evidence",
     "add_smoother_evidence",
     "add_description_length",
@@ -84,6 +86,18 @@ class Preference(NamedTuple):
     rate: float | None = None
 
 
+class RegistrationFacts(NamedTuple):
+    """What the verdict's rules read of each registration (each mapping: name -> value)."""
+
+    spec: Mapping[str, float]  # specificity (the images' intensity units)
+    overlap: Mapping[str, float]  # the inverse-volume generalized overlap; NaN without labels
+    rough: Mapping[str, float]  # SDlogJ over the voxels that do not fold
+    folded: Mapping[str, float]  # the fraction of voxels that fold (det J <= 0)
+    deforms: Mapping[str, bool]  # deforms locally (:func:`deforms_locally`)
+    family: Mapping[str, tuple | None]  # (method, engine), or None where unknown
+    dimension: int | None  # the images' (2 or 3); None: unknown
+
+
 def add_description_length(evidence: dict, sa, sb) -> None:
     """Add the description length's evidence: its preference by at least
     :data:`~itk_nrreval.measures.description_length.MIN_Z` jackknife standard errors between
@@ -104,19 +118,19 @@ def _one_family(fa: tuple | None, fb: tuple | None) -> bool:
     return fa is not None and fa == fb
 
 
-def measure_evidence(
-    a, b, by_spec, by_overlap, *, spec, overlap, rough, flagged, folded, deforms, dimension, family
-) -> dict:
+def measure_evidence(a, b, by_spec, by_overlap, facts: RegistrationFacts, *, flagged) -> dict:
     """Each measure's separable preference in the pair ``{measure: Preference}``. It is
     evidence unless the preferred registration's fields are rougher by ``dr`` and the gain
     is below ``EXCHANGE_RATE * dr`` (roughness alone could buy it; for specificity between
     two registrations that deform locally and are not of one known `family`,
     ``EXCHANGE_RATE_ACROSS_FAMILIES``; for the overlap ``OVERLAP_EXCHANGE_RATE``, or
-    ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that does not deform locally,
-    `deforms`; specificity's may then decide or lean: :func:`_against_linear`), or it is the
-    overlap's preference for a flagged registration (what a cheat games), or a preference
+    ``OVERLAP_RATE_AGAINST_LINEAR`` against a registration that does not deform locally;
+    specificity's may then decide or lean: :func:`_against_linear`), or it is the
+    overlap's preference for a `flagged` registration (what a cheat games), or a preference
     over a registration that folds (:func:`_against_folds`), or specificity's by a small
     ratio (:data:`MIN_SPECIFICITY_RATIO`)."""
+    spec, overlap, rough = facts.spec, facts.overlap, facts.rough
+    deforms, family = facts.deforms, facts.family
     out = {}
     for measure, preferred in ((SPECIFICITY, by_spec), (OVERLAP, by_overlap)):
         if preferred is None:
@@ -144,12 +158,12 @@ def measure_evidence(
         elif gain < charge * dr:
             discount = "rougher"
             if across and gain >= rate * dr:
-                why = _across_rate(preferred, other, gain, rough, family)
-            elif measure == SPECIFICITY and (found := _against_linear(
-                preferred, other, gain, rough, folded, linear, dimension
-            )):  # fmt: skip
+                why = _across_rate(preferred, other, gain, facts)
+            elif measure == SPECIFICITY and (
+                found := _against_linear(preferred, other, gain, facts, linear)
+            ):
                 discount, why = found
-        elif why := _against_folds(measure, rate, preferred, other, gain, rough, folded, dimension):
+        elif why := _against_folds(measure, rate, preferred, other, gain, facts):
             discount = "folds"
         elif measure == SPECIFICITY and (why := _small(preferred, other, gain, rough)):
             discount = "small"
@@ -164,7 +178,7 @@ def measure_evidence(
 
 
 def _against_linear(
-    preferred, other, gain, rough, folded, linear, dimension
+    preferred, other, gain, facts: RegistrationFacts, linear
 ) -> tuple[str | None, str] | None:
     """Where specificity's preference for `preferred`, which deforms locally, over `other`,
     which does not (`linear`), reaches ``exp(SPECIFICITY_RATE_AGAINST_LINEAR * SDlogJ)``
@@ -175,9 +189,10 @@ def _against_linear(
     voxels that do not fold, ranks folds poorly: a label-matching cheat's), and outside
     ``LINEAR_DIMENSIONS`` (both rates were set on 2D cases alone; in 3D the held-out split
     has demons at 2 mm over an affine registration that corresponded better at 1.88)."""
-    if not linear or folded[preferred] >= NO_FOLDING_FRACTION:
+    rough = facts.rough
+    if not linear or facts.folded[preferred] >= NO_FOLDING_FRACTION:
         return None
-    if dimension not in LINEAR_DIMENSIONS:
+    if facts.dimension not in LINEAR_DIMENSIONS:
         return None
     dr = rough[preferred] - rough[other]
     if gain < SPECIFICITY_RATE_AGAINST_LINEAR * dr:
@@ -199,15 +214,13 @@ def _against_linear(
     )
 
 
-def _across_rate(preferred, other, gain, rough, family) -> str:
+def _across_rate(preferred, other, gain, facts: RegistrationFacts) -> str:
     """Why specificity's preference for the rougher `preferred` is no evidence across
     families though it reaches what ``EXCHANGE_RATE`` says roughness can buy, in words."""
+    rough = facts.rough
     dr = rough[preferred] - rough[other]
-    kinds = (
-        "are of different families"
-        if family[preferred] is not None and family[other] is not None
-        else "are not known to be of one family"
-    )
+    known = all(_family_name(facts.family, n) is not None for n in (preferred, other))
+    kinds = "are of different families" if known else "are not known to be of one family"
     return (
         f"{preferred}'s {math.exp(gain):.2f}x lower specificity comes with fields rougher "
         f"(SDlogJ {rough[preferred]:.2f} vs {rough[other]:.2f}); {preferred} and {other} "
@@ -217,15 +230,16 @@ def _across_rate(preferred, other, gain, rough, family) -> str:
     )
 
 
-def _against_folds(measure, rate, preferred, other, gain, rough, folded, dimension) -> str | None:
+def _against_folds(measure, rate, preferred, other, gain, facts: RegistrationFacts) -> str | None:
     """Why `measure`'s preference for `preferred` is no evidence against `other`, which
     folds, in words; None where it is: the gain reaches what ``preferred``'s own roughness
     could buy (at the measure's exchange `rate`; against one that clearly folds, at least
     :data:`CLEARLY_FOLDS_FRACTION`, at :data:`SPECIFICITY_RATE_AGAINST_FOLDS` or
     :data:`OVERLAP_RATE_AGAINST_FOLDS`), or `other` folds less than
     :data:`NO_FOLDING_FRACTION`, or no more than `preferred`, or it is the overlap's in a
-    `dimension` of :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS`."""
-    if measure == OVERLAP and dimension in OVERLAP_AGAINST_FOLDS_DIMENSIONS:
+    dimension of :data:`OVERLAP_AGAINST_FOLDS_DIMENSIONS`."""
+    rough, folded = facts.rough, facts.folded
+    if measure == OVERLAP and facts.dimension in OVERLAP_AGAINST_FOLDS_DIMENSIONS:
         return None
     if folded[other] < NO_FOLDING_FRACTION or folded[other] <= folded[preferred]:
         return None
@@ -263,20 +277,19 @@ def _small(preferred, other, gain, rough) -> str | None:
     )
 
 
-def add_smoother_evidence(
-    evidence: dict, c: Comparison | None, spec, rough, folded, deforms, family, *, dimension
-) -> None:
+def add_smoother_evidence(evidence: dict, c: Comparison | None, facts: RegistrationFacts) -> None:
     """Add specificity's evidence for the smoother registration of a pair when the rougher
     one's specificity advantage, at the top of its interval, is below what
     :data:`SMOOTHNESS_RATE` says its extra roughness must buy (``gain`` is then minus that
     top). Separable evidence already found, or a discount other than roughness, stays.
 
-    Between registrations of different (or unknown) families (`family`: name -> ``(method,
-    engine)`` or None) only where the SDlogJ difference reaches
+    Between registrations of different (or unknown) families (``facts.family``) only where
+    the SDlogJ difference reaches
     :data:`ACROSS_FAMILIES_ROUGHNESS_DIFFERENCE`: below it the same preference is recorded as
     no evidence (discount ``"families"``), so an open pair's reason says which way it leans."""
     if c is None:
         return
+    spec, rough, folded, family = facts.spec, facts.rough, facts.folded, facts.family
     s, r = sorted((c.a, c.b), key=rough.get)
     dr = rough[r] - rough[s]
     found = evidence.get(SPECIFICITY)
@@ -284,8 +297,8 @@ def add_smoother_evidence(
         return
     lowest_r_minus_s = c.ci95[0] if c.a == r else -c.ci95[1]
     top_gain = _log_ratio(spec[s], spec[s] + lowest_r_minus_s)  # r's best case
-    if not deforms[s]:
-        _add_affine_evidence(evidence, s, r, top_gain, dr, folded, deforms, dimension)
+    if not facts.deforms[s]:
+        _add_affine_evidence(evidence, s, r, top_gain, dr, facts)
         return
     if folded[s] > folded[r]:
         return  # folds: roughness that SDlogJ (over the voxels that do not fold) ranks poorly
@@ -316,14 +329,16 @@ def add_smoother_evidence(
     evidence[SPECIFICITY] = found
 
 
-def _add_affine_evidence(evidence, s, r, top_gain, dr, folded, deforms, dimension) -> None:
+def _add_affine_evidence(evidence, s, r, top_gain, dr, facts: RegistrationFacts) -> None:
     """The smoother-fields rule where the smoother `s` does not deform locally (affine), at
     :data:`SMOOTHNESS_RATE_AGAINST_LINEAR`: in ``LINEAR_DIMENSIONS`` only, and only against
     an `r` that deforms locally and folds less than ``NO_FOLDING_FRACTION``. Elsewhere an
     affine registration's zero SDlogJ says nothing of the deformation it leaves out.
     `top_gain`: r's specificity advantage at the top of its interval (ln); `dr`: the SDlogJ
     difference, all of r's local deformation."""
-    if dimension not in LINEAR_DIMENSIONS or not deforms[r] or folded[r] >= NO_FOLDING_FRACTION:
+    if facts.dimension not in LINEAR_DIMENSIONS or not facts.deforms[r]:
+        return
+    if facts.folded[r] >= NO_FOLDING_FRACTION:
         return
     if not top_gain < SMOOTHNESS_RATE_AGAINST_LINEAR * dr:
         return
@@ -335,22 +350,25 @@ def _add_affine_evidence(evidence, s, r, top_gain, dr, folded, deforms, dimensio
     evidence[SPECIFICITY] = Preference(s, r, -top_gain, None, math.exp(top_gain), why, rate=rate)
 
 
+def _family_name(family: Mapping[str, tuple | None], name: str) -> str | None:
+    """A registration's family in words, ``"method/engine"``; None where it is unknown."""
+    return None if family[name] is None else "/".join(family[name])
+
+
 def _families_of(s: str, r: str, family) -> str:
     """The families of `s` and `r`, in words: ``"method/engine"`` each, or "unknown"."""
-    return " and ".join(
-        f"{n}: {'/'.join(family[n]) if family[n] is not None else 'unknown'}" for n in (s, r)
-    )
+    return " and ".join(f"{n}: {_family_name(family, n) or 'unknown'}" for n in (s, r))
 
 
 def _across(s: str, r: str, family) -> str:
     """Why the smoother-fields rule does not decide between `s` and `r`, in words."""
-    if family[s] is None or family[r] is None:
-        unknown = " and ".join(n for n in (s, r) if family[n] is None)
+    fs, fr = (_family_name(family, n) for n in (s, r))
+    if fs is None or fr is None:
+        unknown = " and ".join(n for n, f in ((s, fs), (r, fr)) if f is None)
         return (
             f"not decided, because the family of {unknown} is unknown (the manifest's "
             "parameters give no method and engine), and roughness is compared only within one"
         )
-    fs, fr = ("/".join(family[n]) for n in (s, r))
     return (
         f"not decided, because {s} ({fs}) and {r} ({fr}) are of different families, "
         "whose roughness is no common currency"
@@ -390,9 +408,10 @@ def _counted(evidence: dict) -> set[str]:
     return {p.preferred for p in evidence.values() if p.discount is None}
 
 
-def decision(a, b, evidence, rough, folded) -> tuple[str, str, str] | None:
+def decision(a, b, evidence, facts: RegistrationFacts) -> tuple[str, str, str] | None:
     """The pair's decision as ``(better, worse, basis in words)``, or None (open): severe
     folding, or evidence that counts (not discounted) for exactly one of `a` and `b`."""
+    rough, folded = facts.rough, facts.folded
     for w, l in ((a, b), (b, a)):
         if folded[l] >= SEVERE_FOLDED_FRACTION and folded[w] < NO_FOLDING_FRACTION:
             return w, l, f"severe folding ({l} folds {folded[l]:.0%} of its voxels)"

@@ -110,6 +110,7 @@ from typing import Any
 from ._pair_evidence import (
     OVERLAP,
     SPECIFICITY,
+    RegistrationFacts,
     add_description_length,
     add_smoother_evidence,
     decision,
@@ -349,11 +350,15 @@ def verdict(
     n_samples = min((int(scores[n].specificity.n_samples) for n in names), default=MIN_SAMPLES)
     if n_samples < MIN_SAMPLES:
         return _unconverged(scores, n_samples, has_labels)
-    rough = {n: float(scores[n].plausibility.sdlogj) for n in names}
-    folded = {n: float(scores[n].plausibility.folded_fraction) for n in names}
-    deforms = {n: deforms_locally(scores[n]) for n in names}
-    family = {n: scores[n].family for n in names}
-    overlap = {n: scores[n].measures().get(OVERLAP, math.nan) for n in names}
+    facts = RegistrationFacts(
+        spec=spec,
+        overlap={n: scores[n].measures().get(OVERLAP, math.nan) for n in names},
+        rough={n: float(scores[n].plausibility.sdlogj) for n in names},
+        folded={n: float(scores[n].plausibility.folded_fraction) for n in names},
+        deforms={n: deforms_locally(scores[n]) for n in names},
+        family={n: scores[n].family for n in names},
+        dimension=dimension,
+    )
     sep = {(c.measure, c.a, c.b): c for c in comparisons}
 
     def comparison(measure: str, a: str, b: str) -> Comparison | None:
@@ -374,20 +379,14 @@ def verdict(
         by_spec = prefers(SPECIFICITY, a, b, lower=True)
         by_overlap = prefers(OVERLAP, a, b, lower=False) if has_labels else None
         flagged = {n for n in (a, b) if scores[n].flags}
-        found = measure_evidence(
-            a, b, by_spec, by_overlap, spec=spec, overlap=overlap, rough=rough, flagged=flagged,
-            folded=folded, deforms=deforms, dimension=dimension, family=family,
-        )  # fmt: skip
-        add_smoother_evidence(
-            found, comparison(SPECIFICITY, a, b), spec, rough, folded, deforms, family,
-            dimension=dimension,
-        )  # fmt: skip
+        found = measure_evidence(a, b, by_spec, by_overlap, facts, flagged=flagged)
+        add_smoother_evidence(found, comparison(SPECIFICITY, a, b), facts)
         add_description_length(found, scores[a], scores[b])
-        decided = decision(a, b, found, rough, folded)
+        decided = decision(a, b, found, facts)
         if decided is not None:
             decisions.append(Decision(*decided))
         else:
-            reason = why_open(found, rough, has_labels, bool(comparisons))
+            reason = why_open(found, facts.rough, has_labels, bool(comparisons))
             open_pairs.append(OpenPair(a, b, reason, lean(found)))
     decisions, contradicted = _without_cycles(decisions)
     for d in contradicted:
