@@ -575,6 +575,11 @@ def _specificity_verdict(scores, separable, *, dimension=None):
     return verdict(scores, comparisons, has_labels=False, dimension=dimension)
 
 
+def _odds(p: float) -> float:
+    """The odds of an overlap `p`, as the verdict's overlap rates read it."""
+    return p / (1 - p)
+
+
 def _overlap_verdict(scores, separable, *, dimension=None):
     """The verdict with labels on `scores`, whose overlap differences are separable in
     exactly the pair `separable` (a set of two names) and no other; no specificity
@@ -877,9 +882,6 @@ def test_the_overlap_is_no_evidence_against_folds_in_3d(cheat_case):
     _, result = cheat_case
     base = result.scores["truth"]
 
-    def odds(p):
-        return p / (1 - p)
-
     def decided(bspline_overlap, dimension):
         scores = {
             "demons": _registration(base, "demons", spec=10.0, overlap=0.6, sdlogj=0.47),
@@ -891,13 +893,13 @@ def test_the_overlap_is_no_evidence_against_folds_in_3d(cheat_case):
         return [(d.better, d.worse) for d in v.decisions], v
 
     bar = np.exp(OVERLAP_EXCHANGE_RATE * 0.47)
-    at_161 = odds(0.6) / 1.61  # the bspline's odds at FRESH5's ratio
+    at_161 = _odds(0.6) / 1.61  # the bspline's odds at FRESH5's ratio
     for dimension in (3, None):
         pairs, v = decided(at_161 / (1 + at_161), dimension)
         assert pairs == []
         assert "bspline folds 1.7% of its voxels" in v.open_pairs[0].reason
         assert f"1.61x the odds of overlap is less than the {bar:.2f}x" in v.open_pairs[0].reason
-        beyond = odds(0.6) / (1.02 * bar)
+        beyond = _odds(0.6) / (1.02 * bar)
         assert decided(beyond / (1 + beyond), dimension)[0] == [("demons", "bspline")]
     pairs, v = decided(at_161 / (1 + at_161), 2)
     assert pairs == [("demons", "bspline")]
@@ -964,12 +966,9 @@ def test_against_a_registration_that_clearly_folds_the_charge_is_lower(cheat_cas
             v.open_pairs[0].reason
         )
 
-    def odds(p):
-        return p / (1 - p)
-
     def by_overlap(ratio, folds, dimension=3):
         """demons' overlap 0.6, the B-spline's at `ratio` lower odds; equal specificity."""
-        o = odds(0.6) / ratio
+        o = _odds(0.6) / ratio
         scores = {
             "demons": _registration(base, "demons", spec=10.0, overlap=0.6, sdlogj=s),
             "bspline": _registration(
