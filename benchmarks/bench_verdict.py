@@ -60,8 +60,11 @@ verdict without the overlap, as on data without labels) and ``splits.md`` / ``sp
 Run: ``python benchmarks/run_all.py verdict`` (every case), or
 ``python benchmarks/bench_verdict.py [--quick] [--new] [--cases a,b] [--missing] [--rejudge]``;
 ``--quick`` runs ``demo``, ``similar`` and ``folding`` (a few minutes), ``--new`` the
-``families_*`` cases and their second scans, ``--missing`` only those of them not saved yet
-(``benchmarks/out/`` is not in the repository: on a new machine every case, 3-4 hours);
+``families_*`` cases and their second scans, ``--splits tuning,tuning2`` the cases of those
+splits and their second scans, ``--missing`` only those of them not saved yet
+(``benchmarks/out/`` is not in the repository: on a new machine every case, about ten hours
+on two cores; a 2D ``families_*`` case takes 2-5 minutes, its second scan under one, a 3D
+one 10-15);
 whichever cases ran, the tables are written over every saved case.
 """
 
@@ -1618,6 +1621,12 @@ def _write(rows: list[dict], cases: list[str], unlabelled: list[dict], suffix: s
     return {"counts": counts, "counts_without_labels": alone, "pairs": rows}
 
 
+def split_and_second_scans(split: str) -> list[str]:
+    """The cases of `split` (:data:`SPLIT_CASES`), each followed by its second scan where it
+    has one: the order in which they can run."""
+    return [c for case in SPLIT_CASES[split] for c in (case, SECOND_SCAN.get(case)) if c]
+
+
 def split_of(case: str) -> str:
     """The declared split of a case or of its second scan: one of :data:`SPLITS`."""
     base = {v: k for k, v in SECOND_SCAN.items()}.get(case, case)
@@ -1720,6 +1729,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK)}")
     parser.add_argument("--cases", help="comma-separated case names (default: all)")
     parser.add_argument(
+        "--splits",
+        help="comma-separated split names (SPLITS: tuning, held-out, fresh, fresh2, ...): "
+        "their cases, each before its second scan",
+    )
+    parser.add_argument(
         "--rejudge",
         action="store_true",
         help="recompute only the verdict from the saved evaluations (no registration)",
@@ -1746,6 +1760,11 @@ def main(argv: list[str] | None = None) -> dict:
     known = list(_cases())  # each case before its second scan
     new = [c for c in known if "families_" in c]
     cases = args.cases.split(",") if args.cases else list(QUICK if args.quick else known)
+    if args.splits:
+        unknown = [s for s in args.splits.split(",") if s not in SPLIT_CASES]
+        if unknown:
+            parser.error(f"unknown split(s) {', '.join(unknown)}; known: {', '.join(SPLITS)}")
+        cases = [c for s in args.splits.split(",") for c in split_and_second_scans(s)]
     cases = new if args.new and not args.cases else cases
     if args.missing:
         cases = [c for c in cases if not (OUT / c / "evaluation.pkl").exists()]
