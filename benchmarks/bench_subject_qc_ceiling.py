@@ -65,6 +65,11 @@ def implied_recall(spearman: float, *, failed_fraction: float, false_alarms: flo
         ``P(S > t | E <= e) = false_alarms``; (S, E) standard bivariate normal with Pearson
         ``r = 2 sin(pi spearman / 6)``.
     """
+    if not (-1.0 < spearman < 1.0 and 0.0 < failed_fraction < 1.0 and 0.0 < false_alarms < 1.0):
+        raise ValueError(
+            f"spearman must be in (-1, 1), the fractions in (0, 1); got {spearman}, "
+            f"{failed_fraction}, {false_alarms}"
+        )
     r = 2.0 * math.sin(math.pi * spearman / 6.0)
     e = norm.ppf(1.0 - failed_fraction)
     both = multivariate_normal(mean=[0.0, 0.0], cov=[[1.0, r], [r, 1.0]])

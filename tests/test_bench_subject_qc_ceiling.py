@@ -50,3 +50,9 @@ def test_found_among_worst_counts_per_registration():
     # a: the worst two are rows 0 and 2 (one failed); b: rows 3 and 5 (none)
     assert ceiling.found_among_worst(score, failed, names, 2) == (1, 3)
     assert ceiling.found_among_worst(score, failed, names, 3) == (3, 3)
+
+
+@pytest.mark.parametrize("rho", [1.0, -1.0, float("nan")])
+def test_implied_recall_refuses_a_perfect_or_undefined_spearman(rho):
+    with pytest.raises(ValueError, match="spearman must be in"):
+        ceiling.implied_recall(rho, failed_fraction=0.1, false_alarms=0.05)
