@@ -239,6 +239,9 @@ def _rules_allow(w, l, scores, comparisons, has_labels, dimension) -> list[str]:
             # across families (or unknown ones), against one that deforms locally, a higher rate
             charge = rate if one_family or not deforms_locally(o) else EXCHANGE_RATE_ACROSS_FAMILIES
             if by_spec == r and gain >= charge * rougher:
+                # r clearly folds (2.5%), and more than o: no evidence, whatever its SDlogJ
+                if fr >= CLEARLY_FOLDS_FRACTION and fr > fo:
+                    return False
                 # against one that folds more (>= 1%): r charged by its own SDlogJ, as if
                 # o's fields were flat; against one folding 2.5% or more at a lower rate
                 own = SPECIFICITY_RATE_AGAINST_FOLDS if fo >= CLEARLY_FOLDS_FRACTION else rate
@@ -449,24 +452,23 @@ def test_two_registrations_of_equal_true_quality_are_left_open(tmp_path):
 
 
 def test_decisions_that_go_round_are_withdrawn(cheat_case):
-    """a > b by severe folding, b > c and c > a by specificity: one of them is wrong and the
-    data do not say which, so none of the three is asserted."""
+    """a > b by severe folding, b > c by the overlap and c > a by specificity: one of them
+    is wrong and the data do not say which, so none of the three is asserted. (Specificity
+    alone cannot make b > c here: b clearly folds, and more than c, since FRESH23.)"""
     _, result = cheat_case
     base = result.scores["truth"]
 
-    def reg(name, spec, folded, sdlogj):
-        plaus = dataclasses.replace(base.plausibility, folded_fraction=folded, sdlogj=sdlogj)
-        s = dataclasses.replace(base.specificity, value=spec)
-        return dataclasses.replace(base, name=name, specificity=s, plausibility=plaus, flags=())
-
-    scores = {
-        "a": reg("a", 3.0, 0.0, 0.1),  # the worst specificity; does not fold
-        "b": reg("b", 1.0, 0.2, 0.1),  # the best specificity; folds 20%: severe
-        "c": reg("c", 2.0, 0.02, 0.1),  # folds 2%: neither severe nor none
+    scores = {  # a: the worst specificity, does not fold; b: folds 20% (severe); c: 2%
+        "a": _registration(base, "a", spec=3.0, overlap=0.5, folded=0.0),
+        "b": _registration(base, "b", spec=1.0, overlap=0.7, folded=0.2),
+        "c": _registration(base, "c", spec=2.0, overlap=0.5, folded=0.02),
     }
-    values = {k: s.specificity.value for k, s in scores.items()}
-    reps = {k: v + 0.01 * np.arange(6) for k, v in values.items()}  # every pair separable
-    v = verdict(scores, compare("specificity", values, reps), has_labels=False)
+    spec = {k: s.specificity.value for k, s in scores.items()}
+    overlap = {k: s.overlap["inverse_volume"] for k, s in scores.items()}
+    comparisons = _separable_where(spec, [{"a", "c"}]) + _separable_where(
+        overlap, [{"b", "c"}], "overlap.inverse_volume"
+    )
+    v = verdict(scores, comparisons, has_labels=True)
     assert v.decisions == ()
     reasons = {frozenset((p.a, p.b)): p.reason for p in v.open_pairs}
     assert all(r.startswith("the evidence contradicts itself") for r in reasons.values())
@@ -914,6 +916,46 @@ def test_the_overlap_is_no_evidence_against_folds_in_3d(cheat_case):
     v = _specificity_verdict(scores, {"demons", "bspline"}, dimension=2)
     assert v.decisions == ()
     assert "bspline folds 1.7% of its voxels" in v.open_pairs[0].reason
+
+
+def test_specificity_never_decides_for_the_registration_that_folds_more(cheat_case):
+    """FRESH23 (declared before it ran): on the second scan of families_phantom2d_fold_s114,
+    a 10 mm B-spline folding 10.9% (SDlogJ 0.99; true error 7.84 mm) was decided better
+    than demons at 0.1 mm field smoothing folding 3.4% (SDlogJ 2.43; 6.34 mm) by a 1.24x
+    lower specificity, with and without labels: SDlogJ, over the voxels that do not fold,
+    called the B-spline's fields the smoother, and no charge looked at its folds. Where the
+    preferred registration clearly folds (CLEARLY_FOLDS_FRACTION, 2.5%) and more than the
+    other, its preference is no evidence, however large, in every dimension; folding no more
+    than the other, or less than 2.5%, it is."""
+    _, result = cheat_case
+    base = result.scores["truth"]
+
+    def by_specificity(ratio, folds_more, dimension, demons_folds=0.034):
+        scores = {
+            "demons": _registration(base, "demons", spec=10.0, sdlogj=2.43, folded=demons_folds),
+            "bspline": _registration(
+                base,
+                "bspline",
+                spec=10.0 / ratio,
+                sdlogj=0.99,
+                folded=folds_more,
+                family=("pairwise", "elastix"),
+            ),
+        }
+        v = _specificity_verdict(scores, {"demons", "bspline"}, dimension=dimension)
+        return [(d.better, d.worse) for d in v.decisions], v
+
+    for dimension in (2, 3, None):
+        for ratio in (1.24, 3.0):
+            pairs, v = by_specificity(ratio, 0.109, dimension)
+            assert pairs == [], (ratio, dimension)
+            assert "bspline folds 10.9% of its voxels, more than demons (3.4%)" in (
+                v.open_pairs[0].reason
+            )
+        # folding less than the other, the same preference still counts (at 3x; FRESH23's
+        # 1.24x is below what its rates ask there); and folding more, but less than 2.5%
+        assert by_specificity(3.0, 0.02, dimension)[0] == [("bspline", "demons")]
+        assert by_specificity(3.0, 0.02, dimension, 0.005)[0] == [("bspline", "demons")]
 
 
 def test_against_a_registration_that_clearly_folds_the_charge_is_lower(cheat_case):
