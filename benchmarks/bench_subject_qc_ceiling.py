@@ -222,8 +222,9 @@ def main(argv: list[str] | None = None) -> dict:
         "|---|--:|--:|--:|--:|--:|--:|",
     ]
     measured = {}
+    tuning = {}  # the tuning splits' rows per mode, counted again below for the worst k
     for labels in (True, False):
-        d = rows(bq, bv, labels=labels)
+        d = tuning[labels] = rows(bq, bv, labels=labels)
         if not len(d["failed"]):
             print("[ceiling] no saved case of the tuning splits: run bench_verdict.py first")
             return {}
@@ -253,7 +254,10 @@ def main(argv: list[str] | None = None) -> dict:
     worst_k: dict[str, dict] = {}
     for group in (SETS, ("HELD_OUT",), LATER):
         for labels in (True, False):
-            d = rows(bq, bv, labels=labels, splits=tuple(s for s in group if hasattr(bv, s)))
+            if group == SETS:
+                d = tuning[labels]
+            else:
+                d = rows(bq, bv, labels=labels, splits=tuple(s for s in group if hasattr(bv, s)))
             if not len(d["failed"]):
                 continue
             found = [
